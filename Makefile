@@ -1,0 +1,32 @@
+# The two commands a new user runs: `make demo` and `make test`. Both create .venv if missing.
+PYTHON ?= $(shell command -v python3.11 || command -v python3)
+VENV   := .venv
+BIN    := $(VENV)/bin
+STAMP  := $(VENV)/.ntp-installed
+
+.PHONY: demo test setup bench clean
+
+$(STAMP): requirements.txt pyproject.toml
+	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	$(BIN)/python -c 'import sys; assert sys.version_info[:2] == (3, 11), "ntp needs Python 3.11 (bpy 5.0.1); set PYTHON=python3.11"'
+	$(BIN)/python -m pip install -q --upgrade pip
+	# torch first and pinned, so nothing else can pull the CUDA build
+	$(BIN)/python -m pip install -q torch==2.13.0
+	$(BIN)/python -m pip install -q -r requirements.txt
+	$(BIN)/python -m pip install -q --no-deps -e .
+	touch $(STAMP)
+
+setup: $(STAMP)
+
+demo: $(STAMP)
+	$(BIN)/ntp demo
+
+test: $(STAMP)
+	$(BIN)/python -m pytest -q
+
+bench: $(STAMP)
+	$(BIN)/ntp bench physics
+	$(BIN)/ntp bench stability
+
+clean:
+	rm -rf $(VENV) ntp_demo_out .pytest_cache .hypothesis

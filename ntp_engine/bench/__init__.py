@@ -1,0 +1,35 @@
+"""Benchmarks (`ntp bench NAME`): run time and error side by side, measured in one run."""
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+from typing import Callable
+
+from ..atomic import write_text_atomic
+
+
+def timed(fn: Callable[[], object], repeat: int = 3) -> float:
+    """Best wall time in seconds of ``repeat`` calls (after one warm-up call)."""
+    fn()
+    best = float("inf")
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        fn()
+        best = min(best, time.perf_counter() - t0)
+    return best
+
+
+def print_table(rows: list[tuple], header: tuple) -> None:
+    cols = [header] + [tuple(str(c) for c in r) for r in rows]
+    widths = [max(len(r[i]) for r in cols) for i in range(len(header))]
+    for k, r in enumerate(cols):
+        print("  ".join(c.ljust(w) for c, w in zip(r, widths)))
+        if k == 0:
+            print("  ".join("-" * w for w in widths))
+
+
+def dump_json(path: str | Path | None, data: dict) -> None:
+    if path:
+        write_text_atomic(path, json.dumps(data, indent=2))
+        print(f"wrote {path}")

@@ -1,0 +1,67 @@
+"""The ``ntp`` command line."""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from .errors import NtpInputError
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="ntp", description="Neural trace photography: hand-held "
+                                "reflectance scans to relightable Blender assets.")
+    sub = p.add_subparsers(dest="command", metavar="COMMAND", required=True)
+
+    d = sub.add_parser("demo", help="run the main job on the bundled demo")
+    d.add_argument("--out", type=Path, default=Path("ntp_demo_out"), help="output folder")
+    d.add_argument("--device", type=Path, default=None, help="device TOML (default: the paper's LED array)")
+
+    dev = sub.add_parser("device", help="print a device calibration file, or list the shipped ones")
+    dev.add_argument("path", type=Path, nargs="?", default=None, help="device TOML (default: the default device)")
+    dev.add_argument("--list", action="store_true", help="list the shipped devices")
+
+    b = sub.add_parser("bench", help="benchmarks: run time and error in one run")
+    bsub = b.add_subparsers(dest="bench", metavar="NAME", required=True)
+    st = bsub.add_parser("stability", help="GGX float32 values/gradients vs float64 over >= 1e7 samples")
+    st.add_argument("--samples", type=int, default=10_000_000)
+    st.add_argument("--seed", type=int, default=0)
+    st.add_argument("--json", type=Path, default=None)
+    ph = bsub.add_parser("physics", help="BRDF evaluations/s, lumitexels/s, measurements/s (f32 vs f64)")
+    ph.add_argument("--json", type=Path, default=None)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = _parser().parse_args(argv)
+    try:
+        if args.command == "demo":
+            from . import demo
+
+            demo.run(args.out, args.device)
+        elif args.command == "device":
+            from .device import Device, list_devices
+
+            if args.list:
+                for path in list_devices():
+                    print(f"{path.name:24s} {Device.load(path).description}")
+            else:
+                print(Device.load(args.path).summary())
+        elif args.command == "bench":
+            if args.bench == "stability":
+                from .bench import stability
+
+                r = stability.run(samples=args.samples, seed=args.seed, json_path=args.json)
+                return 1 if r["nonfinite"] or r["total"]["negative_values"] else 0
+            if args.bench == "physics":
+                from .bench import physics
+
+                physics.run(json_path=args.json)
+    except NtpInputError as err:
+        print(f"ntp: error: {err}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,66 @@
+"""Local shading frames and world <-> local transforms.
+
+Convention (DESIGN.md): the local frame of a surface point has x = tangent t, y = bitangent
+b = n x t, z = normal n. A frame is stored as a ``(..., 3, 3)`` matrix whose *rows* are t, b, n,
+so ``to_local(v, F) = F @ v`` and ``to_world(v, F) = F^T @ v``. All functions broadcast over
+leading dimensions and keep the input dtype/device.
+"""
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+_TINY = 1e-20
+
+
+def safe_normalize(v: Tensor, fallback: Tensor | None = None) -> Tensor:
+    """Unit vectors along ``v (..., 3)``; where ``|v|`` is ~0, ``fallback`` (default +z).
+
+    Gradients stay finite at ``v = 0`` (the square norm is clamped before the square root).
+    """
+    sq = (v * v).sum(-1, keepdim=True)
+    out = v * torch.rsqrt(sq.clamp_min(_TINY))
+    if fallback is None:
+        fallback = torch.zeros_like(v)
+        fallback[..., 2] = 1.0
+    return torch.where(sq > _TINY, out, fallback.expand_as(v))
+
+
+def any_tangent(n: Tensor) -> Tensor:
+    """A unit vector orthogonal to the unit normal ``n (..., 3)``, continuous except at n_z = -1.
+
+    Duff et al. 2017 ("Building an orthonormal basis, revisited"), branch-free; returns ``(..., 3)``.
+    """
+    x, y, z = n.unbind(-1)
+    sign = torch.where(z >= 0, torch.ones_like(z), -torch.ones_like(z))
+    a = -1.0 / (sign + z)
+    b = x * y * a
+    return torch.stack([1.0 + sign * x * x * a, sign * b, -sign * x], -1)
+
+
+def frame_from_normal_tangent(n: Tensor, t: Tensor) -> Tensor:
+    """Orthonormal frame ``(..., 3, 3)`` with rows (t, b, n) from a normal and a rough tangent.
+
+    ``n`` is normalised; ``t`` is Gram-Schmidt orthogonalised against it (it need not be exactly
+    orthogonal). Where ``t`` is parallel to ``n`` (or zero) an arbitrary orthogonal tangent is used.
+    """
+    n = safe_normalize(n)
+    t_perp = t - (t * n).sum(-1, keepdim=True) * n
+    t = safe_normalize(t_perp, fallback=any_tangent(n))
+    b = torch.linalg.cross(n, t, dim=-1)
+    return torch.stack([t, b, n], dim=-2)
+
+
+def to_local(v: Tensor, frame: Tensor) -> Tensor:
+    """World/camera-space vectors ``(..., 3)`` into the frame ``(..., 3, 3)`` (rows t, b, n)."""
+    return (frame * v.unsqueeze(-2)).sum(-1)
+
+
+def to_world(v: Tensor, frame: Tensor) -> Tensor:
+    """Local vectors ``(..., 3)`` (x along t, z along n) back to world/camera space."""
+    return (frame * v.unsqueeze(-1)).sum(-2)
+
+
+def reflect(v: Tensor, n: Tensor) -> Tensor:
+    """Mirror direction of ``v`` about unit ``n`` (both pointing away from the surface)."""
+    return 2.0 * (v * n).sum(-1, keepdim=True) * n - v

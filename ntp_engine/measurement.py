@@ -1,0 +1,125 @@
+"""What the scanner's camera measures of a surface point (paper Eq. 1) and the confidence beta (Eq. 6).
+
+Convention: points, normals and tangents are in the scanner's camera space (OpenCV, metres), the
+camera at the origin, so the view direction is wo = -x / |x|. The physical lumitexel of a point is
+m_phys(l) = sum_q w_q f(wi, wo) (wi.n)+ Psi_l(-wi . n_l) V / r^2 over the emitter's quadrature
+points q (one for a point emitter), with unit drive I(l) = 1. The measurement in camera channel c is
+B_c = sum_l P_eff[l, c] m_phys(l, c), with P_eff = pattern @ color_matrix^T: the colour matrix says
+how much of each LED channel camera channel c sees. B is linear radiance-like units; the camera's
+pixel value is ``device.gain * B`` before the response curve.
+"""
+from __future__ import annotations
+
+from typing import Callable
+
+import torch
+from torch import Tensor
+
+from .brdf import F0_DIELECTRIC, ggx, ggx_specular
+from .device import Device
+from .frame import frame_from_normal_tangent, reflect, safe_normalize, to_local
+
+Visibility = Tensor | Callable[[Tensor, Tensor], Tensor] | None
+
+
+def emitter_geometry(device: Device, x: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Directions and falloff from points ``x (..., 3)`` to every emitter quadrature point.
+
+    Returns wi ``(..., L, Q, 3)`` (unit, from the point towards the emitter), the emitted-direction
+    weight ``w_q Psi_l / r^2`` ``(..., L, Q)``, the quadrature points ``(L, Q, 3)`` and ``r^2``.
+    """
+    pts, w = device.emitter_samples(x.dtype, x.device)
+    d = pts - x[..., None, None, :]
+    r2 = (d * d).sum(-1).clamp_min(1e-12)
+    wi = d * torch.rsqrt(r2)[..., None]
+    n_l = torch.as_tensor(device.emitter_normals, dtype=x.dtype, device=x.device)[:, None, :]
+    psi = device.psi(-(wi * n_l).sum(-1))
+    return wi, w * psi / r2, pts, r2
+
+
+def physical_lumitexel(
+    device: Device, x: Tensor, n: Tensor, t: Tensor, rho_d: Tensor, rho_s: Tensor,
+    alpha_x: Tensor, alpha_y: Tensor, visibility: Visibility = None, f0: float = F0_DIELECTRIC,
+) -> Tensor:
+    """m_phys ``(..., L, C)`` of points ``x (..., 3)`` with shading frame n, t ``(..., 3)``.
+
+    ``rho_d, rho_s (..., C)``, alphas ``(...)``. ``visibility`` (the V of Eq. 1): None (all
+    visible), a tensor broadcastable to ``(..., L, Q)``, or a callable ``(x, points (L, Q, 3)) ->
+    (..., L, Q)`` returning 0/1 (or fractional) visibility of each emitter sample.
+    """
+    wi, falloff, pts, _ = emitter_geometry(device, x)
+    if visibility is not None:
+        v = visibility(x, pts) if callable(visibility) else visibility
+        falloff = falloff * v
+    frame = frame_from_normal_tangent(n, t)
+    wo_l = to_local(safe_normalize(-x), frame)
+    wi_l = to_local(wi, frame[..., None, None, :, :])
+    f = ggx(wi_l, wo_l[..., None, None, :], rho_d[..., None, None, :], rho_s[..., None, None, :],
+            alpha_x[..., None, None], alpha_y[..., None, None], f0)  # (..., L, Q, C)
+    weight = falloff * wi_l[..., 2].clamp_min(0.0)  # (..., L, Q)
+    return (f * weight[..., None]).sum(-2)
+
+
+def measure(device: Device, m_phys: Tensor, pattern: Tensor | None = None) -> Tensor:
+    """B ``(..., C)`` from a physical lumitexel ``(..., L, C)`` under ``pattern (L, 3)`` in [0, 1]
+    (default: the device's). C = 3 uses the colour matrix; C = 1 (grayscale) uses its row mean."""
+    if pattern is None:
+        pattern = torch.as_tensor(device.pattern, dtype=m_phys.dtype, device=m_phys.device)
+    p_eff = device.effective_pattern(pattern.to(m_phys.dtype))
+    if m_phys.shape[-1] == 1:
+        p_eff = p_eff.mean(-1, keepdim=True)
+    return (m_phys * p_eff).sum(-2)
+
+
+# ---------------------------------------------------------------------------- confidence (Eq. 6)
+_PEAK_GRID = torch.linspace(-2.5, 2.5, 11, dtype=torch.float64)
+
+
+def specular_peak(wo: Tensor, alpha_x: Tensor, alpha_y: Tensor, rho_s: Tensor | float = 1.0,
+                  f0: float = F0_DIELECTRIC) -> Tensor:
+    """max over wi of rho_s * specular lobe(wi; wo) ``(...)``, for local ``wo (..., 3)``.
+
+    Searched over half vectors h ~ (ax u, ay v, 1), |u|, |v| <= 2.5 around the normal (the lobe's
+    maximum lies there: D peaks at h = n; F, G only shift it at grazing views). 0 if wo_z <= 0.
+    """
+    g = _PEAK_GRID.to(dtype=wo.dtype, device=wo.device)
+    u, v = torch.meshgrid(g, g, indexing="ij")
+    ax, ay = alpha_x[..., None], alpha_y[..., None]
+    h = safe_normalize(torch.stack([ax * u.reshape(-1), ay * v.reshape(-1), torch.ones_like(ax * u.reshape(-1))], -1))
+    wi = reflect(wo[..., None, :], h)
+    spec = ggx_specular(wi, wo[..., None, :], ax, ay, f0)
+    return torch.as_tensor(rho_s, dtype=wo.dtype, device=wo.device) * spec.amax(-1)
+
+
+def highlight_confidence(spec_at_emitters: Tensor, spec_peak: Tensor, valid: Tensor | None = None,
+                         eps: float = 0.5) -> Tensor:
+    """beta = min(max_j [log(1 + max_l s_jl) / log(1 + s*_j)] / eps, 1) ``(...)``.
+
+    ``spec_at_emitters (..., V, L)``: the specular lobe towards each emitter in view j;
+    ``spec_peak (..., V)``: its maximum over all directions; ``valid (..., V)`` masks views out
+    of the trace. beta is 0 when no view sees any highlight, 1 once a view sees >= eps of the peak
+    (in log(1 + x)); views with no lobe at all (peak 0) contribute 0.
+    """
+    num = torch.log1p(spec_at_emitters.amax(-1))
+    den = torch.log1p(spec_peak)
+    ratio = torch.where(den > 0, num / den.clamp_min(1e-30), torch.zeros_like(num))
+    if valid is not None:
+        ratio = torch.where(valid, ratio, torch.zeros_like(ratio))
+    return (ratio.amax(-1) / eps).clamp(0.0, 1.0)
+
+
+def confidence(device: Device, x: Tensor, n: Tensor, t: Tensor, alpha_x: Tensor, alpha_y: Tensor,
+               rho_s: Tensor | float = 1.0, valid: Tensor | None = None, eps: float = 0.5) -> Tensor:
+    """beta of Eq. 6 for one point seen in V views: x, n, t ``(..., V, 3)`` camera space per view,
+    alphas and (grayscale) rho_s ``(...)``, ``valid (..., V)``. Returns ``(...)`` in [0, 1]."""
+    wi, _, _, _ = emitter_geometry(device, x)  # (..., V, L, Q, 3)
+    frame = frame_from_normal_tangent(n, t)
+    wo_l = to_local(safe_normalize(-x), frame)
+    wi_l = to_local(wi, frame[..., None, None, :, :])
+    ax, ay = alpha_x[..., None], alpha_y[..., None]
+    rs = torch.as_tensor(rho_s, dtype=x.dtype, device=x.device)
+    rs_v = rs[..., None] if rs.dim() else rs
+    spec = ggx_specular(wi_l, wo_l[..., None, None, :], ax[..., None, None], ay[..., None, None])
+    spec = rs_v[..., None] * spec.flatten(-2)  # (..., V, L*Q)
+    peak = specular_peak(wo_l, ax, ay, rs_v)
+    return highlight_confidence(spec, peak, valid, eps)
