@@ -266,7 +266,9 @@ class _Reader:
 
     def integer(self, data: dict, key: str, default: int | None = None) -> int:
         value = _dig(data, key)
-        if value is None and default is not None:
+        if value is None:
+            if default is None:
+                raise self.fail(key, "missing")
             return default
         if isinstance(value, bool) or not isinstance(value, int) or value <= 0:
             raise self.fail(key, f"expected a positive integer, got {value!r}")
@@ -274,7 +276,9 @@ class _Reader:
 
     def choice(self, data: dict, key: str, options: tuple[str, ...], default: str | None = None) -> str:
         value = _dig(data, key)
-        if value is None and default is not None:
+        if value is None:
+            if default is None:
+                raise self.fail(key, "missing")
             return default
         if value not in options:
             raise self.fail(key, f"expected one of {', '.join(options)}, got {value!r}")
@@ -338,29 +342,29 @@ def _parse(data: dict, path: Path) -> Device:
     if not isinstance(name, str) or not name:
         raise r.fail("name", "missing or not a string")
     cam = r.table(data, "camera")
-    width, height = r.integer(cam, "width"), r.integer(cam, "height")
-    fx = r.number(cam, "fx", positive=True)
-    fy = r.number(cam, "fy", default=fx, positive=True)
-    K = np.array([[fx, 0, r.number(cam, "cx", (width - 1) / 2)], [0, fy, r.number(cam, "cy", (height - 1) / 2)],
+    width, height = r.integer(data, "camera.width"), r.integer(data, "camera.height")
+    fx = r.number(data, "camera.fx", positive=True)
+    fy = r.number(data, "camera.fy", default=fx, positive=True)
+    K = np.array([[fx, 0, r.number(data, "camera.cx", (width - 1) / 2)], [0, fy, r.number(data, "camera.cy", (height - 1) / 2)],
                   [0, 0, 1.0]])
-    distortion = r.array(cam, "distortion", (5,), default=np.zeros(5))
-    response = r.choice(cam, "response", RESPONSES, default="linear")
-    gamma = r.number(cam, "gamma", 2.2, positive=True)
-    gain = r.number(cam, "gain", 1.0, positive=True)
+    distortion = r.array(data, "camera.distortion", (5,), default=np.zeros(5))
+    response = r.choice(data, "camera.response", RESPONSES, default="linear")
+    gamma = r.number(data, "camera.gamma", 2.2, positive=True)
+    gain = r.number(data, "camera.gain", 1.0, positive=True)
 
     em = r.table(data, "emitters")
-    kind = r.choice(em, "kind", EMITTER_KINDS)
-    layout = r.choice(em, "layout", ("grid", "list"))
+    kind = r.choice(data, "emitters.kind", EMITTER_KINDS)
+    layout = r.choice(data, "emitters.layout", ("grid", "list"))
     grid_shape = None
     if layout == "grid":
-        count = r.array(em, "count", (2,))
+        count = r.array(data, "emitters.count", (2,))
         if (count < 1).any() or (count != np.round(count)).any():
             raise r.fail("emitters.count", "expected two positive integers [columns, rows]")
         cols, rows = int(count[0]), int(count[1])
-        pitch = r.array(em, "pitch", (2,))
-        center = r.array(em, "center", (3,))
-        u = r.unit(em, "axis", (3,))
-        v = r.unit(em, "v_axis", (3,))
+        pitch = r.array(data, "emitters.pitch", (2,))
+        center = r.array(data, "emitters.center", (3,))
+        u = r.unit(data, "emitters.axis", (3,))
+        v = r.unit(data, "emitters.v_axis", (3,))
         if abs(float(u @ v)) > 1e-6:
             raise r.fail("emitters.v_axis", "must be orthogonal to emitters.axis")
         ci = (np.arange(cols) - (cols - 1) / 2) * pitch[0]
@@ -370,53 +374,53 @@ def _parse(data: dict, path: Path) -> Device:
         positions = positions.reshape(-1, 3)
         L = cols * rows
         normal_default = np.cross(u, v)
-        normals = np.tile(r.unit(em, "normal", (3,), default=normal_default), (L, 1))
+        normals = np.tile(r.unit(data, "emitters.normal", (3,), default=normal_default), (L, 1))
         axes = np.tile(u, (L, 1))
         grid_shape = (cols, rows)
     else:
-        positions = r.array(em, "positions", (None, 3))
+        positions = r.array(data, "emitters.positions", (None, 3))
         L = len(positions)
         if L == 0:
             raise r.fail("emitters.positions", "no emitters")
-        normals = r.unit(em, "normals", (L, 3))
-        axes = r.unit(em, "axes", (L, 3))
-        gs = _dig(em, "grid_shape")
+        normals = r.unit(data, "emitters.normals", (L, 3))
+        axes = r.unit(data, "emitters.axes", (L, 3))
+        gs = _dig(data, "emitters.grid_shape")
         if gs is not None:
-            gsa = r.array(em, "grid_shape", (2,))
+            gsa = r.array(data, "emitters.grid_shape", (2,))
             if int(gsa[0]) * int(gsa[1]) != L:
                 raise r.fail("emitters.grid_shape", f"columns x rows must equal the {L} emitters")
             grid_shape = (int(gsa[0]), int(gsa[1]))
     if (np.abs((normals * axes).sum(-1)) > 1e-6).any():
         raise r.fail("emitters.axes" if layout == "list" else "emitters.normal", "emitter axis must be orthogonal to its normal")
-    size = r.array(em, "size", (2,), default=np.zeros(2))
+    size = r.array(data, "emitters.size", (2,), default=np.zeros(2))
     if (size < 0).any():
         raise r.fail("emitters.size", "must be >= 0")
     if kind != "point" and size[0] <= 0 or kind == "area" and size[1] <= 0:
         raise r.fail("emitters.size", f"a {kind} emitter needs a positive size")
-    quad = r.array(em, "quadrature", (2,), default=np.ones(2))
+    quad = r.array(data, "emitters.quadrature", (2,), default=np.ones(2))
     if (quad < 1).any() or (quad != np.round(quad)).any():
         raise r.fail("emitters.quadrature", "expected two positive integers")
-    color_matrix = r.array(em, "color_matrix", (3, 3), default=np.eye(3))
+    color_matrix = r.array(data, "emitters.color_matrix", (3, 3), default=np.eye(3))
 
-    ang = r.table(em, "angular", required=False)
-    angular_kind = r.choice(ang, "kind", ("cosine", "table"), default="cosine") if ang else "cosine"
-    exponent = r.number(ang, "exponent", 1.0) if ang else 1.0
+    ang = r.table(data, "emitters.angular", required=False)
+    angular_kind = r.choice(data, "emitters.angular.kind", ("cosine", "table"), default="cosine") if ang else "cosine"
+    exponent = r.number(data, "emitters.angular.exponent", 1.0) if ang else 1.0
     if exponent < 0:
         raise r.fail("emitters.angular.exponent", "must be >= 0")
     table = np.zeros((0, 2))
     if angular_kind == "table":
-        a = r.array(ang, "angles_deg", (None,))
-        vals = r.array(ang, "values", (len(a),))
+        a = r.array(data, "emitters.angular.angles_deg", (None,))
+        vals = r.array(data, "emitters.angular.values", (len(a),))
         if len(a) < 2 or (np.diff(a) <= 0).any() or a[0] < 0 or a[-1] > 90 or (vals < 0).any():
             raise r.fail("emitters.angular", "table needs >= 2 increasing angles in [0, 90] and values >= 0")
         table = np.stack([a, vals], -1)
 
     vv = r.table(data, "valid_volume")
-    valid_center = r.array(vv, "center", (3,))
-    valid_size = r.array(vv, "size", (3,))
+    valid_center = r.array(data, "valid_volume.center", (3,))
+    valid_size = r.array(data, "valid_volume.size", (3,))
     if (valid_size <= 0).any():
         raise r.fail("valid_volume.size", "must be > 0")
-    valid_axes = r.unit(vv, "axes", (3, 3), default=np.eye(3))
+    valid_axes = r.unit(data, "valid_volume.axes", (3, 3), default=np.eye(3))
     if np.abs(valid_axes @ valid_axes.T - np.eye(3)).max() > 1e-5:
         raise r.fail("valid_volume.axes", "rows must be orthonormal")
 

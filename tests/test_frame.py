@@ -1,0 +1,47 @@
+import torch
+
+from ntp_engine.frame import any_tangent, frame_from_normal_tangent, safe_normalize, to_local, to_world
+
+F64 = torch.float64
+
+
+def test_frame_is_orthonormal_right_handed_and_inverts():
+    gen = torch.Generator().manual_seed(0)
+    n = torch.randn(1000, 3, generator=gen, dtype=F64)
+    t = torch.randn(1000, 3, generator=gen, dtype=F64)
+    fr = frame_from_normal_tangent(n, t)
+    eye = torch.eye(3, dtype=F64).expand(1000, 3, 3)
+    torch.testing.assert_close(fr @ fr.transpose(-1, -2), eye)
+    torch.testing.assert_close(torch.linalg.det(fr), torch.ones(1000, dtype=F64))
+    torch.testing.assert_close(fr[:, 2], torch.nn.functional.normalize(n, dim=-1))
+    v = torch.randn(1000, 3, generator=gen, dtype=F64)
+    torch.testing.assert_close(to_world(to_local(v, fr), fr), v)
+    # local z of the normal itself is 1, of the tangent direction x is positive
+    torch.testing.assert_close(to_local(fr[:, 2], fr), torch.tensor([0, 0, 1.0], dtype=F64).expand(1000, 3))
+    assert (to_local(t, fr)[:, 0] > 0).all()
+
+
+def test_degenerate_tangent_falls_back():
+    n = torch.tensor([[0.0, 0.0, 1.0], [0.0, 0.0, -1.0], [1.0, 0.0, 0.0]], dtype=F64)
+    fr = frame_from_normal_tangent(n, n.clone())  # tangent parallel to the normal
+    assert torch.isfinite(fr).all()
+    torch.testing.assert_close(fr @ fr.transpose(-1, -2), torch.eye(3, dtype=F64).expand(3, 3, 3))
+    fr0 = frame_from_normal_tangent(n, torch.zeros_like(n))
+    assert torch.isfinite(fr0).all()
+
+
+def test_any_tangent_orthogonal_everywhere():
+    n = torch.nn.functional.normalize(torch.randn(5000, 3, dtype=F64), dim=-1)
+    n = torch.cat([n, torch.tensor([[0, 0, 1.0], [0, 0, -1.0], [0, 1.0, 0], [1e-9, 0, -1]], dtype=F64)])
+    n = torch.nn.functional.normalize(n, dim=-1)
+    t = any_tangent(n)
+    torch.testing.assert_close(t.norm(dim=-1), torch.ones(len(n), dtype=F64))
+    assert (t * n).sum(-1).abs().max() < 1e-12
+
+
+def test_safe_normalize_zero_has_finite_gradient():
+    v = torch.zeros(2, 3, requires_grad=True)
+    out = safe_normalize(v)
+    out.sum().backward()
+    assert torch.equal(out, torch.tensor([[0, 0, 1.0], [0, 0, 1.0]]))
+    assert torch.isfinite(v.grad).all()

@@ -1,0 +1,148 @@
+"""Eq. 1 measurements against closed forms for point, linear and area emitters; Eq. 6 confidence."""
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from ntp_engine.brdf import ggx
+from ntp_engine.device import DEVICES_DIR, Device
+from ntp_engine.measurement import confidence, measure, physical_lumitexel
+
+F64 = torch.float64
+ZERO = torch.zeros(3, dtype=F64)
+
+
+def _t(*v):
+    return torch.tensor(v if len(v) > 1 else v[0], dtype=F64)
+
+
+def _diffuse_B(device, x, n, rho=0.5, visibility=None):
+    t = torch.linalg.cross(n, _t(0.3, 1.0, 0.2), dim=-1)
+    m = physical_lumitexel(device, x, n, t, torch.full((3,), rho, dtype=F64), ZERO, _t(0.1), _t(0.1),
+                           visibility=visibility)
+    return measure(device, m)
+
+
+def _single_emitter(kind, pos, normal, axis, size=(0.0, 0.0)):
+    base = Device.load(DEVICES_DIR / f"{kind}_light.toml")
+    return dataclasses.replace(base, emitter_positions=np.array([pos], float), emitter_normals=np.array([normal], float),
+                               emitter_axes=np.array([axis], float), emitter_size=np.array(size, float))
+
+
+def test_diffuse_patch_under_point_light_is_lambert_inverse_square():
+    dev = _single_emitter("point", (0.0, 0.0, 0.0), (0.0, 0.0, 1.0), (1.0, 0.0, 0.0))
+    # head-on at 30 cm
+    B = _diffuse_B(dev, _t(0.0, 0.0, 0.3), _t(0.0, 0.0, -1.0))
+    torch.testing.assert_close(B, torch.full((3,), 0.5 / math.pi / 0.09, dtype=F64))
+    # off axis: the light sees the point at 30 deg (cosine lobe), the patch is tilted 20 deg from it
+    r, th = 0.25, math.radians(30)
+    x = _t(r * math.sin(th), 0.0, r * math.cos(th))
+    to_light = -x / r
+    tilt = math.radians(20)
+    n = to_light * math.cos(tilt) + _t(0.0, 1.0, 0.0) * math.sin(tilt)
+    B = _diffuse_B(dev, x, n)
+    expect = 0.5 / math.pi * math.cos(tilt) * math.cos(th) / r**2
+    torch.testing.assert_close(B, torch.full((3,), expect, dtype=F64))
+
+
+def test_area_light_matches_configuration_factor():
+    a, b, d = 0.32, 0.16, 0.3
+    dev = _single_emitter("area", (0.0, 0.0, 0.0), (0.0, 0.0, 1.0), (1.0, 0.0, 0.0), (a, b))
+
+    def corner(x, y):  # point-to-rectangle factor, point above a corner of an x-by-y rectangle
+        X, Y = x / d, y / d
+        return (X / math.sqrt(1 + X * X) * math.atan(Y / math.sqrt(1 + X * X))
+                + Y / math.sqrt(1 + Y * Y) * math.atan(X / math.sqrt(1 + Y * Y))) / (2 * math.pi)
+
+    F = 4 * corner(a / 2, b / 2)
+    # radiance of a unit-intensity emitter spread over area A is 1/A; E = pi L F; B = rho/pi E
+    B = _diffuse_B(dev, _t(0.0, 0.0, d), _t(0.0, 0.0, -1.0))
+    torch.testing.assert_close(B, torch.full((3,), 0.5 * F / (a * b), dtype=F64), rtol=1e-5, atol=0)
+
+
+def test_linear_light_matches_closed_form():
+    half, d = 0.16, 0.3
+    dev = _single_emitter("linear", (0.0, 0.0, 0.0), (0.0, 0.0, 1.0), (1.0, 0.0, 0.0), (2 * half, 0.0))
+    E = (half / (d * d + half * half) + math.atan(half / d) / d) / (2 * half)
+    B = _diffuse_B(dev, _t(0.0, 0.0, d), _t(0.0, 0.0, -1.0))
+    torch.testing.assert_close(B, torch.full((3,), 0.5 / math.pi * E, dtype=F64), rtol=1e-6, atol=0)
+
+
+def test_physical_lumitexel_matches_per_emitter_formula():
+    dev = Device.load()
+    x = _t(0.02, -0.01, 0.32)
+    n = torch.nn.functional.normalize(_t(0.1, -0.3, -1.0), dim=0)
+    t = torch.nn.functional.normalize(torch.linalg.cross(n, _t(0.0, 1.0, 0.0), dim=0), dim=0)
+    b = torch.linalg.cross(n, t, dim=0)
+    rd, rs, ax, ay = _t(0.2, 0.4, 0.6), _t(3.0, 2.0, 1.0), _t(0.05), _t(0.2)
+    m = physical_lumitexel(dev, x, n, t, rd, rs, ax, ay)
+    assert m.shape == (512, 3)
+    fr = torch.stack([t, b, n])
+    wo = -x / x.norm()
+    for l in (0, 100, 255, 511):
+        d = torch.as_tensor(dev.emitter_positions[l]) - x
+        r = d.norm()
+        wi = d / r
+        cos_l = float(-wi @ torch.as_tensor(dev.emitter_normals[l]))
+        expect = ggx(fr @ wi, fr @ wo, rd, rs, ax, ay) * max(float(wi @ n), 0) * max(cos_l, 0) / r**2
+        torch.testing.assert_close(m[l], expect)
+
+
+def test_pattern_color_matrix_and_visibility():
+    dev = Device.load()
+    x, n = _t(0.0, 0.0, 0.31), _t(0.0, 0.2, -1.0) / math.sqrt(1.04)
+    dev.color_matrix = np.array([[0, 1.0, 0], [0, 0, 1.0], [1.0, 0, 0]])  # camera R sees LED G, ...
+    green = torch.zeros(512, 3, dtype=F64)
+    green[:, 1] = 1.0
+    t = _t(1.0, 0.0, 0.0)
+    m = physical_lumitexel(dev, x, n, t, torch.ones(3, dtype=F64), ZERO, _t(0.1), _t(0.1))
+    B = measure(dev, m, green)
+    assert B[0] > 0 and B[1] == 0 and B[2] == 0, B
+    p1, p2 = torch.rand(2, 512, 3, dtype=F64)
+    torch.testing.assert_close(measure(dev, m, p1 + p2), measure(dev, m, p1) + measure(dev, m, p2))
+    assert measure(dev, m[:, :1], p1).shape == (1,)
+    # a visibility hook that blocks the left half of the panel removes exactly those LEDs
+    left = torch.as_tensor(dev.emitter_positions[:, 0] < 0)
+    blocked = physical_lumitexel(dev, x, n, t, torch.ones(3, dtype=F64), ZERO, _t(0.1), _t(0.1),
+                                 visibility=lambda pts, q: (~left)[:, None].to(F64))
+    torch.testing.assert_close(blocked, m * (~left)[:, None])
+    zero = physical_lumitexel(dev, x, n, t, torch.ones(3, dtype=F64), ZERO, _t(0.1), _t(0.1),
+                              visibility=torch.zeros(512, 1, dtype=F64))
+    assert (zero == 0).all()
+
+
+def test_float32_agrees_with_float64_in_batches():
+    dev = Device.load()
+    gen = torch.Generator().manual_seed(3)
+    x = torch.as_tensor(dev.valid_center) + 0.05 * torch.randn(4, 5, 3, generator=gen, dtype=F64)
+    n = torch.nn.functional.normalize(-x + 0.2 * torch.randn(4, 5, 3, generator=gen, dtype=F64), dim=-1)
+    t = torch.randn(4, 5, 3, generator=gen, dtype=F64)
+    args = (torch.rand(4, 5, 3, generator=gen, dtype=F64), 10 * torch.rand(4, 5, 3, generator=gen, dtype=F64),
+            torch.full((4, 5), 0.02, dtype=F64), torch.full((4, 5), 0.3, dtype=F64))
+    B64 = measure(dev, physical_lumitexel(dev, x, n, t, *args))
+    B32 = measure(dev, physical_lumitexel(dev, *(v.float() for v in (x, n, t, *args))))
+    assert B64.shape == (4, 5, 3) and B32.dtype == torch.float32
+    torch.testing.assert_close(B32.double(), B64, rtol=1e-4, atol=1e-4)
+
+
+def test_confidence_is_one_at_the_observed_peak_and_zero_without_highlight():
+    dev = Device.load(DEVICES_DIR / "point_light.toml")
+    light = torch.as_tensor(dev.emitter_positions[0])
+    x = _t(0.0, 0.0, 0.3)
+    h = torch.nn.functional.normalize(torch.nn.functional.normalize(light - x, dim=0)
+                                      + torch.nn.functional.normalize(-x, dim=0), dim=0)
+    t = torch.nn.functional.normalize(torch.linalg.cross(h, _t(1.0, 0.0, 0.0), dim=0), dim=0)
+    a = _t(0.01)
+    beta = confidence(dev, x[None], h[None], t[None], a, a)
+    assert float(beta) == pytest.approx(1.0)
+    # tilt the normal 30 deg away: the mirror direction misses the only light by far
+    away = torch.nn.functional.normalize(h + 0.6 * t, dim=0)
+    t2 = torch.nn.functional.normalize(torch.linalg.cross(away, _t(0.0, 1.0, 0.0), dim=0), dim=0)
+    beta0 = confidence(dev, x[None], away[None], t2[None], a, a)
+    assert float(beta0) < 1e-3
+    # two views: the peak view masked out leaves only the miss
+    both = confidence(dev, torch.stack([x, x]), torch.stack([h, away]), torch.stack([t, t2]), a, a,
+                      valid=torch.tensor([False, True]))
+    assert float(both) < 1e-3
