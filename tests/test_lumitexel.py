@@ -77,3 +77,16 @@ def test_batched_shapes_and_channels():
     assert torch.equal(img[..., 32:64, 32:64, :], s[..., 4 * 1024:5 * 1024, :].reshape(2, 2, 32, 32, 3))
     with pytest.raises(ValueError):
         unfold_cross(s, 8)
+
+
+def test_float32_extremes_are_finite_with_finite_gradients():
+    p = texel_positions(32)
+    aim = p[4 * 1024 + 100] / p[4 * 1024 + 100].norm()  # a light exactly at the mirror direction
+    n = torch.nn.functional.normalize(aim + torch.tensor([0.0, 0.0, 1.0]), dim=0)
+    n = torch.stack([n, torch.tensor([1.0, 0.0, 0.0]), torch.tensor([0.0, 0.0, -1.0])]).requires_grad_()
+    t = torch.tensor([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [1.0, 0.0, 0.0]])
+    a = torch.tensor([0.006, 0.5, 0.006], requires_grad=True)
+    d, s = render_lumitexels(n, t, torch.ones(3, 1), torch.full((3, 1), 10.0), a, a)
+    assert torch.isfinite(s).all() and torch.isfinite(d).all() and float(s.max()) > 1e3
+    (s.sum() + d.sum()).backward()
+    assert torch.isfinite(n.grad).all() and torch.isfinite(a.grad).all()

@@ -146,3 +146,20 @@ def test_confidence_is_one_at_the_observed_peak_and_zero_without_highlight():
     both = confidence(dev, torch.stack([x, x]), torch.stack([h, away]), torch.stack([t, t2]), a, a,
                       valid=torch.tensor([False, True]))
     assert float(both) < 1e-3
+
+
+def test_float32_gradients_reach_pattern_and_geometry_at_the_edges():
+    dev = Device.load()
+    x = torch.tensor([[0.0, 0.0, 0.31], [0.07, -0.07, 0.38]], requires_grad=True)
+    # one normal facing the camera, one exactly edge-on to it (grazing view)
+    n = torch.tensor([[0.0, 0.0, -1.0], [1.0, 0.0, 0.0]], requires_grad=True)
+    t = torch.tensor([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    a = torch.tensor([0.006, 0.5], requires_grad=True)
+    logits = torch.zeros(512, 3, requires_grad=True)
+    m = physical_lumitexel(dev, x, n, t, torch.full((2, 3), 0.5), torch.full((2, 3), 10.0), a, a.flip(0))
+    B = measure(dev, m, torch.sigmoid(logits))
+    assert torch.isfinite(B).all() and (B >= 0).all()
+    B.sum().backward()
+    for leaf in (x, n, a, logits):
+        assert torch.isfinite(leaf.grad).all()
+    assert logits.grad.abs().sum() > 0

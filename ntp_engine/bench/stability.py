@@ -76,6 +76,7 @@ def run(samples: int = 10_000_000, batch: int = 500_000, seed: int = 0, json_pat
     per_case = {c: dict(samples=0, nonfinite_values=0, negative_values=0, nonfinite_grads=0,
                         max_rel_err=0.0, max_grad_rel_err=0.0) for c in CASES}
     t0 = time.perf_counter()
+    batch = min(batch, max(1, math.ceil(samples / len(CASES))))  # every case runs, even in small runs
     n_batches = math.ceil(samples / batch)
     for b in tqdm(range(n_batches), desc="stability", unit="batch"):
         case = CASES[b % len(CASES)]
