@@ -21,6 +21,24 @@ def _parser() -> argparse.ArgumentParser:
     dev.add_argument("path", type=Path, nargs="?", default=None, help="device TOML (default: the default device)")
     dev.add_argument("--list", action="store_true", help="list the shipped devices")
 
+    tr = sub.add_parser("train", help="train the trace network and its lighting pattern (resumable)")
+    tr.add_argument("--preset", default="compact", choices=["compact", "paper", "small"])
+    tr.add_argument("--out", type=Path, required=True, help="run folder (checkpoint.pt, log.csv)")
+    tr.add_argument("--steps", type=int, default=20000, help="total steps (a resumed run continues to this)")
+    tr.add_argument("--resume", action="store_true", help="continue the checkpoint in --out")
+    tr.add_argument("--batch", type=int, default=64)
+    tr.add_argument("--lr", type=float, default=3e-4)
+    tr.add_argument("--seed", type=int, default=0, help="data seed")
+    tr.add_argument("--views", type=int, default=64, help="maximum trace length in training")
+    tr.add_argument("--pattern", default="learned",
+                    help="learned, or a frozen pattern: full_on, point, binary, or a CSV/NPY file")
+    tr.add_argument("--device", type=Path, default=None, help="device TOML (default: the paper's LED array)")
+    tr.add_argument("--validate-every", type=int, default=500)
+    tr.add_argument("--export", type=Path, default=None,
+                    help="after training, write a model folder here (e.g. assets/models/compact)")
+    tr.add_argument("--export-pattern-to-device", action="store_true",
+                    help="also write the learned pattern, quantised to 8 bits, into the device file")
+
     b = sub.add_parser("bench", help="benchmarks: run time and error in one run")
     bsub = b.add_subparsers(dest="bench", metavar="NAME", required=True)
     st = bsub.add_parser("stability", help="GGX float32 values/gradients vs float64 over >= 1e7 samples")
@@ -47,6 +65,27 @@ def main(argv: list[str] | None = None) -> int:
                     print(f"{path.name:24s} {Device.load(path).description}")
             else:
                 print(Device.load(args.path).summary())
+        elif args.command == "train":
+            from . import models
+            from .device import DEFAULT_DEVICE
+            from .network import NetworkConfig
+            from .train import TrainConfig, train
+
+            ncfg = NetworkConfig(preset=args.preset, frozen_pattern=None if args.pattern == "learned" else args.pattern)
+            tcfg = TrainConfig(steps=args.steps, batch=args.batch, lr=args.lr, seed=args.seed,
+                               views_max=args.views, validate_every=args.validate_every)
+            result = train(args.out, ncfg, tcfg, args.device, resume=args.resume)
+            print(f"step {result['step']}: validation loss {result['val_loss']:.4f} "
+                  f"(diffuse {result['val_diffuse']:.4f}, specular {result['val_specular']:.3f})")
+            if args.export:
+                models.export(args.out / "checkpoint.pt", args.export, result)
+                print(f"exported {args.export}")
+                if args.export_pattern_to_device:
+                    import numpy as np
+
+                    pattern = np.loadtxt(args.export / "pattern.csv", delimiter=",", ndmin=2)
+                    csv_path = models.write_pattern_to_device(pattern, args.device or DEFAULT_DEVICE)
+                    print(f"wrote {csv_path}")
         elif args.command == "bench":
             if args.bench == "stability":
                 from .bench import stability

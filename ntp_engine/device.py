@@ -63,7 +63,7 @@ class Device:
     valid_axes: np.ndarray  # (3, 3) rows: the box's axes in camera space
     response: str = "linear"  # 8-bit camera response: linear | gamma | srgb
     gamma: float = 2.2
-    gain: float = 1.0  # exposure: linear pixel value (1 = white, code 255) per unit of B
+    gain: float = 1.0  # linear pixel value (1 = code 255) per unit of B under the full-on pattern
     grid_shape: tuple[int, int] | None = None  # (columns, rows) when emitters form a grid
     description: str = ""
     source: Path | None = field(default=None, compare=False)
@@ -83,6 +83,17 @@ class Device:
         if isinstance(p, Tensor):
             return p @ torch.as_tensor(self.color_matrix, dtype=p.dtype, device=p.device).T
         return p @ self.color_matrix.T
+
+    def exposure(self, pattern: np.ndarray | Tensor | None = None) -> float | Tensor:
+        """Linear pixel value per unit of B under ``pattern``: ``gain / mean(pattern @ M^T)``.
+
+        Auto-exposure: the camera's exposure follows the pattern's mean drive, so a dimmer pattern
+        is not penalised by underexposure (``gain`` is calibrated for the full-on pattern)."""
+        p_eff = self.effective_pattern(pattern)
+        mean = p_eff.mean()
+        if isinstance(mean, Tensor):
+            return self.gain / mean.clamp_min(1e-6)
+        return self.gain / max(float(mean), 1e-6)
 
     def emitter_samples(self, dtype=torch.float32, device=None) -> tuple[Tensor, Tensor]:
         """Quadrature points ``(L, Q, 3)`` on each emitter and weights ``(L, Q)`` summing to 1."""

@@ -91,27 +91,28 @@ def specular_peak(wo: Tensor, alpha_x: Tensor, alpha_y: Tensor, rho_s: Tensor | 
     return torch.as_tensor(rho_s, dtype=wo.dtype, device=wo.device) * spec.amax(-1)
 
 
-def highlight_confidence(spec_at_emitters: Tensor, spec_peak: Tensor, valid: Tensor | None = None,
-                         eps: float = 0.5) -> Tensor:
-    """beta = min(max_j [log(1 + max_l s_jl) / log(1 + s*_j)] / eps, 1) ``(...)``.
+def highlight_ratio(spec_at_emitters: Tensor, spec_peak: Tensor) -> Tensor:
+    """Per-view ratio log(1 + max_l s_jl) / log(1 + s*_j) of Eq. 6, ``(..., V)``.
 
     ``spec_at_emitters (..., V, L)``: the specular lobe towards each emitter in view j;
-    ``spec_peak (..., V)``: its maximum over all directions; ``valid (..., V)`` masks views out
-    of the trace. beta is 0 when no view sees any highlight, 1 once a view sees >= eps of the peak
-    (in log(1 + x)); views with no lobe at all (peak 0) contribute 0.
+    ``spec_peak (..., V)``: its maximum over all directions. Views with no lobe (peak 0) give 0.
     """
     num = torch.log1p(spec_at_emitters.amax(-1))
     den = torch.log1p(spec_peak)
-    ratio = torch.where(den > 0, num / den.clamp_min(1e-30), torch.zeros_like(num))
+    return torch.where(den > 0, num / den.clamp_min(1e-30), torch.zeros_like(num))
+
+
+def confidence_from_ratios(ratio: Tensor, valid: Tensor | None = None, eps: float = 0.5) -> Tensor:
+    """beta = min(max_j ratio_j / eps, 1) over the views in the trace (``valid (..., V)``)."""
     if valid is not None:
         ratio = torch.where(valid, ratio, torch.zeros_like(ratio))
     return (ratio.amax(-1) / eps).clamp(0.0, 1.0)
 
 
-def confidence(device: Device, x: Tensor, n: Tensor, t: Tensor, alpha_x: Tensor, alpha_y: Tensor,
-               rho_s: Tensor | float = 1.0, valid: Tensor | None = None, eps: float = 0.5) -> Tensor:
-    """beta of Eq. 6 for one point seen in V views: x, n, t ``(..., V, 3)`` camera space per view,
-    alphas and (grayscale) rho_s ``(...)``, ``valid (..., V)``. Returns ``(...)`` in [0, 1]."""
+def view_highlight_ratio(device: Device, x: Tensor, n: Tensor, t: Tensor, alpha_x: Tensor, alpha_y: Tensor,
+                         rho_s: Tensor | float = 1.0) -> Tensor:
+    """Eq. 6's per-view ratio for one point seen in V views: x, n, t ``(..., V, 3)`` camera space,
+    alphas and grayscale rho_s ``(...)``. Returns ``(..., V)`` in [0, ~1]."""
     wi, _, _, _ = emitter_geometry(device, x)  # (..., V, L, Q, 3)
     frame = frame_from_normal_tangent(n, t)
     wo_l = to_local(safe_normalize(-x), frame)
@@ -121,5 +122,12 @@ def confidence(device: Device, x: Tensor, n: Tensor, t: Tensor, alpha_x: Tensor,
     rs_v = rs[..., None] if rs.dim() else rs
     spec = ggx_specular(wi_l, wo_l[..., None, None, :], ax[..., None, None], ay[..., None, None])
     spec = rs_v[..., None] * spec.flatten(-2)  # (..., V, L*Q)
-    peak = specular_peak(wo_l, ax, ay, rs_v)
-    return highlight_confidence(spec, peak, valid, eps)
+    return highlight_ratio(spec, specular_peak(wo_l, ax, ay, rs_v))
+
+
+def confidence(device: Device, x: Tensor, n: Tensor, t: Tensor, alpha_x: Tensor, alpha_y: Tensor,
+               rho_s: Tensor | float = 1.0, valid: Tensor | None = None, eps: float = 0.5) -> Tensor:
+    """beta of Eq. 6 for one point seen in V views (see ``view_highlight_ratio``); ``valid (..., V)``
+    masks views out of the trace. beta is 0 when no view sees any highlight, 1 once a view sees
+    >= eps of the peak (in log(1 + x)). Returns ``(...)`` in [0, 1]."""
+    return confidence_from_ratios(view_highlight_ratio(device, x, n, t, alpha_x, alpha_y, rho_s), valid, eps)

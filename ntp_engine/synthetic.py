@@ -1,0 +1,148 @@
+"""Synthetic training traces (paper §6.5), generated on the fly, seeded, batched on CPU or CUDA.
+
+Convention: a synthetic point has a fixed *geometric* frame (n^, t^) per view, sampled in camera
+space (n^ faces the camera with wo.n^ > 0.3, t^ random orthogonal: a random scanner pose), and a
+fixed *shading* frame (n, t) expressed in the geometric frame: n is n^ = +z perturbed by a random
+orthogonal vector of length ~ N(0, 0.15) (Eq. 4's imprecise geometric normal), t random
+orthogonal to n. The same local shading frame is used in every view (a rigid object), so the true
+camera-space frame of view j is n_j = F^_j^T n, t_j = F^_j^T t. The labels are the grayscale
+(channel-mean rho) lumitexels in the geometric frame, which is also the network's output frame.
+
+What stays *outside* this module, because it depends on the (learned) pattern: the measurement
+B = pattern . m_phys, its noise, 8-bit quantisation and the [32, 224] validity test. The batch
+carries the physical lumitexels ``m_phys`` and the per-view highlight ratios for beta.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from .brdf import ALPHA_MAX, ALPHA_MIN, RHO_D_MAX, RHO_S_MAX
+from .device import Device
+from .frame import any_tangent, safe_normalize
+from .lumitexel import render_lumitexels
+from .measurement import physical_lumitexel, view_highlight_ratio
+
+
+@dataclass
+class SyntheticConfig:
+    views_min: int = 16  # trace length is uniform in [views_min, views_max]
+    views_max: int = 64
+    normal_sigma: float = 0.15  # geometric-normal perturbation (Eq. 4)
+    albedo_jitter: float = 0.10  # per-view multiplicative N(1, sigma) on each rho channel
+    roughness_jitter: float = 0.15  # per-view multiplicative N(1, sigma) on alphas
+    min_cos_view: float = 0.3  # wo . n^ > 0.3, the pipeline's grazing test
+    rho_s_max: float = RHO_S_MAX
+
+
+@dataclass
+class TraceBatch:
+    """A batch of B synthetic points with V (padded) views each."""
+
+    m_phys: Tensor  # (B, V, L, 3) physical lumitexels, unit drive, camera channels
+    position: Tensor  # (B, V, 3) camera space, m
+    normal_geo: Tensor  # (B, V, 3) n^ in camera space
+    tangent_geo: Tensor  # (B, V, 3) t^ in camera space
+    length_mask: Tensor  # (B, V) bool: the view is part of the trace
+    highlight_ratio: Tensor  # (B, V) Eq. 6 per-view ratio (grayscale rho_s)
+    label_diffuse: Tensor  # (B, 384) grayscale diffuse lumitexel in the geometric frame
+    label_specular: Tensor  # (B, 6144) grayscale specular lumitexel in the geometric frame
+    params: dict[str, Tensor]  # rho_d (B,3), rho_s (B,3), alpha_x, alpha_y (B,), n_local, t_local (B,3)
+
+    def to(self, device) -> "TraceBatch":
+        move = lambda v: v.to(device)
+        return TraceBatch(**{k: (move(v) if isinstance(v, Tensor) else {kk: move(vv) for kk, vv in v.items()})
+                             for k, v in vars(self).items()})
+
+
+def _random_orthogonal(n: Tensor, gen: torch.Generator) -> Tensor:
+    """Uniformly random unit vectors orthogonal to unit ``n (..., 3)``."""
+    t0 = any_tangent(n)
+    b0 = torch.linalg.cross(n, t0, dim=-1)
+    phi = 2 * math.pi * torch.rand(n.shape[:-1], generator=gen, dtype=n.dtype, device=n.device)
+    return torch.cos(phi)[..., None] * t0 + torch.sin(phi)[..., None] * b0
+
+
+def _log_uniform(shape, lo, hi, gen, dtype, device) -> Tensor:
+    u = torch.rand(shape, generator=gen, dtype=dtype, device=device)
+    return torch.exp(math.log(lo) + (math.log(hi) - math.log(lo)) * u)
+
+
+def sample_brdfs(batch: int, gen: torch.Generator, dtype=torch.float32, device=None,
+                 rho_s_max: float = RHO_S_MAX) -> dict[str, Tensor]:
+    """rho_d ~ U[0,1]^3, rho_s ~ U[0, rho_s_max]^3, alphas log-uniform in [0.006, 0.5]."""
+    kw = dict(generator=gen, dtype=dtype, device=device)
+    return {
+        "rho_d": RHO_D_MAX * torch.rand(batch, 3, **kw),
+        "rho_s": rho_s_max * torch.rand(batch, 3, **kw),
+        "alpha_x": _log_uniform((batch,), ALPHA_MIN, ALPHA_MAX, gen, dtype, device),
+        "alpha_y": _log_uniform((batch,), ALPHA_MIN, ALPHA_MAX, gen, dtype, device),
+    }
+
+
+def sample_positions(device_cal: Device, shape, gen, dtype, device) -> Tensor:
+    """Uniform points ``shape + (3,)`` in the device's valid box (camera space)."""
+    u = torch.rand(*shape, 3, generator=gen, dtype=dtype, device=device) - 0.5
+    size = torch.as_tensor(device_cal.valid_size, dtype=dtype, device=device)
+    axes = torch.as_tensor(device_cal.valid_axes, dtype=dtype, device=device)
+    centre = torch.as_tensor(device_cal.valid_center, dtype=dtype, device=device)
+    return centre + (u * size) @ axes
+
+
+def sample_visible_normals(x: Tensor, min_cos: float, gen: torch.Generator) -> Tensor:
+    """Unit normals uniform in solid angle over {n : n . wo > min_cos}, wo = -x/|x| (towards camera)."""
+    wo = safe_normalize(-x)
+    u = torch.rand(x.shape[:-1], generator=gen, dtype=x.dtype, device=x.device)
+    cos = min_cos + (1 - min_cos) * u  # uniform in cos = uniform in solid angle
+    sin = torch.sqrt((1 - cos * cos).clamp_min(0))
+    side = _random_orthogonal(wo, gen)
+    return cos[..., None] * wo + sin[..., None] * side
+
+
+def sample_batch(device_cal: Device, batch: int, gen: torch.Generator, cfg: SyntheticConfig | None = None,
+                 dtype=torch.float32, device=None, views: int | None = None) -> TraceBatch:
+    """One batch of synthetic traces. ``views`` fixes every trace's length (else random per trace)."""
+    cfg = cfg or SyntheticConfig()
+    kw = dict(generator=gen, dtype=dtype, device=device)
+    V = views or cfg.views_max
+    p = sample_brdfs(batch, gen, dtype, device, cfg.rho_s_max)
+
+    # shading frame in the geometric (lumitexel) frame, shared by all views
+    z = torch.zeros(batch, 3, dtype=dtype, device=device)
+    z[:, 2] = 1.0
+    offset = _random_orthogonal(z, gen) * (cfg.normal_sigma * torch.randn(batch, 1, **kw))
+    n_local = safe_normalize(z + offset)
+    t_local = _random_orthogonal(n_local, gen)
+    p["n_local"], p["t_local"] = n_local, t_local
+
+    # per view: position, geometric frame (a random scanner pose), true frame
+    x = sample_positions(device_cal, (batch, V), gen, dtype, device)
+    n_geo = sample_visible_normals(x, cfg.min_cos_view, gen)
+    t_geo = _random_orthogonal(n_geo, gen)
+    b_geo = torch.linalg.cross(n_geo, t_geo, dim=-1)
+    geo = torch.stack([t_geo, b_geo, n_geo], dim=-2)  # (B, V, 3, 3) rows
+    n_cam = (geo * n_local[:, None, :, None]).sum(-2)
+    t_cam = (geo * t_local[:, None, :, None]).sum(-2)
+
+    # per-view material jitter (calibration and model error), clamped to the model's ranges
+    jit = lambda s, shape: 1 + s * torch.randn(*shape, **kw)
+    rho_d = (p["rho_d"][:, None] * jit(cfg.albedo_jitter, (batch, V, 3))).clamp(0, RHO_D_MAX)
+    rho_s = (p["rho_s"][:, None] * jit(cfg.albedo_jitter, (batch, V, 3))).clamp(0, cfg.rho_s_max)
+    ax = (p["alpha_x"][:, None] * jit(cfg.roughness_jitter, (batch, V))).clamp(ALPHA_MIN, ALPHA_MAX)
+    ay = (p["alpha_y"][:, None] * jit(cfg.roughness_jitter, (batch, V))).clamp(ALPHA_MIN, ALPHA_MAX)
+    m_phys = physical_lumitexel(device_cal, x, n_cam, t_cam, rho_d, rho_s, ax, ay)
+    ratio = view_highlight_ratio(device_cal, x, n_cam, t_cam, p["alpha_x"], p["alpha_y"], p["rho_s"].mean(-1))
+
+    if views is None:
+        lengths = torch.randint(cfg.views_min, cfg.views_max + 1, (batch,), generator=gen, device=device)
+    else:
+        lengths = torch.full((batch,), V, device=device)
+    mask = torch.arange(V, device=device)[None, :] < lengths[:, None]
+
+    d, s = render_lumitexels(n_local, t_local, p["rho_d"].mean(-1, keepdim=True), p["rho_s"].mean(-1, keepdim=True),
+                             p["alpha_x"], p["alpha_y"])
+    return TraceBatch(m_phys=m_phys, position=x, normal_geo=n_geo, tangent_geo=t_geo, length_mask=mask,
+                      highlight_ratio=ratio, label_diffuse=d[..., 0], label_specular=s[..., 0], params=p)

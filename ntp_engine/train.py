@@ -1,0 +1,148 @@
+"""``ntp train``: joint training of the trace network and the lighting pattern (paper §6.5).
+
+Every step's data comes from a generator seeded with (seed, step), so an interrupted run resumed
+from its checkpoint sees exactly the data it would have seen. Validation uses a fixed, separately
+seeded set (also its noise), evaluated with dropout off. Files in OUT: ``checkpoint.pt`` (model,
+optimiser, step; written atomically every ``checkpoint_every`` steps), ``log.csv`` (step, train
+and validation losses), ``config.json``.
+"""
+from __future__ import annotations
+
+import csv
+import json
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from .atomic import atomic_path, write_text_atomic
+from .device import Device
+from .measurement import confidence_from_ratios
+from .network import NetworkConfig, TraceNet, lumitexel_loss, num_parameters
+from .synthetic import SyntheticConfig, TraceBatch, sample_batch
+
+VAL_SEED_OFFSET = 1_000_003
+
+
+@dataclass
+class TrainConfig:
+    steps: int = 20000
+    batch: int = 64
+    lr: float = 3e-4
+    seed: int = 0
+    validate_every: int = 500
+    checkpoint_every: int = 250
+    val_batches: int = 8
+    views_max: int = 64
+
+
+def _step_generator(seed: int, step: int, device) -> torch.Generator:
+    g = torch.Generator(device=device)
+    g.manual_seed(seed * 1_000_000_007 + step)
+    return g
+
+
+def batch_loss(model: TraceNet, batch: TraceBatch, gen: torch.Generator, noise: bool = True):
+    """Measure, filter, predict and score one batch: (loss, diffuse part, specular part, valid mask)."""
+    pixel, valid = model.measure(batch.m_phys, batch.length_mask, gen, noise=noise)
+    beta = confidence_from_ratios(batch.highlight_ratio, valid)
+    entries = model.entries(pixel, batch.position, batch.normal_geo, batch.tangent_geo)
+    pred_d, pred_s = model(entries, valid)
+    has_view = valid.any(1).to(pred_d.dtype)
+    total, ld, ls = lumitexel_loss(pred_d, pred_s, batch.label_diffuse, batch.label_specular, beta, weight=has_view)
+    return total, ld, ls, valid
+
+
+@torch.no_grad()
+def validate(model: TraceNet, device_cal: Device, tcfg: TrainConfig, scfg: SyntheticConfig, torch_device,
+             views: int | None = None, batches: int | None = None) -> dict[str, float]:
+    """Mean Eq. 5 loss on the fixed validation set (dropout off). ``views`` fixes the trace length."""
+    was_training = model.training
+    model.eval()
+    sums = np.zeros(3)
+    valid_frac = 0.0
+    n = batches or tcfg.val_batches
+    for k in range(n):
+        gen = _step_generator(tcfg.seed + VAL_SEED_OFFSET, k, torch_device)
+        batch = sample_batch(device_cal, tcfg.batch, gen, scfg, device=torch_device, views=views)
+        total, ld, ls, valid = batch_loss(model, batch, gen)
+        sums += [float(total), float(ld), float(ls)]
+        valid_frac += float(valid.float().sum() / batch.length_mask.float().sum())
+    model.train(was_training)
+    sums /= n
+    return {"val_loss": sums[0], "val_diffuse": sums[1], "val_specular": sums[2], "val_valid_views": valid_frac / n}
+
+
+def train(out: Path, ncfg: NetworkConfig, tcfg: TrainConfig, device_path: Path | None = None,
+          resume: bool = False, progress: bool = True) -> dict:
+    out.mkdir(parents=True, exist_ok=True)
+    torch_device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    device_cal = Device.load(device_path)
+    scfg = SyntheticConfig(views_max=tcfg.views_max)
+    ckpt_path = out / "checkpoint.pt"
+    model = TraceNet(ncfg, device_cal).to(torch_device)
+    opt = torch.optim.Adam([p for p in model.parameters() if p.requires_grad], lr=tcfg.lr, betas=(0.9, 0.999))
+    step, elapsed = 0, 0.0
+    if resume and ckpt_path.exists():
+        ck = torch.load(ckpt_path, map_location=torch_device, weights_only=False)
+        if ck["network"] != ncfg.to_dict():
+            raise SystemExit(f"{ckpt_path}: checkpoint was trained with a different network config")
+        model.load_state_dict(ck["model"])
+        opt.load_state_dict(ck["optimizer"])
+        step, elapsed = ck["step"], ck.get("elapsed_s", 0.0)
+        tcfg.seed = ck["train"]["seed"]
+        print(f"resuming {ckpt_path} at step {step}")
+    elif ckpt_path.exists() and not resume:
+        raise SystemExit(f"{ckpt_path}: exists; pass --resume to continue it or choose another --out")
+    write_text_atomic(out / "config.json", json.dumps({"network": ncfg.to_dict(), "train": asdict(tcfg),
+                                                        "device": device_cal.name, "parameters": num_parameters(model)},
+                                                       indent=2))
+    log_path = out / "log.csv"
+    new_log = not log_path.exists()
+    log = open(log_path, "a", newline="")
+    writer = csv.writer(log)
+    if new_log:
+        writer.writerow(["step", "train_loss", "val_loss", "val_diffuse", "val_specular", "val_valid_views",
+                         "elapsed_s"])
+
+    def save():
+        nonlocal elapsed
+        with atomic_path(ckpt_path) as tmp:
+            torch.save({"model": model.state_dict(), "optimizer": opt.state_dict(), "step": step,
+                        "network": ncfg.to_dict(), "train": asdict(tcfg), "device": device_cal.name,
+                        "elapsed_s": elapsed}, tmp)
+
+    model.train()
+    running, count = 0.0, 0
+    last = {}
+    bar = tqdm(total=tcfg.steps, initial=step, desc="train", unit="step", disable=not progress)
+    t_last = time.perf_counter()
+    while step < tcfg.steps:
+        gen = _step_generator(tcfg.seed, step, torch_device)
+        batch = sample_batch(device_cal, tcfg.batch, gen, scfg, device=torch_device)
+        loss, _, _, _ = batch_loss(model, batch, gen)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        step += 1
+        running, count = running + float(loss), count + 1
+        now = time.perf_counter()
+        elapsed, t_last = elapsed + (now - t_last), now
+        bar.update(1)
+        if step % tcfg.validate_every == 0 or step == tcfg.steps:
+            last = validate(model, device_cal, tcfg, scfg, torch_device)
+            writer.writerow([step, running / max(count, 1), *(f"{last[k]:.6g}" for k in
+                             ("val_loss", "val_diffuse", "val_specular", "val_valid_views")), f"{elapsed:.1f}"])
+            log.flush()
+            bar.set_postfix(train=f"{running / max(count, 1):.3f}", val=f"{last['val_loss']:.3f}")
+            running, count = 0.0, 0
+        if step % tcfg.checkpoint_every == 0 or step == tcfg.steps:
+            save()
+    bar.close()
+    log.close()
+    if not last:
+        last = validate(model, device_cal, tcfg, scfg, torch_device)
+    return {"step": step, "elapsed_s": elapsed, **last}
