@@ -81,7 +81,7 @@ def train(out: Path, ncfg: NetworkConfig, tcfg: TrainConfig, device_path: Path |
     out.mkdir(parents=True, exist_ok=True)
     torch_device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
     device_cal = Device.load(device_path)
-    scfg = SyntheticConfig(views_max=tcfg.views_max)
+    scfg = SyntheticConfig(views_min=min(16, tcfg.views_max), views_max=tcfg.views_max)
     ckpt_path = out / "checkpoint.pt"
     model = TraceNet(ncfg, device_cal).to(torch_device)
     opt = torch.optim.Adam([p for p in model.parameters() if p.requires_grad], lr=tcfg.lr, betas=(0.9, 0.999))

@@ -1,0 +1,95 @@
+"""Network inference on ragged traces, in memory-bounded batches.
+
+A ``RaggedTraces`` holds N traces of different lengths as one ``(E, 12)`` entry table in CSR
+form: trace k is ``entries[offsets[k]:offsets[k+1]]``. An entry is (linear pixel RGB, position
+in camera space in metres, geometric normal n^, geometric tangent t^), camera space of its view —
+the network normalises positions itself. Traces are batched by similar length (less padding),
+at most ``max_entries`` padded entries per batch, and results come back with their trace indices.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Iterator
+
+import torch
+from torch import Tensor
+
+from .network import TraceNet
+
+
+@dataclass
+class RaggedTraces:
+    entries: Tensor  # (E, 12) float32
+    offsets: Tensor  # (N + 1,) int64, offsets[0] = 0, offsets[-1] = E
+
+    def __post_init__(self):
+        if self.entries.ndim != 2 or self.entries.shape[1] != 12:
+            raise ValueError(f"entries must be (E, 12), got {tuple(self.entries.shape)}")
+        if self.offsets.ndim != 1 or int(self.offsets[0]) != 0 or int(self.offsets[-1]) != len(self.entries):
+            raise ValueError("offsets must start at 0 and end at the number of entries")
+        if (self.offsets[1:] < self.offsets[:-1]).any():
+            raise ValueError("offsets must not decrease")
+
+    @property
+    def num_traces(self) -> int:
+        return len(self.offsets) - 1
+
+    @property
+    def lengths(self) -> Tensor:
+        return self.offsets[1:] - self.offsets[:-1]
+
+    @classmethod
+    def from_padded(cls, entries: Tensor, mask: Tensor) -> "RaggedTraces":
+        """From ``(N, V, 12)`` entries and a ``(N, V)`` mask (any pattern of valid views)."""
+        lengths = mask.sum(1)
+        offsets = torch.zeros(len(lengths) + 1, dtype=torch.int64)
+        offsets[1:] = torch.cumsum(lengths, 0)
+        return cls(entries[mask].to(torch.float32), offsets)
+
+
+def _batches(lengths: Tensor, max_entries: int) -> Iterator[Tensor]:
+    order = torch.argsort(lengths, descending=True, stable=True)
+    sorted_len = lengths[order].clamp_min(1)
+    start, n = 0, len(order)
+    while start < n:
+        width = int(sorted_len[start])  # the longest in this batch (sorted descending)
+        count = max(1, min(n - start, max_entries // width))
+        yield order[start:start + count]
+        start += count
+
+
+@torch.inference_mode()
+def predict(model: TraceNet, traces: RaggedTraces, max_entries: int = 1 << 16,
+            device: torch.device | str | None = None) -> Iterator[tuple[Tensor, Tensor, Tensor]]:
+    """Yield ``(trace indices (n,), diffuse (n, 384), specular (n, 6144))`` batch by batch.
+
+    Lumitexels are non-negative (the specular head predicts log(1 + x)); a trace with no entry
+    gives the network's answer for an empty trace. Memory is bounded by ``max_entries`` padded
+    entries per batch plus ``n * 6528`` outputs."""
+    model.eval()
+    dev = torch.device(device) if device else next(model.parameters()).device
+    lengths = traces.lengths
+    for idx in _batches(lengths, max_entries):
+        L = lengths[idx]
+        width = max(int(L.max()), 1)
+        starts = traces.offsets[idx]
+        pos = torch.arange(width)[None, :]
+        mask = pos < L[:, None]
+        gather = (starts[:, None] + pos).clamp_max(max(len(traces.entries) - 1, 0))
+        if len(traces.entries):
+            raw = traces.entries[gather].to(dev)
+        else:
+            raw = torch.zeros(len(idx), width, 12, device=dev)
+        raw = torch.where(mask.to(dev)[..., None], raw, torch.zeros_like(raw))
+        x = model.entries(raw[..., 0:3], raw[..., 3:6], raw[..., 6:9], raw[..., 9:12])
+        d, s = model(x, mask.to(dev))
+        yield idx, d.clamp_min(0).float().cpu(), torch.expm1(s.clamp_min(0)).float().cpu()
+
+
+def predict_all(model: TraceNet, traces: RaggedTraces, max_entries: int = 1 << 16) -> tuple[Tensor, Tensor]:
+    """All lumitexels at once, ``(N, 384)`` and ``(N, 6144)``, in trace order (small N only)."""
+    diffuse = torch.zeros(traces.num_traces, model.cfg.diffuse_size)
+    specular = torch.zeros(traces.num_traces, model.cfg.specular_size)
+    for idx, d, s in predict(model, traces, max_entries):
+        diffuse[idx], specular[idx] = d, s
+    return diffuse, specular

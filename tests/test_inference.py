@@ -1,0 +1,77 @@
+import numpy as np
+import pytest
+import torch
+
+from ntp_engine import models
+from ntp_engine.device import Device
+from ntp_engine.errors import NtpInputError
+from ntp_engine.inference import RaggedTraces, predict, predict_all
+from ntp_engine.network import NetworkConfig, TraceNet
+
+
+def _traces(n=9, seed=0):
+    gen = torch.Generator().manual_seed(seed)
+    lengths = torch.randint(0, 12, (n,), generator=gen)
+    lengths[0] = 0  # an empty trace
+    offsets = torch.zeros(n + 1, dtype=torch.int64)
+    offsets[1:] = torch.cumsum(lengths, 0)
+    entries = torch.rand(int(offsets[-1]), 12, generator=gen)
+    return RaggedTraces(entries, offsets)
+
+
+def test_ragged_prediction_matches_padded_forward_in_any_batching():
+    torch.manual_seed(0)
+    net = TraceNet(NetworkConfig(preset="small"), Device.load()).eval()
+    tr = _traces()
+    d_all, s_all = predict_all(net, tr, max_entries=1 << 12)
+    d_small, s_small = predict_all(net, tr, max_entries=13)  # many tiny batches
+    torch.testing.assert_close(d_all, d_small)
+    torch.testing.assert_close(s_all, s_small)
+    for k in (1, 4):
+        a, b = int(tr.offsets[k]), int(tr.offsets[k + 1])
+        raw = tr.entries[a:b][None]
+        x = net.entries(raw[..., :3], raw[..., 3:6], raw[..., 6:9], raw[..., 9:])
+        with torch.no_grad():
+            d, s = net(x, torch.ones(1, b - a, dtype=torch.bool))
+        torch.testing.assert_close(d_all[k], d[0].clamp_min(0))
+        torch.testing.assert_close(s_all[k], torch.expm1(s[0].clamp_min(0)))
+    assert (s_all >= 0).all() and torch.isfinite(d_all).all()
+    seen = torch.cat([idx for idx, _, _ in predict(net, tr, max_entries=20)])
+    assert sorted(seen.tolist()) == list(range(tr.num_traces))
+
+
+def test_bad_ragged_input():
+    with pytest.raises(ValueError):
+        RaggedTraces(torch.zeros(4, 10), torch.tensor([0, 4]))
+    with pytest.raises(ValueError):
+        RaggedTraces(torch.zeros(4, 12), torch.tensor([0, 3]))
+
+
+def test_export_and_load_round_trip(tmp_path):
+    from ntp_engine.train import TrainConfig, train
+
+    run = tmp_path / "run"
+    train(run, NetworkConfig(preset="small"), TrainConfig(steps=2, batch=4, validate_every=2, val_batches=1,
+                                                           views_max=8), progress=False)
+    models.export(run / "checkpoint.pt", tmp_path / "model", {"val_loss": 1.0})
+    net, meta = models.load(tmp_path / "model")
+    assert meta["network"]["preset"] == "small" and meta["summary"]["steps"] == 2
+    ck = torch.load(run / "checkpoint.pt", weights_only=False)
+    torch.testing.assert_close(net.pattern_logits.detach(), ck["model"]["pattern_logits"])
+    w = ck["model"]["encoder.0.weight"]
+    torch.testing.assert_close(net.encoder[0].weight.detach(), w.half().float())
+    pattern = np.loadtxt(tmp_path / "model" / "pattern.csv", delimiter=",")
+    assert pattern.shape == (512, 3) and ((pattern > 0) & (pattern < 1)).all()
+    with pytest.raises(NtpInputError, match="not a model folder"):
+        models.load(tmp_path / "nothing")
+
+
+def test_pattern_export_to_device_is_quantised(tmp_path):
+    src = Device.load()
+    dev_file = tmp_path / "dev.toml"
+    dev_file.write_text(open(src.source).read())
+    pattern = np.random.default_rng(0).random((512, 3))
+    models.write_pattern_to_device(pattern, dev_file)
+    loaded = Device.load(dev_file).pattern
+    np.testing.assert_allclose(loaded, np.round(pattern * 255) / 255, atol=1e-7)
+    np.testing.assert_allclose(loaded * 255, np.round(loaded * 255), atol=1e-5)

@@ -1,0 +1,88 @@
+import torch
+
+from ntp_engine.device import Device
+from ntp_engine.measurement import confidence_from_ratios
+from ntp_engine.network import NetworkConfig, TraceNet, lumitexel_loss
+from ntp_engine.synthetic import SyntheticConfig, sample_batch
+from ntp_engine.train import batch_loss
+
+
+def _net(**kw):
+    torch.manual_seed(0)
+    return TraceNet(NetworkConfig(preset="small", **kw), Device.load())
+
+
+def test_masked_pooling_ignores_order_and_padding():
+    net = _net().eval()
+    gen = torch.Generator().manual_seed(0)
+    x = torch.randn(3, 10, 12, generator=gen)
+    mask = torch.ones(3, 10, dtype=torch.bool)
+    d0, s0 = net(x, mask)
+    perm = torch.randperm(10, generator=gen)
+    d1, s1 = net(x[:, perm], mask)
+    torch.testing.assert_close(d0, d1)
+    torch.testing.assert_close(s0, s1)
+    # padding with huge garbage that would win an unmasked max
+    pad = torch.full((3, 6, 12), 1e6)
+    d2, s2 = net(torch.cat([x, pad], 1), torch.cat([mask, torch.zeros(3, 6, dtype=torch.bool)], 1))
+    torch.testing.assert_close(d0, d2)
+    torch.testing.assert_close(s0, s2)
+    # an empty trace pools to zeros (finite output, no -inf)
+    d3, s3 = net(x[:1], torch.zeros(1, 10, dtype=torch.bool))
+    assert torch.isfinite(d3).all() and torch.isfinite(s3).all()
+
+
+def test_gradients_reach_the_pattern_unless_frozen():
+    dev = Device.load()
+    batch = sample_batch(dev, 8, torch.Generator().manual_seed(1), SyntheticConfig(views_max=16))
+    net = _net()
+    loss, _, _, valid = batch_loss(net, batch, torch.Generator().manual_seed(2))
+    loss.backward()
+    g = net.pattern_logits.grad
+    assert valid.any() and torch.isfinite(g).all() and g.abs().sum() > 0
+    frozen = _net(frozen_pattern="full_on")
+    assert not frozen.pattern_logits.requires_grad
+    assert torch.allclose(frozen.pattern(), torch.ones(512, 3), atol=1e-5)
+    point = _net(frozen_pattern="point").pattern()
+    assert int((point > 0.5).any(1).sum()) == 1
+
+
+def test_measure_quantises_and_applies_the_validity_range():
+    net = _net(frozen_pattern="full_on")
+    m = torch.zeros(1, 4, 512, 3)
+    # one view per case: too dark, fine, fine, saturated
+    levels = torch.tensor([10.0, 100.0, 200.0, 250.0]) / 255 / float(net.gain) / 512
+    m[0] = levels[:, None, None]
+    pixel, valid = net.measure(m, torch.ones(1, 4, dtype=torch.bool), noise=False)
+    assert valid.tolist() == [[False, True, True, False]]
+    codes = pixel * 255
+    torch.testing.assert_close(codes, codes.round(), atol=1e-3, rtol=0)
+
+
+def test_confidence_respects_valid_views():
+    ratio = torch.tensor([[0.9, 0.1], [0.0, 0.0]])
+    assert confidence_from_ratios(ratio).tolist() == [1.0, 0.0]
+    assert torch.allclose(confidence_from_ratios(ratio, torch.tensor([[False, True], [True, True]])),
+                          torch.tensor([0.2, 0.0]))
+
+
+def test_tiny_overfit_drives_the_loss_down():
+    dev = Device.load()
+    batch = sample_batch(dev, 8, torch.Generator().manual_seed(4), SyntheticConfig(views_min=24, views_max=24))
+    net = _net(dropout=0.0)
+    opt = torch.optim.Adam(net.parameters(), lr=1e-3)
+    losses = []
+    for step in range(150):
+        loss, _, _, _ = batch_loss(net, batch, torch.Generator().manual_seed(99), noise=False)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        losses.append(loss.item())
+    assert losses[-1] < 0.1 * losses[0], (losses[0], losses[-1])
+
+
+def test_loss_is_eq5():
+    pd, ps = torch.zeros(2, 384), torch.zeros(2, 6144)
+    ld, ls = torch.ones(2, 384), torch.full((2, 6144), torch.e - 1)
+    total, d, s = lumitexel_loss(pd, ps, ld, ls, torch.tensor([1.0, 0.0]))
+    assert float(d) == 384 and abs(float(s) - 6144 / 2) < 1e-2 and abs(float(total) - (384 + 0.01 * 3072)) < 1e-3
