@@ -73,9 +73,8 @@ def ggx_specular(
     denom = (iz.clamp_min(0.0) + smith_lambda_norm(wi, alpha_x, alpha_y)) * (
         oz.clamp_min(0.0) + smith_lambda_norm(wo, alpha_x, alpha_y)
     )
-    value = d * f / denom
-    above = (iz > 0) & (oz > 0)
-    return torch.where(above, value, torch.zeros_like(value))
+    value = d * f / denom  # finite everywhere, so masking by a product is NaN-free
+    return value * ((iz > 0) & (oz > 0)).to(value.dtype)
 
 
 def ggx(
@@ -92,6 +91,5 @@ def ggx(
     Returns ``(..., C)`` (broadcast of all inputs); zero where wi_z <= 0 or wo_z <= 0.
     """
     spec = ggx_specular(wi, wo, alpha_x, alpha_y, f0)
-    above = ((wi[..., 2] > 0) & (wo[..., 2] > 0)).unsqueeze(-1)
-    diffuse = torch.where(above, rho_d / math.pi, torch.zeros_like(rho_d))
-    return diffuse + rho_s * spec.unsqueeze(-1)
+    above = ((wi[..., 2] > 0) & (wo[..., 2] > 0)).unsqueeze(-1).to(spec.dtype)
+    return (rho_d / math.pi) * above + rho_s * spec.unsqueeze(-1)

@@ -21,9 +21,16 @@ def safe_normalize(v: Tensor, fallback: Tensor | None = None) -> Tensor:
     sq = (v * v).sum(-1, keepdim=True)
     out = v * torch.rsqrt(sq.clamp_min(_TINY))
     if fallback is None:
-        fallback = torch.zeros_like(v)
-        fallback[..., 2] = 1.0
-    return torch.where(sq > _TINY, out, fallback.expand_as(v))
+        fallback = torch.tensor([0.0, 0.0, 1.0], dtype=v.dtype, device=v.device)  # broadcast, no full copy
+    return torch.where(sq > _TINY, out, fallback)
+
+
+def cross(a: Tensor, b: Tensor) -> Tensor:
+    """a x b over the last axis ``(..., 3)``, broadcasting; component form (torch.linalg.cross has
+    no working forward-mode AD for float32 here, which the fitter's Jacobians need)."""
+    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
+    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
+    return torch.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], -1)
 
 
 def any_tangent(n: Tensor) -> Tensor:
@@ -47,7 +54,7 @@ def frame_from_normal_tangent(n: Tensor, t: Tensor) -> Tensor:
     n = safe_normalize(n)
     t_perp = t - (t * n).sum(-1, keepdim=True) * n
     t = safe_normalize(t_perp, fallback=any_tangent(n))
-    b = torch.linalg.cross(n, t, dim=-1)
+    b = cross(n, t)
     return torch.stack([t, b, n], dim=-2)
 
 

@@ -1,4 +1,5 @@
 """The GGX BRDF against independent facts: normalisation, reciprocity, energy, closed forms."""
+import functools
 import math
 
 import numpy as np
@@ -6,6 +7,7 @@ import pytest
 import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from scipy.special import roots_legendre
 
 from ntp_engine.brdf import (ALPHA_MAX, ALPHA_MIN, F0_DIELECTRIC, fresnel_schlick, ggx, ggx_ndf,
                              ggx_specular, smith_g1)
@@ -14,11 +16,16 @@ from ntp_engine.frame import reflect
 F64 = torch.float64
 
 
+@functools.lru_cache(maxsize=4)
+def _gauss_legendre(n: int):
+    return roots_legendre(n)
+
+
 def _half_vector_quadrature(c: float, n_u: int = 1200, n_phi: int = 4096):
     """Half vectors over the hemisphere with solid-angle weights, dense near the pole.
 
     tan(theta) = c u / (1 - u), u in [0, 1) by Gauss-Legendre; phi uniform (periodic)."""
-    u, wu = np.polynomial.legendre.leggauss(n_u)
+    u, wu = _gauss_legendre(n_u)
     u, wu = 0.5 * (u + 1), 0.5 * wu
     s = c * u / (1 - u)
     theta = np.arctan(s)

@@ -1,0 +1,367 @@
+"""Fitting lumitexels to anisotropic GGX (paper §7), batched over texels.
+
+Geometry (``fit_geometry``): from grayscale specular lumitexels ``(N, 6144)`` in the lumitexel
+frame to the shading normal n, tangent t, alpha_x >= alpha_y and a grayscale rho_s.
+
+The key fact: GGX's D(h) = 1 / (pi ax ay (h^T M h)^2) with M = n n^T + t t^T/ax^2 + b b^T/ay^2.
+A lumitexel value is m_l = rho_s D(h_l) Phi_l with Phi_l = F G1(wi) G1(wo) / (4 cos_o r_l^2),
+a slowly varying factor. So y_l = (m_l / Phi_l)^(-1/2) = h_l^T A h_l is *linear* in the symmetric
+matrix A = sqrt(pi ax ay / rho_s) M: a weighted linear least-squares problem with 6 unknowns per
+texel, solved in one batched 6x6 system. Eigen-decomposing A gives n (smallest eigenvalue), t, the
+alphas (eigenvalue ratios) and rho_s (scale). Phi depends on the fit, so the solve is repeated a
+few times with Phi from the previous estimate (exact for noise-free lumitexels). The weights make
+the linear problem approximate least squares in log(1 + x), the network's and the metric's space.
+A final batched Levenberg-Marquardt polish (forward-mode Jacobians) minimises the log(1 + x)
+residual over each texel's most significant lights, keeping the better of polished and unpolished.
+
+Canonical output (the model's symmetries): alpha_x >= alpha_y (else (t, ax, ay) -> (b, ay, ax)),
+and t's component along the lumitexel x (then y) axis is >= 0 (t -> -t is the same BRDF).
+
+Albedo (``fit_albedo``): RGB rho_d in [0, 1] and rho_s in [0, 10] per texel by bounded linear
+least squares against the trace's own measurements, with the fitted geometry, the pattern and the
+device (2 unknowns per channel; the box-constrained optimum is found among the KKT candidates).
+
+Flags (``FitFlags``): non-finite input, an all-zero lumitexel, no usable lobe. Flagged texels
+get the documented fallback (``FALLBACK_ALPHA`` isotropic, normal from the diffuse lumitexel or
++z, rho_s from the albedo fit) — never NaN.
+"""
+from __future__ import annotations
+
+import functools
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from .brdf import (ALPHA_MAX, ALPHA_MIN, F0_DIELECTRIC, RHO_D_MAX, RHO_S_MAX, fresnel_schlick, ggx_specular,
+                   smith_g1)
+from .frame import any_tangent, cross, frame_from_normal_tangent, safe_normalize, to_local
+from .lumitexel import DIFFUSE_RES, SPECULAR_RES, specular_lumitexel, texel_positions
+
+FALLBACK_ALPHA = 0.3  # isotropic roughness for texels without a usable specular lobe
+FLAG_NONFINITE, FLAG_ZERO, FLAG_NO_LOBE = 1, 2, 4
+
+
+@dataclass
+class GeometryFit:
+    normal: Tensor  # (N, 3) shading normal in the lumitexel frame
+    tangent: Tensor  # (N, 3) shading tangent, alpha_x along it
+    alpha_x: Tensor  # (N,) >= alpha_y
+    alpha_y: Tensor  # (N,)
+    rho_s: Tensor  # (N,) grayscale specular scale of the lumitexel
+    flags: Tensor  # (N,) int: FLAG_* bits, 0 = good fit
+    log_rmse: Tensor | None  # (N,) log(1 + x) RMSE fitted vs input over all lights (if asked for)
+
+
+@functools.lru_cache(maxsize=4)
+def _light_table(res: int, device: str, dtype: torch.dtype) -> dict[str, Tensor]:
+    p = texel_positions(res, torch.float64)
+    r2 = (p * p).sum(-1)
+    wi = p / r2.sqrt()[:, None]
+    h = safe_normalize(wi + torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64))
+    hx, hy, hz = h.unbind(-1)
+    feats = torch.stack([hx * hx, hy * hy, hz * hz, 2 * hx * hy, 2 * hx * hz, 2 * hy * hz], -1)
+    fres = fresnel_schlick(hz)  # wo = +z: wi.h = h.z for every light
+    out = {"wi": wi, "r2": r2, "h": h, "feats": feats, "fresnel": fres}
+    return {k: v.to(device=device, dtype=dtype) for k, v in out.items()}
+
+
+def _phi(wi: Tensor, r2: Tensor, fres: Tensor, n: Tensor, t: Tensor, ax: Tensor, ay: Tensor) -> Tensor:
+    """F G1(wi) G1(wo) / (4 cos_o r^2) for lights ``(N, K)`` under the frames ``(N, 3)``."""
+    frame = frame_from_normal_tangent(n, t)
+    wi_l = to_local(wi, frame[:, None])
+    wo = torch.zeros_like(n)
+    wo[:, 2] = 1.0
+    wo_l = to_local(wo, frame)
+    g = smith_g1(wi_l, ax[:, None], ay[:, None]) * smith_g1(wo_l, ax, ay)[:, None]
+    cos_o = wo_l[:, 2].clamp_min(1e-4)[:, None]
+    phi = fres * g / (4 * cos_o * r2)
+    return torch.where(wi_l[..., 2] > 0, phi, torch.zeros_like(phi))
+
+
+def _canonical(n: Tensor, t: Tensor, ax: Tensor, ay: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """alpha_x >= alpha_y; t orthogonal to n with a non-negative x (then y) component."""
+    b = cross(n, t)
+    swap = ay > ax
+    t = torch.where(swap[:, None], b, t)
+    ax, ay = torch.where(swap, ay, ax), torch.where(swap, ax, ay)
+    t = safe_normalize(t - (t * n).sum(-1, keepdim=True) * n, fallback=any_tangent(n))
+    key = torch.where(t[:, 0].abs() > 1e-6, t[:, 0], t[:, 1])
+    t = torch.where((key < 0)[:, None], -t, t)
+    return n, t, ax, ay
+
+
+def _solve_lobe(y: Tensor, w: Tensor, feats: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """Weighted LS for A (y ~ f^T a) and its GGX reading: n, t, ax, ay, rho_s, ok."""
+    fw = feats * w[..., None]
+    ata = fw.transpose(1, 2) @ feats  # (N, 6, 6)
+    atb = (fw * y[..., None]).sum(1)  # (N, 6)
+    scale = ata.diagonal(dim1=1, dim2=2).mean(-1).clamp_min(1e-30)
+    ata = ata + 1e-9 * scale[:, None, None] * torch.eye(6, dtype=y.dtype, device=y.device)
+    a = torch.linalg.solve(ata, atb[..., None])[..., 0]
+    A = torch.stack([torch.stack([a[:, 0], a[:, 3], a[:, 4]], -1),
+                     torch.stack([a[:, 3], a[:, 1], a[:, 5]], -1),
+                     torch.stack([a[:, 4], a[:, 5], a[:, 2]], -1)], -2)
+    evals, evecs = torch.linalg.eigh(A)  # ascending
+    lam0 = evals[:, 0]
+    ok = torch.isfinite(evals).all(-1) & (lam0 > 0)
+    lam0c = lam0.clamp_min(1e-30)
+    n = evecs[:, :, 0]
+    n = torch.where((n[:, 2:3] < 0), -n, n)
+    t = evecs[:, :, 1]
+    ax = (lam0c / evals[:, 1].clamp_min(1e-30)).sqrt().clamp(ALPHA_MIN, ALPHA_MAX)
+    ay = (lam0c / evals[:, 2].clamp_min(1e-30)).sqrt().clamp(ALPHA_MIN, ALPHA_MAX)
+    rho = math.pi * ax * ay / (lam0c * lam0c)
+    return n, t, ax, ay, rho, ok
+
+
+def _log_lumitexel(n, t, ax, ay, rho, res=SPECULAR_RES) -> Tensor:
+    one = torch.ones_like(rho)[:, None]
+    return torch.log1p(specular_lumitexel(n, t, rho[:, None] * one, ax, ay, res)[..., 0])
+
+
+def diffuse_normal(diffuse: Tensor) -> tuple[Tensor, Tensor]:
+    """Normal and grayscale rho_d from diffuse lumitexels ``(N, 384)``: pi r^2 m_l = rho_d (n.wi_l)
+    for lit lights, a linear LS for rho_d n. Returns (n (N, 3), rho_d (N,))."""
+    p = texel_positions(DIFFUSE_RES, diffuse.dtype, diffuse.device)
+    r2 = (p * p).sum(-1)
+    wi = p / r2.sqrt()[:, None]
+    y = math.pi * r2 * diffuse
+    w = (diffuse > 1e-3 * diffuse.amax(-1, keepdim=True).clamp_min(1e-30)).to(diffuse.dtype)
+    ata = (wi[None] * w[..., None]).transpose(1, 2) @ wi  # (N, 3, 3)
+    atb = ((wi[None] * w[..., None]) * y[..., None]).sum(1)
+    ata = ata + 1e-6 * torch.eye(3, dtype=diffuse.dtype, device=diffuse.device)
+    v = torch.linalg.solve(ata, atb[..., None])[..., 0]
+    rho = v.norm(dim=-1)
+    z = torch.zeros_like(v)
+    z[:, 2] = 1.0
+    return safe_normalize(v, fallback=z), rho
+
+
+def fit_geometry(specular: Tensor, diffuse: Tensor | None = None, iterations: int = 4, top_k: int = 256,
+                 polish_steps: int = 3, chunk: int = 2048, with_error: bool = False) -> GeometryFit:
+    """Fit n, t, alpha_x, alpha_y (and a grayscale rho_s) to specular lumitexels ``(N, 6144)``.
+
+    ``diffuse (N, 384)`` provides the fallback normal for texels without a usable lobe.
+    Works in float32 (input is cast); processes ``chunk`` texels at a time. ``with_error`` also
+    renders the fitted lumitexels to report the log(1 + x) RMSE (costs about as much as the fit)."""
+    outs = [_fit_chunk(specular[i:i + chunk].float(), None if diffuse is None else diffuse[i:i + chunk].float(),
+                       iterations, top_k, polish_steps) for i in range(0, len(specular), chunk)]
+    if not outs:
+        e = torch.zeros(0)
+        return GeometryFit(torch.zeros(0, 3), torch.zeros(0, 3), e, e, e, torch.zeros(0, dtype=torch.int64), e)
+    fields = [f for f in GeometryFit.__dataclass_fields__ if f != "log_rmse"]
+    fit = GeometryFit(*(torch.cat([getattr(o, f) for o in outs]) for f in fields), log_rmse=None)
+    if with_error:
+        fit.log_rmse = lumitexel_log_rmse(fit, specular)
+    return fit
+
+
+def lumitexel_log_rmse(fit: GeometryFit, specular: Tensor, chunk: int = 1024) -> Tensor:
+    """Per texel log(1 + x) RMSE between the fitted and the given lumitexels ``(N, 6144)``."""
+    out = []
+    for i in range(0, len(specular), chunk):
+        s = slice(i, i + chunk)
+        m = specular[s].float()
+        m = torch.where(torch.isfinite(m), m, torch.zeros_like(m)).clamp_min(0)
+        pred = _log_lumitexel(fit.normal[s], fit.tangent[s], fit.alpha_x[s], fit.alpha_y[s], fit.rho_s[s])
+        out.append((pred - torch.log1p(m)).pow(2).mean(-1).sqrt())
+    return torch.cat(out) if out else torch.zeros(0)
+
+
+def _fit_chunk(m: Tensor, diffuse: Tensor | None, iterations: int, top_k: int, polish_steps: int) -> GeometryFit:
+    N = m.shape[0]
+    dev = m.device
+    tab = _light_table(SPECULAR_RES, str(dev), torch.float32)
+    flags = torch.zeros(N, dtype=torch.int64, device=dev)
+    finite = torch.isfinite(m).all(-1)
+    flags |= (~finite).long() * FLAG_NONFINITE
+    m = torch.where(torch.isfinite(m), m, torch.zeros_like(m)).clamp_min(0)
+    peak = m.amax(-1)
+    flags |= ((peak <= 1e-8) & finite).long() * FLAG_ZERO
+
+    # the K most significant lights of each texel (by m / Phi0, Phi0 with n = z, G = 1)
+    phi0 = tab["fresnel"] / (4 * tab["r2"])
+    score = m / phi0
+    k = min(top_k, m.shape[1])
+    idx = score.topk(k, dim=-1).indices  # (N, K)
+    mk = m.gather(1, idx)
+    wi, r2, fres, feats = tab["wi"][idx], tab["r2"][idx], tab["fresnel"][idx], tab["feats"][idx]
+    sig = mk > 1e-4 * peak[:, None]
+
+    n = torch.zeros(N, 3, device=dev)
+    n[:, 2] = 1.0
+    t = torch.zeros(N, 3, device=dev)
+    t[:, 0] = 1.0
+    ax = torch.full((N,), 0.1, device=dev)
+    ay = ax.clone()
+    phi = phi0[idx]
+    ok = torch.zeros(N, dtype=torch.bool, device=dev)
+    rho = torch.ones(N, device=dev)
+    for it in range(iterations):
+        valid = sig & (phi > 0)
+        ratio = torch.where(valid, mk / phi.clamp_min(1e-30), torch.ones_like(mk))
+        y = ratio.rsqrt()
+        # d log1p(m) = -2 m / (1 + m) dy / y: weights that turn the solve into log1p-space LS
+        w = torch.where(valid, (2 * mk / ((1 + mk) * y)) ** 2, torch.zeros_like(mk))
+        n_new, t_new, ax_new, ay_new, rho_new, ok_new = _solve_lobe(y.double(), w.double(), feats.double())
+        n_new, t_new, ax_new, ay_new, rho_new = (v.float() for v in (n_new, t_new, ax_new, ay_new, rho_new))
+        take = ok_new & (n_new[:, 2] > 0.05)
+        n = torch.where(take[:, None], n_new, n)
+        t = torch.where(take[:, None], t_new, t)
+        ax, ay, rho = torch.where(take, ax_new, ax), torch.where(take, ay_new, ay), torch.where(take, rho_new, rho)
+        ok = ok | take
+        phi = _phi(wi, r2, fres, n, t, ax, ay)
+    n, t, ax, ay = _canonical(n, t, ax, ay)
+    rho = rho.clamp(0, RHO_S_MAX * 10)
+
+    if polish_steps > 0:
+        n, t, ax, ay, rho = _polish(m, idx, n, t, ax, ay, rho, ok & finite, polish_steps)
+        n, t, ax, ay = _canonical(n, t, ax, ay)
+
+    flags |= ((~ok) & (flags == 0)).long() * FLAG_NO_LOBE
+    bad = flags != 0
+    if bad.any():
+        if diffuse is not None:
+            nd, _ = diffuse_normal(torch.where(torch.isfinite(diffuse), diffuse, torch.zeros_like(diffuse)))
+        else:
+            nd = torch.zeros(N, 3, device=dev)
+            nd[:, 2] = 1.0
+        n = torch.where(bad[:, None], nd, n)
+        t = torch.where(bad[:, None], frame_from_normal_tangent(nd, torch.tensor([1.0, 0.0, 0.0], device=dev)
+                                                                .expand_as(nd))[:, 0], t)
+        fa = torch.full_like(ax, FALLBACK_ALPHA)
+        ax, ay = torch.where(bad, fa, ax), torch.where(bad, fa, ay)
+        rho = torch.where(bad, torch.zeros_like(rho), rho)
+        n, t, ax, ay = _canonical(n, t, ax, ay)
+    return GeometryFit(n, t, ax, ay, rho, flags, None)
+
+
+# ----------------------------------------------------------------------------------- LM polish
+def _unpack(p: Tensor, n0: Tensor, t0: Tensor, b0: Tensor):
+    """Parameters (u, v, psi, log ax, log ay, log rho) around a base frame -> n, t, ax, ay, rho."""
+    n = safe_normalize(n0 + p[..., 0:1] * t0 + p[..., 1:2] * b0)
+    tt = torch.cos(p[..., 2:3]) * t0 + torch.sin(p[..., 2:3]) * b0
+    t = safe_normalize(tt - (tt * n).sum(-1, keepdim=True) * n)
+    ax = p[..., 3].exp().clamp(ALPHA_MIN, ALPHA_MAX)
+    ay = p[..., 4].exp().clamp(ALPHA_MIN, ALPHA_MAX)
+    return n, t, ax, ay, p[..., 5].exp()
+
+
+def _residual(p, n0, t0, b0, wi, r2, target):
+    """log1p(model) - log1p(m) over a texel's K lights; p (6,), wi (K, 3), r2, target (K,)."""
+    n, t, ax, ay, rho = _unpack(p, n0, t0, b0)
+    frame = frame_from_normal_tangent(n, t)
+    wi_l = to_local(wi, frame)
+    wo_l = frame[:, 2]  # wo = +z in the lumitexel frame: its local coordinates are the z column
+    spec = ggx_specular(wi_l, wo_l.expand_as(wi_l), ax, ay, F0_DIELECTRIC)
+    model = rho * spec * wi_l[..., 2].clamp_min(0) / r2
+    return torch.log1p(model) - target
+
+
+def _polish(m, idx, n, t, ax, ay, rho, active, steps):
+    """Batched Levenberg-Marquardt on the log1p residual over each texel's top-K lights."""
+    from torch.func import jacfwd, vmap
+
+    tab = _light_table(SPECULAR_RES, str(m.device), torch.float32)
+    wi, r2 = tab["wi"][idx], tab["r2"][idx]
+    target = torch.log1p(m.gather(1, idx))
+    b = cross(n, t)
+    p = torch.zeros(len(m), 6, device=m.device)
+    p[:, 3], p[:, 4], p[:, 5] = ax.log(), ay.log(), rho.clamp_min(1e-12).log()
+    res_fn = vmap(_residual)
+    jac_fn = vmap(jacfwd(_residual))
+    r = res_fn(p, n, t, b, wi, r2, target)
+    cost = (r * r).sum(-1)
+    lam = torch.full((len(m),), 1e-2, device=m.device)
+    eye = torch.eye(6, device=m.device)
+    for _ in range(steps):
+        J = jac_fn(p, n, t, b, wi, r2, target)  # (N, K, 6)
+        jtj = J.transpose(1, 2) @ J
+        g = (J * r[..., None]).sum(1)
+        diag = jtj.diagonal(dim1=1, dim2=2)
+        H = jtj + lam[:, None, None] * (torch.diag_embed(diag) + 1e-6 * eye)
+        step = torch.linalg.solve(H, -g[..., None])[..., 0]
+        step = torch.where(torch.isfinite(step), step, torch.zeros_like(step))
+        p_new = p + step
+        r_new = res_fn(p_new, n, t, b, wi, r2, target)
+        cost_new = (r_new * r_new).sum(-1)
+        better = (cost_new < cost) & active & torch.isfinite(cost_new)
+        p = torch.where(better[:, None], p_new, p)
+        r = torch.where(better[:, None], r_new, r)
+        cost = torch.where(better, cost_new, cost)
+        lam = torch.where(better, lam * 0.3, lam * 10).clamp(1e-6, 1e6)
+    n2, t2, ax2, ay2, rho2 = _unpack(p, n, t, b)
+    return n2, t2, ax2, ay2, rho2
+
+
+# ----------------------------------------------------------------------------------- albedo
+def bounded_ls2(a: Tensor, b: Tensor, y: Tensor, w: Tensor, hi_a: float, hi_b: float) -> tuple[Tensor, Tensor]:
+    """argmin over 0 <= u <= hi_a, 0 <= v <= hi_b of sum_j w_j (u a_j + v b_j - y_j)^2, batched over
+    leading dims (the last dim is j). Exact: the minimum over the KKT candidates (interior, four
+    edges with the other variable optimal and clamped, four corners)."""
+    saa, sbb, sab = (w * a * a).sum(-1), (w * b * b).sum(-1), (w * a * b).sum(-1)
+    say, sby = (w * a * y).sum(-1), (w * b * y).sum(-1)
+    det = saa * sbb - sab * sab
+    tiny = 1e-30
+    cands = []
+    ok_det = det.abs() > 1e-12 * (saa * sbb).clamp_min(tiny)
+    cands.append(((sbb * say - sab * sby) / torch.where(ok_det, det, torch.ones_like(det)),
+                  (saa * sby - sab * say) / torch.where(ok_det, det, torch.ones_like(det))))
+    for v_fixed in (0.0, hi_b):
+        u = ((say - v_fixed * sab) / saa.clamp_min(tiny)).clamp(0, hi_a)
+        cands.append((u, torch.full_like(u, v_fixed)))
+    for u_fixed in (0.0, hi_a):
+        v = ((sby - u_fixed * sab) / sbb.clamp_min(tiny)).clamp(0, hi_b)
+        cands.append((torch.full_like(v, u_fixed), v))
+    best_u, best_v, best_cost = None, None, None
+    for k, (u, v) in enumerate(cands):
+        feasible = (u >= 0) & (u <= hi_a) & (v >= 0) & (v <= hi_b) & torch.isfinite(u) & torch.isfinite(v)
+        if k == 0:
+            feasible = feasible & ok_det
+        u = torch.where(feasible, u, torch.zeros_like(u))
+        v = torch.where(feasible, v, torch.zeros_like(v))
+        cost = (w * (u[..., None] * a + v[..., None] * b - y) ** 2).sum(-1)
+        cost = torch.where(feasible, cost, torch.full_like(cost, float("inf")))
+        if best_cost is None:
+            best_u, best_v, best_cost = u, v, cost
+        else:
+            better = cost < best_cost
+            best_u, best_v = torch.where(better, u, best_u), torch.where(better, v, best_v)
+            best_cost = torch.where(better, cost, best_cost)
+    return best_u, best_v
+
+
+def fit_albedo(device, pattern: Tensor | None, pixels: Tensor, position: Tensor, normal_geo: Tensor,
+               tangent_geo: Tensor, mask: Tensor, geometry: GeometryFit,
+               visibility: Tensor | None = None) -> tuple[Tensor, Tensor]:
+    """RGB rho_d ``(N, 3)`` in [0, 1] and rho_s ``(N, 3)`` in [0, 10] from a trace's own linear pixel
+    values ``pixels (N, V, 3)`` (``device.exposure(pattern) * B``) with the fitted geometry.
+
+    ``position, normal_geo, tangent_geo (N, V, 3)``: each view's camera-space x, n^, t^;
+    ``mask (N, V)``: entries in the trace. Unmasked entries are ignored (their values may be junk)."""
+    from .measurement import measure, physical_lumitexel
+
+    dtype = pixels.dtype
+    geo = frame_from_normal_tangent(normal_geo, tangent_geo)  # (N, V, 3, 3) rows t^, b^, n^
+    # shading frame from the lumitexel (geometric) frame into each view's camera space
+    n_cam = (geo * geometry.normal.to(dtype)[:, None, :, None]).sum(-2)
+    t_cam = (geo * geometry.tangent.to(dtype)[:, None, :, None]).sum(-2)
+    N, V = mask.shape
+    ones, zeros = torch.ones(N, V, 3, dtype=dtype), torch.zeros(N, V, 3, dtype=dtype)
+    ax = geometry.alpha_x.to(dtype)[:, None].expand(N, V)
+    ay = geometry.alpha_y.to(dtype)[:, None].expand(N, V)
+    p = torch.as_tensor(device.pattern, dtype=dtype) if pattern is None else pattern.to(dtype)
+    exposure = device.exposure(p)
+    x = torch.where(mask[..., None], position, torch.tensor([0.0, 0.0, 0.3], dtype=dtype))
+    basis_d = exposure * measure(device, physical_lumitexel(device, x, n_cam, t_cam, ones, zeros, ax, ay,
+                                                            visibility=visibility), p)
+    basis_s = exposure * measure(device, physical_lumitexel(device, x, n_cam, t_cam, zeros, ones, ax, ay,
+                                                            visibility=visibility), p)
+    w = mask[..., None].expand(N, V, 3).to(dtype)
+    y = torch.where(mask[..., None], pixels, torch.zeros_like(pixels))
+    # channels to the front: (N, 3, V)
+    rd, rs = bounded_ls2(basis_d.transpose(1, 2), basis_s.transpose(1, 2), y.transpose(1, 2), w.transpose(1, 2),
+                         RHO_D_MAX, RHO_S_MAX)
+    return rd, rs
