@@ -45,6 +45,11 @@ def _parser() -> argparse.ArgumentParser:
     st.add_argument("--samples", type=int, default=10_000_000)
     st.add_argument("--seed", type=int, default=0)
     st.add_argument("--json", type=Path, default=None)
+    bf = bsub.add_parser("fit", help="batched GGX fitter vs per-texel scipy L-BFGS-B (speed and error)")
+    bf.add_argument("--quick", action="store_true", help="2048 texels (baseline on 32) instead of 16384 (192)")
+    bf.add_argument("--texels", type=int, default=None)
+    bf.add_argument("--baseline-texels", type=int, default=None)
+    bf.add_argument("--json", type=Path, default=None)
     ph = bsub.add_parser("physics", help="BRDF evaluations/s, lumitexels/s, measurements/s (f32 vs f64)")
     ph.add_argument("--json", type=Path, default=None)
     return p
@@ -92,6 +97,11 @@ def main(argv: list[str] | None = None) -> int:
 
                 r = stability.run(samples=args.samples, seed=args.seed, json_path=args.json)
                 return 1 if r["nonfinite"] or r["total"]["negative_values"] else 0
+            if args.bench == "fit":
+                from .bench import fit as bench_fit
+
+                bench_fit.run(quick=args.quick, texels=args.texels, baseline_texels=args.baseline_texels,
+                              json_path=args.json)
             if args.bench == "physics":
                 from .bench import physics
 

@@ -1,0 +1,118 @@
+"""``ntp bench fit``: the batched fitter against per-texel scipy L-BFGS-B, in one run, on the same
+synthetic lumitexels: exact ones, and the network's predictions for the same points (the noise a
+network leaves; log-space Gaussian noise if no trained model is shipped yet). Errors are compared on
+the texels both methods fitted; texels/s of each from its own run."""
+from __future__ import annotations
+
+import time
+
+import torch
+
+from ..device import Device
+from ..fit import GeometryFit, fit_geometry, lumitexel_log_rmse
+from ..fit_baseline import fit_geometry_lbfgsb
+from ..synthetic import SyntheticConfig, sample_batch
+from . import dump_json, print_table
+
+
+def _cases(n: int, seed: int, chunk: int = 128) -> dict:
+    """Ground truth and the two inputs for ``n`` synthetic points."""
+    device = Device.load()
+    model, source = None, "log-normal noise sigma 0.05 (no shipped model)"
+    try:
+        from .. import models
+
+        model, meta = models.load(None, device)
+        source = f"network '{meta['network']['preset']}' on 64-view synthetic traces"
+    except Exception:  # noqa: BLE001 - the benchmark still runs before a model is shipped
+        model = None
+    gen = torch.Generator().manual_seed(seed)
+    gt = {k: [] for k in ("n", "t", "ax", "ay", "exact", "noisy")}
+    for i in range(0, n, chunk):
+        b = sample_batch(device, min(chunk, n - i), gen, SyntheticConfig(), views=64)
+        gt["n"].append(b.params["n_local"])
+        gt["t"].append(b.params["t_local"])
+        gt["ax"].append(b.params["alpha_x"])
+        gt["ay"].append(b.params["alpha_y"])
+        gt["exact"].append(b.label_specular)
+        if model is not None:
+            with torch.no_grad():
+                pixel, valid = model.measure(b.m_phys, b.length_mask, gen)
+                _, s = model(model.entries(pixel, b.position, b.normal_geo, b.tangent_geo), valid)
+            gt["noisy"].append(torch.expm1(s.clamp_min(0)))
+        else:
+            noise = 0.05 * torch.randn(b.label_specular.shape, generator=gen)
+            gt["noisy"].append(torch.expm1(torch.log1p(b.label_specular) + noise).clamp_min(0))
+    out = {k: torch.cat(v) for k, v in gt.items()}
+    out["source"] = source
+    return out
+
+
+def _errors(fit: GeometryFit, gt: dict, inp: torch.Tensor, sel: slice) -> dict:
+    n_gt, t_gt = gt["n"][sel], gt["t"][sel]
+    ax_gt, ay_gt = gt["ax"][sel], gt["ay"][sel]
+    swap = ay_gt > ax_gt
+    b_gt = torch.linalg.cross(n_gt, t_gt, dim=-1)
+    t_gt = torch.where(swap[:, None], b_gt, t_gt)
+    ax_gt, ay_gt = torch.maximum(ax_gt, ay_gt), torch.minimum(ax_gt, ay_gt)
+    normal_deg = torch.rad2deg(torch.acos((fit.normal[sel] * n_gt).sum(-1).clamp(-1, 1)))
+    tan_deg = torch.rad2deg(torch.acos((fit.tangent[sel] * t_gt).sum(-1).abs().clamp(0, 1)))
+    aniso = ax_gt > 2 * ay_gt
+    ex = (fit.alpha_x[sel].log() - ax_gt.log()).abs()
+    ey = (fit.alpha_y[sel].log() - ay_gt.log()).abs()
+    sub = GeometryFit(*(getattr(fit, f)[sel] if getattr(fit, f) is not None else None
+                        for f in GeometryFit.__dataclass_fields__))
+    rmse_in = lumitexel_log_rmse(sub, inp[sel])
+    rmse_gt = lumitexel_log_rmse(sub, gt["exact"][sel])
+    return {
+        "lumitexel_log_rmse": float(rmse_in.mean()),
+        "lumitexel_log_rmse_vs_truth": float(rmse_gt.mean()),
+        "normal_deg_median": float(normal_deg.median()),
+        "normal_deg_p90": float(normal_deg.quantile(0.9)),
+        "tangent_deg_median_anisotropic": float(tan_deg[aniso].median()) if aniso.any() else float("nan"),
+        "alpha_x_log_err_median": float(ex.median()),
+        "alpha_y_log_err_median": float(ey.median()),
+        "flagged": int((fit.flags[sel] != 0).sum()),
+    }
+
+
+def run(quick: bool = False, texels: int | None = None, baseline_texels: int | None = None, seed: int = 7,
+        json_path=None) -> dict:
+    texels = texels or (2048 if quick else 16384)
+    baseline_texels = baseline_texels or (32 if quick else 192)
+    gt = _cases(texels, seed)
+    print(f"ntp bench fit: {texels} texels batched, {baseline_texels} by the baseline; noisy input: {gt['source']}")
+    result: dict = {"texels": texels, "baseline_texels": baseline_texels, "noise_source": gt["source"]}
+    common = slice(0, baseline_texels)
+    rows = []
+    for kind in ("exact", "noisy"):
+        inp = gt[kind]
+        fit_geometry(inp[:64])  # warm-up (allocator, lazy tables)
+        t0 = time.perf_counter()
+        batched = fit_geometry(inp)
+        t_b = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        base = fit_geometry_lbfgsb(inp[common])
+        t_l = time.perf_counter() - t0
+        eb = {"texels_per_s": texels / t_b, **_errors(batched, gt, inp, common)}
+        eb["all_texels"] = _errors(batched, gt, inp, slice(0, texels))
+        el = {"texels_per_s": baseline_texels / t_l, **_errors(base, gt, inp, common)}
+        result[kind] = {"batched": eb, "baseline": el, "speedup": eb["texels_per_s"] / el["texels_per_s"]}
+        for name, e in (("batched", eb), ("baseline", el)):
+            rows.append((kind, name, f"{e['texels_per_s']:.0f}", f"{e['lumitexel_log_rmse']:.2e}",
+                         f"{e['lumitexel_log_rmse_vs_truth']:.2e}", f"{e['normal_deg_median']:.3f}",
+                         f"{e['normal_deg_p90']:.3f}", f"{e['alpha_x_log_err_median']:.3f}",
+                         f"{e['alpha_y_log_err_median']:.3f}", f"{e['tangent_deg_median_anisotropic']:.2f}"))
+    print_table(rows, ("input", "method", "texels/s", "log-RMSE", "log-RMSE vs truth", "normal med deg",
+                       "normal p90", "|dlog ax|", "|dlog ay|", "tangent deg (aniso)"))
+    for kind in ("exact", "noisy"):
+        print(f"{kind}: batched is {result[kind]['speedup']:.0f}x the baseline's texels/s")
+    # the issue's keys: batched/baseline with texels_per_s and lumitexel_log_rmse (exact input),
+    # the noisy-input figures beside them
+    for name in ("batched", "baseline"):
+        result[name] = {"texels_per_s": result["exact"][name]["texels_per_s"],
+                        "lumitexel_log_rmse": result["exact"][name]["lumitexel_log_rmse"],
+                        "texels_per_s_noisy": result["noisy"][name]["texels_per_s"],
+                        "lumitexel_log_rmse_noisy": result["noisy"][name]["lumitexel_log_rmse"]}
+    dump_json(json_path, result)
+    return result
