@@ -10,9 +10,12 @@ matrix A = sqrt(pi ax ay / rho_s) M: a weighted linear least-squares problem wit
 texel, solved in one batched 6x6 system. Eigen-decomposing A gives n (smallest eigenvalue), t, the
 alphas (eigenvalue ratios) and rho_s (scale). Phi depends on the fit, so the solve is repeated a
 few times with Phi from the previous estimate (exact for noise-free lumitexels). The weights make
-the linear problem approximate least squares in log(1 + x), the network's and the metric's space.
-A final batched Levenberg-Marquardt polish (forward-mode Jacobians) minimises the log(1 + x)
-residual over each texel's most significant lights, keeping the better of polished and unpolished.
+the linear problem approximate least squares in log(1 + x), the network's and the metric's space,
+and are re-weighted (IRLS) so that noise far from the lobe counts with its small log residual; after
+the first solve, each texel's K lights are those where the fitted lobe is brightest (lights the
+model leaves dark add only a constant to the objective). A final Levenberg-Marquardt in A-space
+minimises the log(1 + x) residual itself (analytic Jacobian g_l f_l with Phi frozen within a step;
+a step is kept only where the true residual falls).
 
 Canonical output (the model's symmetries): alpha_x >= alpha_y (else (t, ax, ay) -> (b, ay, ax)),
 and t's component along the lumitexel x (then y) axis is >= 0 (t -> -t is the same BRDF).
@@ -145,14 +148,14 @@ def diffuse_normal(diffuse: Tensor) -> tuple[Tensor, Tensor]:
 
 
 def fit_geometry(specular: Tensor, diffuse: Tensor | None = None, iterations: int = 3, top_k: int = 384,
-                 gn_steps: int = 10, polish_steps: int = 0, chunk: int = 2048, with_error: bool = False) -> GeometryFit:
+                 gn_steps: int = 10, chunk: int = 2048, with_error: bool = False) -> GeometryFit:
     """Fit n, t, alpha_x, alpha_y (and a grayscale rho_s) to specular lumitexels ``(N, 6144)``.
 
     ``diffuse (N, 384)`` provides the fallback normal for texels without a usable lobe.
     Works in float32 (input is cast); processes ``chunk`` texels at a time. ``with_error`` also
     renders the fitted lumitexels to report the log(1 + x) RMSE (costs about as much as the fit)."""
     outs = [_fit_chunk(specular[i:i + chunk].float(), None if diffuse is None else diffuse[i:i + chunk].float(),
-                       iterations, top_k, gn_steps, polish_steps) for i in range(0, len(specular), chunk)]
+                       iterations, top_k, gn_steps) for i in range(0, len(specular), chunk)]
     if not outs:
         e = torch.zeros(0)
         return GeometryFit(torch.zeros(0, 3), torch.zeros(0, 3), e, e, e, torch.zeros(0, dtype=torch.int64), e)
@@ -175,8 +178,7 @@ def lumitexel_log_rmse(fit: GeometryFit, specular: Tensor, chunk: int = 1024) ->
     return torch.cat(out) if out else torch.zeros(0)
 
 
-def _fit_chunk(m: Tensor, diffuse: Tensor | None, iterations: int, top_k: int, gn_steps: int,
-               polish_steps: int) -> GeometryFit:
+def _fit_chunk(m: Tensor, diffuse: Tensor | None, iterations: int, top_k: int, gn_steps: int) -> GeometryFit:
     N = m.shape[0]
     dev = m.device
     tab = _light_table(SPECULAR_RES, str(dev), torch.float32)
@@ -238,10 +240,6 @@ def _fit_chunk(m: Tensor, diffuse: Tensor | None, iterations: int, top_k: int, g
     if gn_steps > 0:
         n, t, ax, ay, rho = _gauss_newton(m, idx, n, t, ax, ay, rho, ok & finite, gn_steps)
     n, t, ax, ay = _canonical(n, t, ax, ay)
-
-    if polish_steps > 0:
-        n, t, ax, ay, rho = _polish(m, idx, n, t, ax, ay, rho, ok & finite, polish_steps)
-        n, t, ax, ay = _canonical(n, t, ax, ay)
 
     flags |= ((~ok) & (flags == 0)).long() * FLAG_NO_LOBE
     bad = flags != 0
@@ -318,64 +316,6 @@ def _gauss_newton(m, idx, n, t, ax, ay, rho, active, steps):
         if float(better.float().mean()) < 0.005:  # (nearly) every texel has converged
             break
     return n.float(), t.float(), ax.float(), ay.float(), rho.float()
-
-
-# ----------------------------------------------------------------------------------- LM polish
-def _unpack(p: Tensor, n0: Tensor, t0: Tensor, b0: Tensor):
-    """Parameters (u, v, psi, log ax, log ay, log rho) around a base frame -> n, t, ax, ay, rho."""
-    n = safe_normalize(n0 + p[..., 0:1] * t0 + p[..., 1:2] * b0)
-    tt = torch.cos(p[..., 2:3]) * t0 + torch.sin(p[..., 2:3]) * b0
-    t = safe_normalize(tt - (tt * n).sum(-1, keepdim=True) * n)
-    ax = p[..., 3].exp().clamp(ALPHA_MIN, ALPHA_MAX)
-    ay = p[..., 4].exp().clamp(ALPHA_MIN, ALPHA_MAX)
-    return n, t, ax, ay, p[..., 5].exp()
-
-
-def _residual(p, n0, t0, b0, wi, r2, target):
-    """log1p(model) - log1p(m) over a texel's K lights; p (6,), wi (K, 3), r2, target (K,)."""
-    n, t, ax, ay, rho = _unpack(p, n0, t0, b0)
-    frame = frame_from_normal_tangent(n, t)
-    wi_l = to_local(wi, frame)
-    wo_l = frame[:, 2]  # wo = +z in the lumitexel frame: its local coordinates are the z column
-    spec = ggx_specular(wi_l, wo_l.expand_as(wi_l), ax, ay, F0_DIELECTRIC)
-    model = rho * spec * wi_l[..., 2].clamp_min(0) / r2
-    return torch.log1p(model) - target
-
-
-def _polish(m, idx, n, t, ax, ay, rho, active, steps):
-    """Batched Levenberg-Marquardt on the log1p residual over each texel's top-K lights."""
-    from torch.func import jacfwd, vmap
-
-    tab = _light_table(SPECULAR_RES, str(m.device), torch.float32)
-    wi, r2 = tab["wi"][idx], tab["r2"][idx]
-    target = torch.log1p(m.gather(1, idx))
-    b = cross(n, t)
-    p = torch.zeros(len(m), 6, device=m.device)
-    p[:, 3], p[:, 4], p[:, 5] = ax.log(), ay.log(), rho.clamp_min(1e-12).log()
-    res_fn = vmap(_residual)
-    jac_fn = vmap(jacfwd(_residual))
-    r = res_fn(p, n, t, b, wi, r2, target)
-    cost = (r * r).sum(-1)
-    lam = torch.full((len(m),), 1e-2, device=m.device)
-    eye = torch.eye(6, device=m.device)
-    for _ in range(steps):
-        J = jac_fn(p, n, t, b, wi, r2, target)  # (N, K, 6)
-        jtj = J.transpose(1, 2) @ J
-        g = (J * r[..., None]).sum(1)
-        diag = jtj.diagonal(dim1=1, dim2=2)
-        H = jtj + lam[:, None, None] * (torch.diag_embed(diag) + 1e-6 * eye)
-        step = torch.linalg.solve(H, -g[..., None])[..., 0]
-        step = torch.where(torch.isfinite(step), step, torch.zeros_like(step))
-        p_new = p + step
-        r_new = res_fn(p_new, n, t, b, wi, r2, target)
-        cost_new = (r_new * r_new).sum(-1)
-        better = (cost_new < cost) & active & torch.isfinite(cost_new)
-        p = torch.where(better[:, None], p_new, p)
-        r = torch.where(better[:, None], r_new, r)
-        cost = torch.where(better, cost_new, cost)
-        lam = torch.where(better, lam * 0.3, lam * 10).clamp(1e-6, 1e6)
-    n2, t2, ax2, ay2, rho2 = _unpack(p, n, t, b)
-    return n2, t2, ax2, ay2, rho2
 
 
 # ----------------------------------------------------------------------------------- albedo
