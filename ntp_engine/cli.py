@@ -50,6 +50,10 @@ def _parser() -> argparse.ArgumentParser:
     bf.add_argument("--texels", type=int, default=None)
     bf.add_argument("--baseline-texels", type=int, default=None)
     bf.add_argument("--json", type=Path, default=None)
+    bn = bsub.add_parser("network", help="val. loss by pattern and by test views; inference traces/s")
+    bn.add_argument("--quick", action="store_true", help="use the shipped comparison networks (no training)")
+    bn.add_argument("--steps", type=int, default=3000, help="training steps per comparison network")
+    bn.add_argument("--json", type=Path, default=None)
     ph = bsub.add_parser("physics", help="BRDF evaluations/s, lumitexels/s, measurements/s (f32 vs f64)")
     ph.add_argument("--json", type=Path, default=None)
     return p
@@ -102,6 +106,10 @@ def main(argv: list[str] | None = None) -> int:
 
                 bench_fit.run(quick=args.quick, texels=args.texels, baseline_texels=args.baseline_texels,
                               json_path=args.json)
+            if args.bench == "network":
+                from .bench import network as bench_network
+
+                bench_network.run(quick=args.quick, steps=args.steps, json_path=args.json)
             if args.bench == "physics":
                 from .bench import physics
 

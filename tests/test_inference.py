@@ -75,3 +75,16 @@ def test_pattern_export_to_device_is_quantised(tmp_path):
     loaded = Device.load(dev_file).pattern
     np.testing.assert_allclose(loaded, np.round(pattern * 255) / 255, atol=1e-7)
     np.testing.assert_allclose(loaded * 255, np.round(loaded * 255), atol=1e-5)
+
+
+def test_network_benchmark_reads_shipped_models_and_reports_the_keys(tmp_path):
+    import json
+
+    from ntp_engine.bench import network as bench_network
+
+    out = tmp_path / "bn.json"
+    bench_network.run(quick=True, json_path=out, batches=1, rate_traces=256)
+    r = json.loads(out.read_text())
+    assert set(r["val_loss_by_pattern"]) == {"optimized", "full_on", "point"}
+    assert set(r["val_loss_by_test_views"]) == {"8", "16", "32", "64", "128"}
+    assert r["traces_per_s"] > 0 and all(v > 0 for v in r["val_loss_by_pattern"].values())

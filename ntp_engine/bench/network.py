@@ -1,0 +1,92 @@
+"""``ntp bench network``: what the lighting pattern and the trace length do to the network's error,
+and the shipped model's inference rate.
+
+- ``val_loss_by_pattern``: Eq. 5 validation loss of three networks that differ only in their
+  pattern (jointly optimised, fixed full-on, fixed single point light; paper Fig. 14). ``--quick``
+  reads the comparison networks shipped in ``assets/models/compare_*``; otherwise they are trained
+  here first (``--steps``). Either way they are evaluated on validation data generated now, with a
+  seed no training run used.
+- ``val_loss_by_test_views``: the shipped model on traces of exactly 8 ... 128 views (Fig. 16).
+- ``traces_per_s``: the shipped model on 64-view traces through the inference API.
+"""
+from __future__ import annotations
+
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+
+from .. import models
+from ..device import Device
+from ..inference import RaggedTraces, predict_all
+from ..network import NetworkConfig
+from ..synthetic import SyntheticConfig, sample_batch
+from ..train import TrainConfig, batch_loss, train
+from . import dump_json, print_table
+
+PATTERNS = {"optimized": "learned", "full_on": "full_on", "point": "point"}
+BENCH_SEED = 424_242  # training uses seeds 0.., validation 1_000_003..: this data is new to every model
+
+
+@torch.no_grad()
+def evaluate(model, device: Device, views: int | None, batches: int, batch: int = 64, seed: int = BENCH_SEED) -> float:
+    model.eval()
+    total = 0.0
+    for k in range(batches):
+        gen = torch.Generator().manual_seed(seed + k)
+        b = sample_batch(device, batch, gen, SyntheticConfig(), views=views)
+        loss, _, _, _ = batch_loss(model, b, gen)
+        total += float(loss)
+    return total / batches
+
+
+def _comparison_models(quick: bool, steps: int, device: Device) -> dict:
+    out = {}
+    for name, pattern in PATTERNS.items():
+        if quick:
+            net, _ = models.load(models.MODELS_DIR / f"compare_{name}", device)
+        else:
+            run = Path(tempfile.mkdtemp(prefix=f"ntp-bench-{name}-"))
+            train(run, NetworkConfig(preset="small", frozen_pattern=None if pattern == "learned" else pattern),
+                  TrainConfig(steps=steps, validate_every=max(steps // 4, 1)))
+            models.export(run / "checkpoint.pt", run / "model", {})
+            net, _ = models.load(run / "model", device)
+        out[name] = net
+    return out
+
+
+def traces_per_second(model, device: Device, traces: int = 4096, views: int = 64) -> float:
+    gen = torch.Generator().manual_seed(1)
+    b = sample_batch(device, 64, gen, SyntheticConfig(), views=views)
+    with torch.no_grad():
+        pixel, _ = model.measure(b.m_phys, b.length_mask, gen)
+    raw = torch.cat([pixel, b.position, b.normal_geo, b.tangent_geo], -1)  # (64, V, 12)
+    raw = raw.repeat(traces // 64, 1, 1)
+    tr = RaggedTraces.from_padded(raw, torch.ones(raw.shape[:2], dtype=torch.bool))
+    predict_all(model, tr, max_entries=1 << 16)  # warm-up
+    t0 = time.perf_counter()
+    predict_all(model, tr, max_entries=1 << 16)
+    return traces / (time.perf_counter() - t0)
+
+
+def run(quick: bool = False, steps: int = 3000, json_path=None, batches: int | None = None,
+        rate_traces: int = 4096) -> dict:
+    device = Device.load()
+    batches = batches or (8 if quick else 32)
+    nets = _comparison_models(quick, steps, device)
+    by_pattern = {name: evaluate(net, device, None, batches) for name, net in nets.items()}
+    shipped, meta = models.load(None, device)
+    by_views = {str(v): evaluate(shipped, device, v, batches if v <= 64 else max(batches // 2, 1))
+                for v in (8, 16, 32, 64, 128)}
+    rate = traces_per_second(shipped, device, traces=rate_traces)
+    print(f"validation loss (Eq. 5) on {batches * 64} fresh traces per entry")
+    print_table([(k, f"{v:.4f}") for k, v in by_pattern.items()], ("pattern (preset small)", "val loss"))
+    print()
+    print_table([(k, f"{v:.4f}") for k, v in by_views.items()], (f"test views ({meta['network']['preset']})", "val loss"))
+    print(f"\ninference: {rate:.0f} traces/s (64 views, {torch.get_num_threads()} threads, "
+          f"preset {meta['network']['preset']})")
+    result = {"val_loss_by_pattern": by_pattern, "val_loss_by_test_views": by_views, "traces_per_s": rate,
+              "shipped_model": meta.get("summary", {}), "threads": torch.get_num_threads()}
+    dump_json(json_path, result)
+    return result
