@@ -148,7 +148,7 @@ def diffuse_normal(diffuse: Tensor) -> tuple[Tensor, Tensor]:
 
 
 def fit_geometry(specular: Tensor, diffuse: Tensor | None = None, iterations: int = 3, top_k: int = 384,
-                 gn_steps: int = 10, chunk: int = 2048, with_error: bool = False) -> GeometryFit:
+                 gn_steps: int = 10, chunk: int = 1024, with_error: bool = False) -> GeometryFit:
     """Fit n, t, alpha_x, alpha_y (and a grayscale rho_s) to specular lumitexels ``(N, 6144)``.
 
     ``diffuse (N, 384)`` provides the fallback normal for texels without a usable lobe.
