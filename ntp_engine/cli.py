@@ -21,6 +21,18 @@ def _parser() -> argparse.ArgumentParser:
     dev.add_argument("path", type=Path, nargs="?", default=None, help="device TOML (default: the default device)")
     dev.add_argument("--list", action="store_true", help="list the shipped devices")
 
+    vs = sub.add_parser("virtual-scan", help="simulate a hand-held capture of a mesh with known maps")
+    vs.add_argument("--out", type=Path, required=True, help="scan folder to write")
+    vs.add_argument("--asset", default=None, help="asset folder (mesh.obj + ground_truth/); default: the demo")
+    vs.add_argument("--mesh", type=Path, default=None, help="a mesh with UVs (OBJ/PLY, metres) ...")
+    vs.add_argument("--maps", type=Path, default=None, help="... and a folder with its five maps")
+    vs.add_argument("--device", type=Path, default=None, help="device TOML (default: the paper's LED array)")
+    vs.add_argument("--views", type=int, default=120)
+    vs.add_argument("--scale", type=float, default=0.25, help="camera resolution scale (1.0 = 2448x2048)")
+    vs.add_argument("--seed", type=int, default=0)
+    vs.add_argument("--exposure", type=float, default=1.5, help="x the device's auto-exposure")
+    vs.add_argument("--blur-fraction", type=float, default=0.0, help="fraction of photos with motion blur")
+
     tr = sub.add_parser("train", help="train the trace network and its lighting pattern (resumable)")
     tr.add_argument("--preset", default="compact", choices=["compact", "paper", "small"])
     tr.add_argument("--out", type=Path, required=True, help="run folder (checkpoint.pt, log.csv)")
@@ -45,6 +57,9 @@ def _parser() -> argparse.ArgumentParser:
     st.add_argument("--samples", type=int, default=10_000_000)
     st.add_argument("--seed", type=int, default=0)
     st.add_argument("--json", type=Path, default=None)
+    bv = bsub.add_parser("virtual-scan", help="seconds per photo (scale 0.25, 1.0) and shadow-cluster error")
+    bv.add_argument("--photos", type=int, default=3)
+    bv.add_argument("--json", type=Path, default=None)
     bf = bsub.add_parser("fit", help="batched GGX fitter vs per-texel scipy L-BFGS-B (speed and error)")
     bf.add_argument("--quick", action="store_true", help="2048 texels (baseline on 32) instead of 16384 (192)")
     bf.add_argument("--texels", type=int, default=None)
@@ -74,6 +89,15 @@ def main(argv: list[str] | None = None) -> int:
                     print(f"{path.name:24s} {Device.load(path).description}")
             else:
                 print(Device.load(args.path).summary())
+        elif args.command == "virtual-scan":
+            from .virtual_scan import ScanConfig, virtual_scan
+
+            if not 0 < args.scale <= 1 or args.views < 1 or not 0 <= args.blur_fraction <= 1:
+                raise NtpInputError(None, "need 0 < --scale <= 1, --views >= 1, 0 <= --blur-fraction <= 1")
+            cfg = ScanConfig(views=args.views, scale=args.scale, seed=args.seed, exposure=args.exposure,
+                             blur_fraction=args.blur_fraction)
+            info = virtual_scan(args.out, args.asset, args.mesh, args.maps, args.device, cfg)
+            print(f"wrote {args.out}: {args.views} photos, {info['seconds_per_photo']:.2f} s per photo")
         elif args.command == "train":
             from . import models
             from .device import DEFAULT_DEVICE
@@ -101,6 +125,10 @@ def main(argv: list[str] | None = None) -> int:
 
                 r = stability.run(samples=args.samples, seed=args.seed, json_path=args.json)
                 return 1 if r["nonfinite"] or r["total"]["negative_values"] else 0
+            if args.bench == "virtual-scan":
+                from .bench import virtual_scan as bench_vs
+
+                bench_vs.run(photos=args.photos, json_path=args.json)
             if args.bench == "fit":
                 from .bench import fit as bench_fit
 

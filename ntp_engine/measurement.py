@@ -131,3 +131,35 @@ def confidence(device: Device, x: Tensor, n: Tensor, t: Tensor, alpha_x: Tensor,
     masks views out of the trace. beta is 0 when no view sees any highlight, 1 once a view sees
     >= eps of the peak (in log(1 + x)). Returns ``(...)`` in [0, 1]."""
     return confidence_from_ratios(view_highlight_ratio(device, x, n, t, alpha_x, alpha_y, rho_s), valid, eps)
+
+
+def measurement_rgb(device: Device, x: Tensor, n: Tensor, t: Tensor, rho_d: Tensor, rho_s: Tensor,
+                    alpha_x: Tensor, alpha_y: Tensor, pattern: Tensor | None = None,
+                    visibility: Tensor | None = None, f0: float = F0_DIELECTRIC) -> Tensor:
+    """B ``(N, 3)`` for points ``x (N, 3)`` — equal to ``measure(physical_lumitexel(...))`` but built
+    for renderers: m_phys(l, c) = w_l (rho_d,c / pi + rho_s,c s_l) factorises, so
+    B = (rho_d / pi) (A P) + rho_s (S P) with per-emitter scalars A_l = sum_q w cos V and
+    S_l = sum_q w cos V spec, and every direction comes from matrix products (the local emitter
+    offsets are F P^T - F x; r^2 and the emitter-side cosines likewise). ``visibility``
+    broadcastable to ``(N, L, Q)``."""
+    pts, wq = device.emitter_samples(x.dtype, x.device)  # (L, Q, 3), (L, Q)
+    L, Q = wq.shape
+    P = pts.reshape(L * Q, 3)
+    nl = torch.as_tensor(device.emitter_normals, dtype=x.dtype, device=x.device).repeat_interleave(Q, 0)
+    frame = frame_from_normal_tangent(n, t)  # (N, 3, 3)
+    d = torch.einsum("nij,kj->nik", frame, P) - (frame @ x[:, :, None])  # (N, 3, K) local offsets
+    r2 = (d * d).sum(1).clamp_min(1e-12)
+    inv_r = torch.rsqrt(r2)
+    wi_l = (d * inv_r[:, None, :]).transpose(1, 2)  # (N, K, 3)
+    cos_l = ((x @ nl.T) - (P * nl).sum(-1)) * inv_r  # (-wi) . n_l
+    falloff = wq.reshape(-1) * device.psi(cos_l) / r2
+    if visibility is not None:
+        falloff = falloff * torch.broadcast_to(visibility, (x.shape[0], L, Q)).reshape(x.shape[0], L * Q)
+    wo_l = to_local(safe_normalize(-x), frame)  # (N, 3)
+    spec = ggx_specular(wi_l, wo_l[:, None, :], alpha_x[:, None], alpha_y[:, None], f0)
+    w = falloff * wi_l[..., 2].clamp_min(0.0) * (wo_l[:, 2:3] > 0).to(x.dtype)
+    a_l, s_l = w.reshape(-1, L, Q).sum(-1), (w * spec).reshape(-1, L, Q).sum(-1)
+    if pattern is None:
+        pattern = torch.as_tensor(device.pattern, dtype=x.dtype, device=x.device)
+    p_eff = device.effective_pattern(pattern.to(x.dtype))  # (L, 3)
+    return rho_d / torch.pi * (a_l @ p_eff) + rho_s * (s_l @ p_eff)

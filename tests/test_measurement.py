@@ -163,3 +163,21 @@ def test_float32_gradients_reach_pattern_and_geometry_at_the_edges():
     for leaf in (x, n, a, logits):
         assert torch.isfinite(leaf.grad).all()
     assert logits.grad.abs().sum() > 0
+
+
+def test_factorised_measurement_equals_the_reference():
+    from ntp_engine.measurement import measurement_rgb
+
+    for name in ("ntp_led_32x16", "area_light"):
+        dev = Device.load(DEVICES_DIR / f"{name}.toml")
+        gen = torch.Generator().manual_seed(8)
+        x = torch.as_tensor(dev.valid_center) + 0.05 * torch.randn(7, 3, generator=gen, dtype=F64)
+        n = torch.nn.functional.normalize(-x + 0.3 * torch.randn(7, 3, generator=gen, dtype=F64), dim=-1)
+        t = torch.randn(7, 3, generator=gen, dtype=F64)
+        rd, rs = torch.rand(7, 3, generator=gen, dtype=F64), 10 * torch.rand(7, 3, generator=gen, dtype=F64)
+        ax, ay = torch.full((7,), 0.05, dtype=F64), torch.full((7,), 0.2, dtype=F64)
+        p = torch.rand(dev.num_emitters, 3, generator=gen, dtype=F64)
+        L, Q = dev.emitter_samples()[1].shape
+        vis = (torch.rand(7, L, Q, generator=gen) > 0.3).to(F64)
+        ref = measure(dev, physical_lumitexel(dev, x, n, t, rd, rs, ax, ay, visibility=vis), p)
+        torch.testing.assert_close(measurement_rgb(dev, x, n, t, rd, rs, ax, ay, p, vis), ref)

@@ -1,0 +1,72 @@
+"""``ntp bench virtual-scan``: seconds per photo of the demo asset at scale 0.25 and 1.0, and the
+error of clustered shadows against exact per-emitter shadow rays (on the demo dome with an
+occluding wall beside it, so there are shadows to get wrong)."""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from ..device import Device
+from ..mesh import Mesh, smooth_normals
+from ..virtual_scan import ScanConfig, Scene, load_asset, scaled_device, trajectory
+from . import dump_json, print_table
+
+
+def _with_wall(mesh: Mesh) -> Mesh:
+    """The mesh plus a 12 cm x 10 cm vertical wall 1 cm beside it (its UVs unused, set to 0)."""
+    x0 = mesh.vertices[:, 0].max() + 0.01
+    wall = np.array([[x0, -0.06, 0.0], [x0, 0.06, 0.0], [x0, 0.06, 0.10], [x0, -0.06, 0.10]])
+    v = np.concatenate([mesh.vertices, wall])
+    k = len(mesh.vertices)
+    f = np.concatenate([mesh.faces, [[k, k + 1, k + 2], [k, k + 2, k + 3]]])
+    uv = np.concatenate([mesh.uv, np.zeros((4, 2))])
+    return Mesh(v, f, uv, smooth_normals(v, f))
+
+
+def run(photos: int = 3, json_path=None) -> dict:
+    mesh, maps, _ = load_asset(None, None, None)
+    device = Device.load()
+    cfg = ScanConfig(views=24)
+    rng = np.random.default_rng(0)
+    scene = Scene(mesh, maps, device, cfg.clusters, cfg.exposure)
+    poses = trajectory(scene.center, device, cfg, rng)
+    result, rows = {}, []
+    for scale, n in ((0.25, photos), (1.0, max(1, photos // 2))):
+        cam = scaled_device(device, scale)
+        cfg.scale = scale
+        scene.photo(poses[0], cam, cfg, rng)  # warm-up
+        t0 = time.perf_counter()
+        for i in range(n):
+            scene.photo(poses[1 + i], cam, cfg, rng)
+        sec = (time.perf_counter() - t0) / n
+        result[f"seconds_per_photo_scale_{scale:g}"] = sec
+        rows.append((f"{scale:g}", f"{cam.width}x{cam.height}", f"{sec:.2f}", f"{sec * 120 / 60:.1f}"))
+    print_table(rows, ("scale", "pixels", "s / photo", "min / 120 photos"))
+
+    # shadow error: clusters vs exact, on object pixels of a few views of the dome beside a wall
+    walled = Scene(_with_wall(mesh), maps, device, cfg.clusters, cfg.exposure)
+    cam = scaled_device(device, 0.25)
+    errs, t_c, t_e, lit = [], 0.0, 0.0, []
+    for i in (2, 9, 16):
+        lin, info = walled.render_linear(poses[i], cam)
+        obj = np.nonzero(info["geom"].reshape(-1) == 0)[0]
+        sub = obj[np.linspace(0, len(obj) - 1, min(1500, len(obj))).astype(int)]
+        t0 = time.perf_counter()
+        a, _ = walled.render_linear(poses[i], cam, pixel_subset=sub)
+        t_c += time.perf_counter() - t0
+        t0 = time.perf_counter()
+        b, _ = walled.render_linear(poses[i], cam, pixel_subset=sub, exact_shadows=True)
+        t_e += time.perf_counter() - t0
+        bright = b.max(-1) > 0.02
+        errs.append(np.abs(a - b)[bright].max(-1) / b[bright].max(-1))
+        lit.append(bright.mean())
+    e = np.concatenate(errs) if errs else np.zeros(1)
+    result.update({"shadow_clusters": cfg.clusters, "shadow_rel_err_median": float(np.median(e)),
+                   "shadow_rel_err_p99": float(np.percentile(e, 99)), "shadow_rel_err_max": float(e.max()),
+                   "shadow_pixels": int(e.size), "shadow_cost_ratio_exact_over_clusters": t_e / max(t_c, 1e-9)})
+    print(f"shadows, {cfg.clusters} clusters vs exact per-LED rays ({e.size} object pixels, dome beside a wall): "
+          f"relative error median {np.median(e):.2e}, p99 {np.percentile(e, 99):.2e}, max {e.max():.2e}; "
+          f"exact costs {t_e / max(t_c, 1e-9):.1f}x")
+    dump_json(json_path, result)
+    return result
