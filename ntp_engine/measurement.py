@@ -133,15 +133,17 @@ def confidence(device: Device, x: Tensor, n: Tensor, t: Tensor, alpha_x: Tensor,
     return confidence_from_ratios(view_highlight_ratio(device, x, n, t, alpha_x, alpha_y, rho_s), valid, eps)
 
 
-def measurement_rgb(device: Device, x: Tensor, n: Tensor, t: Tensor, rho_d: Tensor, rho_s: Tensor,
-                    alpha_x: Tensor, alpha_y: Tensor, pattern: Tensor | None = None,
-                    visibility: Tensor | None = None, f0: float = F0_DIELECTRIC) -> Tensor:
-    """B ``(N, 3)`` for points ``x (N, 3)`` — equal to ``measure(physical_lumitexel(...))`` but built
-    for renderers: m_phys(l, c) = w_l (rho_d,c / pi + rho_s,c s_l) factorises, so
-    B = (rho_d / pi) (A P) + rho_s (S P) with per-emitter scalars A_l = sum_q w cos V and
-    S_l = sum_q w cos V spec, and every direction comes from matrix products (the local emitter
-    offsets are F P^T - F x; r^2 and the emitter-side cosines likewise). ``visibility``
-    broadcastable to ``(N, L, Q)``."""
+def emitter_terms(device: Device, x: Tensor, n: Tensor, t: Tensor, alpha_x: Tensor, alpha_y: Tensor,
+                  visibility: Tensor | None = None, f0: float = F0_DIELECTRIC) -> tuple[Tensor, Tensor]:
+    """The two per-emitter scalars of the factorised Eq. 1, ``(..., L)`` each, for points
+    ``x, n, t (..., 3)`` and alphas ``(...)``: m_phys(l, c) = A_l rho_d,c / pi + S_l rho_s,c with
+    A_l = sum_q w_q Psi V (wi.n)+ / r^2 and S_l = the same times the specular lobe (rho_s = 1).
+    Every direction comes from matrix products (local emitter offsets F P^T - F x; r^2 and the
+    emitter-side cosines likewise), so no (..., L, 3) BRDF tensors are built.
+    ``visibility`` broadcastable to ``(..., L, Q)``."""
+    lead = x.shape[:-1]
+    x, n, t = x.reshape(-1, 3), n.reshape(-1, 3), t.reshape(-1, 3)
+    alpha_x, alpha_y = alpha_x.expand(lead).reshape(-1), alpha_y.expand(lead).reshape(-1)
     pts, wq = device.emitter_samples(x.dtype, x.device)  # (L, Q, 3), (L, Q)
     L, Q = wq.shape
     P = pts.reshape(L * Q, 3)
@@ -154,12 +156,28 @@ def measurement_rgb(device: Device, x: Tensor, n: Tensor, t: Tensor, rho_d: Tens
     cos_l = ((x @ nl.T) - (P * nl).sum(-1)) * inv_r  # (-wi) . n_l
     falloff = wq.reshape(-1) * device.psi(cos_l) / r2
     if visibility is not None:
-        falloff = falloff * torch.broadcast_to(visibility, (x.shape[0], L, Q)).reshape(x.shape[0], L * Q)
+        vis = torch.broadcast_to(visibility, (*lead, L, Q)).reshape(-1, L * Q)
+        falloff = falloff * vis.to(x.dtype)
     wo_l = to_local(safe_normalize(-x), frame)  # (N, 3)
     spec = ggx_specular(wi_l, wo_l[:, None, :], alpha_x[:, None], alpha_y[:, None], f0)
     w = falloff * wi_l[..., 2].clamp_min(0.0) * (wo_l[:, 2:3] > 0).to(x.dtype)
     a_l, s_l = w.reshape(-1, L, Q).sum(-1), (w * spec).reshape(-1, L, Q).sum(-1)
+    return a_l.reshape(*lead, L), s_l.reshape(*lead, L)
+
+
+def measure_terms(device: Device, a_l: Tensor, s_l: Tensor, rho_d: Tensor, rho_s: Tensor,
+                  pattern: Tensor | None = None) -> Tensor:
+    """B ``(..., 3)`` from the factorised terms ``(..., L)`` and RGB albedos ``(..., 3)``."""
     if pattern is None:
-        pattern = torch.as_tensor(device.pattern, dtype=x.dtype, device=x.device)
-    p_eff = device.effective_pattern(pattern.to(x.dtype))  # (L, 3)
+        pattern = torch.as_tensor(device.pattern, dtype=a_l.dtype, device=a_l.device)
+    p_eff = device.effective_pattern(pattern.to(a_l.dtype))  # (L, 3)
     return rho_d / torch.pi * (a_l @ p_eff) + rho_s * (s_l @ p_eff)
+
+
+def measurement_rgb(device: Device, x: Tensor, n: Tensor, t: Tensor, rho_d: Tensor, rho_s: Tensor,
+                    alpha_x: Tensor, alpha_y: Tensor, pattern: Tensor | None = None,
+                    visibility: Tensor | None = None, f0: float = F0_DIELECTRIC) -> Tensor:
+    """B ``(..., 3)``, equal to ``measure(physical_lumitexel(...))``, through the factorised terms
+    (``emitter_terms``): for renderers and training data (many points)."""
+    a_l, s_l = emitter_terms(device, x, n, t, alpha_x, alpha_y, visibility, f0)
+    return measure_terms(device, a_l, s_l, rho_d, rho_s, pattern)

@@ -120,13 +120,25 @@ class TraceNet(nn.Module):
         """The lighting pattern ``(L, 3)`` in [0, 1]."""
         return torch.sigmoid(self.pattern_logits)
 
+    def _p_eff_exposure(self) -> tuple[Tensor, Tensor]:
+        p_eff = self.pattern() @ self.color_matrix.T
+        return p_eff, self.gain / p_eff.mean().clamp_min(1e-6)  # as Device.exposure: auto-exposure
+
     def measure(self, m_phys: Tensor, length_mask: Tensor, gen: torch.Generator | None = None,
                 noise: bool = True) -> tuple[Tensor, Tensor]:
         """Physical lumitexels ``(B, V, L, 3)`` -> linear pixel values ``(B, V, 3)`` and the valid
         mask ``(B, V)`` after noise, 8-bit quantisation and the [32, 224] test."""
-        p_eff = self.pattern() @ self.color_matrix.T
-        exposure = self.gain / p_eff.mean().clamp_min(1e-6)  # as Device.exposure: auto-exposure
-        pixel = exposure * torch.einsum("bvlc,lc->bvc", m_phys, p_eff)
+        p_eff, exposure = self._p_eff_exposure()
+        return self._sensor(exposure * torch.einsum("bvlc,lc->bvc", m_phys, p_eff), length_mask, gen, noise)
+
+    def measure_batch(self, batch, gen: torch.Generator | None = None, noise: bool = True) -> tuple[Tensor, Tensor]:
+        """As ``measure`` for a ``TraceBatch``, from its factorised terms (no (B, V, L, 3) tensor)."""
+        p_eff, exposure = self._p_eff_exposure()
+        clean = (batch.rho_d_view / torch.pi * (batch.terms_diffuse @ p_eff)
+                 + batch.rho_s_view * (batch.terms_specular @ p_eff))
+        return self._sensor(exposure * clean, batch.length_mask, gen, noise)
+
+    def _sensor(self, pixel: Tensor, length_mask: Tensor, gen, noise: bool) -> tuple[Tensor, Tensor]:
         if noise and self.cfg.noise_sigma > 0:
             eps = torch.randn(pixel.shape, generator=gen, device=pixel.device, dtype=pixel.dtype)
             pixel = pixel * (1 + self.cfg.noise_sigma * eps)

@@ -10,7 +10,9 @@ camera-space frame of view j is n_j = F^_j^T n, t_j = F^_j^T t. The labels are t
 
 What stays *outside* this module, because it depends on the (learned) pattern: the measurement
 B = pattern . m_phys, its noise, 8-bit quantisation and the [32, 224] validity test. The batch
-carries the physical lumitexels ``m_phys`` and the per-view highlight ratios for beta.
+carries the physical lumitexels in factorised form (m_phys(l, c) = A_l rho_d,c / pi + S_l rho_s,c,
+``measurement.emitter_terms``; ``TraceBatch.m_phys`` rebuilds the full tensor) and the per-view
+highlight ratios for beta.
 """
 from __future__ import annotations
 
@@ -24,7 +26,7 @@ from .brdf import ALPHA_MAX, ALPHA_MIN, RHO_D_MAX, RHO_S_MAX
 from .device import Device
 from .frame import any_tangent, safe_normalize
 from .lumitexel import render_lumitexels
-from .measurement import physical_lumitexel, view_highlight_ratio
+from .measurement import emitter_terms, view_highlight_ratio
 
 
 @dataclass
@@ -42,7 +44,10 @@ class SyntheticConfig:
 class TraceBatch:
     """A batch of B synthetic points with V (padded) views each."""
 
-    m_phys: Tensor  # (B, V, L, 3) physical lumitexels, unit drive, camera channels
+    terms_diffuse: Tensor  # (B, V, L) A_l of the factorised Eq. 1 (measurement.emitter_terms)
+    terms_specular: Tensor  # (B, V, L) S_l
+    rho_d_view: Tensor  # (B, V, 3) the per-view (jittered) albedos
+    rho_s_view: Tensor  # (B, V, 3)
     position: Tensor  # (B, V, 3) camera space, m
     normal_geo: Tensor  # (B, V, 3) n^ in camera space
     tangent_geo: Tensor  # (B, V, 3) t^ in camera space
@@ -51,6 +56,12 @@ class TraceBatch:
     label_diffuse: Tensor  # (B, 384) grayscale diffuse lumitexel in the geometric frame
     label_specular: Tensor  # (B, 6144) grayscale specular lumitexel in the geometric frame
     params: dict[str, Tensor]  # rho_d (B,3), rho_s (B,3), alpha_x, alpha_y (B,), n_local, t_local (B,3)
+
+    @property
+    def m_phys(self) -> Tensor:
+        """Physical lumitexels ``(B, V, L, 3)`` (unit drive, camera channels), built on demand."""
+        return (self.terms_diffuse[..., None] * self.rho_d_view[:, :, None, :] / math.pi
+                + self.terms_specular[..., None] * self.rho_s_view[:, :, None, :])
 
     def to(self, device) -> "TraceBatch":
         move = lambda v: v.to(device)
@@ -133,7 +144,7 @@ def sample_batch(device_cal: Device, batch: int, gen: torch.Generator, cfg: Synt
     rho_s = (p["rho_s"][:, None] * jit(cfg.albedo_jitter, (batch, V, 3))).clamp(0, cfg.rho_s_max)
     ax = (p["alpha_x"][:, None] * jit(cfg.roughness_jitter, (batch, V))).clamp(ALPHA_MIN, ALPHA_MAX)
     ay = (p["alpha_y"][:, None] * jit(cfg.roughness_jitter, (batch, V))).clamp(ALPHA_MIN, ALPHA_MAX)
-    m_phys = physical_lumitexel(device_cal, x, n_cam, t_cam, rho_d, rho_s, ax, ay)
+    a_l, s_l = emitter_terms(device_cal, x, n_cam, t_cam, ax, ay)
     ratio = view_highlight_ratio(device_cal, x, n_cam, t_cam, p["alpha_x"], p["alpha_y"], p["rho_s"].mean(-1))
 
     if views is None:
@@ -144,5 +155,5 @@ def sample_batch(device_cal: Device, batch: int, gen: torch.Generator, cfg: Synt
 
     d, s = render_lumitexels(n_local, t_local, p["rho_d"].mean(-1, keepdim=True), p["rho_s"].mean(-1, keepdim=True),
                              p["alpha_x"], p["alpha_y"])
-    return TraceBatch(m_phys=m_phys, position=x, normal_geo=n_geo, tangent_geo=t_geo, length_mask=mask,
+    return TraceBatch(terms_diffuse=a_l, terms_specular=s_l, rho_d_view=rho_d, rho_s_view=rho_s, position=x, normal_geo=n_geo, tangent_geo=t_geo, length_mask=mask,
                       highlight_ratio=ratio, label_diffuse=d[..., 0], label_specular=s[..., 0], params=p)

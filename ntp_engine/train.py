@@ -47,7 +47,7 @@ def _step_generator(seed: int, step: int, device) -> torch.Generator:
 
 def batch_loss(model: TraceNet, batch: TraceBatch, gen: torch.Generator, noise: bool = True):
     """Measure, filter, predict and score one batch: (loss, diffuse part, specular part, valid mask)."""
-    pixel, valid = model.measure(batch.m_phys, batch.length_mask, gen, noise=noise)
+    pixel, valid = model.measure_batch(batch, gen, noise=noise)
     beta = confidence_from_ratios(batch.highlight_ratio, valid)
     entries = model.entries(pixel, batch.position, batch.normal_geo, batch.tangent_geo)
     pred_d, pred_s = model(entries, valid)

@@ -86,3 +86,25 @@ def test_loss_is_eq5():
     ld, ls = torch.ones(2, 384), torch.full((2, 6144), torch.e - 1)
     total, d, s = lumitexel_loss(pd, ps, ld, ls, torch.tensor([1.0, 0.0]))
     assert float(d) == 384 and abs(float(s) - 6144 / 2) < 1e-2 and abs(float(total) - (384 + 0.01 * 3072)) < 1e-3
+
+
+def test_factorised_batch_measures_like_the_full_physical_lumitexel():
+    from ntp_engine.frame import frame_from_normal_tangent
+    from ntp_engine.measurement import physical_lumitexel
+
+    dev = Device.load()
+    b = sample_batch(dev, 4, torch.Generator().manual_seed(6), SyntheticConfig(views_min=5, views_max=5,
+                                                                                  roughness_jitter=0.0))
+    net = _net()
+    p1, v1 = net.measure_batch(b, noise=False)
+    p2, v2 = net.measure(b.m_phys, b.length_mask, noise=False)
+    torch.testing.assert_close(p1, p2)
+    assert torch.equal(v1, v2)
+    # the stored terms are Eq. 1 for the true per-view frames
+    geo = frame_from_normal_tangent(b.normal_geo, b.tangent_geo)
+    n_cam = (geo * b.params["n_local"][:, None, :, None]).sum(-2)
+    t_cam = (geo * b.params["t_local"][:, None, :, None]).sum(-2)
+    ax = b.params["alpha_x"][:, None].expand(4, 5)
+    ay = b.params["alpha_y"][:, None].expand(4, 5)
+    ref = physical_lumitexel(dev, b.position, n_cam, t_cam, b.rho_d_view, b.rho_s_view, ax, ay)
+    torch.testing.assert_close(b.m_phys, ref, rtol=2e-4, atol=1e-6)

@@ -37,7 +37,7 @@ def _cases(n: int, seed: int, chunk: int = 128) -> dict:
         gt["exact"].append(b.label_specular)
         if model is not None:
             with torch.no_grad():
-                pixel, valid = model.measure(b.m_phys, b.length_mask, gen)
+                pixel, valid = model.measure_batch(b, gen)
                 _, s = model(model.entries(pixel, b.position, b.normal_geo, b.tangent_geo), valid)
             gt["noisy"].append(torch.expm1(s.clamp_min(0)))
         else:

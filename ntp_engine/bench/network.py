@@ -60,7 +60,7 @@ def traces_per_second(model, device: Device, traces: int = 4096, views: int = 64
     gen = torch.Generator().manual_seed(1)
     b = sample_batch(device, 64, gen, SyntheticConfig(), views=views)
     with torch.no_grad():
-        pixel, _ = model.measure(b.m_phys, b.length_mask, gen)
+        pixel, _ = model.measure_batch(b, gen)
     raw = torch.cat([pixel, b.position, b.normal_geo, b.tangent_geo], -1)  # (64, V, 12)
     raw = raw.repeat(traces // 64, 1, 1)
     tr = RaggedTraces.from_padded(raw, torch.ones(raw.shape[:2], dtype=torch.bool))
