@@ -1,0 +1,100 @@
+"""Assembling each texel's trace from registered photos (paper §7, Eq. 4).
+
+For every view j and texel p: the texel's object-space point goes into camera j (pose =
+camera-from-world, the world being the mesh's frame); the entry is kept if (1) the point is in
+front of the camera, projects inside the photo (OpenCV distortion included) and lies in the valid
+volume, (2) nothing of the mesh lies between it and the camera (Embree, from the point offset
+along its normal), (3) wo . n^ > 0.3, and (4) every channel of the bilinearly sampled 8-bit pixel is
+in [32, 224]. The entry is (linear pixel RGB * ``pixel_scale``, x, n^, t^) in camera j's space — the
+layout ``inference.RaggedTraces`` expects. Views that see no texel cost one projection only.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from .device import Device
+from .inference import RaggedTraces
+from .raycast import RayCaster
+from .texels import Texels
+
+VALID_CODE = (32.0, 224.0)
+MIN_COS_VIEW = 0.3
+
+
+@dataclass
+class TraceStats:
+    views_used: int
+    entries: int
+    texels_observed: int
+    rejected: dict[str, int]
+
+
+def bilinear_codes(img: np.ndarray, px: np.ndarray) -> np.ndarray:
+    """Bilinear samples ``(N, C)`` of an ``(H, W, C)`` image at pixel coordinates ``px (N, 2)`` (x, y),
+    pixel centres at integers; callers keep px inside [0, W-1] x [0, H-1]."""
+    x, y = px[:, 0], px[:, 1]
+    x0, y0 = np.floor(x).astype(np.int64), np.floor(y).astype(np.int64)
+    x1, y1 = np.minimum(x0 + 1, img.shape[1] - 1), np.minimum(y0 + 1, img.shape[0] - 1)
+    fx, fy = (x - x0)[:, None], (y - y0)[:, None]
+    return ((1 - fy) * ((1 - fx) * img[y0, x0] + fx * img[y0, x1]) + fy * ((1 - fx) * img[y1, x0] + fx * img[y1, x1]))
+
+
+def assemble(texels: Texels, photos: list[np.ndarray], poses: list[np.ndarray], camera: Device,
+             caster: RayCaster, pixel_scale: float = 1.0, eps: float = 2e-5) -> tuple[RaggedTraces, TraceStats]:
+    """Traces of all texels. ``photos``: 8-bit ``(H, W, 3)`` arrays; ``poses``: 4x4 camera-from-world."""
+    n_tex = len(texels)
+    keys, rows = [], []
+    rejected = {"behind_or_outside": 0, "valid_volume": 0, "occluded": 0, "grazing": 0, "pixel_range": 0}
+    views_used = 0
+    for img, pose in zip(photos, poses):
+        R, t = pose[:3, :3], pose[:3, 3]
+        x = texels.position @ R.T + t
+        n_hat = texels.normal @ R.T
+        cam_w = -R.T @ t
+        front = x[:, 2] > 1e-6
+        px = np.full((n_tex, 2), -1.0)
+        if front.any():
+            px[front] = camera.project(torch.as_tensor(x[front])).numpy()
+        inside = front & (px[:, 0] >= 0) & (px[:, 1] >= 0) & (px[:, 0] <= camera.width - 1) & \
+            (px[:, 1] <= camera.height - 1)
+        rejected["behind_or_outside"] += int(n_tex - inside.sum())
+        if not inside.any():
+            continue
+        idx = np.nonzero(inside)[0]
+        in_box = camera.in_valid_volume(torch.as_tensor(x[idx])).numpy()
+        rejected["valid_volume"] += int((~in_box).sum())
+        idx = idx[in_box]
+        wo = -x[idx] / np.linalg.norm(x[idx], axis=1, keepdims=True)
+        facing = (wo * n_hat[idx]).sum(1) > MIN_COS_VIEW
+        rejected["grazing"] += int((~facing).sum())
+        idx = idx[facing]
+        if len(idx) == 0:
+            continue
+        origin = texels.position[idx] + eps * texels.normal[idx]
+        to_cam = cam_w - origin
+        dist = np.linalg.norm(to_cam, axis=1)
+        occ = caster.occluded(origin, to_cam / dist[:, None], dist - 1e-4)
+        rejected["occluded"] += int(occ.sum())
+        idx = idx[~occ]
+        codes = bilinear_codes(img.astype(np.float64), px[idx])
+        ok = ((codes >= VALID_CODE[0]) & (codes <= VALID_CODE[1])).all(1)
+        rejected["pixel_range"] += int((~ok).sum())
+        idx, codes = idx[ok], codes[ok]
+        if len(idx) == 0:
+            continue
+        views_used += 1
+        lin = camera.decode(torch.as_tensor(codes)).numpy() * pixel_scale
+        entry = np.concatenate([lin, x[idx], n_hat[idx], texels.tangent[idx] @ R.T], 1)
+        keys.append(idx)
+        rows.append(entry.astype(np.float32))
+    key = np.concatenate(keys) if keys else np.zeros(0, np.int64)
+    ent = np.concatenate(rows) if rows else np.zeros((0, 12), np.float32)
+    order = np.argsort(key, kind="stable")  # by texel, views in photo order
+    counts = np.bincount(key, minlength=n_tex)
+    offsets = np.zeros(n_tex + 1, np.int64)
+    offsets[1:] = np.cumsum(counts)
+    traces = RaggedTraces(torch.from_numpy(ent[order]), torch.from_numpy(offsets))
+    return traces, TraceStats(views_used, len(key), int((counts > 0).sum()), rejected)

@@ -1,0 +1,42 @@
+import numpy as np
+import torch
+
+from ntp_engine.device import Device
+from ntp_engine.measurement import measurement_rgb
+from ntp_engine.texels import rasterize
+from ntp_engine.trace import MIN_COS_VIEW, assemble
+from ntp_engine.virtual_scan import ScanConfig, Scene, load_asset, scaled_device, trajectory
+
+
+def test_traces_from_a_virtual_scan_match_the_renderer_and_respect_the_filters():
+    mesh, maps, _ = load_asset(None, None, None)
+    dev = Device.load()
+    cfg = ScanConfig(views=8, scale=0.15, noise_sigma=0.0, read_noise=0.0)
+    scene = Scene(mesh, maps, dev, exposure=cfg.exposure)
+    cam = scaled_device(dev, cfg.scale)
+    poses = trajectory(scene.center, dev, cfg, np.random.default_rng(0))
+    photos = [scene.photo(p, cam, cfg, np.random.default_rng(1)) for p in poses]
+    tx = rasterize(mesh, (64, 64))
+    traces, stats = assemble(tx, photos, poses, cam, scene.caster, pixel_scale=1.0 / cfg.exposure)
+    assert stats.views_used == 8 and stats.texels_observed > 0.5 * len(tx)
+    e = traces.entries.double().numpy()
+    # filters: facing the camera, inside the valid volume, every channel within [32, 224]
+    wo = -e[:, 3:6] / np.linalg.norm(e[:, 3:6], axis=1, keepdims=True)
+    assert ((wo * e[:, 6:9]).sum(1) > MIN_COS_VIEW).all()
+    assert dev.in_valid_volume(torch.as_tensor(e[:, 3:6])).all()
+    codes = 255 * e[:, :3] * cfg.exposure
+    assert (codes >= 32 - 1e-3).all() and (codes <= 224 + 1e-3).all()  # float32 entries
+    # the entry's pixel is the scene's radiance at that surface point (bilinear + 8-bit aside)
+    lengths = traces.lengths.numpy()
+    texel_of_entry = np.repeat(np.arange(len(tx)), lengths)
+    m = maps.sample(np.stack([(tx.col + 0.5) / 64, 1 - (tx.row + 0.5) / 64], 1)[texel_of_entry])
+    view_of = [int(np.argmin([np.abs((p[:3, :3] @ tx.position[k] + p[:3, 3]) - e[i, 3:6]).sum() for p in poses]))
+               for i, k in zip(range(len(e)), texel_of_entry)]
+    R = np.stack([poses[v][:3, :3] for v in view_of])
+    T = lambda a: torch.as_tensor(np.ascontiguousarray(a))
+    ref = measurement_rgb(dev, T(e[:, 3:6]), T(np.einsum("nij,nj->ni", R, m["normal"])),
+                          T(np.einsum("nij,nj->ni", R, m["tangent"])), T(m["diffuse_albedo"]),
+                          T(m["specular_albedo"]), T(m["roughness"][:, 0]), T(m["roughness"][:, 1])).numpy()
+    ref *= dev.exposure(dev.pattern)
+    rel = np.abs(e[:, :3] - ref).max(1) / ref.max(1)
+    assert np.median(rel) < 0.03
