@@ -363,7 +363,7 @@ def fit_albedo(device, pattern: Tensor | None, pixels: Tensor, position: Tensor,
 
     ``position, normal_geo, tangent_geo (N, V, 3)``: each view's camera-space x, n^, t^;
     ``mask (N, V)``: entries in the trace. Unmasked entries are ignored (their values may be junk)."""
-    from .measurement import measure, physical_lumitexel
+    from .measurement import emitter_terms
 
     dtype = pixels.dtype
     geo = frame_from_normal_tangent(normal_geo, tangent_geo)  # (N, V, 3, 3) rows t^, b^, n^
@@ -371,16 +371,16 @@ def fit_albedo(device, pattern: Tensor | None, pixels: Tensor, position: Tensor,
     n_cam = (geo * geometry.normal.to(dtype)[:, None, :, None]).sum(-2)
     t_cam = (geo * geometry.tangent.to(dtype)[:, None, :, None]).sum(-2)
     N, V = mask.shape
-    ones, zeros = torch.ones(N, V, 3, dtype=dtype), torch.zeros(N, V, 3, dtype=dtype)
     ax = geometry.alpha_x.to(dtype)[:, None].expand(N, V)
     ay = geometry.alpha_y.to(dtype)[:, None].expand(N, V)
     p = torch.as_tensor(device.pattern, dtype=dtype) if pattern is None else pattern.to(dtype)
     exposure = device.exposure(p)
     x = torch.where(mask[..., None], position, torch.tensor([0.0, 0.0, 0.3], dtype=dtype))
-    basis_d = exposure * measure(device, physical_lumitexel(device, x, n_cam, t_cam, ones, zeros, ax, ay,
-                                                            visibility=visibility), p)
-    basis_s = exposure * measure(device, physical_lumitexel(device, x, n_cam, t_cam, zeros, ones, ax, ay,
-                                                            visibility=visibility), p)
+    # one pass gives both bases: a unit diffuse and a unit specular surface under the pattern
+    a_l, s_l = emitter_terms(device, x, n_cam, t_cam, ax, ay, visibility)
+    p_eff = device.effective_pattern(p)
+    basis_d = exposure * (a_l @ p_eff) / math.pi
+    basis_s = exposure * (s_l @ p_eff)
     w = mask[..., None].expand(N, V, 3).to(dtype)
     y = torch.where(mask[..., None], pixels, torch.zeros_like(pixels))
     # channels to the front: (N, 3, V)
