@@ -50,8 +50,9 @@ def smith_g1(v: Tensor, alpha_x: Tensor, alpha_y: Tensor) -> Tensor:
 
 def fresnel_schlick(cos_theta: Tensor, f0: float | Tensor = F0_DIELECTRIC) -> Tensor:
     """Schlick's Fresnel F0 + (1 - F0)(1 - cos)^5; ``cos_theta`` is clamped to [0, 1]."""
-    c = cos_theta.clamp(0.0, 1.0)
-    return f0 + (1.0 - f0) * (1.0 - c) ** 5
+    m = 1.0 - cos_theta.clamp(0.0, 1.0)
+    m2 = m * m
+    return f0 + (1.0 - f0) * (m2 * m2 * m)
 
 
 def half_vector(wi: Tensor, wo: Tensor) -> Tensor:

@@ -122,6 +122,8 @@ class Device:
         """Angular distribution Psi for the cosine of the angle from the emitter normal; 0 behind."""
         c = cos_theta.clamp(0.0, 1.0)
         if self.angular_kind == "cosine":
+            if self.angular_exponent == 1.0:  # the common Lambertian LED: no pow on the hot path
+                return c
             return torch.where(cos_theta > 0, c**self.angular_exponent, torch.zeros_like(c))
         table = torch.as_tensor(self.angular_table, dtype=cos_theta.dtype, device=cos_theta.device)
         ang = torch.rad2deg(torch.acos(c))

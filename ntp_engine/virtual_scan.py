@@ -62,7 +62,7 @@ class ScanConfig:
     blur_fraction: float = 0.0
     blur_px: float = 12.0  # blur length at scale 1.0 / 4 ... scaled with the image
     clusters: int = 32
-    chunk: int = 2048
+    chunk: int = 512
 
 
 # ------------------------------------------------------------------------------ scene pieces
