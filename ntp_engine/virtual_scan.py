@@ -182,7 +182,7 @@ class Scene:
         lo, hi = mesh.vertices.min(0), mesh.vertices.max(0)
         self.center = 0.5 * (lo + hi)
 
-    def render_linear(self, pose: np.ndarray, cam: Device, chunk: int = 8192, exact_shadows: bool = False,
+    def render_linear(self, pose: np.ndarray, cam: Device, chunk: int = 512, exact_shadows: bool = False,
                       pixel_subset: np.ndarray | None = None) -> tuple[np.ndarray, dict]:
         """Linear pixel values ``(H, W, 3)`` (exposure applied, before noise and quantisation) and
         per-pixel hit info. ``exact_shadows`` traces one shadow ray per emitter sample."""
