@@ -360,6 +360,7 @@ def fit_albedo(device, pattern: Tensor | None, pixels: Tensor, position: Tensor,
                visibility: Tensor | None = None) -> tuple[Tensor, Tensor]:
     """RGB rho_d ``(N, 3)`` in [0, 1] and rho_s ``(N, 3)`` in [0, 10] from a trace's own linear pixel
     values ``pixels (N, V, 3)`` (``device.exposure(pattern) * B``) with the fitted geometry.
+    Eq. 1 is evaluated in the dtype of ``pixels`` (float32 is plenty), the least squares in float64.
 
     ``position, normal_geo, tangent_geo (N, V, 3)``: each view's camera-space x, n^, t^;
     ``mask (N, V)``: entries in the trace. Unmasked entries are ignored (their values may be junk)."""
@@ -381,9 +382,9 @@ def fit_albedo(device, pattern: Tensor | None, pixels: Tensor, position: Tensor,
     p_eff = device.effective_pattern(p)
     basis_d = exposure * (a_l @ p_eff) / math.pi
     basis_s = exposure * (s_l @ p_eff)
-    w = mask[..., None].expand(N, V, 3).to(dtype)
-    y = torch.where(mask[..., None], pixels, torch.zeros_like(pixels))
-    # channels to the front: (N, 3, V)
-    rd, rs = bounded_ls2(basis_d.transpose(1, 2), basis_s.transpose(1, 2), y.transpose(1, 2), w.transpose(1, 2),
-                         RHO_D_MAX, RHO_S_MAX)
-    return rd, rs
+    w = mask[..., None].expand(N, V, 3).to(torch.float64)
+    y = torch.where(mask[..., None], pixels, torch.zeros_like(pixels)).to(torch.float64)
+    # channels to the front: (N, 3, V); the 2-variable least squares in float64
+    rd, rs = bounded_ls2(basis_d.transpose(1, 2).double(), basis_s.transpose(1, 2).double(), y.transpose(1, 2),
+                         w.transpose(1, 2), RHO_D_MAX, RHO_S_MAX)
+    return rd.to(dtype), rs.to(dtype)

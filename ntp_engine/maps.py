@@ -104,3 +104,14 @@ def bilinear(img: np.ndarray, uv: np.ndarray) -> np.ndarray:
     r1, c1 = np.minimum(r0 + 1, h - 1), np.minimum(c0 + 1, w - 1)
     fr, fc = (r - r0)[:, None], (c - c0)[:, None]
     return ((1 - fr) * ((1 - fc) * img[r0, c0] + fc * img[r0, c1]) + fr * ((1 - fc) * img[r1, c0] + fc * img[r1, c1]))
+
+
+def fill_missing(img: np.ndarray, known: np.ndarray) -> np.ndarray:
+    """Every unknown texel takes the value of the nearest known one (seams, holes, unobserved
+    texels); ``known (H, W)`` bool. Returns a new array; all-unknown input is returned unchanged."""
+    from scipy import ndimage
+
+    if known.all() or not known.any():
+        return img.copy()
+    _, (ri, ci) = ndimage.distance_transform_edt(~known, return_indices=True)
+    return img[ri, ci]

@@ -1,0 +1,171 @@
+"""From a scan folder with known poses to texture maps (the pipeline's core, paper §7).
+
+mesh (+ UVs, else xatlas) -> texels -> traces (trace.py) -> network (inference.py, in bounded
+batches) -> geometry fit per batch (fit.py) -> RGB albedo least squares on each texel's own trace
+-> shading frame from each texel's geometric frame (n^, t^) into object space -> maps with
+unobserved texels filled from their nearest observed neighbour (marked in confidence.exr).
+"""
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from . import models
+from .atomic import write_text_atomic
+from .errors import NtpInputError
+from .fit import FLAG_NO_LOBE, GeometryFit, fit_albedo, fit_geometry
+from .images import write_exr, write_png
+from .inference import RaggedTraces, predict
+from .maps import SVBRDFMaps, fill_missing
+from .mesh import Mesh, load_mesh, save_obj, smooth_normals
+from .raycast import RayCaster
+from .scan import Scan, read_photo
+from .texels import Texels, rasterize
+from .trace import assemble
+
+
+def uv_atlas(mesh: Mesh, resolution: int) -> Mesh:
+    """The mesh with xatlas UVs (vertices split at seams); texel density set from the mesh area so
+    the atlas fills a ``resolution``^2 map."""
+    import xatlas
+
+    atlas = xatlas.Atlas()
+    atlas.add_mesh(mesh.vertices.astype(np.float32), mesh.faces.astype(np.uint32))
+    pack = xatlas.PackOptions()
+    pack.resolution = resolution
+    pack.texels_per_unit = 0.8 * resolution / max(np.sqrt(mesh.area()), 1e-9)
+    pack.padding = 2
+    atlas.generate(pack_options=pack)
+    vmap, faces, uv = atlas[0]
+    v = mesh.vertices[vmap]
+    return Mesh(v, faces.astype(np.int64), uv.astype(np.float64), smooth_normals(v, faces.astype(np.int64)))
+
+
+def _padded(traces: RaggedTraces, idx: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    L = traces.lengths[idx]
+    width = max(int(L.max()), 1)
+    pos = torch.arange(width)[None]
+    mask = pos < L[:, None]
+    gather = (traces.offsets[idx][:, None] + pos).clamp_max(max(len(traces.entries) - 1, 0))
+    return traces.entries[gather].float(), mask
+
+
+def reconstruct_with_poses(scan: Scan, out: Path, resolution: int = 1024, model: str | None = None,
+                           batch: int = 4096) -> dict:
+    """Reconstruct maps for ``scan`` (which must carry poses) into ``out``; returns the report."""
+    if scan.poses is None:
+        raise NtpInputError(scan.folder / "scan.toml", "no poses: give a poses file")
+    t_all, report = time.perf_counter(), {"stages": {}}
+    stage = lambda name, t0: report["stages"].__setitem__(name, round(time.perf_counter() - t0, 3))
+
+    t0 = time.perf_counter()
+    mesh = load_mesh(scan.mesh_path)
+    if mesh.uv is None:
+        mesh = uv_atlas(mesh, resolution)
+    texels: Texels = rasterize(mesh, (resolution, resolution))
+    stage("texels", t0)
+
+    t0 = time.perf_counter()
+    photos, poses, used, unreadable = [], [], [], []
+    for p in scan.photo_paths:
+        if p.name not in scan.poses:
+            continue
+        img = read_photo(p, scan.device)
+        if img is None:
+            unreadable.append(p.name)
+            continue
+        photos.append(img)
+        poses.append(scan.poses[p.name])
+        used.append(p.name)
+    if not photos:
+        raise NtpInputError(scan.photos_dir, "no readable photo has a pose")
+    net, meta = models.load(model, scan.device)
+    p_eff_model = net.pattern().detach().double() @ net.color_matrix.double().T
+    model_exposure = float(net.gain) / float(p_eff_model.mean())
+    scan_exposure = float(scan.device.exposure(scan.device.pattern))
+    caster = RayCaster([mesh.triangles])
+    traces, tstats = assemble(texels, photos, poses, scan.device, caster, pixel_scale=model_exposure / scan_exposure)
+    stage("traces", t0)
+
+    t0 = time.perf_counter()
+    N = len(texels)
+    n_loc, t_loc = np.zeros((N, 3)), np.zeros((N, 3))
+    ax, ay, flags = np.full(N, 0.3), np.full(N, 0.3), np.zeros(N, np.int64)
+    rho_d, rho_s = np.zeros((N, 3)), np.zeros((N, 3))
+    observed = traces.lengths.numpy() > 0
+    for idx, d, s in predict(net, traces, max_entries=batch * 32):
+        keep = traces.lengths[idx] > 0
+        idx, d, s = idx[keep], d[keep], s[keep]
+        if len(idx) == 0:
+            continue
+        g = fit_geometry(s, d)
+        i = idx.numpy()
+        n_loc[i], t_loc[i] = g.normal.numpy(), g.tangent.numpy()
+        ax[i], ay[i], flags[i] = g.alpha_x.numpy(), g.alpha_y.numpy(), g.flags.numpy()
+        for a in range(0, len(idx), 256):  # (n, V, L) Eq. 1 terms: keep them cache-sized
+            sub = slice(a, a + 256)
+            ent, mask = _padded(traces, idx[sub])
+            gs = GeometryFit(*(None if v is None else v[sub] for v in
+                               (g.normal, g.tangent, g.alpha_x, g.alpha_y, g.rho_s, g.flags, g.log_rmse)))
+            rd, rs = fit_albedo(scan.device, None, ent[..., :3] * (scan_exposure / model_exposure), ent[..., 3:6],
+                                ent[..., 6:9], ent[..., 9:12], mask, gs)
+            rho_d[i[sub]], rho_s[i[sub]] = rd.numpy(), rs.numpy()
+    stage("network_and_fit", t0)
+
+    t0 = time.perf_counter()
+    frame = np.stack([texels.tangent, np.cross(texels.normal, texels.tangent), texels.normal], 1)  # rows
+    n_obj = np.einsum("tji,tj->ti", frame, n_loc)
+    t_obj = np.einsum("tji,tj->ti", frame, t_loc)
+    n_obj = np.where(observed[:, None], n_obj, texels.normal)
+    t_obj = np.where(observed[:, None], t_obj, texels.tangent)
+    H = W = resolution
+    known = np.zeros((H, W), bool)
+    known[texels.row, texels.col] = observed
+
+    def to_map(values: np.ndarray) -> np.ndarray:
+        img = np.zeros((H, W, values.shape[1]))
+        img[texels.row, texels.col] = values
+        return fill_missing(img, known)
+
+    n_map, t_map = to_map(n_obj), to_map(t_obj)
+    n_map /= np.maximum(np.linalg.norm(n_map, axis=-1, keepdims=True), 1e-12)
+    t_map -= (t_map * n_map).sum(-1, keepdims=True) * n_map
+    t_map /= np.maximum(np.linalg.norm(t_map, axis=-1, keepdims=True), 1e-12)
+    maps = SVBRDFMaps(to_map(rho_d), to_map(rho_s), n_map, t_map, to_map(np.stack([ax, ay], 1)))
+    out.mkdir(parents=True, exist_ok=True)
+    maps.save(out)
+    conf = np.zeros((H, W, 3))
+    conf[texels.row, texels.col, 0] = observed & ((flags & FLAG_NO_LOBE) == 0)
+    conf[texels.row, texels.col, 1] = traces.lengths.numpy()
+    write_exr(out / "confidence.exr", conf)
+    previews = out / "previews"
+    write_png(previews / "diffuse_albedo.png", maps.diffuse_albedo ** (1 / 2.2))
+    write_png(previews / "specular_albedo.png", (maps.specular_albedo / 10) ** (1 / 2.2))
+    write_png(previews / "normal.png", 0.5 * (maps.normal + 1))
+    write_png(previews / "tangent.png", 0.5 * (maps.tangent + 1))
+    write_png(previews / "roughness.png", np.concatenate([maps.roughness / 0.5, np.zeros((H, W, 1))], -1))
+    save_obj(out / "mesh.obj", mesh)
+    stage("maps", t0)
+
+    report.update({
+        "photos": {"used": len(used), "unreadable": unreadable},
+        "texels": {"total": N, "observed": int(observed.sum()), "coverage": float(observed.mean()) if N else 0.0,
+                   "flagged": int((flags != 0).sum())},
+        "traces": {"entries": tstats.entries, "views_used": tstats.views_used, "rejected": tstats.rejected},
+        "model": meta.get("summary", {}), "seconds": round(time.perf_counter() - t_all, 3),
+    })
+    write_text_atomic(out / "material.json", json.dumps({
+        "model": "anisotropic GGX (ntp)", "maps": {k: f"{k}.exr" for k in
+                                                   ("diffuse_albedo", "specular_albedo", "normal", "tangent",
+                                                    "roughness")},
+        "conventions": {"normal": "object space, unit", "tangent": "object space, unit, alpha_x along it",
+                        "roughness": "R = alpha_x, G = alpha_y", "albedo": "linear", "units": "metres",
+                        "fresnel_f0": 0.04, "uv_origin": "bottom-left"}}, indent=2))
+    write_text_atomic(out / "report.json", json.dumps(report, indent=2))
+    return report
+
+
