@@ -24,9 +24,10 @@ Albedo (``fit_albedo``): RGB rho_d in [0, 1] and rho_s in [0, 10] per texel by b
 least squares against the trace's own measurements, with the fitted geometry, the pattern and the
 device (2 unknowns per channel; the box-constrained optimum is found among the KKT candidates).
 
-Flags (``FitFlags``): non-finite input, an all-zero lumitexel, no usable lobe. Flagged texels
-get the documented fallback (``FALLBACK_ALPHA`` isotropic, normal from the diffuse lumitexel or
-+z, rho_s from the albedo fit) — never NaN.
+Flags (``FLAG_*``): non-finite input, an all-zero lumitexel, no usable lobe: such texels get the
+fallback (``FALLBACK_ALPHA`` isotropic, normal from the diffuse lumitexel or +z, rho_s 0) — never
+NaN. ``flag_unseen_highlights`` recomputes Eq. 6's beta from the fit and the trace; texels whose
+highlight no view saw get the fallback lobe too (rho_s then from the albedo least squares).
 """
 from __future__ import annotations
 
@@ -43,7 +44,8 @@ from .frame import any_tangent, cross, frame_from_normal_tangent, safe_normalize
 from .lumitexel import DIFFUSE_RES, SPECULAR_RES, specular_lumitexel, texel_positions
 
 FALLBACK_ALPHA = 0.3  # isotropic roughness for texels without a usable specular lobe
-FLAG_NONFINITE, FLAG_ZERO, FLAG_NO_LOBE = 1, 2, 4
+FLAG_NONFINITE, FLAG_ZERO, FLAG_NO_LOBE, FLAG_NO_HIGHLIGHT = 1, 2, 4, 8
+BETA_MIN = 1e-3  # below this Eq. 6 confidence a texel's highlight was never observed
 
 
 @dataclass
@@ -318,6 +320,36 @@ def _gauss_newton(m, idx, n, t, ax, ay, rho, active, steps):
     return n.float(), t.float(), ax.float(), ay.float(), rho.float()
 
 
+# ------------------------------------------------------------------------- unseen highlights
+def _to_views(geometry: GeometryFit, normal_geo: Tensor, tangent_geo: Tensor) -> tuple[Tensor, Tensor]:
+    """The fitted shading frame (lumitexel frame) in each view's camera space ``(N, V, 3)``."""
+    dtype = normal_geo.dtype
+    geo = frame_from_normal_tangent(normal_geo, tangent_geo)  # (N, V, 3, 3) rows t^, b^, n^
+    n_cam = (geo * geometry.normal.to(dtype)[:, None, :, None]).sum(-2)
+    t_cam = (geo * geometry.tangent.to(dtype)[:, None, :, None]).sum(-2)
+    return n_cam, t_cam
+
+
+def flag_unseen_highlights(device, position: Tensor, normal_geo: Tensor, tangent_geo: Tensor, mask: Tensor,
+                           geometry: GeometryFit) -> Tensor:
+    """Eq. 6 recomputed from the *fitted* lobe and the trace's own views; texels whose beta is
+    below ``BETA_MIN`` (no view ever saw the highlight) get ``FLAG_NO_HIGHLIGHT`` and the fallback
+    lobe (alpha 0.3 isotropic; rho_s then comes from the albedo least squares with that lobe).
+    Updates ``geometry`` in place; returns beta ``(N,)``."""
+    from .measurement import confidence
+
+    n_cam, t_cam = _to_views(geometry, normal_geo, tangent_geo)
+    x = torch.where(mask[..., None], position, torch.tensor([0.0, 0.0, 0.3], dtype=position.dtype))
+    beta = confidence(device, x, n_cam, t_cam, geometry.alpha_x.to(x.dtype), geometry.alpha_y.to(x.dtype),
+                      geometry.rho_s.to(x.dtype), valid=mask)
+    unseen = beta < BETA_MIN
+    fa = torch.full_like(geometry.alpha_x, FALLBACK_ALPHA)
+    geometry.alpha_x = torch.where(unseen, fa, geometry.alpha_x)
+    geometry.alpha_y = torch.where(unseen, fa, geometry.alpha_y)
+    geometry.flags = geometry.flags | unseen.long() * FLAG_NO_HIGHLIGHT
+    return beta
+
+
 # ----------------------------------------------------------------------------------- albedo
 def bounded_ls2(a: Tensor, b: Tensor, y: Tensor, w: Tensor, hi_a: float, hi_b: float) -> tuple[Tensor, Tensor]:
     """argmin over 0 <= u <= hi_a, 0 <= v <= hi_b of sum_j w_j (u a_j + v b_j - y_j)^2, batched over
@@ -367,10 +399,7 @@ def fit_albedo(device, pattern: Tensor | None, pixels: Tensor, position: Tensor,
     from .measurement import emitter_terms
 
     dtype = pixels.dtype
-    geo = frame_from_normal_tangent(normal_geo, tangent_geo)  # (N, V, 3, 3) rows t^, b^, n^
-    # shading frame from the lumitexel (geometric) frame into each view's camera space
-    n_cam = (geo * geometry.normal.to(dtype)[:, None, :, None]).sum(-2)
-    t_cam = (geo * geometry.tangent.to(dtype)[:, None, :, None]).sum(-2)
+    n_cam, t_cam = _to_views(geometry, normal_geo, tangent_geo)
     N, V = mask.shape
     ax = geometry.alpha_x.to(dtype)[:, None].expand(N, V)
     ay = geometry.alpha_y.to(dtype)[:, None].expand(N, V)

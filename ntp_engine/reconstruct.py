@@ -17,7 +17,7 @@ import torch
 from . import models
 from .atomic import write_text_atomic
 from .errors import NtpInputError
-from .fit import FLAG_NO_LOBE, GeometryFit, fit_albedo, fit_geometry
+from .fit import FLAG_NO_LOBE, GeometryFit, fit_albedo, fit_geometry, flag_unseen_highlights
 from .images import write_exr, write_png
 from .inference import RaggedTraces, predict
 from .maps import SVBRDFMaps, fill_missing
@@ -111,9 +111,11 @@ def reconstruct_with_poses(scan: Scan, out: Path, resolution: int = 1024, model:
             ent, mask = _padded(traces, idx[sub])
             gs = GeometryFit(*(None if v is None else v[sub] for v in
                                (g.normal, g.tangent, g.alpha_x, g.alpha_y, g.rho_s, g.flags, g.log_rmse)))
+            flag_unseen_highlights(scan.device, ent[..., 3:6], ent[..., 6:9], ent[..., 9:12], mask, gs)
             rd, rs = fit_albedo(scan.device, None, ent[..., :3] * (scan_exposure / model_exposure), ent[..., 3:6],
                                 ent[..., 6:9], ent[..., 9:12], mask, gs)
             rho_d[i[sub]], rho_s[i[sub]] = rd.numpy(), rs.numpy()
+            ax[i[sub]], ay[i[sub]], flags[i[sub]] = gs.alpha_x.numpy(), gs.alpha_y.numpy(), gs.flags.numpy()
     stage("network_and_fit", t0)
 
     t0 = time.perf_counter()
