@@ -1,7 +1,7 @@
 """Shipped trace networks (``assets/models/NAME/``): export from a training run, load for inference.
 
-A model folder holds ``model.pt`` (float16 state dict), ``config.json`` (network config and the
-device it was trained for), ``pattern.csv`` (the learned pattern, float) and ``summary.json``
+A model folder holds ``model.pt`` (float16 state dict), ``config.json`` (network config, the
+device it was trained for and that device's gain: the exposure its inputs are normalised to), ``pattern.csv`` (the learned pattern, float) and ``summary.json``
 (training steps, data seed, final validation losses, wall time).
 """
 from __future__ import annotations
@@ -46,6 +46,8 @@ def load(name_or_path: str | Path | None = None, device: Device | None = None,
     if unexpected or set(missing) - set(DEVICE_BUFFERS):
         raise NtpInputError(folder / "model.pt", f"weights do not match the config (missing {missing}, "
                             f"unexpected {unexpected})")
+    if "device_gain" in meta:  # the exposure the network was trained with, whatever device is passed
+        net.gain.fill_(float(meta["device_gain"]))
     summary = folder / "summary.json"
     meta["summary"] = json.loads(summary.read_text()) if summary.exists() else {}
     return net.to(map_location).eval(), meta
@@ -63,7 +65,8 @@ def export(checkpoint: Path, folder: Path, summary: dict) -> None:
     pattern = torch.sigmoid(ck["model"]["pattern_logits"].float()).numpy()
     with atomic_path(folder / "pattern.csv") as tmp:
         np.savetxt(tmp, pattern, delimiter=",", fmt="%.6f")
-    write_text_atomic(folder / "config.json", json.dumps({"network": ck["network"], "device": ck["device"]}, indent=2))
+    write_text_atomic(folder / "config.json", json.dumps({"network": ck["network"], "device": ck["device"],
+                                                          "device_gain": float(ck["model"]["gain"])}, indent=2))
     write_text_atomic(folder / "summary.json", json.dumps({"steps": ck["step"], "data_seed": ck["train"]["seed"],
                                                            "batch": ck["train"]["batch"], "lr": ck["train"]["lr"],
                                                            **summary}, indent=2))

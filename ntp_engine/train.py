@@ -128,7 +128,7 @@ def train(out: Path, ncfg: NetworkConfig, tcfg: TrainConfig, device_path: Path |
         loss.backward()
         opt.step()
         step += 1
-        running, count = running + float(loss), count + 1
+        running, count = running + loss.item(), count + 1
         now = time.perf_counter()
         elapsed, t_last = elapsed + (now - t_last), now
         bar.update(1)

@@ -88,3 +88,12 @@ def test_network_benchmark_reads_shipped_models_and_reports_the_keys(tmp_path):
     assert set(r["val_loss_by_pattern"]) == {"optimized", "full_on", "point"}
     assert set(r["val_loss_by_test_views"]) == {"8", "16", "32", "64", "128"}
     assert r["traces_per_s"] > 0 and all(v > 0 for v in r["val_loss_by_pattern"].values())
+
+
+def test_loaded_model_keeps_its_training_exposure_whatever_the_device(tmp_path):
+    import dataclasses
+
+    dev = Device.load()
+    brighter = dataclasses.replace(dev, gain=dev.gain * 1.5)  # e.g. a scan's device.toml
+    net, meta = models.load(None, brighter)
+    assert float(net.gain) == pytest.approx(meta["device_gain"]) == pytest.approx(dev.gain)
