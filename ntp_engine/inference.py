@@ -38,6 +38,18 @@ class RaggedTraces:
     def lengths(self) -> Tensor:
         return self.offsets[1:] - self.offsets[:-1]
 
+    def padded(self, idx: Tensor) -> tuple[Tensor, Tensor]:
+        """Traces ``idx (n,)`` as padded entries ``(n, V, 12)`` (zeros past each length, V the
+        longest of them, at least 1) and their mask ``(n, V)``."""
+        lengths = self.lengths[idx]
+        width = max(int(lengths.max()) if len(idx) else 0, 1)
+        pos = torch.arange(width)[None, :]
+        mask = pos < lengths[:, None]
+        if len(self.entries) == 0:
+            return torch.zeros(len(idx), width, 12), mask
+        gather = (self.offsets[idx][:, None] + pos).clamp_max(len(self.entries) - 1)
+        return torch.where(mask[..., None], self.entries[gather], torch.zeros(())), mask
+
     @classmethod
     def from_padded(cls, entries: Tensor, mask: Tensor) -> "RaggedTraces":
         """From ``(N, V, 12)`` entries and a ``(N, V)`` mask (any pattern of valid views)."""
@@ -68,19 +80,9 @@ def predict(model: TraceNet, traces: RaggedTraces, max_entries: int = 1 << 16,
     entries per batch plus ``n * 6528`` outputs."""
     model.eval()
     dev = torch.device(device) if device else next(model.parameters()).device
-    lengths = traces.lengths
-    for idx in _batches(lengths, max_entries):
-        L = lengths[idx]
-        width = max(int(L.max()), 1)
-        starts = traces.offsets[idx]
-        pos = torch.arange(width)[None, :]
-        mask = pos < L[:, None]
-        gather = (starts[:, None] + pos).clamp_max(max(len(traces.entries) - 1, 0))
-        if len(traces.entries):
-            raw = traces.entries[gather].to(dev)
-        else:
-            raw = torch.zeros(len(idx), width, 12, device=dev)
-        raw = torch.where(mask.to(dev)[..., None], raw, torch.zeros_like(raw))
+    for idx in _batches(traces.lengths, max_entries):
+        raw, mask = traces.padded(idx)
+        raw = raw.to(dev)
         x = model.entries(raw[..., 0:3], raw[..., 3:6], raw[..., 6:9], raw[..., 9:12])
         d, s = model(x, mask.to(dev))
         yield idx, d.clamp_min(0).float().cpu(), torch.expm1(s.clamp_min(0)).float().cpu()

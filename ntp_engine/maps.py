@@ -96,7 +96,14 @@ def texel_uv(shape: tuple[int, int]) -> np.ndarray:
 
 
 def bilinear(img: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """Bilinear samples ``(N, C)`` of a map at ``uv (N, 2)`` (edges clamped)."""
     r, c = uv_to_pixel(uv, img.shape[:2])
+    return bilinear_pixels(img, r, c)
+
+
+def bilinear_pixels(img: np.ndarray, r: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """Bilinear samples ``(N, C)`` of an ``(H, W, C)`` image at continuous (row, col) pixel
+    coordinates, pixel centres at integers, clamped to the image."""
     h, w = img.shape[:2]
     r = np.clip(r, 0, h - 1)
     c = np.clip(c, 0, w - 1)

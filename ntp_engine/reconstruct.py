@@ -45,15 +45,6 @@ def uv_atlas(mesh: Mesh, resolution: int) -> Mesh:
     return Mesh(v, faces.astype(np.int64), uv.astype(np.float64), smooth_normals(v, faces.astype(np.int64)))
 
 
-def _padded(traces: RaggedTraces, idx: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    L = traces.lengths[idx]
-    width = max(int(L.max()), 1)
-    pos = torch.arange(width)[None]
-    mask = pos < L[:, None]
-    gather = (traces.offsets[idx][:, None] + pos).clamp_max(max(len(traces.entries) - 1, 0))
-    return traces.entries[gather].float(), mask
-
-
 def reconstruct_with_poses(scan: Scan, out: Path, resolution: int = 1024, model: str | None = None,
                            batch: int = 4096) -> dict:
     """Reconstruct maps for ``scan`` (which must carry poses) into ``out``; returns the report."""
@@ -108,7 +99,7 @@ def reconstruct_with_poses(scan: Scan, out: Path, resolution: int = 1024, model:
         ax[i], ay[i], flags[i] = g.alpha_x.numpy(), g.alpha_y.numpy(), g.flags.numpy()
         for a in range(0, len(idx), 256):  # (n, V, L) Eq. 1 terms: keep them cache-sized
             sub = slice(a, a + 256)
-            ent, mask = _padded(traces, idx[sub])
+            ent, mask = traces.padded(idx[sub])
             gs = GeometryFit(*(None if v is None else v[sub] for v in
                                (g.normal, g.tangent, g.alpha_x, g.alpha_y, g.rho_s, g.flags, g.log_rmse)))
             flag_unseen_highlights(scan.device, ent[..., 3:6], ent[..., 6:9], ent[..., 9:12], mask, gs)

@@ -17,6 +17,7 @@ import torch
 
 from .device import Device
 from .inference import RaggedTraces
+from .maps import bilinear_pixels
 from .raycast import RayCaster
 from .texels import Texels
 
@@ -30,16 +31,6 @@ class TraceStats:
     entries: int
     texels_observed: int
     rejected: dict[str, int]
-
-
-def bilinear_codes(img: np.ndarray, px: np.ndarray) -> np.ndarray:
-    """Bilinear samples ``(N, C)`` of an ``(H, W, C)`` image at pixel coordinates ``px (N, 2)`` (x, y),
-    pixel centres at integers; callers keep px inside [0, W-1] x [0, H-1]."""
-    x, y = px[:, 0], px[:, 1]
-    x0, y0 = np.floor(x).astype(np.int64), np.floor(y).astype(np.int64)
-    x1, y1 = np.minimum(x0 + 1, img.shape[1] - 1), np.minimum(y0 + 1, img.shape[0] - 1)
-    fx, fy = (x - x0)[:, None], (y - y0)[:, None]
-    return ((1 - fy) * ((1 - fx) * img[y0, x0] + fx * img[y0, x1]) + fy * ((1 - fx) * img[y1, x0] + fx * img[y1, x1]))
 
 
 def assemble(texels: Texels, photos: list[np.ndarray], poses: list[np.ndarray], camera: Device,
@@ -79,7 +70,7 @@ def assemble(texels: Texels, photos: list[np.ndarray], poses: list[np.ndarray], 
         occ = caster.occluded(origin, to_cam / dist[:, None], dist - 1e-4)
         rejected["occluded"] += int(occ.sum())
         idx = idx[~occ]
-        codes = bilinear_codes(img.astype(np.float64), px[idx])
+        codes = bilinear_pixels(img.astype(np.float64), px[idx, 1], px[idx, 0])
         ok = ((codes >= VALID_CODE[0]) & (codes <= VALID_CODE[1])).all(1)
         rejected["pixel_range"] += int((~ok).sum())
         idx, codes = idx[ok], codes[ok]
