@@ -310,12 +310,13 @@ def _gauss_newton(m, idx, n, t, ax, ay, rho, active, steps):
         r_new, g_new = _log_residual(a2, feats, phi2, log_mk, valid)
         cost_new = (r_new * r_new).sum(-1)
         better = active & ok2 & (n2[:, 2] > 0.05) & torch.isfinite(cost_new) & (cost_new < cost)
+        moving = better & (cost - cost_new > 1e-3 * cost)  # still improving by more than 0.1%
         sel = better[:, None]
         n, t, a = torch.where(sel, n2, n), torch.where(sel, t2, t), torch.where(sel, a2, a)
         ax, ay, rho = torch.where(better, ax2, ax), torch.where(better, ay2, ay), torch.where(better, rho2, rho)
         r, g, cost = torch.where(sel, r_new, r), torch.where(sel, g_new, g), torch.where(better, cost_new, cost)
         lam = torch.where(better, lam * 0.2, lam * 10).clamp(1e-9, 1e6)
-        if float(better.float().mean()) < 0.005:  # (nearly) every texel has converged
+        if float(moving.float().mean()) < 0.005:  # (nearly) every texel has converged
             break
     return n.float(), t.float(), ax.float(), ay.float(), rho.float()
 
