@@ -1,7 +1,9 @@
 """The bundled demo asset: a dome with UVs and spatially varying ground-truth GGX maps.
 
-Shape: half an ellipsoid (radius 5.5 cm, height 7.5 cm) standing on z = 0, so every surface normal
-has n_z >= 0 and a scanner moving over the upper hemisphere can observe all of it. UVs: u = azimuth
+Shape: a dome standing on z = 0 — half an ellipsoid (height 7.5 cm) whose radius varies with the
+azimuth, r = 5 cm * k(phi), k = 1 + 0.12 cos phi + 0.07 sin 2 phi - 0.05 cos 3 phi (no rotational
+symmetry, so the photos' registration to the mesh is unambiguous). Every surface normal has
+n_z >= 0, so a scanner moving over the upper hemisphere can observe all of it. UVs: u = azimuth
 / 2 pi, v = elevation / (pi / 2). Material bands (by v), chosen to exercise the whole model:
 
 - v < 0.30, *glazed tiles*: diffuse-dominant (two alternating colours, rho_s 0.08, alpha 0.35),
@@ -24,16 +26,30 @@ import numpy as np
 from .maps import SVBRDFMaps, texel_uv
 from .mesh import Mesh, save_obj, smooth_normals
 
-RADIUS, HEIGHT = 0.055, 0.075
+RADIUS, HEIGHT = 0.05, 0.075
 DEMO_DIR = Path(__file__).resolve().parent.parent / "assets" / "demo"
 
 
+def _radius_factor(phi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """k(phi) and dk/dphi of the asymmetric base outline."""
+    k = 1 + 0.12 * np.cos(phi) + 0.07 * np.sin(2 * phi) - 0.05 * np.cos(3 * phi)
+    dk = -0.12 * np.sin(phi) + 0.14 * np.cos(2 * phi) + 0.15 * np.sin(3 * phi)
+    return k, dk
+
+
 def _surface(phi: np.ndarray, theta: np.ndarray):
+    """Point, outward unit normal and unit dP/dphi tangent at (azimuth, elevation)."""
+    k, dk = _radius_factor(phi)
     c, s = np.cos(theta), np.sin(theta)
-    p = np.stack([RADIUS * c * np.cos(phi), RADIUS * c * np.sin(phi), HEIGHT * s], -1)
-    n = np.stack([c * np.cos(phi) / RADIUS, c * np.sin(phi) / RADIUS, s / HEIGHT], -1)
-    t = np.stack([-np.sin(phi), np.cos(phi), np.zeros_like(phi)], -1)  # along increasing azimuth
-    return p, n / np.linalg.norm(n, axis=-1, keepdims=True), t
+    p = np.stack([RADIUS * k * c * np.cos(phi), RADIUS * k * c * np.sin(phi), HEIGHT * s], -1)
+    # dP/dphi / cos(theta) (the cos cancels in the normal, keeping it defined at the pole)
+    d_phi = np.stack([RADIUS * (dk * np.cos(phi) - k * np.sin(phi)), RADIUS * (dk * np.sin(phi) + k * np.cos(phi)),
+                      np.zeros_like(phi)], -1)
+    d_theta = np.stack([-RADIUS * k * s * np.cos(phi), -RADIUS * k * s * np.sin(phi), HEIGHT * c], -1)
+    n = np.cross(d_phi, d_theta)
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    t = d_phi / np.linalg.norm(d_phi, axis=-1, keepdims=True)
+    return p, n, t
 
 
 def dome_mesh(n_phi: int = 128, n_theta: int = 48) -> Mesh:

@@ -1,6 +1,6 @@
 import numpy as np
 
-from ntp_engine.demo_asset import dome_mesh
+from ntp_engine.demo_asset import HEIGHT, RADIUS, _radius_factor, dome_mesh
 from ntp_engine.maps import texel_uv
 from ntp_engine.mesh import Mesh, smooth_normals
 from ntp_engine.texels import rasterize
@@ -23,8 +23,10 @@ def test_dome_texels_lie_on_the_surface_with_outward_frames():
     m = dome_mesh(64, 24)
     tx = rasterize(m, (128, 128))
     assert len(tx) > 0.95 * 128 * 128
-    r = np.linalg.norm(tx.position[:, :2], axis=1) / 0.055
-    z = tx.position[:, 2] / 0.075
-    assert np.abs(r * r + z * z - 1).max() < 0.02  # on the ellipsoid (faceted)
+    phi = np.arctan2(tx.position[:, 1], tx.position[:, 0])
+    k, _ = _radius_factor(phi)
+    r = np.linalg.norm(tx.position[:, :2], axis=1) / (RADIUS * k)
+    z = tx.position[:, 2] / HEIGHT
+    assert np.abs(r * r + z * z - 1).max() < 0.02  # on the dome's surface (faceted)
     assert (tx.normal[:, 2] >= -1e-9).all()
     assert np.abs((tx.normal * tx.tangent).sum(1)).max() < 1e-9
