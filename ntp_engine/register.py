@@ -1,0 +1,63 @@
+"""Photo registration by structure-from-motion (pycolmap): camera poses in an arbitrary SfM frame.
+
+SIFT features, sequential matching (a hand-held sweep: each photo against its neighbours, with
+quadratic overlap), incremental mapping with the device's intrinsics held fixed (OPENCV model; COLMAP
+puts pixel centres at +0.5, the device file at integers). The largest model wins; photos it does
+not contain are reported as unregistered.
+"""
+from __future__ import annotations
+
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .device import Device
+from .errors import NtpInputError
+
+MIN_REGISTERED = 3
+
+
+@dataclass
+class Registration:
+    poses: dict[str, np.ndarray]  # photo name -> 4x4 camera-from-world (SfM frame)
+    points: np.ndarray  # (P, 3) sparse points, SfM frame
+    unregistered: list[str]
+
+
+def register(photos_dir: Path, names: list[str], device: Device, work: Path, overlap: int = 10) -> Registration:
+    import pycolmap
+
+    if work.exists():
+        shutil.rmtree(work)
+    work.mkdir(parents=True)
+    db = work / "database.db"
+    K, d = device.K, device.distortion
+    reader = pycolmap.ImageReaderOptions()
+    reader.camera_model = "OPENCV"
+    reader.camera_params = ",".join(str(float(v)) for v in (K[0, 0], K[1, 1], K[0, 2] + 0.5, K[1, 2] + 0.5, *d[:4]))
+    pycolmap.extract_features(db, photos_dir, image_names=names, camera_mode=pycolmap.CameraMode.SINGLE,
+                              reader_options=reader)
+    pairing = pycolmap.SequentialPairingOptions()
+    pairing.overlap = overlap
+    pairing.quadratic_overlap = True
+    pycolmap.match_sequential(db, pairing_options=pairing)
+    opts = pycolmap.IncrementalPipelineOptions()
+    opts.ba_refine_focal_length = False
+    opts.ba_refine_principal_point = False
+    opts.ba_refine_extra_params = False
+    models = pycolmap.incremental_mapping(db, photos_dir, work / "sparse", opts)
+    if not models:
+        raise NtpInputError(photos_dir, "structure-from-motion found no initial image pair (too few features "
+                            "or overlap between photos)")
+    rec = max(models.values(), key=lambda r: r.num_reg_images())
+    poses = {}
+    for image in rec.images.values():
+        m = np.eye(4)
+        m[:3, :4] = image.cam_from_world().matrix()
+        poses[image.name] = m
+    if len(poses) < MIN_REGISTERED:
+        raise NtpInputError(photos_dir, f"only {len(poses)} photos registered (need {MIN_REGISTERED})")
+    points = np.array([p.xyz for p in rec.points3D.values()]) if rec.num_points3D() else np.zeros((0, 3))
+    return Registration(poses, points, sorted(set(names) - set(poses)))
