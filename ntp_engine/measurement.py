@@ -113,16 +113,18 @@ def view_highlight_ratio(device: Device, x: Tensor, n: Tensor, t: Tensor, alpha_
                          rho_s: Tensor | float = 1.0) -> Tensor:
     """Eq. 6's per-view ratio for one point seen in V views: x, n, t ``(..., V, 3)`` camera space,
     alphas and grayscale rho_s ``(...)``. Returns ``(..., V)`` in [0, ~1]."""
-    wi, _, _, _ = emitter_geometry(device, x)  # (..., V, L, Q, 3)
-    frame = frame_from_normal_tangent(n, t)
-    wo_l = to_local(safe_normalize(-x), frame)
-    wi_l = to_local(wi, frame[..., None, None, :, :])
-    ax, ay = alpha_x[..., None], alpha_y[..., None]
+    lead = x.shape[:-1]  # (..., V)
+    frame = frame_from_normal_tangent(n, t).reshape(-1, 3, 3)
+    xf = x.reshape(-1, 3)
+    wi_l, _, _, _ = _local_emitters(device, xf, frame)  # (M, K, 3)
+    wo_l = to_local(safe_normalize(-xf), frame)  # (M, 3)
+    ax = torch.as_tensor(alpha_x, dtype=x.dtype, device=x.device)[..., None].expand(lead).reshape(-1)
+    ay = torch.as_tensor(alpha_y, dtype=x.dtype, device=x.device)[..., None].expand(lead).reshape(-1)
     rs = torch.as_tensor(rho_s, dtype=x.dtype, device=x.device)
-    rs_v = rs[..., None] if rs.dim() else rs
-    spec = ggx_specular(wi_l, wo_l[..., None, None, :], ax[..., None, None], ay[..., None, None])
-    spec = rs_v[..., None] * spec.flatten(-2)  # (..., V, L*Q)
-    return highlight_ratio(spec, specular_peak(wo_l, ax, ay, rs_v))
+    rs = (rs[..., None] if rs.dim() else rs).expand(lead).reshape(-1)
+    spec = ggx_specular(wi_l, wo_l[:, None, :], ax[:, None], ay[:, None])  # (M, K)
+    ratio = highlight_ratio(rs[:, None] * spec, specular_peak(wo_l, ax, ay, rs))
+    return ratio.reshape(lead)
 
 
 def confidence(device: Device, x: Tensor, n: Tensor, t: Tensor, alpha_x: Tensor, alpha_y: Tensor,
@@ -131,6 +133,22 @@ def confidence(device: Device, x: Tensor, n: Tensor, t: Tensor, alpha_x: Tensor,
     masks views out of the trace. beta is 0 when no view sees any highlight, 1 once a view sees
     >= eps of the peak (in log(1 + x)). Returns ``(...)`` in [0, 1]."""
     return confidence_from_ratios(view_highlight_ratio(device, x, n, t, alpha_x, alpha_y, rho_s), valid, eps)
+
+
+def _local_emitters(device: Device, x: Tensor, frame: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """For points ``x (N, 3)`` with frames ``(N, 3, 3)``: unit directions to every emitter sample in
+    the local frame ``(N, K, 3)`` (K = L * Q), r^2 ``(N, K)``, the emitter-side cosine (-wi).n_l
+    ``(N, K)`` and the quadrature weights ``(K,)`` — all from matrix products (F P^T - F x)."""
+    pts, wq = device.emitter_samples(x.dtype, x.device)  # (L, Q, 3), (L, Q)
+    L, Q = wq.shape
+    P = pts.reshape(L * Q, 3)
+    nl = torch.as_tensor(device.emitter_normals, dtype=x.dtype, device=x.device).repeat_interleave(Q, 0)
+    d = torch.einsum("nij,kj->nik", frame, P) - (frame @ x[:, :, None])  # (N, 3, K) local offsets
+    r2 = (d * d).sum(1).clamp_min(1e-12)
+    inv_r = torch.rsqrt(r2)
+    wi_l = (d * inv_r[:, None, :]).transpose(1, 2)
+    cos_l = ((x @ nl.T) - (P * nl).sum(-1)) * inv_r
+    return wi_l, r2, cos_l, wq.reshape(-1)
 
 
 def emitter_terms(device: Device, x: Tensor, n: Tensor, t: Tensor, alpha_x: Tensor, alpha_y: Tensor,
@@ -144,17 +162,10 @@ def emitter_terms(device: Device, x: Tensor, n: Tensor, t: Tensor, alpha_x: Tens
     lead = x.shape[:-1]
     x, n, t = x.reshape(-1, 3), n.reshape(-1, 3), t.reshape(-1, 3)
     alpha_x, alpha_y = alpha_x.expand(lead).reshape(-1), alpha_y.expand(lead).reshape(-1)
-    pts, wq = device.emitter_samples(x.dtype, x.device)  # (L, Q, 3), (L, Q)
-    L, Q = wq.shape
-    P = pts.reshape(L * Q, 3)
-    nl = torch.as_tensor(device.emitter_normals, dtype=x.dtype, device=x.device).repeat_interleave(Q, 0)
+    L, Q = device.emitter_samples()[1].shape
     frame = frame_from_normal_tangent(n, t)  # (N, 3, 3)
-    d = torch.einsum("nij,kj->nik", frame, P) - (frame @ x[:, :, None])  # (N, 3, K) local offsets
-    r2 = (d * d).sum(1).clamp_min(1e-12)
-    inv_r = torch.rsqrt(r2)
-    wi_l = (d * inv_r[:, None, :]).transpose(1, 2)  # (N, K, 3)
-    cos_l = ((x @ nl.T) - (P * nl).sum(-1)) * inv_r  # (-wi) . n_l
-    falloff = wq.reshape(-1) * device.psi(cos_l) / r2
+    wi_l, r2, cos_l, wq = _local_emitters(device, x, frame)
+    falloff = wq * device.psi(cos_l) / r2
     if visibility is not None:
         vis = torch.broadcast_to(visibility, (*lead, L, Q)).reshape(-1, L * Q)
         falloff = falloff * vis.to(x.dtype)
