@@ -38,16 +38,23 @@ class RaggedTraces:
     def lengths(self) -> Tensor:
         return self.offsets[1:] - self.offsets[:-1]
 
-    def padded(self, idx: Tensor) -> tuple[Tensor, Tensor]:
+    def padded(self, idx: Tensor, max_views: int | None = None) -> tuple[Tensor, Tensor]:
         """Traces ``idx (n,)`` as padded entries ``(n, V, 12)`` (zeros past each length, V the
-        longest of them, at least 1) and their mask ``(n, V)``."""
+        longest of them, at least 1) and their mask ``(n, V)``. ``max_views`` keeps at most that
+        many entries per trace, spread evenly over it (first and last included)."""
         lengths = self.lengths[idx]
-        width = max(int(lengths.max()) if len(idx) else 0, 1)
+        keep = lengths if max_views is None else lengths.clamp_max(max_views)
+        width = max(int(keep.max()) if len(idx) else 0, 1)
         pos = torch.arange(width)[None, :]
-        mask = pos < lengths[:, None]
+        mask = pos < keep[:, None]
         if len(self.entries) == 0:
             return torch.zeros(len(idx), width, 12), mask
-        gather = (self.offsets[idx][:, None] + pos).clamp_max(len(self.entries) - 1)
+        if max_views is None:
+            offset = pos.expand(len(idx), width)
+        else:  # evenly spread: k * (L - 1) / (K - 1) for k < K
+            step = (lengths - 1).clamp_min(0).double() / (keep - 1).clamp_min(1).double()
+            offset = torch.round(pos.double() * step[:, None]).long()
+        gather = (self.offsets[idx][:, None] + offset).clamp_max(len(self.entries) - 1)
         return torch.where(mask[..., None], self.entries[gather], torch.zeros(())), mask
 
     @classmethod

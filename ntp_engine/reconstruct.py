@@ -45,6 +45,9 @@ def uv_atlas(mesh: Mesh, resolution: int) -> Mesh:
     return Mesh(v, faces.astype(np.int64), uv.astype(np.float64), smooth_normals(v, faces.astype(np.int64)))
 
 
+ALBEDO_VIEWS = 16  # entries per texel for the beta check and the albedo LS (Eq. 1 per entry and emitter)
+
+
 def reconstruct_with_poses(scan: Scan, out: Path, resolution: int = 1024, model: str | None = None,
                            batch: int = 4096) -> dict:
     """Reconstruct maps for ``scan`` (which must carry poses) into ``out``; returns the report."""
@@ -99,7 +102,7 @@ def reconstruct_with_poses(scan: Scan, out: Path, resolution: int = 1024, model:
         ax[i], ay[i], flags[i] = g.alpha_x.numpy(), g.alpha_y.numpy(), g.flags.numpy()
         for a in range(0, len(idx), 256):  # (n, V, L) Eq. 1 terms: keep them cache-sized
             sub = slice(a, a + 256)
-            ent, mask = traces.padded(idx[sub])
+            ent, mask = traces.padded(idx[sub], max_views=ALBEDO_VIEWS)
             gs = GeometryFit(*(None if v is None else v[sub] for v in
                                (g.normal, g.tangent, g.alpha_x, g.alpha_y, g.rho_s, g.flags, g.log_rmse)))
             flag_unseen_highlights(scan.device, ent[..., 3:6], ent[..., 6:9], ent[..., 9:12], mask, gs)
