@@ -10,7 +10,7 @@ World frame = the mesh's frame (metres, z up); the object stands on a textured b
 Image formation per pixel (Eq. 1): Embree primary ray; on the object, the maps sampled at the hit's
 UV (bilinear) give rho_d, rho_s, alphas and the object-space shading frame; B from every emitter
 with Psi, 1/r^2, the colour matrix and per-emitter shadowing. Shadows are traced to *emitter
-clusters* (k-means over the emitters' quadrature points, 32 by default) and shared by a cluster's
+clusters* (k-means over the emitters' quadrature points, 64 by default) and shared by a cluster's
 emitters: exact per-LED shadow rays cost ~50 M rays per photo; ``ntp bench virtual-scan`` measures
 the error this makes. The backdrop is diffuse, lit by the clusters without shadows. Then
 auto-exposure (``Device.exposure``), multiplicative sensor noise N(1, sigma) and read noise,
@@ -61,7 +61,7 @@ class ScanConfig:
     exposure: float = 1.5  # x the device's auto-exposure; recorded in the scan's device.toml gain
     blur_fraction: float = 0.0
     blur_px: float = 12.0  # blur length at scale 1.0 / 4 ... scaled with the image
-    clusters: int = 32
+    clusters: int = 64
     chunk: int = 512
 
 
@@ -162,7 +162,7 @@ def pixel_rays(device: Device) -> np.ndarray:
 class Scene:
     """The object (mesh + maps) on the backdrop, ready to render with one device."""
 
-    def __init__(self, mesh: Mesh, maps: SVBRDFMaps, device: Device, clusters: int = 32, exposure: float = 1.0):
+    def __init__(self, mesh: Mesh, maps: SVBRDFMaps, device: Device, clusters: int = 64, exposure: float = 1.0):
         if mesh.uv is None:
             raise ValueError("mesh has no UVs")
         self.mesh, self.maps, self.device = mesh, maps, device
