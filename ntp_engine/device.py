@@ -14,7 +14,6 @@ File format: see ``docs/device-format.md``; the shipped devices live in ``assets
 from __future__ import annotations
 
 import math
-import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -26,6 +25,7 @@ from torch import Tensor
 
 from .atomic import write_text_atomic
 from .errors import NtpInputError
+from .tomlio import read_toml
 
 ASSETS = Path(__file__).resolve().parent.parent / "assets"
 DEVICES_DIR = ASSETS / "devices"
@@ -197,16 +197,7 @@ class Device:
     def load(cls, path: str | Path | None = None) -> "Device":
         """Read a calibration TOML (default: the paper's 32x16 LED array)."""
         path = Path(path) if path is not None else DEFAULT_DEVICE
-        try:
-            with open(path, "rb") as fh:
-                data = tomllib.load(fh)
-        except FileNotFoundError:
-            raise DeviceFileError(path, "no such device file") from None
-        except tomllib.TOMLDecodeError as err:
-            raise DeviceFileError(path, f"not valid TOML ({err})") from None
-        except OSError as err:
-            raise DeviceFileError(path, f"cannot read ({err.strerror})") from None
-        return _parse(data, path)
+        return _parse(read_toml(path, "no such device file", DeviceFileError), path)
 
     def save(self, path: str | Path) -> None:
         """Write this device as TOML (explicit emitter lists; atomic)."""

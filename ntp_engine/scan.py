@@ -7,7 +7,6 @@ errors but are listed (``Scan.unreadable``). Nothing in the scan folder is ever 
 from __future__ import annotations
 
 import json
-import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -15,6 +14,7 @@ import numpy as np
 
 from .device import Device
 from .errors import NtpInputError
+from .tomlio import read_toml
 
 PHOTO_SUFFIXES = (".png", ".jpg", ".jpeg")
 
@@ -70,13 +70,7 @@ def load_poses(path: Path) -> dict[str, np.ndarray]:
 def load_scan(folder: str | Path, poses_file: str | Path | None = None) -> Scan:
     folder = Path(folder)
     toml = folder / "scan.toml"
-    try:
-        with open(toml, "rb") as fh:
-            table = tomllib.load(fh)
-    except FileNotFoundError:
-        raise NtpInputError(toml, "no scan.toml in the scan folder") from None
-    except tomllib.TOMLDecodeError as err:
-        raise NtpInputError(toml, f"not valid TOML ({err})") from None
+    table = read_toml(toml, "no scan.toml in the scan folder")
     mesh = _path(folder, table, "mesh", toml)
     photos = _path(folder, table, "photos", toml)
     if not photos.is_dir():
