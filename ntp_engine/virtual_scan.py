@@ -60,7 +60,7 @@ class ScanConfig:
     read_noise: float = 0.5  # 8-bit codes
     exposure: float = 1.5  # x the device's auto-exposure; recorded in the scan's device.toml gain
     blur_fraction: float = 0.0
-    blur_px: float = 12.0  # blur length at scale 1.0 / 4 ... scaled with the image
+    blur_px: float = 12.0  # motion-blur streak length in pixels at scale 0.25 (scales with resolution)
     clusters: int = 64
     chunk: int = 512
 
@@ -257,7 +257,7 @@ class Scene:
         """An 8-bit photo ``(H, W, 3)`` uint8."""
         lin, _ = self.render_linear(pose, cam, cfg.chunk)
         if blur:
-            length = max(3, int(round(cfg.blur_px * cfg.scale * 4)))
+            length = max(3, int(round(cfg.blur_px * cfg.scale / 0.25)))
             angle = rng.uniform(0, 180)
             kernel = np.zeros((length, length))
             kernel[length // 2, :] = 1.0
