@@ -40,6 +40,8 @@ def _parser() -> argparse.ArgumentParser:
     tr.add_argument("--resume", action="store_true", help="continue the checkpoint in --out")
     tr.add_argument("--batch", type=int, default=64)
     tr.add_argument("--lr", type=float, default=3e-4)
+    tr.add_argument("--pattern-lr", type=float, default=None,
+                    help="learning rate of the lighting layer (default: --lr; the pattern moves slowly at 3e-4)")
     tr.add_argument("--seed", type=int, default=0, help="data seed")
     tr.add_argument("--views", type=int, default=64, help="maximum trace length in training")
     tr.add_argument("--pattern", default="learned",
@@ -105,7 +107,7 @@ def main(argv: list[str] | None = None) -> int:
             from .train import TrainConfig, train
 
             ncfg = NetworkConfig(preset=args.preset, frozen_pattern=None if args.pattern == "learned" else args.pattern)
-            tcfg = TrainConfig(steps=args.steps, batch=args.batch, lr=args.lr, seed=args.seed,
+            tcfg = TrainConfig(steps=args.steps, batch=args.batch, lr=args.lr, pattern_lr=args.pattern_lr, seed=args.seed,
                                views_max=args.views, validate_every=args.validate_every)
             result = train(args.out, ncfg, tcfg, args.device, resume=args.resume)
             print(f"step {result['step']}: validation loss {result['val_loss']:.4f} "

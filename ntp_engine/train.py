@@ -32,6 +32,7 @@ class TrainConfig:
     steps: int = 20000
     batch: int = 64
     lr: float = 3e-4
+    pattern_lr: float | None = None  # a separate learning rate for the lighting layer (None: lr)
     seed: int = 0
     validate_every: int = 500
     checkpoint_every: int = 250
@@ -84,13 +85,23 @@ def train(out: Path, ncfg: NetworkConfig, tcfg: TrainConfig, device_path: Path |
     scfg = SyntheticConfig(views_min=min(16, tcfg.views_max), views_max=tcfg.views_max)
     ckpt_path = out / "checkpoint.pt"
     model = TraceNet(ncfg, device_cal).to(torch_device)
-    opt = torch.optim.Adam([p for p in model.parameters() if p.requires_grad], lr=tcfg.lr, betas=(0.9, 0.999))
+    params = [p for n, p in model.named_parameters() if p.requires_grad and n != "pattern_logits"]
+    groups: list[dict] = [{"params": params}]
+    if model.pattern_logits.requires_grad:
+        if tcfg.pattern_lr is None:
+            groups[0]["params"] = params + [model.pattern_logits]
+        else:  # the pattern's logits get tiny gradients: they need their own, larger step
+            groups.append({"params": [model.pattern_logits], "lr": tcfg.pattern_lr})
+    opt = torch.optim.Adam(groups, lr=tcfg.lr, betas=(0.9, 0.999))
     step, elapsed = 0, 0.0
     if resume and ckpt_path.exists():
         ck = torch.load(ckpt_path, map_location=torch_device, weights_only=False)
         if ck["network"] != ncfg.to_dict():
             raise SystemExit(f"{ckpt_path}: checkpoint was trained with a different network config")
         model.load_state_dict(ck["model"])
+        if len(ck["optimizer"]["param_groups"]) != len(opt.param_groups):
+            raise SystemExit(f"{ckpt_path}: the checkpoint's optimiser has {len(ck['optimizer']['param_groups'])} "
+                             "parameter group(s); resume with the same --pattern-lr setting")
         opt.load_state_dict(ck["optimizer"])
         step, elapsed = ck["step"], ck.get("elapsed_s", 0.0)
         tcfg.seed = ck["train"]["seed"]

@@ -108,3 +108,18 @@ def test_factorised_batch_measures_like_the_full_physical_lumitexel():
     ay = b.params["alpha_y"][:, None].expand(4, 5)
     ref = physical_lumitexel(dev, b.position, n_cam, t_cam, b.rho_d_view, b.rho_s_view, ax, ay)
     torch.testing.assert_close(b.m_phys, ref, rtol=2e-4, atol=1e-6)
+
+
+def test_pattern_learning_rate_is_its_own_parameter_group(tmp_path):
+    from ntp_engine.train import TrainConfig, train
+
+    run = tmp_path / "run"
+    tc = dict(steps=2, batch=4, validate_every=2, val_batches=1, views_max=8)
+    train(run, NetworkConfig(preset="small"), TrainConfig(pattern_lr=0.05, **tc), progress=False)
+    ck = torch.load(run / "checkpoint.pt", weights_only=False)
+    assert [g["lr"] for g in ck["optimizer"]["param_groups"]] == [3e-4, 0.05]
+    try:  # resuming with another grouping is refused with a clear message
+        train(run, NetworkConfig(preset="small"), TrainConfig(**{**tc, "steps": 3}), resume=True, progress=False)
+        raise AssertionError("expected SystemExit")
+    except SystemExit as err:
+        assert "--pattern-lr" in str(err)
