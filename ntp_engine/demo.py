@@ -66,7 +66,7 @@ def run(out: Path, device_path: Path | None = None) -> dict:
     p_eff = device.effective_pattern(torch.as_tensor(device.pattern, **f64))
     per_led = (m * p_eff).numpy()
     b = measure(device, m)
-    pixel = device.encode(device.gain * b)
+    pixel = device.encode(device.exposure(device.pattern) * b)
     beta = confidence(device, x[None], n_cam[None], t_cam[None], ax, ay, rho_s.mean())
     if device.grid_shape:
         cols, rows = device.grid_shape
