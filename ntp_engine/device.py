@@ -345,7 +345,7 @@ def _parse(data: dict, path: Path) -> Device:
     name = data.get("name")
     if not isinstance(name, str) or not name:
         raise r.fail("name", "missing or not a string")
-    cam = r.table(data, "camera")
+    r.table(data, "camera")  # must exist; its keys are read by dotted name below
     width, height = r.integer(data, "camera.width"), r.integer(data, "camera.height")
     fx = r.number(data, "camera.fx", positive=True)
     fy = r.number(data, "camera.fy", default=fx, positive=True)
@@ -356,7 +356,7 @@ def _parse(data: dict, path: Path) -> Device:
     gamma = r.number(data, "camera.gamma", 2.2, positive=True)
     gain = r.number(data, "camera.gain", 1.0, positive=True)
 
-    em = r.table(data, "emitters")
+    r.table(data, "emitters")  # must exist; its keys are read by dotted name below
     kind = r.choice(data, "emitters.kind", EMITTER_KINDS)
     layout = r.choice(data, "emitters.layout", ("grid", "list"))
     grid_shape = None
@@ -419,7 +419,7 @@ def _parse(data: dict, path: Path) -> Device:
             raise r.fail("emitters.angular", "table needs >= 2 increasing angles in [0, 90] and values >= 0")
         table = np.stack([a, vals], -1)
 
-    vv = r.table(data, "valid_volume")
+    r.table(data, "valid_volume")  # must exist; its keys are read by dotted name below
     valid_center = r.array(data, "valid_volume.center", (3,))
     valid_size = r.array(data, "valid_volume.size", (3,))
     if (valid_size <= 0).any():

@@ -38,8 +38,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from .brdf import (ALPHA_MAX, ALPHA_MIN, F0_DIELECTRIC, RHO_D_MAX, RHO_S_MAX, fresnel_schlick, ggx_specular,
-                   smith_g1)
+from .brdf import (ALPHA_MAX, ALPHA_MIN, RHO_D_MAX, RHO_S_MAX, fresnel_schlick, smith_g1)
 from .frame import any_tangent, cross, frame_from_normal_tangent, safe_normalize, to_local
 from .lumitexel import DIFFUSE_RES, SPECULAR_RES, specular_lumitexel, texel_positions
 

@@ -138,7 +138,7 @@ def confidence(device: Device, x: Tensor, n: Tensor, t: Tensor, alpha_x: Tensor,
 def _local_emitters(device: Device, x: Tensor, frame: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """For points ``x (N, 3)`` with frames ``(N, 3, 3)``: unit directions to every emitter sample in
     the local frame ``(N, K, 3)`` (K = L * Q), r^2 ``(N, K)``, the emitter-side cosine (-wi).n_l
-    ``(N, K)`` and the quadrature weights ``(K,)`` — all from matrix products (F P^T - F x)."""
+    ``(N, K)`` and the quadrature weights ``(L, Q)`` — all from matrix products (F P^T - F x)."""
     pts, wq = device.emitter_samples(x.dtype, x.device)  # (L, Q, 3), (L, Q)
     L, Q = wq.shape
     P = pts.reshape(L * Q, 3)
@@ -148,7 +148,7 @@ def _local_emitters(device: Device, x: Tensor, frame: Tensor) -> tuple[Tensor, T
     inv_r = torch.rsqrt(r2)
     wi_l = (d * inv_r[:, None, :]).transpose(1, 2)
     cos_l = ((x @ nl.T) - (P * nl).sum(-1)) * inv_r
-    return wi_l, r2, cos_l, wq.reshape(-1)
+    return wi_l, r2, cos_l, wq
 
 
 def emitter_terms(device: Device, x: Tensor, n: Tensor, t: Tensor, alpha_x: Tensor, alpha_y: Tensor,
@@ -162,10 +162,10 @@ def emitter_terms(device: Device, x: Tensor, n: Tensor, t: Tensor, alpha_x: Tens
     lead = x.shape[:-1]
     x, n, t = x.reshape(-1, 3), n.reshape(-1, 3), t.reshape(-1, 3)
     alpha_x, alpha_y = alpha_x.expand(lead).reshape(-1), alpha_y.expand(lead).reshape(-1)
-    L, Q = device.emitter_samples()[1].shape
     frame = frame_from_normal_tangent(n, t)  # (N, 3, 3)
     wi_l, r2, cos_l, wq = _local_emitters(device, x, frame)
-    falloff = wq * device.psi(cos_l) / r2
+    L, Q = wq.shape
+    falloff = wq.reshape(-1) * device.psi(cos_l) / r2
     if visibility is not None:
         vis = torch.broadcast_to(visibility, (*lead, L, Q)).reshape(-1, L * Q)
         falloff = falloff * vis.to(x.dtype)

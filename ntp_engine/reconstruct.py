@@ -12,14 +12,13 @@ import time
 from pathlib import Path
 
 import numpy as np
-import torch
 
 from . import models
 from .atomic import write_text_atomic
 from .errors import NtpInputError
 from .fit import FLAG_NO_LOBE, GeometryFit, fit_albedo, fit_geometry, flag_unseen_highlights
 from .images import write_exr, write_png
-from .inference import RaggedTraces, predict
+from .inference import predict
 from .maps import SVBRDFMaps, fill_missing
 from .mesh import Mesh, load_mesh, save_obj, smooth_normals
 from .raycast import RayCaster

@@ -39,7 +39,7 @@ from .device import Device
 from .errors import NtpInputError
 from .images import write_png
 from .maps import SVBRDFMaps
-from .measurement import emitter_geometry, measurement_rgb
+from .measurement import measurement_rgb
 from .mesh import Mesh, load_mesh, save_obj
 from .raycast import RayCaster
 
@@ -170,7 +170,8 @@ class Scene:
         self.cluster_centres, self.cluster_of = emitter_clusters(device, clusters)
         self.pattern = torch.as_tensor(device.pattern, dtype=torch.float64)
         # per cluster: summed effective drive (quadrature-weighted) and mean emitter normal
-        _, w = device.emitter_samples(torch.float64)
+        pts, w = device.emitter_samples(torch.float64)
+        self.emitter_points = pts.numpy()  # (L, Q, 3) camera space, for exact shadows
         p_eff = device.effective_pattern(device.pattern)  # (L, 3)
         C = len(self.cluster_centres)
         drive = np.zeros((C, 3))
@@ -223,8 +224,7 @@ class Scene:
 
     def _visibility(self, p_w: np.ndarray, R, tr, exact: bool) -> np.ndarray:
         """``(N, L, Q)`` 0/1: emitter sample visible from each point (cluster or exact)."""
-        pts, _ = self.device.emitter_samples(torch.float64)
-        pts = pts.numpy()
+        pts = self.emitter_points
         targets = (pts.reshape(-1, 3) if exact else self.cluster_centres) - tr  # camera -> world
         targets_w = targets @ R  # R^T (c - t)
         d = targets_w[None] - p_w[:, None]
