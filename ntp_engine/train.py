@@ -59,15 +59,16 @@ def batch_loss(model: TraceNet, batch: TraceBatch, gen: torch.Generator, noise: 
 
 @torch.no_grad()
 def validate(model: TraceNet, device_cal: Device, tcfg: TrainConfig, scfg: SyntheticConfig, torch_device,
-             views: int | None = None, batches: int | None = None) -> dict[str, float]:
-    """Mean Eq. 5 loss on the fixed validation set (dropout off). ``views`` fixes the trace length."""
+             views: int | None = None, batches: int | None = None, seed: int | None = None) -> dict[str, float]:
+    """Mean Eq. 5 loss on a seeded set (dropout off): by default the run's fixed validation set
+    (data seed + VAL_SEED_OFFSET); ``seed`` picks another. ``views`` fixes the trace length."""
     was_training = model.training
     model.eval()
     sums = np.zeros(3)
     valid_frac = 0.0
     n = batches or tcfg.val_batches
     for k in range(n):
-        gen = _step_generator(tcfg.seed + VAL_SEED_OFFSET, k, torch_device)
+        gen = _step_generator(tcfg.seed + VAL_SEED_OFFSET if seed is None else seed, k, torch_device)
         batch = sample_batch(device_cal, tcfg.batch, gen, scfg, device=torch_device, views=views)
         total, ld, ls, valid = batch_loss(model, batch, gen)
         sums += [float(total), float(ld), float(ls)]

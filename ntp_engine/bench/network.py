@@ -22,23 +22,17 @@ from ..device import Device
 from ..inference import RaggedTraces, predict_all
 from ..network import NetworkConfig
 from ..synthetic import SyntheticConfig, sample_batch
-from ..train import TrainConfig, batch_loss, train
+from ..train import TrainConfig, train, validate
 from . import dump_json, print_table
 
 PATTERNS = {"optimized": "learned", "full_on": "full_on", "point": "point"}
 BENCH_SEED = 424_242  # training uses seeds 0.., validation 1_000_003..: this data is new to every model
 
 
-@torch.no_grad()
 def evaluate(model, device: Device, views: int | None, batches: int, batch: int = 64, seed: int = BENCH_SEED) -> float:
-    model.eval()
-    total = 0.0
-    for k in range(batches):
-        gen = torch.Generator().manual_seed(seed + k)
-        b = sample_batch(device, batch, gen, SyntheticConfig(), views=views)
-        loss, _, _, _ = batch_loss(model, b, gen)
-        total += float(loss)
-    return total / batches
+    """Eq. 5 loss on ``batches`` fresh batches (a seed no training run uses)."""
+    tcfg = TrainConfig(batch=batch, val_batches=batches)
+    return validate(model, device, tcfg, SyntheticConfig(), torch.device("cpu"), views=views, seed=seed)["val_loss"]
 
 
 def _comparison_models(quick: bool, steps: int, device: Device) -> dict:
