@@ -17,6 +17,16 @@ def _parser() -> argparse.ArgumentParser:
     d.add_argument("--out", type=Path, default=Path("ntp_demo_out"), help="output folder")
     d.add_argument("--device", type=Path, default=None, help="device TOML (default: the paper's LED array)")
 
+    rc = sub.add_parser("reconstruct", help="a scan folder to texture maps (resumes from OUT/cache)")
+    rc.add_argument("scan", type=Path, help="scan folder (scan.toml, mesh, photos/)")
+    rc.add_argument("--out", type=Path, required=True, help="result folder")
+    rc.add_argument("--resolution", type=int, default=1024, help="texture maps are RESOLUTION^2")
+    rc.add_argument("--model", default=None, help="shipped model name or a model folder (default: compact)")
+    rc.add_argument("--poses", type=Path, default=None, help="poses JSON (camera-from-world per photo); skips SfM")
+    rc.add_argument("--blur-margin", type=float, default=0.08,
+                    help="drop photos whose blur score exceeds the scan's median by this much")
+    rc.add_argument("--quiet", action="store_true", help="no progress bars")
+
     dev = sub.add_parser("device", help="print a device calibration file, or list the shipped ones")
     dev.add_argument("path", type=Path, nargs="?", default=None, help="device TOML (default: the default device)")
     dev.add_argument("--list", action="store_true", help="list the shipped devices")
@@ -83,6 +93,16 @@ def main(argv: list[str] | None = None) -> int:
             from . import demo
 
             demo.run(args.out, args.device)
+        elif args.command == "reconstruct":
+            from .pipeline import reconstruct
+            from .scan import load_scan
+
+            rep = reconstruct(load_scan(args.scan, args.poses), args.out, resolution=args.resolution,
+                              model=args.model, blur_margin=args.blur_margin, progress=not args.quiet)
+            reg = rep["registration"]
+            extra = f", alignment residual {reg['alignment']['residual_m'] * 1e3:.2f} mm" if "alignment" in reg else ""
+            print(f"wrote {args.out}: {rep['texels']['coverage']:.1%} of {rep['texels']['total']} texels observed, "
+                  f"{rep['photos']['used']} of {rep['photos']['total']} photos used{extra}, {rep['seconds']:.1f} s")
         elif args.command == "device":
             from .device import Device, list_devices
 

@@ -6,14 +6,18 @@ symmetry, so the photos' registration to the mesh is unambiguous). Every surface
 n_z >= 0, so a scanner moving over the upper hemisphere can observe all of it. UVs: u = azimuth
 / 2 pi, v = elevation / (pi / 2). Material bands (by v), chosen to exercise the whole model:
 
-- v < 0.30, *glazed tiles*: diffuse-dominant (two alternating colours, rho_s 0.08, alpha 0.35),
+- v < 0.30, *glazed tiles*: diffuse-dominant (two alternating colours of different brightness,
+  rho_s 0.08, alpha 0.35),
   with a normal-map ripple (shading normal up to ~12 deg off the geometric one);
 - 0.30 <= v < 0.62, *lacquer*: glossy isotropic, alpha log-spaced from 0.01 to 0.25 around the
-  circumference;
+  circumference, over a printed block pattern (diffuse albedo x 0.72..1.38 in 64 x 16 cells);
 - v >= 0.62, *brushed gold*: strongly anisotropic (alpha_x 0.30, alpha_y 0.025), tangent direction
   swirling with height and azimuth.
 
-All albedo channels are >= 0.25 so every channel of a lit pixel can pass the [32, 224] test.
+All albedo channels are >= 0.25 so every channel of a lit pixel can pass the [32, 224] test. The
+object carries grey-level texture (tiles of different brightness, the printed blocks) because
+structure-from-motion sees in grey: like the paper's real objects, an untextured one would leave
+SfM nothing on the object to align to the mesh.
 ``ntp_engine.demo_asset.build(folder)`` rewrites ``assets/demo`` deterministically.
 """
 from __future__ import annotations
@@ -77,8 +81,11 @@ def demo_maps(res: int = 256) -> SVBRDFMaps:
     tiles, lacquer, gold = v < 0.30, (v >= 0.30) & (v < 0.62), v >= 0.62
 
     checker = ((np.floor(u * 16) + np.floor(v / 0.30 * 3)) % 2 == 0)[..., None]
-    rho_d = np.where(checker, [0.78, 0.45, 0.30], [0.32, 0.50, 0.72])
-    rho_d = np.where(lacquer[..., None], [0.60, 0.27, 0.25], rho_d)
+    rho_d = np.where(checker, [0.85, 0.62, 0.40], [0.26, 0.34, 0.62])
+    # a printed, non-repeating block pattern on the lacquer (SfM needs grey-level texture on the object)
+    blocks = np.random.default_rng(7).uniform(0.72, 1.38, (64, 16))
+    mottle = blocks[np.minimum((u * 64).astype(int), 63), np.minimum((v * 16).astype(int), 15)][..., None]
+    rho_d = np.where(lacquer[..., None], mottle * np.array([0.62, 0.40, 0.36]), rho_d)
     rho_d = np.where(gold[..., None], [0.26, 0.25, 0.28], rho_d)
     rho_s = np.where(tiles[..., None], [0.08, 0.08, 0.08], [1.2, 1.2, 1.2])
     rho_s = np.where(gold[..., None], [4.0, 3.0, 1.6], rho_s)

@@ -1,4 +1,4 @@
-"""From a scan folder with known poses to texture maps (the pipeline's core, paper §7).
+"""From traces to texture maps (the pipeline's core, paper §7); ``pipeline.reconstruct`` runs it.
 
 mesh (+ UVs, else xatlas) -> texels -> traces (trace.py) -> network (inference.py, in bounded
 batches) -> geometry fit per batch (fit.py) -> RGB albedo least squares on each texel's own trace
@@ -8,23 +8,21 @@ unobserved texels filled from their nearest observed neighbour (marked in confid
 from __future__ import annotations
 
 import json
-import time
 from pathlib import Path
 
 import numpy as np
+from tqdm import tqdm
 
-from . import models
 from .atomic import write_text_atomic
+from .device import Device
 from .errors import NtpInputError
 from .fit import FLAG_NO_LOBE, GeometryFit, fit_albedo, fit_geometry, flag_unseen_highlights
 from .images import write_exr, write_png
-from .inference import predict
+from .inference import RaggedTraces, predict
 from .maps import SVBRDFMaps, fill_missing
-from .mesh import Mesh, load_mesh, save_obj, smooth_normals
-from .raycast import RayCaster
-from .scan import Scan, read_photo
-from .texels import Texels, rasterize
-from .trace import assemble
+from .mesh import Mesh, save_obj, smooth_normals
+from .scan import Scan
+from .texels import Texels
 
 
 def uv_atlas(mesh: Mesh, resolution: int) -> Mesh:
@@ -47,49 +45,25 @@ def uv_atlas(mesh: Mesh, resolution: int) -> Mesh:
 ALBEDO_VIEWS = 16  # entries per texel for the beta check and the albedo LS (Eq. 1 per entry and emitter)
 
 
-def reconstruct_with_poses(scan: Scan, out: Path, resolution: int = 1024, model: str | None = None,
-                           batch: int = 4096) -> dict:
-    """Reconstruct maps for ``scan`` (which must carry poses) into ``out``; returns the report."""
-    if scan.poses is None:
-        raise NtpInputError(scan.folder / "scan.toml", "no poses: give a poses file")
-    t_all, report = time.perf_counter(), {"stages": {}}
-    stage = lambda name, t0: report["stages"].__setitem__(name, round(time.perf_counter() - t0, 3))
+def model_exposure(net) -> float:
+    """The auto-exposure the network was trained with (its own pattern); photos taken with another
+    exposure are rescaled to it before inference."""
+    p_eff = net.pattern().detach().double() @ net.color_matrix.double().T
+    return float(net.gain) / float(p_eff.mean())
 
-    t0 = time.perf_counter()
-    mesh = load_mesh(scan.mesh_path)
-    if mesh.uv is None:
-        mesh = uv_atlas(mesh, resolution)
-    texels: Texels = rasterize(mesh, (resolution, resolution))
-    stage("texels", t0)
 
-    t0 = time.perf_counter()
-    photos, poses, used, unreadable = [], [], [], []
-    for p in scan.photo_paths:
-        if p.name not in scan.poses:
-            continue
-        img = read_photo(p, scan.device)
-        if img is None:
-            unreadable.append(p.name)
-            continue
-        photos.append(img)
-        poses.append(scan.poses[p.name])
-        used.append(p.name)
-    if not photos:
-        raise NtpInputError(scan.photos_dir, "no readable photo has a pose")
-    net, meta = models.load(model, scan.device)
-    p_eff_model = net.pattern().detach().double() @ net.color_matrix.double().T
-    model_exposure = float(net.gain) / float(p_eff_model.mean())
-    scan_exposure = float(scan.device.exposure(scan.device.pattern))
-    caster = RayCaster([mesh.triangles])
-    traces, tstats = assemble(texels, photos, poses, scan.device, caster, pixel_scale=model_exposure / scan_exposure)
-    stage("traces", t0)
-
-    t0 = time.perf_counter()
-    N = len(texels)
+def fit_traces(net, device: Device, traces: RaggedTraces, pixel_scale: float, batch: int = 4096,
+               progress: bool = False) -> dict[str, np.ndarray]:
+    """Network + geometry fit + RGB albedo per trace. ``pixel_scale`` is what ``assemble`` applied
+    to the linear pixels (undone for the physical albedo LS). Returns per-trace arrays in the
+    texel's geometric frame: n_loc, t_loc (N, 3), alpha (N, 2), flags (N,), rho_d, rho_s (N, 3)."""
+    N = traces.num_traces
     n_loc, t_loc = np.zeros((N, 3)), np.zeros((N, 3))
+    n_loc[:, 2], t_loc[:, 0] = 1.0, 1.0
     ax, ay, flags = np.full(N, 0.3), np.full(N, 0.3), np.zeros(N, np.int64)
     rho_d, rho_s = np.zeros((N, 3)), np.zeros((N, 3))
-    observed = traces.lengths.numpy() > 0
+    observed = int((traces.lengths > 0).sum())
+    bar = tqdm(total=observed, desc="network + fit", unit="texel", disable=not progress)
     for idx, d, s in predict(net, traces, max_entries=batch * 32):
         keep = traces.lengths[idx] > 0
         idx, d, s = idx[keep], d[keep], s[keep]
@@ -104,20 +78,28 @@ def reconstruct_with_poses(scan: Scan, out: Path, resolution: int = 1024, model:
             ent, mask = traces.padded(idx[sub], max_views=ALBEDO_VIEWS)
             gs = GeometryFit(*(None if v is None else v[sub] for v in
                                (g.normal, g.tangent, g.alpha_x, g.alpha_y, g.rho_s, g.flags, g.log_rmse)))
-            flag_unseen_highlights(scan.device, ent[..., 3:6], ent[..., 6:9], ent[..., 9:12], mask, gs)
-            rd, rs = fit_albedo(scan.device, None, ent[..., :3] * (scan_exposure / model_exposure), ent[..., 3:6],
+            flag_unseen_highlights(device, ent[..., 3:6], ent[..., 6:9], ent[..., 9:12], mask, gs)
+            rd, rs = fit_albedo(device, None, ent[..., :3] / pixel_scale, ent[..., 3:6],
                                 ent[..., 6:9], ent[..., 9:12], mask, gs)
             rho_d[i[sub]], rho_s[i[sub]] = rd.numpy(), rs.numpy()
             ax[i[sub]], ay[i[sub]], flags[i[sub]] = gs.alpha_x.numpy(), gs.alpha_y.numpy(), gs.flags.numpy()
-    stage("network_and_fit", t0)
+        bar.update(len(idx))
+    bar.close()
+    return {"n_loc": n_loc, "t_loc": t_loc, "alpha": np.stack([ax, ay], 1), "flags": flags,
+            "rho_d": rho_d, "rho_s": rho_s}
 
-    t0 = time.perf_counter()
+
+def write_result(out: Path, mesh: Mesh, texels: Texels, fitted: dict[str, np.ndarray], lengths: np.ndarray) -> None:
+    """Maps (EXR), confidence, previews, mesh, material.json into ``out`` (each file atomically).
+    Texels without a trace keep the geometric frame and get their values from the nearest observed
+    texel (seams and holes dilated)."""
+    observed = lengths > 0
     frame = np.stack([texels.tangent, np.cross(texels.normal, texels.tangent), texels.normal], 1)  # rows
-    n_obj = np.einsum("tji,tj->ti", frame, n_loc)
-    t_obj = np.einsum("tji,tj->ti", frame, t_loc)
+    n_obj = np.einsum("tji,tj->ti", frame, fitted["n_loc"])
+    t_obj = np.einsum("tji,tj->ti", frame, fitted["t_loc"])
     n_obj = np.where(observed[:, None], n_obj, texels.normal)
     t_obj = np.where(observed[:, None], t_obj, texels.tangent)
-    H = W = resolution
+    H, W = texels.shape
     known = np.zeros((H, W), bool)
     known[texels.row, texels.col] = observed
 
@@ -130,12 +112,12 @@ def reconstruct_with_poses(scan: Scan, out: Path, resolution: int = 1024, model:
     n_map /= np.maximum(np.linalg.norm(n_map, axis=-1, keepdims=True), 1e-12)
     t_map -= (t_map * n_map).sum(-1, keepdims=True) * n_map
     t_map /= np.maximum(np.linalg.norm(t_map, axis=-1, keepdims=True), 1e-12)
-    maps = SVBRDFMaps(to_map(rho_d), to_map(rho_s), n_map, t_map, to_map(np.stack([ax, ay], 1)))
+    maps = SVBRDFMaps(to_map(fitted["rho_d"]), to_map(fitted["rho_s"]), n_map, t_map, to_map(fitted["alpha"]))
     out.mkdir(parents=True, exist_ok=True)
     maps.save(out)
     conf = np.zeros((H, W, 3))
-    conf[texels.row, texels.col, 0] = observed & ((flags & FLAG_NO_LOBE) == 0)
-    conf[texels.row, texels.col, 1] = traces.lengths.numpy()
+    conf[texels.row, texels.col, 0] = observed & ((fitted["flags"] & FLAG_NO_LOBE) == 0)
+    conf[texels.row, texels.col, 1] = lengths
     write_exr(out / "confidence.exr", conf)
     previews = out / "previews"
     write_png(previews / "diffuse_albedo.png", maps.diffuse_albedo ** (1 / 2.2))
@@ -144,15 +126,6 @@ def reconstruct_with_poses(scan: Scan, out: Path, resolution: int = 1024, model:
     write_png(previews / "tangent.png", 0.5 * (maps.tangent + 1))
     write_png(previews / "roughness.png", np.concatenate([maps.roughness / 0.5, np.zeros((H, W, 1))], -1))
     save_obj(out / "mesh.obj", mesh)
-    stage("maps", t0)
-
-    report.update({
-        "photos": {"used": len(used), "unreadable": unreadable},
-        "texels": {"total": N, "observed": int(observed.sum()), "coverage": float(observed.mean()) if N else 0.0,
-                   "flagged": int((flags != 0).sum())},
-        "traces": {"entries": tstats.entries, "views_used": tstats.views_used, "rejected": tstats.rejected},
-        "model": meta.get("summary", {}), "seconds": round(time.perf_counter() - t_all, 3),
-    })
     write_text_atomic(out / "material.json", json.dumps({
         "model": "anisotropic GGX (ntp)", "maps": {k: f"{k}.exr" for k in
                                                    ("diffuse_albedo", "specular_albedo", "normal", "tangent",
@@ -160,7 +133,13 @@ def reconstruct_with_poses(scan: Scan, out: Path, resolution: int = 1024, model:
         "conventions": {"normal": "object space, unit", "tangent": "object space, unit, alpha_x along it",
                         "roughness": "R = alpha_x, G = alpha_y", "albedo": "linear", "units": "metres",
                         "fresnel_f0": 0.04, "uv_origin": "bottom-left"}}, indent=2))
-    write_text_atomic(out / "report.json", json.dumps(report, indent=2))
-    return report
 
 
+def reconstruct_with_poses(scan: Scan, out: Path, resolution: int = 1024, model: str | None = None,
+                           progress: bool = False) -> dict:
+    """Reconstruct maps for ``scan`` (which must carry poses) into ``out``; returns the report."""
+    if scan.poses is None:
+        raise NtpInputError(scan.folder / "scan.toml", "no poses: give a poses file")
+    from .pipeline import reconstruct
+
+    return reconstruct(scan, out, resolution=resolution, model=model, progress=progress)

@@ -12,6 +12,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from tqdm import tqdm
 
 from .device import Device
 from .errors import NtpInputError
@@ -26,9 +27,12 @@ class Registration:
     unregistered: list[str]
 
 
-def register(photos_dir: Path, names: list[str], device: Device, work: Path, overlap: int = 10) -> Registration:
+def register(photos_dir: Path, names: list[str], device: Device, work: Path, overlap: int = 10,
+             progress: bool = False) -> Registration:
     import pycolmap
 
+    pycolmap.logging.minloglevel = 2  # COLMAP logs every image at INFO; errors still surface
+    bar = tqdm(total=3, desc="SfM (features, matching, mapping)", unit="stage", disable=not progress)
     if work.exists():
         shutil.rmtree(work)
     work.mkdir(parents=True)
@@ -39,15 +43,19 @@ def register(photos_dir: Path, names: list[str], device: Device, work: Path, ove
     reader.camera_params = ",".join(str(float(v)) for v in (K[0, 0], K[1, 1], K[0, 2] + 0.5, K[1, 2] + 0.5, *d[:4]))
     pycolmap.extract_features(db, photos_dir, image_names=names, camera_mode=pycolmap.CameraMode.SINGLE,
                               reader_options=reader)
+    bar.update()
     pairing = pycolmap.SequentialPairingOptions()
     pairing.overlap = overlap
     pairing.quadratic_overlap = True
     pycolmap.match_sequential(db, pairing_options=pairing)
+    bar.update()
     opts = pycolmap.IncrementalPipelineOptions()
     opts.ba_refine_focal_length = False
     opts.ba_refine_principal_point = False
     opts.ba_refine_extra_params = False
     models = pycolmap.incremental_mapping(db, photos_dir, work / "sparse", opts)
+    bar.update()
+    bar.close()
     if not models:
         raise NtpInputError(photos_dir, "structure-from-motion found no initial image pair (too few features "
                             "or overlap between photos)")

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
+from tqdm import tqdm
 
 from .device import Device
 from .inference import RaggedTraces
@@ -34,13 +35,15 @@ class TraceStats:
 
 
 def assemble(texels: Texels, photos: list[np.ndarray], poses: list[np.ndarray], camera: Device,
-             caster: RayCaster, pixel_scale: float = 1.0, eps: float = 2e-5) -> tuple[RaggedTraces, TraceStats]:
-    """Traces of all texels. ``photos``: 8-bit ``(H, W, 3)`` arrays; ``poses``: 4x4 camera-from-world."""
+             caster: RayCaster, pixel_scale: float = 1.0, eps: float = 2e-5,
+             progress: bool = False) -> tuple[RaggedTraces, TraceStats]:
+    """Traces of all texels. ``photos``: 8-bit ``(H, W, 3)`` arrays (any iterable: they are read
+    one at a time); ``poses``: 4x4 camera-from-world, one per photo."""
     n_tex = len(texels)
     keys, rows = [], []
     rejected = {"behind_or_outside": 0, "valid_volume": 0, "occluded": 0, "grazing": 0, "pixel_range": 0}
     views_used = 0
-    for img, pose in zip(photos, poses):
+    for img, pose in tqdm(zip(photos, poses), total=len(poses), desc="traces", unit="photo", disable=not progress):
         R, t = pose[:3, :3], pose[:3, 3]
         x = texels.position @ R.T + t
         n_hat = texels.normal @ R.T

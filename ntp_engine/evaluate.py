@@ -1,0 +1,60 @@
+"""Errors of a reconstruction against ground truth (a virtual scan's ``ground_truth/``).
+
+- map errors over the texels some trace reached (``confidence.exr`` G > 0): median angle between
+  reconstructed and true normals (degrees), RMSE of the diffuse albedo (linear RGB), coverage;
+- relit SSIM: the engine renders the true and the reconstructed asset from novel viewpoints, each
+  lit by the point-light device (a novel light: a single point, unlike the LED array of the scan),
+  with exact shadows; 8-bit-like display values (clip, gamma 2.2); SSIM averaged over the object's
+  pixels only (the backdrop would inflate it).
+
+Both assets must share the UV layout (true for scans of a mesh with UVs, whose UVs the pipeline
+keeps).
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from .device import Device, list_devices
+from .images import read_image
+from .maps import SVBRDFMaps, texel_uv
+from .mesh import load_mesh
+from .virtual_scan import ScanConfig, Scene, scaled_device, trajectory
+
+
+def map_errors(result: Path, truth: Path) -> dict:
+    rec = SVBRDFMaps.load(result)
+    H, W = rec.normal.shape[:2]
+    observed = read_image(result / "confidence.exr")[..., 1].reshape(-1) > 0
+    g = SVBRDFMaps.load(truth).sample(texel_uv((H, W)).reshape(-1, 2))
+    n = rec.normal.reshape(-1, 3)[observed]
+    ang = np.degrees(np.arccos(np.clip((n * g["normal"][observed]).sum(1), -1, 1)))
+    d = rec.diffuse_albedo.reshape(-1, 3)[observed] - g["diffuse_albedo"][observed]
+    return {"normal_median_deg": float(np.median(ang)), "normal_p90_deg": float(np.percentile(ang, 90)),
+            "diffuse_rmse": float(np.sqrt((d ** 2).mean())), "observed_fraction": float(observed.mean())}
+
+
+def relit_ssim(result: Path, truth_mesh: Path, truth_maps: Path, lights: int = 3, scale: float = 0.25,
+               seed: int = 1000, save_dir: Path | None = None) -> dict:
+    from skimage.metrics import structural_similarity
+
+    from .images import write_png
+
+    point = Device.load(next(p for p in list_devices() if p.name == "point_light.toml"))
+    cam = scaled_device(point, scale)
+    true_scene = Scene(load_mesh(truth_mesh), SVBRDFMaps.load(truth_maps), point, clusters=1)
+    rec_scene = Scene(load_mesh(result / "mesh.obj"), SVBRDFMaps.load(result), point, clusters=1)
+    poses = trajectory(true_scene.center, point, ScanConfig(views=lights, seed=seed), np.random.default_rng(seed))
+    scores = []
+    for k, pose in enumerate(poses):
+        a, ha = true_scene.render_linear(pose, cam, exact_shadows=True)
+        b, _ = rec_scene.render_linear(pose, cam, exact_shadows=True)
+        obj = (ha["geom"] == 0).reshape(a.shape[:2])
+        da, db = (np.clip(x, 0, 1) ** (1 / 2.2) for x in (a, b))
+        da[~obj], db[~obj] = 0, 0
+        _, smap = structural_similarity(da, db, data_range=1.0, channel_axis=-1, full=True)
+        scores.append(float(smap.mean(-1)[obj].mean()))
+        if save_dir is not None:
+            write_png(save_dir / f"relit_{k}.png", np.concatenate([da, db], 1))
+    return {"relit_ssim": float(np.mean(scores)), "relit_ssim_per_light": scores}
