@@ -68,7 +68,7 @@ def convergence_point(camera_from_world: list[np.ndarray]) -> np.ndarray:
         P = np.eye(3) - np.outer(d, d)
         A += P
         b += P @ c
-    return np.linalg.solve(A, b)
+    return np.linalg.lstsq(A, b, rcond=None)[0]  # parallel axes: the least-norm point
 
 
 def ransac_plane(points: np.ndarray, threshold: float, iterations: int = 400,

@@ -13,9 +13,15 @@ def _parser() -> argparse.ArgumentParser:
                                 "reflectance scans to relightable Blender assets.")
     sub = p.add_subparsers(dest="command", metavar="COMMAND", required=True)
 
-    d = sub.add_parser("demo", help="run the main job on the bundled demo")
-    d.add_argument("--out", type=Path, default=Path("ntp_demo_out"), help="output folder")
-    d.add_argument("--device", type=Path, default=None, help="device TOML (default: the paper's LED array)")
+    d = sub.add_parser("demo", help="virtual-scan the bundled demo, reconstruct it, print errors vs truth")
+    d.add_argument("--out", type=Path, default=Path("ntp_demo_out"), help="output folder (scan/, result/)")
+    d.add_argument("--views", type=int, default=60, help="photos in the virtual scan")
+    d.add_argument("--scale", type=float, default=0.25, help="camera resolution scale (1.0 = 2448x2048)")
+    d.add_argument("--resolution", type=int, default=256, help="texture maps are RESOLUTION^2")
+    d.add_argument("--seed", type=int, default=0)
+    d.add_argument("--model", default=None, help="shipped model name or a model folder (default: compact)")
+    d.add_argument("--known-poses", action="store_true", help="use the scan's true poses instead of SfM")
+    d.add_argument("--quiet", action="store_true", help="no progress bars")
 
     rc = sub.add_parser("reconstruct", help="a scan folder to texture maps (resumes from OUT/cache)")
     rc.add_argument("scan", type=Path, help="scan folder (scan.toml, mesh, photos/)")
@@ -81,6 +87,11 @@ def _parser() -> argparse.ArgumentParser:
     bn.add_argument("--quick", action="store_true", help="use the shipped comparison networks (no training)")
     bn.add_argument("--steps", type=int, default=3000, help="training steps per comparison network")
     bn.add_argument("--json", type=Path, default=None)
+    bs = bsub.add_parser("scan", help="whole pipeline on virtual scans of 2-3 sizes: stage times vs errors")
+    bs.add_argument("--sizes", default=None, help="PHOTOSxRES,... (default 24x128,48x256,96x256)")
+    bs.add_argument("--known-poses", action="store_true", help="skip SfM (true poses)")
+    bs.add_argument("--plot", type=Path, default=Path("bench_scan.png"), help="PNG of run time against error")
+    bs.add_argument("--json", type=Path, default=None)
     ph = bsub.add_parser("physics", help="BRDF evaluations/s, lumitexels/s, measurements/s (f32 vs f64)")
     ph.add_argument("--json", type=Path, default=None)
     return p
@@ -92,7 +103,8 @@ def main(argv: list[str] | None = None) -> int:
         if args.command == "demo":
             from . import demo
 
-            demo.run(args.out, args.device)
+            demo.run(args.out, views=args.views, scale=args.scale, resolution=args.resolution, seed=args.seed,
+                     known_poses=args.known_poses, model=args.model, progress=not args.quiet)
         elif args.command == "reconstruct":
             from .pipeline import reconstruct
             from .scan import load_scan
@@ -160,6 +172,16 @@ def main(argv: list[str] | None = None) -> int:
                 from .bench import network as bench_network
 
                 bench_network.run(quick=args.quick, steps=args.steps, json_path=args.json)
+            if args.bench == "scan":
+                from .bench import scan as bench_scan
+
+                sizes = None
+                if args.sizes:
+                    try:
+                        sizes = [tuple(int(v) for v in item.lower().split("x")) for item in args.sizes.split(",")]
+                    except ValueError:
+                        raise NtpInputError(None, f"--sizes {args.sizes!r}: expected PHOTOSxRES,...") from None
+                bench_scan.run(sizes, json_path=args.json, plot=args.plot, known_poses=args.known_poses)
             if args.bench == "physics":
                 from .bench import physics
 

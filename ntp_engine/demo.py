@@ -1,92 +1,72 @@
-"""``ntp demo``: what the engine can show today on the default device.
+"""``ntp demo``: the main job end to end on the bundled demo asset.
 
-Prints the default device, then writes for one sample surface point (an anisotropic, glossy,
-orange material at the centre of the valid volume) its diffuse and specular lumitexels (as
-unfolded cube crosses) and its per-LED measurement (one pixel per LED, laid out as the panel).
+Virtual-scans ``assets/demo`` (``DIR/scan/``, with ``ground_truth/``), reconstructs it with the
+shipped model through the whole pipeline, SfM included (``DIR/result/``), and prints the errors
+against the ground truth (``evaluate.py``): relit SSIM, normal median angle, diffuse RMSE, texel
+coverage, camera pose error. Everything goes to ``DIR/demo.json``; the relit comparisons (truth
+left, reconstruction right) to ``DIR/relit/``. Re-running resumes: the scan is kept when its
+settings match, and the pipeline's stages are cached.
 """
 from __future__ import annotations
 
 import json
-import math
+import time
 from pathlib import Path
 
-import numpy as np
-import torch
-
 from .atomic import write_text_atomic
-from .device import Device
-from .images import write_png
-from .lumitexel import DIFFUSE_RES, SPECULAR_RES, render_lumitexels, unfold_cross
-from .measurement import confidence, measure, physical_lumitexel
+from .errors import NtpInputError
+from .evaluate import map_errors, relit_ssim
+from .pipeline import reconstruct
+from .scan import load_poses, load_scan
+from .virtual_scan import ScanConfig, virtual_scan
 
-SAMPLE = {
-    "rho_d": [0.45, 0.2, 0.05],
-    "rho_s": [2.0, 2.0, 2.0],
-    "alpha_x": 0.25,
-    "alpha_y": 0.04,
-    "tilt_deg": 15.0,  # shading normal tilted from the lumitexel z towards +x
-    "tangent_deg": 30.0,  # tangent rotated about the normal
-}
+GOALS = {"relit_ssim": (">=", 0.97), "normal_median_deg": ("<=", 3.0), "diffuse_rmse": ("<=", 0.02),
+         "coverage": (">=", 0.90), "seconds": ("<=", 300.0)}
 
 
-def _sample_frame(dtype=torch.float64) -> tuple[torch.Tensor, torch.Tensor]:
-    a, b = math.radians(SAMPLE["tilt_deg"]), math.radians(SAMPLE["tangent_deg"])
-    n = torch.tensor([math.sin(a), 0.0, math.cos(a)], dtype=dtype)
-    t0 = torch.tensor([math.cos(a), 0.0, -math.sin(a)], dtype=dtype)
-    b0 = torch.linalg.cross(n, t0, dim=-1)
-    return n, math.cos(b) * t0 + math.sin(b) * b0
+def run(out: Path, views: int = 60, scale: float = 0.25, resolution: int = 256, seed: int = 0,
+        known_poses: bool = False, model: str | None = None, progress: bool = True) -> dict:
+    if views < 3 or not 0 < scale <= 1 or resolution < 8:
+        raise NtpInputError(None, "need --views >= 3, 0 < --scale <= 1, --resolution >= 8")
+    out = Path(out)
+    t_all = time.perf_counter()
+    scan_dir, result_dir = out / "scan", out / "result"
+    cfg = ScanConfig(views=views, scale=scale, seed=seed)
+    capture = scan_dir / "ground_truth" / "capture.json"
+    t0 = time.perf_counter()
+    if not (capture.is_file() and json.loads(capture.read_text())["config"] == json.loads(json.dumps(cfg.__dict__))):
+        virtual_scan(scan_dir, cfg=cfg, progress=progress)
+    t_scan = time.perf_counter() - t0
 
+    truth = load_poses(scan_dir / "ground_truth" / "poses.json")
+    scan = load_scan(scan_dir, scan_dir / "ground_truth" / "poses.json" if known_poses else None)
+    t0 = time.perf_counter()
+    rep = reconstruct(scan, result_dir, resolution=resolution, model=model, progress=progress, reference_poses=truth)
+    t_rec = time.perf_counter() - t0
 
-def _upscale(img: np.ndarray, k: int) -> np.ndarray:
-    return np.repeat(np.repeat(img, k, axis=0), k, axis=1)
+    t0 = time.perf_counter()
+    gt = scan_dir / "ground_truth"
+    errors = {**map_errors(result_dir, gt), **relit_ssim(result_dir, scan_dir / "mesh.obj", gt, save_dir=out / "relit")}
+    t_eval = time.perf_counter() - t0
+    metrics = {"relit_ssim": errors["relit_ssim"], "normal_median_deg": errors["normal_median_deg"],
+               "diffuse_rmse": errors["diffuse_rmse"], "coverage": rep["texels"]["coverage"],
+               "seconds": time.perf_counter() - t_all}
+    summary = {"config": {"views": views, "scale": scale, "resolution": resolution, "seed": seed,
+                          "poses": "ground truth" if known_poses else "structure from motion"},
+               "metrics": metrics, "errors": errors, "pose_error": rep["registration"].get("pose_error", {}),
+               "alignment": rep["registration"].get("alignment"),
+               "seconds": {"virtual_scan": round(t_scan, 2), "reconstruct": round(t_rec, 2),
+                           "evaluate": round(t_eval, 2), "stages": rep["stages"]}}
+    write_text_atomic(out / "demo.json", json.dumps(summary, indent=2))
 
-
-def run(out: Path, device_path: Path | None = None) -> dict:
-    device = Device.load(device_path)
-    print(device.summary())
-    out.mkdir(parents=True, exist_ok=True)
-    f64 = dict(dtype=torch.float64)
-    n, t = _sample_frame()
-    rho_d, rho_s = torch.tensor(SAMPLE["rho_d"], **f64), torch.tensor(SAMPLE["rho_s"], **f64)
-    ax, ay = torch.tensor(SAMPLE["alpha_x"], **f64), torch.tensor(SAMPLE["alpha_y"], **f64)
-
-    diffuse, specular = render_lumitexels(n, t, rho_d, rho_s, ax, ay)
-    d_img = unfold_cross(diffuse, DIFFUSE_RES).numpy()
-    s_img = unfold_cross(torch.log1p(specular), SPECULAR_RES).numpy()
-    write_png(out / "lumitexel_diffuse.png", _upscale((d_img / d_img.max()) ** (1 / 2.2), 16))
-    write_png(out / "lumitexel_specular.png", _upscale((s_img / s_img.max()) ** (1 / 2.2), 4))
-
-    # the sample point at the valid-volume centre, its normal facing halfway between camera and panel
-    x = torch.tensor(device.valid_center, **f64)
-    panel_dir = torch.tensor(device.emitter_positions.mean(0), **f64) - x
-    n_cam = torch.nn.functional.normalize(torch.nn.functional.normalize(-x, dim=0)
-                                          + torch.nn.functional.normalize(panel_dir, dim=0), dim=0)
-    t_cam = torch.nn.functional.normalize(torch.linalg.cross(n_cam, torch.tensor([0.0, 1.0, 0.0], **f64), dim=0), dim=0)
-    m = physical_lumitexel(device, x, n_cam, t_cam, rho_d, rho_s, ax, ay)  # (L, 3)
-    p_eff = device.effective_pattern(torch.as_tensor(device.pattern, **f64))
-    per_led = (m * p_eff).numpy()
-    b = measure(device, m)
-    pixel = device.encode(device.exposure(device.pattern) * b)
-    beta = confidence(device, x[None], n_cam[None], t_cam[None], ax, ay, rho_s.mean())
-    if device.grid_shape:
-        cols, rows = device.grid_shape
-        led_img = per_led.reshape(rows, cols, 3)
-    else:
-        led_img = per_led.reshape(1, -1, 3)
-    write_png(out / "measurement_per_led.png", _upscale(led_img / max(led_img.max(), 1e-12), 16))
-
-    result = {
-        "device": device.name,
-        "sample_brdf": SAMPLE,
-        "point_camera_space_m": x.tolist(),
-        "normal_camera_space": n_cam.tolist(),
-        "measurement_B": b.tolist(),
-        "pixel_code_value": pixel.tolist(),
-        "highlight_confidence_beta": float(beta),
-        "files": ["lumitexel_diffuse.png", "lumitexel_specular.png", "measurement_per_led.png"],
-    }
-    write_text_atomic(out / "demo.json", json.dumps(result, indent=2))
-    print(f"sample point B = {np.round(b.numpy(), 3).tolist()} -> 8-bit {np.round(pixel.numpy(), 1).tolist()}, "
-          f"beta = {float(beta):.3f}")
-    print(f"wrote {out}/lumitexel_diffuse.png, lumitexel_specular.png, measurement_per_led.png, demo.json")
-    return result
+    print(f"\nntp demo: {views} photos at {scale:g} scale, {resolution}^2 maps -> {result_dir}")
+    for k, (op, goal) in GOALS.items():
+        v = metrics[k]
+        ok = v >= goal if op == ">=" else v <= goal
+        print(f"  {k:18s} {v:10.4f}   goal {op} {goal:<6g} {'met' if ok else 'MISSED'}")
+    pe = summary["pose_error"]
+    if pe:
+        print(f"  pose error: centre median {pe['centre_median_m'] * 1e3:.2f} mm, "
+              f"rotation median {pe['rotation_median_deg']:.3f} deg")
+    print(f"  wrote {out / 'demo.json'}, relit comparisons in {out / 'relit'}")
+    return summary

@@ -123,24 +123,26 @@ def reconstruct(scan: Scan, out: Path, resolution: int = 1024, model: str | None
     texels = rasterize(mesh, (resolution, resolution))
     timed("atlas", t0)
 
-    # 4. traces (pixels rescaled to the model's exposure)
-    net, meta = models.load(model, scan.device)
-    scale = model_exposure(net) / float(scan.device.exposure(scan.device.pattern))
+    # 4. traces (linear pixels as captured; rescaled to the model's exposure when loaded)
     t0 = time.perf_counter()
     names = sorted(poses)
 
     def traces_stage(d: Path) -> None:
         photos = (read_photo(scan.photos_dir / n, scan.device).astype(np.uint8) for n in names)
         tr, st = assemble(texels, photos, [poses[n] for n in names], scan.device, RayCaster([mesh.triangles]),
-                          pixel_scale=scale, progress=progress)
+                          progress=progress)
         np.savez(d / "traces.npz", entries=tr.entries.numpy(), offsets=tr.offsets.numpy())
         (d / "stats.json").write_text(json.dumps({"entries": st.entries, "views_used": st.views_used,
                                                   "views_seeing_no_texel": len(names) - st.views_used,
                                                   "rejected": st.rejected}))
 
-    folder, h_tr = cache.get("traces", {"atlas": h_atlas, "poses": h_pose, "scale": round(scale, 9)}, traces_stage)
+    folder, h_tr = cache.get("traces", {"atlas": h_atlas, "poses": h_pose}, traces_stage)
+    net, meta = models.load(model, scan.device)
+    scale = model_exposure(net) / float(scan.device.exposure(scan.device.pattern))
     with np.load(folder / "traces.npz") as z:
-        traces = RaggedTraces(torch.from_numpy(z["entries"]), torch.from_numpy(z["offsets"]))
+        entries = torch.from_numpy(z["entries"])
+        entries[:, :3] *= scale
+        traces = RaggedTraces(entries, torch.from_numpy(z["offsets"]))
     report["traces"] = json.loads((folder / "stats.json").read_text())
     timed("traces", t0)
 

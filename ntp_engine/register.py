@@ -28,7 +28,9 @@ class Registration:
 
 
 def register(photos_dir: Path, names: list[str], device: Device, work: Path, overlap: int = 10,
-             progress: bool = False) -> Registration:
+             progress: bool = False, peak_threshold: float = 0.0067) -> Registration:
+    """SfM poses of ``names``; ``peak_threshold`` is SIFT's (lowering it adds backdrop points, not object
+    points, on virtual scans)."""
     import pycolmap
 
     pycolmap.logging.minloglevel = 2  # COLMAP logs every image at INFO; errors still surface
@@ -41,8 +43,10 @@ def register(photos_dir: Path, names: list[str], device: Device, work: Path, ove
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = "OPENCV"
     reader.camera_params = ",".join(str(float(v)) for v in (K[0, 0], K[1, 1], K[0, 2] + 0.5, K[1, 2] + 0.5, *d[:4]))
+    extraction = pycolmap.FeatureExtractionOptions()
+    extraction.sift.peak_threshold = peak_threshold
     pycolmap.extract_features(db, photos_dir, image_names=names, camera_mode=pycolmap.CameraMode.SINGLE,
-                              reader_options=reader)
+                              reader_options=reader, extraction_options=extraction)
     bar.update()
     pairing = pycolmap.SequentialPairingOptions()
     pairing.overlap = overlap

@@ -19,20 +19,26 @@ def test_help_lists_commands():
         assert cmd in out.stdout
 
 
-def test_demo_writes_lumitexels_and_measurement(tmp_path):
-    out = ntp("demo", "--out", str(tmp_path / "demo"))
-    assert out.returncode == 0, out.stderr
-    assert "ntp-led-32x16" in out.stdout
+def test_demo_runs_end_to_end_and_reports_errors(tmp_path):
     d = tmp_path / "demo"
-    diffuse, specular, leds = (read_image(d / f) for f in ("lumitexel_diffuse.png", "lumitexel_specular.png",
-                                                          "measurement_per_led.png"))
-    assert diffuse.shape == (3 * 8 * 16, 4 * 8 * 16, 3) and specular.shape == (3 * 32 * 4, 4 * 32 * 4, 3)
-    assert leds.shape == (16 * 16, 32 * 16, 3)
-    assert specular.max() == 1.0 and leds.max() == 1.0 and np.isfinite(leds).all()
+    out = ntp("demo", "--out", str(d), "--views", "8", "--scale", "0.1", "--resolution", "24", "--known-poses",
+              "--quiet")
+    assert out.returncode == 0, out.stderr
+    assert "relit_ssim" in out.stdout and "normal_median_deg" in out.stdout
     summary = json.loads((d / "demo.json").read_text())
-    assert len(summary["measurement_B"]) == 3 and all(b > 0 for b in summary["measurement_B"])
-    assert 0.0 <= summary["highlight_confidence_beta"] <= 1.0
-    assert not list(d.glob(".*"))  # no temporary files left behind
+    m = summary["metrics"]
+    assert 0 < m["relit_ssim"] <= 1 and 0 <= m["normal_median_deg"] < 20 and m["coverage"] > 0.5
+    assert summary["pose_error"]["centre_max_m"] < 1e-9  # the true poses were used
+    assert (d / "result" / "normal.exr").is_file() and (d / "scan" / "ground_truth" / "poses.json").is_file()
+    relit = read_image(d / "relit" / "relit_0.png")
+    assert relit.shape[1] > relit.shape[0] and np.isfinite(relit).all()  # truth | reconstruction
+    # a second run reuses the scan and every cached stage
+    again = ntp("demo", "--out", str(d), "--views", "8", "--scale", "0.1", "--resolution", "24", "--known-poses",
+                "--quiet")
+    assert again.returncode == 0, again.stderr
+    rep = json.loads((d / "result" / "report.json").read_text())
+    assert rep["cached_stages"] == ["select", "atlas", "traces", "fit"]
+    assert not list(d.rglob(".*"))  # no temporary files left behind
 
 
 def test_bad_device_is_one_line_error_exit_2(tmp_path):
@@ -42,7 +48,7 @@ def test_bad_device_is_one_line_error_exit_2(tmp_path):
     assert out.returncode == 2
     lines = out.stderr.strip().splitlines()
     assert len(lines) == 1 and "broken.toml" in lines[0] and "camera.width" in lines[0]
-    out = ntp("demo", "--out", str(tmp_path / "d"), "--device", str(tmp_path / "missing.toml"))
+    out = ntp("device", str(tmp_path / "missing.toml"))
     assert out.returncode == 2 and "missing.toml" in out.stderr and "Traceback" not in out.stderr
 
 

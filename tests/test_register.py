@@ -1,9 +1,6 @@
 """Structure-from-motion on a virtual scan: the recovered camera centres match the true ones up to
 the similarity SfM cannot know."""
 import json
-import subprocess
-import sys
-
 import numpy as np
 import pytest
 
@@ -23,11 +20,8 @@ def _umeyama(src: np.ndarray, dst: np.ndarray):
     return s, R, md - s * R @ ms
 
 
-def test_sfm_recovers_the_trajectory_up_to_a_similarity(tmp_path):
-    scan = tmp_path / "scan"
-    r = subprocess.run([sys.executable, "-m", "ntp_engine.cli", "virtual-scan", "--out", str(scan), "--views", "24",
-                        "--scale", "0.25", "--seed", "5"], capture_output=True, text=True)
-    assert r.returncode == 0, r.stderr
+def test_sfm_recovers_the_trajectory_up_to_a_similarity(scan24, tmp_path):
+    scan = scan24
     names = sorted(p.name for p in (scan / "photos").glob("*.png"))
     reg = register(scan / "photos", names, Device.load(scan / "device.toml"), tmp_path / "sfm")
     assert len(reg.poses) >= 0.8 * len(names) and len(reg.points) > 100
