@@ -1,0 +1,104 @@
+"""Headless export for pipelines (bpy as a module):
+
+    python -m ntp_addon.batch RESULT_DIR --blend OUT.blend --gltf OUT.glb --preview OUT.png
+
+Imports the result's mesh with its maps, builds both materials (the default variant on the
+object, the other kept in the file), saves the .blend, exports glTF binary with the Principled
+material (KHR_materials_anisotropy, KHR_materials_specular) and renders a Cycles preview with the
+key-light rig. Each output is written to a temporary name and renamed. Exit code 2 and one line on
+stderr for bad input.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import tempfile
+from pathlib import Path
+
+import bpy  # noqa: F401  (before torch, which the engine imports)
+
+from ntp_engine.errors import NtpInputError
+
+from . import material, scene as bscene
+
+
+def _tmp_beside(target: Path) -> Path:
+    target.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{target.stem}.", suffix=target.suffix, dir=target.parent)
+    os.close(fd)
+    return Path(tmp)
+
+
+def export(result: Path, blend: Path | None = None, gltf: Path | None = None, preview: Path | None = None,
+           variant: str = material.DEFAULT_VARIANT, samples: int = 64, size: tuple[int, int] = (640, 512),
+           turntable: int = 0) -> dict:
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    ri_check = material.read_result(result)  # validate before creating anything
+    del ri_check
+    obj = material.import_result_mesh(result)
+    principled, accurate = material.build_materials(result, obj, variant)
+    bscene.relight_rig(obj, *size, samples=samples, turntable_frames=turntable)
+    written = {}
+    if gltf is not None:
+        tmp = _tmp_beside(gltf)
+        chosen = obj.data.materials[0]
+        obj.data.materials[0] = principled  # glTF carries the Principled material
+        try:
+            bpy.ops.object.select_all(action="DESELECT")
+            obj.select_set(True)
+            bpy.context.view_layer.objects.active = obj
+            bpy.ops.export_scene.gltf(filepath=str(tmp), export_format="GLB", use_selection=True,
+                                      export_tangents=True, export_cameras=False, export_lights=False)
+            os.replace(tmp, gltf)
+        finally:
+            obj.data.materials[0] = chosen
+            tmp.unlink(missing_ok=True)
+        written["gltf"] = str(gltf)
+    if preview is not None:
+        tmp = _tmp_beside(preview)
+        scene = bpy.context.scene
+        scene.view_settings.view_transform = "AgX"
+        scene.render.image_settings.file_format = "PNG"
+        scene.render.filepath = str(tmp)
+        try:
+            bpy.ops.render.render(write_still=True)
+            os.replace(tmp, preview)
+        finally:
+            tmp.unlink(missing_ok=True)
+        written["preview"] = str(preview)
+    if blend is not None:
+        tmp = _tmp_beside(blend)
+        try:
+            bpy.ops.wm.save_as_mainfile(filepath=str(tmp), copy=True, compress=True)
+            os.replace(tmp, blend)
+        finally:
+            tmp.unlink(missing_ok=True)
+            Path(str(tmp) + "1").unlink(missing_ok=True)
+        written["blend"] = str(blend)
+    return {"object": obj.name, "materials": [principled.name, accurate.name], "variant": variant, **written}
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m ntp_addon.batch", description=__doc__.split("\n\n")[0])
+    p.add_argument("result", type=Path, help="result folder of ntp reconstruct / ntp demo")
+    p.add_argument("--blend", type=Path, default=None)
+    p.add_argument("--gltf", type=Path, default=None, help=".glb to write")
+    p.add_argument("--preview", type=Path, default=None, help="PNG of a Cycles render with the key-light rig")
+    p.add_argument("--variant", choices=["accurate", "principled"], default=material.DEFAULT_VARIANT)
+    p.add_argument("--samples", type=int, default=64)
+    p.add_argument("--turntable", type=int, default=0, help="frames of a 360-degree turntable (0: none)")
+    a = p.parse_args(argv)
+    try:
+        info = export(a.result, a.blend, a.gltf, a.preview, a.variant, a.samples, turntable=a.turntable)
+    except NtpInputError as err:
+        print(f"ntp_addon.batch: error: {err}", file=sys.stderr)
+        return 2
+    for k in ("blend", "gltf", "preview"):
+        if k in info:
+            print(f"wrote {info[k]}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

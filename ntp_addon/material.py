@@ -1,0 +1,242 @@
+"""Blender materials from a result folder (DESIGN.md output contract): two node trees over the
+same maps.
+
+- ``NTP Principled``: an anisotropic Principled BSDF, arranged so the bundled glTF exporter writes
+  KHR_materials_anisotropy (Tangent node on the UV map; a direction/strength texture through
+  Separate XYZ -> ArcTan2 -> Add -> Divide 2 pi into Anisotropic Rotation, its B channel x 1 into
+  Anisotropic — the layout the glTF importer builds) and a tangent-space normal map (glTF has no
+  object-space normals). F0 = 0.04 x rho_s through Specular IOR Level (0.5 max rho_s) and Specular
+  Tint (rho_s / max rho_s). Limits: anisotropy capped at 10:1, Fresnel rises to 1 (not rho_s) at
+  grazing, the diffuse is dimmed by the specular layer.
+- ``NTP Accurate``: Diffuse BSDF (rho_d) + Glossy BSDF (GGX) whose colour is rho_s times Schlick's
+  Fresnel with F0 = 0.04 on n.v (the engine uses w_i.h; equal at the mirror peak); the object-space
+  normal and tangent maps through Vector Transform nodes; any alpha ratio up to 10^4.
+
+All inputs are read and derived before any datablock is created: a bad result folder raises
+``NtpInputError`` naming the file, and nothing half-built is left behind.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import bpy
+import numpy as np
+
+from ntp_engine.errors import NtpInputError
+from ntp_engine.maps import MAP_FILES, SVBRDFMaps
+from ntp_engine.mesh import load_mesh
+
+from . import derive
+
+PRINCIPLED, ACCURATE = "NTP Principled", "NTP Accurate"
+DEFAULT_VARIANT = "accurate"  # chosen by `ntp bench blender` (docs/blender.md)
+LINEAR, DATA = "Linear Rec.709", "Non-Color"
+
+
+@dataclass
+class ResultInputs:
+    folder: Path
+    maps: SVBRDFMaps
+    principled: dict[str, np.ndarray]
+    glossy: dict[str, np.ndarray]
+
+
+def read_result(folder: str | Path) -> ResultInputs:
+    """Validate a result folder and derive every node input (no bpy datablock touched)."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise NtpInputError(folder, "result folder does not exist")
+    for f in (*MAP_FILES.values(), "mesh.obj"):
+        if not (folder / f).is_file():
+            raise NtpInputError(folder / f, "map file missing" if f.endswith(".exr") else "mesh missing")
+    maps = SVBRDFMaps.load(folder)
+    mesh = load_mesh(folder / "mesh.obj")
+    if mesh.uv is None:
+        raise NtpInputError(folder / "mesh.obj", "mesh has no UVs (the maps need them)")
+    return ResultInputs(folder, maps, derive.principled_inputs(maps, mesh), derive.glossy_inputs(maps))
+
+
+def _file_image(path: Path, colorspace: str) -> bpy.types.Image:
+    img = bpy.data.images.load(str(path), check_existing=True)
+    img.colorspace_settings.name = colorspace
+    return img
+
+
+def _packed_image(name: str, data: np.ndarray) -> bpy.types.Image:
+    """A float image held in the .blend (packed), ``data (H, W, C)`` row 0 = top."""
+    h, w, c = data.shape
+    rgba = np.ones((h, w, 4), np.float32)
+    rgba[..., :c] = data
+    if c == 1:
+        rgba[..., 1:3] = data
+    img = bpy.data.images.new(name, w, h, alpha=False, float_buffer=True, is_data=True)
+    img.pixels.foreach_set(rgba[::-1].reshape(-1))  # Blender rows start at the bottom
+    img.file_format = "OPEN_EXR"
+    img.pack()
+    img.colorspace_settings.name = DATA
+    return img
+
+
+class _Tree:
+    """Small helper: nodes laid out in columns, links by socket name or index."""
+
+    def __init__(self, mat: bpy.types.Material):
+        if mat.node_tree is None:
+            mat.use_nodes = True
+        self.nt = mat.node_tree
+        self.nt.nodes.clear()
+
+    def node(self, kind: str, x: float, y: float, label: str = "", **attrs):
+        n = self.nt.nodes.new(kind)
+        n.location = (x * 220.0, y * 200.0)
+        if label:
+            n.label = label
+        for k, v in attrs.items():
+            setattr(n, k, v)
+        return n
+
+    def image(self, img, x, y, label):
+        return self.node("ShaderNodeTexImage", x, y, label, image=img, interpolation="Linear")
+
+    def link(self, a, out, b, inp):
+        self.nt.links.new(a.outputs[out], b.inputs[inp])
+
+
+def _principled(ri: ResultInputs, name: str) -> bpy.types.Material:
+    p = ri.principled
+    mat = bpy.data.materials.new(name)
+    T = _Tree(mat)
+    out = T.node("ShaderNodeOutputMaterial", 2, 0)
+    bsdf = T.node("ShaderNodeBsdfPrincipled", 0, 0)
+    T.link(bsdf, "BSDF", out, "Surface")
+    bsdf.inputs["Metallic"].default_value = 0.0
+    bsdf.inputs["IOR"].default_value = 1.5
+    T.link(T.image(_file_image(ri.folder / "diffuse_albedo.exr", LINEAR), -3, 4, "diffuse albedo"), "Color",
+           bsdf, "Base Color")
+    T.link(T.image(_packed_image(f"{name} specular level", p["specular_level"]), -3, 3, "specular IOR level"),
+           "Color", bsdf, "Specular IOR Level")
+    T.link(T.image(_packed_image(f"{name} specular tint", p["specular_tint"]), -3, 2, "specular tint"), "Color",
+           bsdf, "Specular Tint")
+    T.link(T.image(_packed_image(f"{name} roughness", p["roughness"]), -3, 1, "roughness (ax ay)^1/4"), "Color",
+           bsdf, "Roughness")
+    # anisotropy: the glTF importer's arrangement, so the exporter recognises it
+    tex = T.image(_packed_image(f"{name} anisotropy", p["anisotropy"]), -7, -1, "anisotropy (dir RG, strength B)")
+    mad = T.node("ShaderNodeVectorMath", -6, -1, operation="MULTIPLY_ADD")
+    mad.inputs[1].default_value, mad.inputs[2].default_value = (2, 2, 1), (-1, -1, 0)
+    sep = T.node("ShaderNodeSeparateXYZ", -5, -1)
+    atan = T.node("ShaderNodeMath", -4, -1, "ArcTan2", operation="ARCTAN2")
+    add = T.node("ShaderNodeMath", -3, -1, "Anisotropy rotation", operation="ADD")
+    add.inputs[1].default_value = 0.0
+    div = T.node("ShaderNodeMath", -2, -1, "Rotation conversion", operation="DIVIDE")
+    div.inputs[1].default_value = 2 * math.pi
+    mul = T.node("ShaderNodeMath", -2, 0, "Anisotropy strength", operation="MULTIPLY")
+    mul.inputs[1].default_value = 1.0
+    T.link(tex, "Color", mad, 0)
+    T.link(mad, 0, sep, 0)
+    T.link(sep, "Y", atan, 0)
+    T.link(sep, "X", atan, 1)
+    T.link(atan, 0, add, 0)
+    T.link(add, 0, div, 0)
+    T.link(div, 0, bsdf, "Anisotropic Rotation")
+    T.link(sep, "Z", mul, 0)
+    T.link(mul, 0, bsdf, "Anisotropic")
+    tangent = T.node("ShaderNodeTangent", -2, -2, direction_type="UV_MAP")
+    T.link(tangent, "Tangent", bsdf, "Tangent")
+    nmap = T.node("ShaderNodeNormalMap", -2, -3, space="TANGENT")
+    T.link(T.image(_packed_image(f"{name} normal (tangent space)", p["normal_tangent_space"]), -3, -3,
+                   "normal, tangent space"), "Color", nmap, "Color")
+    T.link(nmap, "Normal", bsdf, "Normal")
+    return mat
+
+
+def _accurate(ri: ResultInputs, name: str) -> bpy.types.Material:
+    g = ri.glossy
+    mat = bpy.data.materials.new(name)
+    T = _Tree(mat)
+    out = T.node("ShaderNodeOutputMaterial", 3, 0)
+    add = T.node("ShaderNodeAddShader", 2, 0)
+    T.link(add, 0, out, "Surface")
+    diffuse = T.node("ShaderNodeBsdfDiffuse", 1, 1)
+    diffuse.inputs["Roughness"].default_value = 0.0
+    glossy = T.node("ShaderNodeBsdfGlossy", 1, -1, distribution="GGX")
+    T.link(diffuse, 0, add, 0)
+    T.link(glossy, 0, add, 1)
+    T.link(T.image(_file_image(ri.folder / "diffuse_albedo.exr", LINEAR), -1, 2, "diffuse albedo"), "Color",
+           diffuse, "Color")
+    # object-space frame maps -> world space
+    n_img = T.image(_file_image(ri.folder / "normal.exr", DATA), -4, 0, "normal (object space)")
+    n_xf = T.node("ShaderNodeVectorTransform", -3, 0, vector_type="NORMAL", convert_from="OBJECT",
+                  convert_to="WORLD")
+    n_unit = T.node("ShaderNodeVectorMath", -2, 0, operation="NORMALIZE")
+    T.link(n_img, "Color", n_xf, 0)
+    T.link(n_xf, 0, n_unit, 0)
+    t_img = T.image(_file_image(ri.folder / "tangent.exr", DATA), -4, -2, "tangent (object space)")
+    t_xf = T.node("ShaderNodeVectorTransform", -3, -2, vector_type="VECTOR", convert_from="OBJECT",
+                  convert_to="WORLD")
+    t_unit = T.node("ShaderNodeVectorMath", -2, -2, operation="NORMALIZE")
+    T.link(t_img, "Color", t_xf, 0)
+    T.link(t_xf, 0, t_unit, 0)
+    T.link(n_unit, "Vector", diffuse, "Normal")
+    T.link(n_unit, "Vector", glossy, "Normal")
+    T.link(t_unit, "Vector", glossy, "Tangent")
+    T.link(T.image(_packed_image(f"{name} roughness", g["roughness"]), -1, -2, "roughness (ax ay)^1/4"), "Color",
+           glossy, "Roughness")
+    T.link(T.image(_packed_image(f"{name} anisotropy", g["anisotropy"]), -1, -3, "anisotropy (signed)"), "Color",
+           glossy, "Anisotropy")
+    # colour = rho_s * (0.04 + 0.96 (1 - n.v)^5)
+    lw = T.node("ShaderNodeLayerWeight", -2, 1, "Schlick: 1 - n.v")
+    lw.inputs["Blend"].default_value = 0.5
+    T.link(n_unit, "Vector", lw, "Normal")
+    pw = T.node("ShaderNodeMath", -1, 1, "^5", operation="POWER")
+    pw.inputs[1].default_value = 5.0
+    fr = T.node("ShaderNodeMath", 0, 1, "0.04 + 0.96 x", operation="MULTIPLY_ADD")
+    fr.inputs[1].default_value, fr.inputs[2].default_value = 1 - derive.F0_DIELECTRIC, derive.F0_DIELECTRIC
+    T.link(lw, "Facing", pw, 0)
+    T.link(pw, 0, fr, 0)
+    spec = T.image(_file_image(ri.folder / "specular_albedo.exr", LINEAR), -1, 0, "specular albedo")
+    scale = T.node("ShaderNodeVectorMath", 0, 0, "rho_s x Fresnel", operation="SCALE")
+    T.link(spec, "Color", scale, 0)
+    T.link(fr, 0, scale, "Scale")
+    T.link(scale, "Vector", glossy, "Color")
+    return mat
+
+
+def build_materials(result: str | Path, obj: bpy.types.Object | None = None,
+                    variant: str = DEFAULT_VARIANT) -> tuple[bpy.types.Material, bpy.types.Material]:
+    """Both materials for a result folder; ``obj`` (if given) gets ``variant`` in its first slot.
+    The other material is kept with a fake user so a saved .blend holds both."""
+    if variant not in ("principled", "accurate"):
+        raise ValueError(f"variant must be 'principled' or 'accurate', not {variant!r}")
+    ri = read_result(result)  # may raise: nothing created yet
+    stem = Path(result).resolve().name
+    principled = _principled(ri, f"{PRINCIPLED} ({stem})")
+    accurate = _accurate(ri, f"{ACCURATE} ({stem})")
+    for m in (principled, accurate):
+        m.use_fake_user = True
+        m["ntp_result"] = str(Path(result).resolve())
+    if obj is not None:
+        chosen = principled if variant == "principled" else accurate
+        if obj.data.materials:
+            obj.data.materials[0] = chosen
+        else:
+            obj.data.materials.append(chosen)
+    return principled, accurate
+
+
+def import_result_mesh(result: str | Path, name: str = "ntp_asset") -> bpy.types.Object:
+    """The result's mesh.obj as a smooth-shaded object, coordinates unchanged (z up, metres)."""
+    path = Path(result) / "mesh.obj"
+    if not path.is_file():
+        raise NtpInputError(path, "mesh missing")
+    before = set(bpy.data.objects)
+    bpy.ops.wm.obj_import(filepath=str(path), forward_axis="Y", up_axis="Z")
+    new = [o for o in bpy.data.objects if o not in before and o.type == "MESH"]
+    if not new:
+        raise NtpInputError(path, "no mesh could be imported")
+    obj = new[0]
+    obj.name = name
+    for poly in obj.data.polygons:
+        poly.use_smooth = True
+    return obj

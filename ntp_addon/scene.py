@@ -1,0 +1,147 @@
+"""Blender scene pieces: cameras from the device's OpenCV calibration and poses, a Cycles setup
+that matches the engine's renderer, point lights, a key-light rig and a turntable.
+
+Conventions: poses are camera-from-world 4x4 in OpenCV axes (x right, y down, z forward); Blender
+cameras look down -Z with +Y up, so world-from-camera is flipped by diag(1, -1, -1). Device pixel
+centres sit at integer coordinates, so the image centre is ((W - 1) / 2, (H - 1) / 2). A Blender
+point light of power P has radiant intensity P / (4 pi) W/sr.
+"""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import bpy
+import numpy as np
+from mathutils import Matrix
+
+from ntp_engine.device import Device
+
+FLIP = np.diag([1.0, -1.0, -1.0, 1.0])
+
+
+def camera_object(name: str, cam: Device, camera_from_world: np.ndarray,
+                  collection: bpy.types.Collection | None = None) -> bpy.types.Object:
+    """A camera object with the device's pinhole intrinsics (distortion is not modelled) at a pose."""
+    data = bpy.data.cameras.new(name)
+    data.sensor_fit = "HORIZONTAL"
+    data.sensor_width = 36.0
+    W, H = cam.width, cam.height
+    fx, cx, cy = float(cam.K[0, 0]), float(cam.K[0, 2]), float(cam.K[1, 2])
+    data.lens = fx * data.sensor_width / W
+    data.shift_x = ((W - 1) / 2 - cx) / W
+    data.shift_y = (cy - (H - 1) / 2) / W
+    data.clip_start, data.clip_end = 0.005, 100.0
+    obj = bpy.data.objects.new(name, data)
+    obj.matrix_world = Matrix((np.linalg.inv(camera_from_world) @ FLIP).tolist())
+    (collection or bpy.context.scene.collection).objects.link(obj)
+    return obj
+
+
+def setup_cycles(scene: bpy.types.Scene, width: int, height: int, samples: int = 64) -> None:
+    """Direct light only, no denoising, black world, a ~1-sample-per-pixel-area pixel filter and a
+    linear view transform: Cycles then computes what the engine does (DESIGN.md)."""
+    scene.render.engine = "CYCLES"
+    scene.cycles.device = "CPU"
+    scene.cycles.samples = samples
+    scene.cycles.use_denoising = False
+    scene.cycles.max_bounces = 0
+    scene.cycles.pixel_filter_type = "GAUSSIAN"  # Cycles' box filter is always 1 px wide
+    scene.cycles.filter_width = 0.01
+    scene.render.resolution_x, scene.render.resolution_y = width, height
+    scene.render.resolution_percentage = 100
+    scene.render.film_transparent = False
+    scene.view_settings.view_transform = "Standard"
+    scene.world = None  # a new World carries a grey background; none is black
+
+
+def point_light(name: str, position: np.ndarray, power_w: float,
+                collection: bpy.types.Collection | None = None) -> bpy.types.Object:
+    data = bpy.data.lights.new(name, type="POINT")
+    data.energy = power_w
+    data.shadow_soft_size = 0.0
+    obj = bpy.data.objects.new(name, data)
+    obj.location = tuple(float(v) for v in position)
+    (collection or bpy.context.scene.collection).objects.link(obj)
+    return obj
+
+
+def render_exr(scene: bpy.types.Scene, path: Path) -> np.ndarray:
+    """Render the scene's camera to a float EXR; returns linear RGB ``(H, W, 3)`` (row 0 = top)."""
+    from ntp_engine.images import read_image
+
+    scene.render.image_settings.file_format = "OPEN_EXR"
+    scene.render.image_settings.color_depth = "32"
+    scene.render.filepath = str(path)
+    bpy.ops.render.render(write_still=True)
+    return read_image(path)[..., :3]
+
+
+def bounds(obj: bpy.types.Object) -> tuple[np.ndarray, float]:
+    """World-space bounding-box centre and radius of an object."""
+    corners = np.array([obj.matrix_world @ v.co for v in obj.data.vertices]) if len(obj.data.vertices) else np.zeros((1, 3))
+    lo, hi = corners.min(0), corners.max(0)
+    return 0.5 * (lo + hi), float(0.5 * np.linalg.norm(hi - lo))
+
+
+def _look_at(position: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """Camera-from-world (OpenCV axes) looking from ``position`` at ``target``, z up."""
+    f = (target - position) / np.linalg.norm(target - position)
+    right = np.cross(f, [0.0, 0.0, 1.0])
+    right /= max(np.linalg.norm(right), 1e-12)
+    down = np.cross(f, right)
+    R = np.stack([right, down, f])
+    m = np.eye(4)
+    m[:3, :3], m[:3, 3] = R, -R @ position
+    return m
+
+
+def relight_rig(obj: bpy.types.Object, width: int = 640, height: int = 512, samples: int = 64,
+                turntable_frames: int = 0) -> dict[str, bpy.types.Object]:
+    """A look-dev scene around ``obj``: Cycles, a camera, a three-point area-light rig (key, fill,
+    rim) in a collection ``NTP Relight``; optionally a turntable (the object turns 360 degrees about
+    world z over ``turntable_frames`` frames, linear). Existing rig objects are replaced."""
+    scene = bpy.context.scene
+    coll = bpy.data.collections.get("NTP Relight")
+    if coll is None:
+        coll = bpy.data.collections.new("NTP Relight")
+        scene.collection.children.link(coll)
+    for o in list(coll.objects):
+        bpy.data.objects.remove(o, do_unlink=True)
+    setup_cycles(scene, width, height, samples)
+    scene.cycles.max_bounces = 4
+    centre, radius = bounds(obj)
+    dist = max(radius, 1e-3) * 4.0
+    cam_pos = centre + dist * np.array([0.0, -0.82, 0.57])
+    fake = Device.load()
+    fake.width, fake.height = width, height
+    f = 0.5 * width / math.tan(math.radians(22))
+    fake.K = np.array([[f, 0, (width - 1) / 2], [0, f, (height - 1) / 2], [0, 0, 1]])
+    cam = camera_object("NTP Camera", fake, _look_at(cam_pos, centre), coll)
+    scene.camera = cam
+    rig = {"camera": cam}
+    for name, direction, share, size in (("Key", (-0.6, -0.6, 0.7), 1.0, 0.5), ("Fill", (0.8, -0.4, 0.3), 0.3, 1.0),
+                                         ("Rim", (0.2, 0.9, 0.6), 0.6, 0.4)):
+        d = np.array(direction) / np.linalg.norm(direction)
+        data = bpy.data.lights.new(f"NTP {name}", type="AREA")
+        # irradiance ~ P / (pi d^2) from a small area light: P = share * pi^2 d^2 puts a white
+        # Lambertian surface facing the key light near display white, at any object scale
+        data.energy = share * math.pi ** 2 * dist ** 2
+        data.size = size * dist
+        light = bpy.data.objects.new(f"NTP {name}", data)
+        pos = centre + dist * d
+        m = np.linalg.inv(_look_at(pos, centre)) @ FLIP  # area lights emit along -Z, like cameras look
+        light.matrix_world = Matrix(m.tolist())
+        coll.objects.link(light)
+        rig[name.lower()] = light
+    if turntable_frames > 0:
+        obj.animation_data_clear()
+        scene.frame_start, scene.frame_end = 1, turntable_frames
+        obj.rotation_euler = (0.0, 0.0, 0.0)
+        obj.keyframe_insert("rotation_euler", index=2, frame=1)
+        obj.rotation_euler[2] = 2 * math.pi * turntable_frames / (turntable_frames + 1)
+        obj.keyframe_insert("rotation_euler", index=2, frame=turntable_frames)
+        for fc in obj.animation_data.action.fcurves if hasattr(obj.animation_data.action, "fcurves") else []:
+            for k in fc.keyframe_points:
+                k.interpolation = "LINEAR"
+    return rig
