@@ -1,23 +1,25 @@
 """ntp Blender add-on: the thin Blender layer over ``ntp_engine`` (which never imports bpy).
 
-This first version adds the "NTP" sidebar tab in the 3D view with the scanner device in use.
+Sidebar tab "NTP" in the 3D view (``panel``), operators (``operators``), scene properties
+(``properties``), material building (``material`` over the bpy-free ``derive``), Cycles scene
+helpers (``scene``), headless export (``python -m ntp_addon.batch``).
 """
 from __future__ import annotations
 
 import bpy
 
-from . import panel
+from . import operators, panel, properties
 
-_CLASSES = (panel.NTP_PT_device,)
+_CLASSES = (*operators.CLASSES, *panel.CLASSES)
 
 
 def register() -> None:
+    properties.register()
     for cls in _CLASSES:
         bpy.utils.register_class(cls)
-    panel.register_properties()
 
 
 def unregister() -> None:
-    panel.unregister_properties()
     for cls in reversed(_CLASSES):
         bpy.utils.unregister_class(cls)
+    properties.unregister()

@@ -92,6 +92,10 @@ def _parser() -> argparse.ArgumentParser:
     bs.add_argument("--known-poses", action="store_true", help="skip SfM (true poses)")
     bs.add_argument("--plot", type=Path, default=Path("bench_scan.png"), help="PNG of run time against error")
     bs.add_argument("--json", type=Path, default=None)
+    bb = bsub.add_parser("blender", help="Cycles (both materials) vs the engine's render; preview seconds")
+    bb.add_argument("--views", type=int, default=3)
+    bb.add_argument("--samples", type=int, default=64)
+    bb.add_argument("--json", type=Path, default=None)
     ph = bsub.add_parser("physics", help="BRDF evaluations/s, lumitexels/s, measurements/s (f32 vs f64)")
     ph.add_argument("--json", type=Path, default=None)
     return p
@@ -182,6 +186,12 @@ def main(argv: list[str] | None = None) -> int:
                     except ValueError:
                         raise NtpInputError(None, f"--sizes {args.sizes!r}: expected PHOTOSxRES,...") from None
                 bench_scan.run(sizes, json_path=args.json, plot=args.plot, known_poses=args.known_poses)
+            if args.bench == "blender":  # in its own process: the engine never imports bpy
+                import subprocess
+
+                cmd = [sys.executable, "-m", "ntp_addon.bench", "--views", str(args.views), "--samples",
+                       str(args.samples)] + (["--json", str(args.json)] if args.json else [])
+                return subprocess.call(cmd)
             if args.bench == "physics":
                 from .bench import physics
 

@@ -49,17 +49,13 @@ def _pose_error(poses: dict[str, np.ndarray], truth: dict[str, np.ndarray]) -> d
             "rotation_median_deg": float(np.median(dr)), "rotation_max_deg": float(np.max(dr))}
 
 
-def reconstruct(scan: Scan, out: Path, resolution: int = 1024, model: str | None = None,
-                blur_margin: float = BLUR_MARGIN, progress: bool = True,
-                reference_poses: dict[str, np.ndarray] | None = None) -> dict:
-    """Run the pipeline on ``scan`` into ``out``; returns the report (also in ``out/report.json``).
-    ``reference_poses`` (e.g. a virtual scan's truth) only adds pose errors to the report."""
-    if resolution < 8:
-        raise NtpInputError(None, f"--resolution {resolution}: need at least 8")
-    out = Path(out)
-    cache = StageCache(out / "cache")
-    t_all = time.perf_counter()
-    report: dict = {"scan": str(scan.folder), "stages": {}}
+def register_scan(scan: Scan, out: Path, blur_margin: float = BLUR_MARGIN, progress: bool = True,
+                  reference_poses: dict[str, np.ndarray] | None = None,
+                  cache: StageCache | None = None) -> tuple[dict[str, np.ndarray], dict, str]:
+    """Stages 1-2 (photo selection, then the poses file or SfM + alignment), cached under
+    ``out/cache``. Returns (camera-from-world poses by photo name, report entries, poses key)."""
+    cache = cache or StageCache(Path(out) / "cache")
+    report: dict = {"stages": {}}
 
     def timed(name: str, t0: float) -> None:
         report["stages"][name] = round(time.perf_counter() - t0, 3)
@@ -110,6 +106,29 @@ def reconstruct(scan: Scan, out: Path, resolution: int = 1024, model: str | None
     report["registration"] = reg_info
     if not poses:
         raise NtpInputError(scan.photos_dir, "no selected photo has a pose")
+
+    return poses, report, h_pose
+
+
+def reconstruct(scan: Scan, out: Path, resolution: int = 1024, model: str | None = None,
+                blur_margin: float = BLUR_MARGIN, progress: bool = True,
+                reference_poses: dict[str, np.ndarray] | None = None) -> dict:
+    """Run the pipeline on ``scan`` into ``out``; returns the report (also in ``out/report.json``).
+    ``reference_poses`` (e.g. a virtual scan's truth) only adds pose errors to the report."""
+    if resolution < 8:
+        raise NtpInputError(None, f"--resolution {resolution}: need at least 8")
+    out = Path(out)
+    cache = StageCache(out / "cache")
+    t_all = time.perf_counter()
+    report: dict = {"scan": str(scan.folder), "stages": {}}
+
+    def timed(name: str, t0: float) -> None:
+        report["stages"][name] = round(time.perf_counter() - t0, 3)
+
+    poses, reg_report, h_pose = register_scan(scan, out, blur_margin, progress, reference_poses, cache)
+    report["stages"].update(reg_report.pop("stages"))
+    report.update(reg_report)
+    mesh_key = {"mesh": file_key(scan.mesh_path)}
 
     # 3. UV atlas + texels
     t0 = time.perf_counter()

@@ -1,0 +1,280 @@
+"""Operators of the NTP panel. Each reports errors in Blender's report area (one line naming the
+file) and leaves the file consistent: inputs are validated before any datablock is created.
+
+Reconstruct runs ``ntp reconstruct`` in a separate process (the engine's cache makes a cancelled run
+resumable): modal with a timer in the UI, progress parsed from its progress bars into the operator's
+progress, the status bar and ``scene.ntp``; ESC cancels. In background mode (no event loop) it waits
+for the process instead.
+"""
+from __future__ import annotations
+
+import json
+import re
+import subprocess
+import sys
+import threading
+from pathlib import Path
+
+import bpy
+import numpy as np
+
+from ntp_engine.errors import NtpInputError
+
+from . import material, scene as bscene
+
+
+def _settings(context):
+    return context.scene.ntp
+
+
+def _abs(path: str) -> Path:
+    return Path(bpy.path.abspath(path)) if path else Path()
+
+
+def _load_scan(context):
+    from ntp_engine.device import Device
+    from ntp_engine.scan import load_scan
+
+    s = _settings(context)
+    if not s.scan_folder:
+        raise NtpInputError(None, "set the scan folder first")
+    scan = load_scan(_abs(s.scan_folder))
+    if s.device:
+        scan.device = Device.load(_abs(s.device))
+    return scan
+
+
+def result_folder(context) -> Path:
+    s = _settings(context)
+    if s.result_folder:
+        return _abs(s.result_folder)
+    scan = _abs(s.scan_folder)
+    return scan.parent / f"{scan.name.rstrip('/') or 'scan'}_result"
+
+
+def _target_object(context):
+    obj = context.active_object
+    return obj if obj is not None and obj.type == "MESH" else None
+
+
+class NTP_OT_import_mesh(bpy.types.Operator):
+    """Import the scan's pre-scanned mesh (coordinates unchanged: z up, metres)"""
+
+    bl_idname = "ntp.import_mesh"
+    bl_label = "Import mesh"
+    bl_options = {"REGISTER", "UNDO"}
+
+    def execute(self, context):
+        try:
+            scan = _load_scan(context)
+        except NtpInputError as err:
+            self.report({"ERROR"}, str(err))
+            return {"CANCELLED"}
+        before = set(bpy.data.objects)
+        if scan.mesh_path.suffix.lower() == ".ply":
+            bpy.ops.wm.ply_import(filepath=str(scan.mesh_path), forward_axis="Y", up_axis="Z")
+        else:
+            bpy.ops.wm.obj_import(filepath=str(scan.mesh_path), forward_axis="Y", up_axis="Z")
+        new = [o for o in bpy.data.objects if o not in before and o.type == "MESH"]
+        if not new:
+            self.report({"ERROR"}, f"{scan.mesh_path}: no mesh could be imported")
+            return {"CANCELLED"}
+        for o in new:
+            o["ntp_scan"] = str(scan.folder)
+        context.view_layer.objects.active = new[0]
+        self.report({"INFO"}, f"imported {scan.mesh_path.name}")
+        return {"FINISHED"}
+
+
+class NTP_OT_register_photos(bpy.types.Operator):
+    """Camera poses for the scan's photos (its poses file, else structure-from-motion aligned to the
+    mesh), shown as camera objects with their photos as backgrounds"""
+
+    bl_idname = "ntp.register_photos"
+    bl_label = "Register photos"
+    bl_options = {"REGISTER", "UNDO"}
+
+    def execute(self, context):
+        from ntp_engine.pipeline import register_scan
+
+        try:
+            scan = _load_scan(context)
+            poses, report, _ = register_scan(scan, result_folder(context), progress=False)
+        except NtpInputError as err:
+            self.report({"ERROR"}, str(err))
+            return {"CANCELLED"}
+        coll = bpy.data.collections.get("NTP Cameras")
+        if coll is None:
+            coll = bpy.data.collections.new("NTP Cameras")
+            context.scene.collection.children.link(coll)
+        for o in list(coll.objects):
+            bpy.data.objects.remove(o, do_unlink=True)
+        for name in sorted(poses):
+            cam = bscene.camera_object(f"NTP {name}", scan.device, poses[name], coll)
+            img = bpy.data.images.load(str(scan.photos_dir / name), check_existing=True)
+            cam.data.show_background_images = True
+            cam.data.background_images.new().image = img
+            cam.data.display_size = 0.02
+        reg = report["registration"]
+        msg = f"{len(poses)} photos registered ({reg['source']})"
+        if "alignment" in reg:
+            msg += f", alignment residual {reg['alignment']['residual_m'] * 1e3:.2f} mm"
+        _settings(context).status = msg
+        self.report({"INFO"}, msg)
+        return {"FINISHED"}
+
+
+_PROGRESS = re.compile(r"([A-Za-z][A-Za-z +()]*?):\s+(\d+)%")
+
+
+class NTP_OT_reconstruct(bpy.types.Operator):
+    """Reconstruct texture maps from the scan in a background process (ESC cancels; a re-run resumes)"""
+
+    bl_idname = "ntp.reconstruct"
+    bl_label = "Reconstruct"
+
+    _proc = None
+    _timer = None
+    _reader = None
+
+    def _command(self, context) -> list[str]:
+        s = _settings(context)
+        cmd = [sys.executable, "-m", "ntp_engine.cli", "reconstruct", str(_abs(s.scan_folder)),
+               "--out", str(result_folder(context)), "--resolution", str(s.resolution)]
+        if s.model:
+            cmd += ["--model", s.model]
+        return cmd
+
+    def _start(self, context) -> bool:
+        try:
+            _load_scan(context)  # fail here, in the report area, rather than in the child
+        except NtpInputError as err:
+            self.report({"ERROR"}, str(err))
+            return False
+        self._lines: list[str] = []
+        self._stage = ""
+        self._proc = subprocess.Popen(self._command(context), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                      text=True, bufsize=1)
+
+        def read():  # tqdm redraws with \r: split on both
+            buf = ""
+            for ch in iter(lambda: self._proc.stderr.read(1), ""):
+                if ch in "\r\n":
+                    if buf.strip():
+                        self._lines.append(buf.strip())
+                    buf = ""
+                else:
+                    buf += ch
+
+        self._reader = threading.Thread(target=read, daemon=True)
+        self._reader.start()
+        return True
+
+    def _poll_progress(self, context) -> None:
+        for line in reversed(self._lines[-5:]):
+            m = _PROGRESS.search(line)
+            if m:
+                s = _settings(context)
+                s.status, s.progress = f"{m.group(1).strip()}: {m.group(2)}%", float(m.group(2))
+                break
+
+    def _finish(self, context) -> set[str]:
+        out, _ = self._proc.communicate()
+        self._reader.join(timeout=5)
+        s = _settings(context)
+        if self._proc.returncode != 0:
+            errors = [ln for ln in self._lines if "error" in ln.lower()] or self._lines[-1:] or ["failed"]
+            s.status = errors[-1]
+            self.report({"ERROR"}, errors[-1])
+            return {"CANCELLED"}
+        s.status, s.progress = out.strip().splitlines()[-1] if out.strip() else "done", 100.0
+        if not s.result_folder:
+            s.result_folder = str(result_folder(context))
+        self.report({"INFO"}, s.status)
+        return {"FINISHED"}
+
+    def execute(self, context):  # background mode: no event loop, wait for the child
+        if not self._start(context):
+            return {"CANCELLED"}
+        return self._finish(context)
+
+    def invoke(self, context, event):
+        if bpy.app.background:
+            return self.execute(context)
+        if not self._start(context):
+            return {"CANCELLED"}
+        wm = context.window_manager
+        self._timer = wm.event_timer_add(0.25, window=context.window)
+        wm.progress_begin(0, 100)
+        wm.modal_handler_add(self)
+        return {"RUNNING_MODAL"}
+
+    def modal(self, context, event):
+        wm = context.window_manager
+        if event.type == "ESC":
+            self._proc.terminate()
+            self._cleanup(context)
+            _settings(context).status = "cancelled (a re-run resumes from the last finished stage)"
+            self.report({"WARNING"}, _settings(context).status)
+            return {"CANCELLED"}
+        if event.type == "TIMER":
+            self._poll_progress(context)
+            wm.progress_update(int(_settings(context).progress))
+            context.workspace.status_text_set(f"NTP reconstruct — {_settings(context).status} (ESC to cancel)")
+            for area in context.screen.areas:
+                area.tag_redraw()
+            if self._proc.poll() is not None:
+                self._cleanup(context)
+                return self._finish(context)
+        return {"PASS_THROUGH"}
+
+    def _cleanup(self, context) -> None:
+        wm = context.window_manager
+        if self._timer is not None:
+            wm.event_timer_remove(self._timer)
+        wm.progress_end()
+        context.workspace.status_text_set(None)
+
+
+class NTP_OT_build_material(bpy.types.Operator):
+    """Build the NTP materials (accurate + Principled) from the result folder on the active mesh
+    (imports the result's mesh if none is selected)"""
+
+    bl_idname = "ntp.build_material"
+    bl_label = "Build material"
+    bl_options = {"REGISTER", "UNDO"}
+
+    def execute(self, context):
+        s = _settings(context)
+        folder = result_folder(context)
+        try:
+            material.read_result(folder)  # everything checked before anything is created
+            obj = _target_object(context) or material.import_result_mesh(folder)
+            p, a = material.build_materials(folder, obj, s.variant)
+        except NtpInputError as err:
+            self.report({"ERROR"}, str(err))
+            return {"CANCELLED"}
+        context.view_layer.objects.active = obj
+        self.report({"INFO"}, f"built {p.name} and {a.name} on {obj.name}")
+        return {"FINISHED"}
+
+
+class NTP_OT_relight_preview(bpy.types.Operator):
+    """A Cycles look-dev scene around the active object: camera, key/fill/rim lights, optional turntable"""
+
+    bl_idname = "ntp.relight_preview"
+    bl_label = "Relight preview"
+    bl_options = {"REGISTER", "UNDO"}
+
+    def execute(self, context):
+        obj = _target_object(context)
+        if obj is None:
+            self.report({"ERROR"}, "select the mesh to light first")
+            return {"CANCELLED"}
+        bscene.relight_rig(obj, turntable_frames=_settings(context).turntable_frames)
+        self.report({"INFO"}, "relight rig ready (render with F12)")
+        return {"FINISHED"}
+
+
+CLASSES = (NTP_OT_import_mesh, NTP_OT_register_photos, NTP_OT_reconstruct, NTP_OT_build_material,
+           NTP_OT_relight_preview)
