@@ -13,9 +13,11 @@ from pathlib import Path
 
 import bpy  # noqa: F401  (before torch)
 
+from ntp_engine.demo_asset import DEMO_DIR
+
 from . import compare, material, scene as bscene
 
-DEMO = Path(__file__).resolve().parent.parent / "assets" / "demo"
+DEMO = DEMO_DIR
 
 
 def run(views: int = 3, scale: float = 0.25, samples: int = 64, json_path: Path | None = None) -> dict:

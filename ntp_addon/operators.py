@@ -8,7 +8,7 @@ for the process instead.
 """
 from __future__ import annotations
 
-import json
+import os
 import re
 import subprocess
 import sys
@@ -153,8 +153,10 @@ class NTP_OT_reconstruct(bpy.types.Operator):
             return False
         self._lines: list[str] = []
         self._stage = ""
+        env = dict(os.environ)  # the child must see the packages Blender sees (extension wheels)
+        env["PYTHONPATH"] = os.pathsep.join(p for p in sys.path if p)
         self._proc = subprocess.Popen(self._command(context), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                                      text=True, bufsize=1)
+                                      text=True, bufsize=1, env=env)
 
         def read():  # tqdm redraws with \r: split on both
             buf = ""

@@ -22,6 +22,7 @@ def _parser() -> argparse.ArgumentParser:
     d.add_argument("--model", default=None, help="shipped model name or a model folder (default: compact)")
     d.add_argument("--known-poses", action="store_true", help="use the scan's true poses instead of SfM")
     d.add_argument("--quiet", action="store_true", help="no progress bars")
+    d.add_argument("--no-blend", action="store_true", help="skip the Blender export (.blend, .glb, preview)")
 
     rc = sub.add_parser("reconstruct", help="a scan folder to texture maps (resumes from OUT/cache)")
     rc.add_argument("scan", type=Path, help="scan folder (scan.toml, mesh, photos/)")
@@ -108,7 +109,7 @@ def main(argv: list[str] | None = None) -> int:
             from . import demo
 
             demo.run(args.out, views=args.views, scale=args.scale, resolution=args.resolution, seed=args.seed,
-                     known_poses=args.known_poses, model=args.model, progress=not args.quiet)
+                     known_poses=args.known_poses, model=args.model, progress=not args.quiet, blend=not args.no_blend)
         elif args.command == "reconstruct":
             from .pipeline import reconstruct
             from .scan import load_scan

@@ -4,7 +4,8 @@ Virtual-scans ``assets/demo`` (``DIR/scan/``, with ``ground_truth/``), reconstru
 shipped model through the whole pipeline, SfM included (``DIR/result/``), and prints the errors
 against the ground truth (``evaluate.py``): relit SSIM, normal median angle, diffuse RMSE, texel
 coverage, camera pose error. Everything goes to ``DIR/demo.json``; the relit comparisons (truth
-left, reconstruction right) to ``DIR/relit/``. Re-running resumes: the scan is kept when its
+left, reconstruction right) to ``DIR/relit/``; with bpy installed, the add-on's batch export writes
+``DIR/asset.blend``, ``DIR/asset.glb`` and a Cycles ``DIR/preview.png``. Re-running resumes: the scan is kept when its
 settings match, and the pipeline's stages are cached.
 """
 from __future__ import annotations
@@ -24,8 +25,25 @@ GOALS = {"relit_ssim": (">=", 0.97), "normal_median_deg": ("<=", 3.0), "diffuse_
          "coverage": (">=", 0.90), "seconds": ("<=", 300.0)}
 
 
+def _blender_export(result: Path, out: Path) -> dict:
+    """The .blend, .glb and a Cycles preview via the add-on's headless batch, in its own process
+    (the engine never imports bpy); skipped when bpy is not installed."""
+    import importlib.util
+    import subprocess
+    import sys
+
+    if importlib.util.find_spec("bpy") is None:
+        return {"skipped": "bpy not installed"}
+    files = {"blend": out / "asset.blend", "gltf": out / "asset.glb", "preview": out / "preview.png"}
+    r = subprocess.run([sys.executable, "-m", "ntp_addon.batch", str(result), "--blend", str(files["blend"]),
+                        "--gltf", str(files["gltf"]), "--preview", str(files["preview"])], capture_output=True, text=True)
+    if r.returncode != 0:
+        return {"error": (r.stderr.strip().splitlines() or ["ntp_addon.batch failed"])[-1]}
+    return {k: str(v) for k, v in files.items()}
+
+
 def run(out: Path, views: int = 60, scale: float = 0.25, resolution: int = 256, seed: int = 0,
-        known_poses: bool = False, model: str | None = None, progress: bool = True) -> dict:
+        known_poses: bool = False, model: str | None = None, progress: bool = True, blend: bool = True) -> dict:
     if views < 3 or not 0 < scale <= 1 or resolution < 8:
         raise NtpInputError(None, "need --views >= 3, 0 < --scale <= 1, --resolution >= 8")
     out = Path(out)
@@ -48,6 +66,10 @@ def run(out: Path, views: int = 60, scale: float = 0.25, resolution: int = 256, 
     gt = scan_dir / "ground_truth"
     errors = {**map_errors(result_dir, gt), **relit_ssim(result_dir, scan_dir / "mesh.obj", gt, save_dir=out / "relit")}
     t_eval = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    blender = _blender_export(result_dir, out) if blend else {"skipped": "--no-blend"}
+    t_blend = time.perf_counter() - t0
     metrics = {"relit_ssim": errors["relit_ssim"], "normal_median_deg": errors["normal_median_deg"],
                "diffuse_rmse": errors["diffuse_rmse"], "coverage": rep["texels"]["coverage"],
                "seconds": time.perf_counter() - t_all}
@@ -56,7 +78,8 @@ def run(out: Path, views: int = 60, scale: float = 0.25, resolution: int = 256, 
                "metrics": metrics, "errors": errors, "pose_error": rep["registration"].get("pose_error", {}),
                "alignment": rep["registration"].get("alignment"),
                "seconds": {"virtual_scan": round(t_scan, 2), "reconstruct": round(t_rec, 2),
-                           "evaluate": round(t_eval, 2), "stages": rep["stages"]}}
+                           "evaluate": round(t_eval, 2), "blender": round(t_blend, 2), "stages": rep["stages"]},
+               "blender": blender}
     write_text_atomic(out / "demo.json", json.dumps(summary, indent=2))
 
     print(f"\nntp demo: {views} photos at {scale:g} scale, {resolution}^2 maps -> {result_dir}")
@@ -69,4 +92,8 @@ def run(out: Path, views: int = 60, scale: float = 0.25, resolution: int = 256, 
         print(f"  pose error: centre median {pe['centre_median_m'] * 1e3:.2f} mm, "
               f"rotation median {pe['rotation_median_deg']:.3f} deg")
     print(f"  wrote {out / 'demo.json'}, relit comparisons in {out / 'relit'}")
+    if "blend" in blender:
+        print(f"  Blender: {blender['blend']}, {blender['gltf']}, {blender['preview']}")
+    else:
+        print(f"  Blender: {blender.get('skipped') or blender.get('error')}")
     return summary

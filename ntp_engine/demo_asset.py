@@ -27,11 +27,12 @@ from pathlib import Path
 
 import numpy as np
 
+from .device import ASSETS
 from .maps import SVBRDFMaps, texel_uv
 from .mesh import Mesh, save_obj, smooth_normals
 
 RADIUS, HEIGHT = 0.05, 0.075
-DEMO_DIR = Path(__file__).resolve().parent.parent / "assets" / "demo"
+DEMO_DIR = ASSETS / "demo"
 
 
 def _radius_factor(phi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

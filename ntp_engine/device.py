@@ -27,7 +27,9 @@ from .atomic import write_text_atomic
 from .errors import NtpInputError
 from .tomlio import read_toml
 
-ASSETS = Path(__file__).resolve().parent.parent / "assets"
+# the repository's assets/ (source checkout), else the copy a wheel build puts inside the package
+ASSETS = next((p for p in (Path(__file__).resolve().parent.parent / "assets", Path(__file__).resolve().parent / "assets")
+               if p.is_dir()), Path(__file__).resolve().parent.parent / "assets")
 DEVICES_DIR = ASSETS / "devices"
 DEFAULT_DEVICE = DEVICES_DIR / "ntp_led_32x16.toml"
 EMITTER_KINDS = ("point", "linear", "area")

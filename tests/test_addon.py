@@ -14,8 +14,9 @@ import bpy  # noqa: E402  (a pinned dependency: a missing bpy must fail, not ski
 
 import ntp_addon  # noqa: E402
 from ntp_addon import compare, derive, material  # noqa: E402
+from ntp_engine.demo_asset import DEMO_DIR  # noqa: E402
 
-DEMO = Path(__file__).resolve().parent.parent / "assets" / "demo"
+DEMO = DEMO_DIR
 
 
 @pytest.fixture(scope="module")

@@ -30,11 +30,12 @@ def test_demo_runs_end_to_end_and_reports_errors(tmp_path):
     assert 0 < m["relit_ssim"] <= 1 and 0 <= m["normal_median_deg"] < 20 and m["coverage"] > 0.5
     assert summary["pose_error"]["centre_max_m"] < 1e-9  # the true poses were used
     assert (d / "result" / "normal.exr").is_file() and (d / "scan" / "ground_truth" / "poses.json").is_file()
+    assert summary["blender"]["blend"].endswith("asset.blend") and (d / "asset.glb").is_file()  # bpy is installed
     relit = read_image(d / "relit" / "relit_0.png")
     assert relit.shape[1] > relit.shape[0] and np.isfinite(relit).all()  # truth | reconstruction
     # a second run reuses the scan and every cached stage
     again = ntp("demo", "--out", str(d), "--views", "8", "--scale", "0.1", "--resolution", "24", "--known-poses",
-                "--quiet")
+                "--quiet", "--no-blend")
     assert again.returncode == 0, again.stderr
     rep = json.loads((d / "result" / "report.json").read_text())
     assert rep["cached_stages"] == ["select", "atlas", "traces", "fit"]

@@ -20,7 +20,7 @@ def run(sizes: list[tuple[int, int]] | None = None, json_path: Path | None = Non
     with tempfile.TemporaryDirectory(prefix="ntp-bench-scan-") as tmp:
         for views, res in sizes:
             out = (work or Path(tmp)) / f"v{views}_r{res}"
-            s = demo.run(out, views=views, resolution=res, known_poses=known_poses, progress=False)
+            s = demo.run(out, views=views, resolution=res, known_poses=known_poses, progress=False, blend=False)
             st = s["seconds"]["stages"]
             r = {"photos": views, "resolution": res, **s["metrics"], "pose_error": s["pose_error"],
                  "seconds_virtual_scan": s["seconds"]["virtual_scan"], "seconds_reconstruct": s["seconds"]["reconstruct"],

@@ -1,0 +1,109 @@
+"""Build the installable Blender extension zip (linux-x64) with Blender's own packager.
+
+    python tools/build_extension.py [--out dist] [--no-dependency-wheels]
+
+Stages ``build/extension/ntp/``: the add-on modules at the root (Blender imports the extension as
+a package), ``blender_manifest.toml`` with a ``wheels`` list, and ``wheels/``: ``ntp_engine`` as a
+wheel carrying ``assets/`` (devices, models, the demo) inside the package, plus the engine's
+dependencies for CPython 3.11 on manylinux x86-64 — torch (the CPU build pip resolves here),
+scipy, pycolmap, xatlas, OpenImageIO, embreex, trimesh, scikit-image, pillow, tomli_w, tqdm and
+what they need. numpy is left out: Blender ships it. Then ``blender_ext.py validate`` and ``build``
+(from the bpy module's bundled ``bl_pkg``) check and zip it.
+
+Other platforms: run with ``--platform`` set to pip's tag for the target (``win_amd64``,
+``macosx_11_0_arm64``, ...) and the manifest's ``platforms`` to match (``windows-x64``,
+``macos-arm64``); torch's CPU wheels for Windows/macOS are on PyPI as the default build.
+"""
+from __future__ import annotations
+
+import argparse
+import shutil
+import subprocess
+import sys
+import tempfile
+import tomllib
+from pathlib import Path
+
+import tomli_w
+
+ROOT = Path(__file__).resolve().parent.parent
+EXCLUDE = {"numpy", "bpy", "matplotlib", "pytest", "hypothesis"}  # Blender ships numpy; the rest is dev-only
+PLATFORMS = ["manylinux_2_28_x86_64", "manylinux2014_x86_64"]  # torch's CPU wheel is 2_28
+
+
+def blender_ext() -> Path:
+    import bpy  # noqa: F401  (locates the bundled packager)
+
+    scripts = Path(bpy.__file__).resolve().parents[2]  # .../bpy/<version>/scripts/modules/bpy/__init__.py
+    found = sorted(scripts.glob("addons_core/bl_pkg/cli/blender_ext.py"))
+    if not found:
+        raise SystemExit("bpy's bl_pkg/cli/blender_ext.py not found")
+    return found[-1]
+
+
+def dependency_pins() -> list[str]:
+    pins = []
+    for line in (ROOT / "requirements.txt").read_text().splitlines():
+        line = line.split("#")[0].strip()
+        if line and line.split("==")[0].split(">")[0].lower() not in EXCLUDE:
+            pins.append(line)
+    return pins
+
+
+def engine_wheel(wheels: Path) -> Path:
+    with tempfile.TemporaryDirectory() as tmp:
+        src = Path(tmp)
+        shutil.copytree(ROOT / "ntp_engine", src / "ntp_engine", ignore=shutil.ignore_patterns("__pycache__"))
+        shutil.copytree(ROOT / "assets", src / "ntp_engine" / "assets")
+        project = tomllib.loads((ROOT / "pyproject.toml").read_text())
+        project["project"]["dependencies"] = []  # the extension's wheels list carries them
+        project["project"].pop("readme", None)
+        project["project"].pop("scripts", None)
+        project["tool"]["setuptools"] = {"packages": {"find": {"include": ["ntp_engine*"]}},
+                                         "package-data": {"ntp_engine": ["py.typed", "assets/**/*"]}}
+        (src / "pyproject.toml").write_text(tomli_w.dumps(project))
+        subprocess.run([sys.executable, "-m", "pip", "wheel", "-q", "--no-deps", "--no-build-isolation", "-w",
+                        str(wheels), str(src)], check=True)
+    return next(wheels.glob("ntp_engine-*.whl"))
+
+
+def build(out: Path, with_dependencies: bool = True, platforms: list[str] | None = None) -> Path:
+    stage = ROOT / "build" / "extension" / "ntp"
+    if stage.exists():
+        shutil.rmtree(stage)
+    wheels = stage / "wheels"
+    wheels.mkdir(parents=True)
+    for f in (ROOT / "ntp_addon").glob("*.py"):
+        shutil.copy(f, stage / f.name)
+    engine_wheel(wheels)
+    if with_dependencies:
+        tags = [a for p in (platforms or PLATFORMS) for a in ("--platform", p)]
+        subprocess.run([sys.executable, "-m", "pip", "download", "-q", "-d", str(wheels), "--only-binary=:all:",
+                        *tags, "--python-version", "3.11", "--implementation", "cp", *dependency_pins()], check=True)
+        for w in wheels.glob("*.whl"):
+            if w.name.split("-")[0].lower() in EXCLUDE:
+                w.unlink()
+    manifest = tomllib.loads((ROOT / "blender_manifest.toml").read_text())
+    manifest["wheels"] = [f"./wheels/{w.name}" for w in sorted(wheels.glob("*.whl"))]
+    (stage / "blender_manifest.toml").write_text(tomli_w.dumps(manifest))
+    tool = blender_ext()
+    subprocess.run([sys.executable, str(tool), "validate", str(stage)], check=True)
+    out.mkdir(parents=True, exist_ok=True)
+    subprocess.run([sys.executable, str(tool), "build", "--source-dir", str(stage), "--output-dir", str(out)],
+                   check=True)
+    return next(out.glob(f"{manifest['id']}-{manifest['version']}*.zip"))
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--out", type=Path, default=ROOT / "dist")
+    p.add_argument("--no-dependency-wheels", action="store_true",
+                   help="only the ntp_engine wheel (for tests; the add-on then needs the deps installed)")
+    p.add_argument("--platform", action="append", default=None, help="pip platform tag(s) of the target")
+    a = p.parse_args()
+    print(f"wrote {build(a.out, not a.no_dependency_wheels, a.platform)}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
