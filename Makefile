@@ -4,7 +4,7 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.ntp-installed
 
-.PHONY: demo test setup bench clean
+.PHONY: demo test setup bench extension clean
 
 $(STAMP): requirements.txt pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -28,5 +28,8 @@ bench: $(STAMP)
 	$(BIN)/ntp bench physics
 	$(BIN)/ntp bench stability
 
+extension: $(STAMP)
+	$(BIN)/python tools/build_extension.py --out dist
+
 clean:
-	rm -rf $(VENV) ntp_demo_out .pytest_cache .hypothesis
+	rm -rf $(VENV) ntp_demo_out .pytest_cache .hypothesis build dist

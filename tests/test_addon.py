@@ -13,6 +13,7 @@ import pytest
 import bpy  # noqa: E402  (a pinned dependency: a missing bpy must fail, not skip)
 
 import ntp_addon  # noqa: E402
+from conftest import make_virtual_scan  # noqa: E402
 from ntp_addon import compare, derive, material  # noqa: E402
 from ntp_engine.demo_asset import DEMO_DIR  # noqa: E402
 
@@ -31,10 +32,7 @@ def demo_result(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def posed_scan(tmp_path_factory):
-    out = tmp_path_factory.mktemp("posed") / "scan"
-    r = subprocess.run([sys.executable, "-m", "ntp_engine.cli", "virtual-scan", "--out", str(out), "--views", "6",
-                        "--scale", "0.1", "--seed", "4"], capture_output=True, text=True)
-    assert r.returncode == 0, r.stderr
+    out = make_virtual_scan(tmp_path_factory.mktemp("posed") / "scan", 6, 0.1, 4)
     with open(out / "scan.toml", "a") as f:
         f.write('poses = "ground_truth/poses.json"\n')
     return out

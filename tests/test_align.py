@@ -2,9 +2,8 @@
 import numpy as np
 import pytest
 
-from ntp_engine.align import align_to_mesh, convergence_point, ransac_plane, weighted_similarity
+from ntp_engine.align import _surface_samples, align_to_mesh, convergence_point, ransac_plane, weighted_similarity
 from ntp_engine.demo_asset import dome_mesh
-from ntp_engine.align import _surface_samples
 
 
 def _random_similarity(rng):
@@ -15,6 +14,17 @@ def _random_similarity(rng):
                   [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
                   [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
     return float(rng.uniform(5, 20)), R, rng.normal(size=3)
+
+
+def _look_at(c, target, up=(0.0, 0.0, 1.0)):
+    """Camera-from-world (OpenCV axes) at ``c`` looking at ``target``."""
+    z = (target - c) / np.linalg.norm(target - c)
+    x = np.cross(up, z)
+    x /= np.linalg.norm(x)
+    R = np.stack([x, np.cross(z, x), z])
+    m = np.eye(4)
+    m[:3, :3], m[:3, 3] = R, -R @ c
+    return m
 
 
 def test_weighted_similarity_recovers_a_known_transform():
@@ -36,15 +46,7 @@ def test_ransac_plane_ignores_outliers_and_convergence_point():
     n, d, inl = ransac_plane(pts, 1e-3)
     assert abs(abs(n[2]) - 1) < 1e-5 and abs(abs(d) - 0.3) < 1e-4 and inl[:400].mean() > 0.99
     target = np.array([0.1, -0.2, 0.05])
-    poses = []
-    for c in rng.normal(size=(6, 3)) + [0, 0, 3]:
-        z = (target - c) / np.linalg.norm(target - c)
-        x = np.cross([0.3, 1, 0.1], z)
-        x /= np.linalg.norm(x)
-        R = np.stack([x, np.cross(z, x), z])
-        m = np.eye(4)
-        m[:3, :3], m[:3, 3] = R, -R @ c
-        poses.append(m)
+    poses = [_look_at(c, target, up=[0.3, 1, 0.1]) for c in rng.normal(size=(6, 3)) + [0, 0, 3]]
     assert np.abs(convergence_point(poses) - target).max() < 1e-9
 
 
@@ -61,16 +63,8 @@ def test_align_recovers_a_similarity_from_support_and_few_object_points():
     world = np.concatenate([obj, support, clutter])
     # cameras on a ring 0.31 m from the object centre, looking at it
     centre = np.array([0.0, 0.0, 0.035])
-    poses_w = []
-    for a in np.linspace(0, 2 * np.pi, 12, endpoint=False):
-        c = centre + 0.31 * np.array([np.cos(a) * 0.7, np.sin(a) * 0.7, 0.71])
-        z = (centre - c) / np.linalg.norm(centre - c)
-        x = np.cross([0, 0, 1], z)
-        x /= np.linalg.norm(x)
-        R = np.stack([x, np.cross(z, x), z])
-        m = np.eye(4)
-        m[:3, :3], m[:3, 3] = R, -R @ c
-        poses_w.append(m)
+    poses_w = [_look_at(centre + 0.31 * np.array([np.cos(a) * 0.7, np.sin(a) * 0.7, 0.71]), centre)
+               for a in np.linspace(0, 2 * np.pi, 12, endpoint=False)]
     s, R, t = _random_similarity(rng)  # SfM frame = an unknown similarity of the world
     sfm_pts = s * world @ R.T + t
     sfm_poses = []

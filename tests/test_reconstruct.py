@@ -1,11 +1,10 @@
 """Reconstruction from a virtual scan with its true poses (the pipeline's core path)."""
 import json
-import subprocess
-import sys
 
 import numpy as np
 import pytest
 
+from conftest import make_virtual_scan
 from ntp_engine.errors import NtpInputError
 from ntp_engine.maps import SVBRDFMaps, texel_uv
 from ntp_engine.reconstruct import reconstruct_with_poses
@@ -14,11 +13,7 @@ from ntp_engine.scan import load_scan
 
 @pytest.fixture(scope="module")
 def small_scan(tmp_path_factory):
-    out = tmp_path_factory.mktemp("scan")
-    r = subprocess.run([sys.executable, "-m", "ntp_engine.cli", "virtual-scan", "--out", str(out), "--views", "12",
-                        "--scale", "0.1", "--seed", "3"], capture_output=True, text=True)
-    assert r.returncode == 0, r.stderr
-    return out
+    return make_virtual_scan(tmp_path_factory.mktemp("scan"), 12, 0.1, 3)
 
 
 def test_maps_from_given_poses(small_scan, tmp_path):
