@@ -78,6 +78,29 @@ def validate(model: TraceNet, device_cal: Device, tcfg: TrainConfig, scfg: Synth
     return {"val_loss": sums[0], "val_diffuse": sums[1], "val_specular": sums[2], "val_valid_views": valid_frac / n}
 
 
+def _match_optimizer_order(state: dict, opt: torch.optim.Optimizer) -> dict:
+    """The checkpoint's optimiser state re-indexed to ``opt``'s parameter order. Checkpoints from
+    before ``--pattern-lr`` list the lighting layer first (module order), newer ones last; Adam's
+    state is by position, so each current parameter takes the first unused state of its shape."""
+    current = [p for g in opt.param_groups for p in g["params"]]
+    old_ids = [i for g in state["param_groups"] for i in g["params"]]
+    shapes = {i: tuple(state["state"][i]["exp_avg"].shape) for i in old_ids if i in state["state"]}
+    if [shapes.get(i) for i in old_ids] == [tuple(p.shape) for p in current] or len(old_ids) != len(current):
+        return state
+    unused, new_state = list(old_ids), {}
+    for k, p in enumerate(current):
+        j = next((i for i in unused if shapes.get(i) == tuple(p.shape)), None)
+        if j is None:
+            return state  # cannot match: let load_state_dict report it
+        unused.remove(j)
+        new_state[k] = state["state"][j]
+    groups, k = [], 0
+    for g in state["param_groups"]:
+        groups.append({**g, "params": list(range(k, k + len(g["params"])))})
+        k += len(g["params"])
+    return {"state": new_state, "param_groups": groups}
+
+
 def train(out: Path, ncfg: NetworkConfig, tcfg: TrainConfig, device_path: Path | None = None,
           resume: bool = False, progress: bool = True) -> dict:
     out.mkdir(parents=True, exist_ok=True)
@@ -103,7 +126,7 @@ def train(out: Path, ncfg: NetworkConfig, tcfg: TrainConfig, device_path: Path |
         if len(ck["optimizer"]["param_groups"]) != len(opt.param_groups):
             raise SystemExit(f"{ckpt_path}: the checkpoint's optimiser has {len(ck['optimizer']['param_groups'])} "
                              "parameter group(s); resume with the same --pattern-lr setting")
-        opt.load_state_dict(ck["optimizer"])
+        opt.load_state_dict(_match_optimizer_order(ck["optimizer"], opt))
         step, elapsed = ck["step"], ck.get("elapsed_s", 0.0)
         tcfg.seed = ck["train"]["seed"]
         print(f"resuming {ckpt_path} at step {step}")

@@ -123,3 +123,18 @@ def test_pattern_learning_rate_is_its_own_parameter_group(tmp_path):
         raise AssertionError("expected SystemExit")
     except SystemExit as err:
         assert "--pattern-lr" in str(err)
+
+
+def test_resume_matches_optimizer_state_saved_in_another_parameter_order():
+    from ntp_engine.train import _match_optimizer_order
+
+    torch.manual_seed(0)
+    a, b = torch.nn.Parameter(torch.randn(4, 3)), torch.nn.Parameter(torch.randn(7))
+    c = torch.nn.Parameter(torch.randn(4, 3))
+    old = torch.optim.Adam([b, a, c], lr=1e-2)  # the pattern-like (7,) tensor first
+    (a.sum() * 2 + b.sum() * 3 + c.sum() * 5).backward()
+    old.step()
+    new = torch.optim.Adam([a, c, b], lr=1e-2)  # ... and last
+    new.load_state_dict(_match_optimizer_order(old.state_dict(), new))
+    for p in (a, b, c):
+        assert torch.equal(new.state[p]["exp_avg"], old.state[p]["exp_avg"])
