@@ -86,7 +86,7 @@ def register_scan(scan: Scan, out: Path, blur_margin: float = BLUR_MARGIN, progr
             names = sorted(reg.poses)
             try:
                 al = align_to_mesh(reg.points, [reg.poses[n] for n in names], load_mesh(scan.mesh_path),
-                                   float(np.linalg.norm(scan.device.valid_center)))
+                                   float(np.linalg.norm(scan.device.valid_center)), support_plane=scan.support_plane)
             except ValueError as err:
                 raise NtpInputError(scan.mesh_path, f"cannot align the SfM points to this mesh: {err}") from None
             (d / "poses.json").write_text(json.dumps({n: al.camera_from_mesh(reg.poses[n]).tolist() for n in names}))
@@ -149,13 +149,14 @@ def reconstruct(scan: Scan, out: Path, resolution: int = 1024, model: str | None
     def traces_stage(d: Path) -> None:
         photos = (read_photo(scan.photos_dir / n, scan.device).astype(np.uint8) for n in names)
         tr, st = assemble(texels, photos, [poses[n] for n in names], scan.device, RayCaster([mesh.triangles]),
-                          progress=progress)
+                          progress=progress, support_z=float(mesh.vertices[:, 2].min()) if scan.support_plane else None)
         np.savez(d / "traces.npz", entries=tr.entries.numpy(), offsets=tr.offsets.numpy())
         (d / "stats.json").write_text(json.dumps({"entries": st.entries, "views_used": st.views_used,
                                                   "views_seeing_no_texel": len(names) - st.views_used,
                                                   "rejected": st.rejected}))
 
-    folder, h_tr = cache.get("traces", {"atlas": h_atlas, "poses": h_pose}, traces_stage)
+    folder, h_tr = cache.get("traces", {"atlas": h_atlas, "poses": h_pose, "support": scan.support_plane,
+                                        "device": scan.device.to_dict()}, traces_stage)
     net, meta = models.load(model, scan.device)
     scale = model_exposure(net) / float(scan.device.exposure(scan.device.pattern))
     with np.load(folder / "traces.npz") as z:

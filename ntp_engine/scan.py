@@ -1,5 +1,8 @@
 """Scan folders (DESIGN.md): ``scan.toml`` naming the mesh, the photos folder, the device file and,
-optionally, a poses file (camera-from-world 4x4 per photo name; SfM is skipped with it).
+optionally, a poses file (camera-from-world 4x4 per photo name; SfM is skipped with it) and
+``support_plane = false`` when the object does not stand on a flat support at the mesh's lowest z
+(default true: SfM alignment uses the support, and photos whose LEDs the support shadows are
+skipped).
 
 Every problem is a one-line ``NtpInputError`` naming the file; photos that cannot be read are not
 errors but are listed (``Scan.unreadable``). Nothing in the scan folder is ever written.
@@ -28,6 +31,7 @@ class Scan:
     photo_paths: list[Path]
     poses: dict[str, np.ndarray] | None = None
     unreadable: list[str] = field(default_factory=list)
+    support_plane: bool = True  # the object stands on a flat support at the mesh's lowest z
 
 
 def _path(folder: Path, table: dict, key: str, toml: Path, required: bool = True) -> Path | None:
@@ -80,7 +84,11 @@ def load_scan(folder: str | Path, poses_file: str | Path | None = None) -> Scan:
     paths = sorted(p for p in photos.iterdir() if p.suffix.lower() in PHOTO_SUFFIXES)
     if not paths:
         raise NtpInputError(photos, "no PNG/JPEG photos")
-    return Scan(folder, mesh, photos, device, paths, load_poses(pose_path) if pose_path else None)
+    support = table.get("support_plane", True)
+    if not isinstance(support, bool):
+        raise NtpInputError(toml, f"key 'support_plane': expected true or false, got {support!r}")
+    return Scan(folder, mesh, photos, device, paths, load_poses(pose_path) if pose_path else None,
+                support_plane=support)
 
 
 def read_photo(path: Path, device: Device) -> np.ndarray | None:

@@ -23,6 +23,7 @@ from .raycast import RayCaster
 from .texels import Texels
 
 VALID_CODE = (32.0, 224.0)
+MAX_SHADOWED_DRIVE = 0.005  # fraction of the pattern's drive the support may block in a used photo
 MIN_COS_VIEW = 0.3
 
 
@@ -36,15 +37,29 @@ class TraceStats:
 
 def assemble(texels: Texels, photos: list[np.ndarray], poses: list[np.ndarray], camera: Device,
              caster: RayCaster, pixel_scale: float = 1.0, eps: float = 2e-5,
-             progress: bool = False) -> tuple[RaggedTraces, TraceStats]:
+             progress: bool = False, support_z: float | None = None) -> tuple[RaggedTraces, TraceStats]:
     """Traces of all texels. ``photos``: 8-bit ``(H, W, 3)`` arrays (any iterable: they are read
-    one at a time); ``poses``: 4x4 camera-from-world, one per photo."""
+    one at a time); ``poses``: 4x4 camera-from-world, one per photo. ``support_z``: the object
+    stands on a plane z = support_z; a photo in which emitters carrying more than
+    ``MAX_SHADOWED_DRIVE`` of the pattern's drive are below that plane is skipped — the support
+    blocks their light for every point of the object, which Eq. 1 (and the network) do not model."""
     n_tex = len(texels)
     keys, rows = [], []
-    rejected = {"behind_or_outside": 0, "valid_volume": 0, "occluded": 0, "grazing": 0, "pixel_range": 0}
+    rejected = {"behind_or_outside": 0, "valid_volume": 0, "occluded": 0, "grazing": 0, "pixel_range": 0,
+                "support_shadow_views": 0}
     views_used = 0
+    if support_z is not None:
+        pts, w = camera.emitter_samples(torch.float64)
+        drive = (w.numpy() * np.asarray(camera.effective_pattern()).sum(1)[:, None])  # (L, Q)
+        drive = drive / max(drive.sum(), 1e-300)
+        pts = pts.numpy()
     for img, pose in tqdm(zip(photos, poses), total=len(poses), desc="traces", unit="photo", disable=not progress):
         R, t = pose[:3, :3], pose[:3, 3]
+        if support_z is not None:
+            below = ((pts - t) @ R)[..., 2] < support_z  # emitter samples in world, R^T (p - t)
+            if drive[below].sum() > MAX_SHADOWED_DRIVE:
+                rejected["support_shadow_views"] += 1
+                continue
         x = texels.position @ R.T + t
         n_hat = texels.normal @ R.T
         cam_w = -R.T @ t

@@ -3,6 +3,7 @@ import torch
 
 from ntp_engine.device import Device
 from ntp_engine.measurement import measurement_rgb
+from ntp_engine.raycast import RayCaster
 from ntp_engine.texels import rasterize
 from ntp_engine.trace import MIN_COS_VIEW, assemble
 from ntp_engine.virtual_scan import ScanConfig, Scene, load_asset, scaled_device, trajectory
@@ -40,3 +41,28 @@ def test_traces_from_a_virtual_scan_match_the_renderer_and_respect_the_filters()
     ref *= dev.exposure(dev.pattern)
     rel = np.abs(e[:, :3] - ref).max(1) / ref.max(1)
     assert np.median(rel) < 0.03
+
+
+def test_photos_whose_leds_the_support_shadows_are_skipped():
+    mesh, _, _ = load_asset(None, None, None)
+    cam = scaled_device(Device.load(), 0.05)
+    tx = rasterize(mesh, (16, 16))
+
+    def look_at(c, target):
+        z = (target - c) / np.linalg.norm(target - c)
+        x = np.cross(z, [0.0, 0.0, 1.0]) if abs(z[2]) < 0.99 else np.array([1.0, 0, 0])  # y down
+        x /= np.linalg.norm(x)
+        m = np.eye(4)
+        m[:3, :3] = np.stack([x, np.cross(z, x), z])
+        m[:3, 3] = -m[:3, :3] @ c
+        return m
+
+    target = np.array([0.0, 0.0, 0.03])
+    above = look_at(target + [0.0, -0.15, 0.27], target)  # the panel is well above the table
+    level = look_at(np.array([0.31, 0.0, 0.01]), np.array([0.0, 0.0, 0.01]))  # half the panel below it
+    photos = [np.full((cam.height, cam.width, 3), 100.0)] * 2
+    caster = RayCaster([mesh.triangles])
+    _, st = assemble(tx, photos, [above, level], cam, caster, support_z=0.0)
+    assert st.rejected["support_shadow_views"] == 1 and st.views_used == 1
+    _, st = assemble(tx, photos, [above, level], cam, caster)  # no support declared: both used
+    assert st.rejected["support_shadow_views"] == 0 and st.views_used == 2
