@@ -143,6 +143,8 @@ class NTP_OT_reconstruct(bpy.types.Operator):
                "--out", str(result_folder(context)), "--resolution", str(s.resolution)]
         if s.model:
             cmd += ["--model", s.model]
+        if s.device:
+            cmd += ["--device", str(_abs(s.device))]
         return cmd
 
     def _start(self, context) -> bool:

@@ -30,6 +30,7 @@ def _parser() -> argparse.ArgumentParser:
     rc.add_argument("--resolution", type=int, default=1024, help="texture maps are RESOLUTION^2")
     rc.add_argument("--model", default=None, help="shipped model name or a model folder (default: compact)")
     rc.add_argument("--poses", type=Path, default=None, help="poses JSON (camera-from-world per photo); skips SfM")
+    rc.add_argument("--device", type=Path, default=None, help="device TOML instead of the one scan.toml names")
     rc.add_argument("--blur-margin", type=float, default=0.08,
                     help="drop photos whose blur score exceeds the scan's median by this much")
     rc.add_argument("--quiet", action="store_true", help="no progress bars")
@@ -114,7 +115,12 @@ def main(argv: list[str] | None = None) -> int:
             from .pipeline import reconstruct
             from .scan import load_scan
 
-            rep = reconstruct(load_scan(args.scan, args.poses), args.out, resolution=args.resolution,
+            scan = load_scan(args.scan, args.poses)
+            if args.device:
+                from .device import Device
+
+                scan.device = Device.load(args.device)
+            rep = reconstruct(scan, args.out, resolution=args.resolution,
                               model=args.model, blur_margin=args.blur_margin, progress=not args.quiet)
             reg = rep["registration"]
             extra = f", alignment residual {reg['alignment']['residual_m'] * 1e3:.2f} mm" if "alignment" in reg else ""

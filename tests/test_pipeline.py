@@ -116,3 +116,22 @@ def test_stage_cache_keys_and_failures(tmp_path):
         cache.get("s", {"k": 3}, fail)
     assert (tmp_path / "s" / "x.txt").is_file() and not list(tmp_path.glob(".s.*"))  # old result intact
     assert json.loads((tmp_path / "s" / "key.json").read_text())["key"] == {"k": 2}
+
+
+def test_mesh_without_uvs_gets_an_xatlas_atlas(scan24, tmp_path):
+    from ntp_engine.mesh import Mesh, load_mesh, save_obj
+    from ntp_engine.reconstruct import uv_atlas
+    from ntp_engine.texels import rasterize
+
+    mesh = load_mesh(scan24 / "mesh.obj")
+    bare = Mesh(mesh.vertices, mesh.faces, None, mesh.normals)
+    atlas = uv_atlas(bare, 64)
+    assert atlas.uv is not None and atlas.uv.min() >= 0 and atlas.uv.max() <= 1
+    assert abs(atlas.area() - mesh.area()) < 1e-9 * mesh.area()  # same surface, split at seams
+    assert len(rasterize(atlas, (64, 64))) > 0.4 * 64 * 64  # texels_per_unit fills the map
+    scan = tmp_path / "scan"
+    shutil.copytree(scan24, scan)
+    save_obj(scan / "mesh.obj", bare)
+    rep = reconstruct(load_scan(scan, scan / "ground_truth" / "poses.json"), tmp_path / "rec", resolution=32,
+                      progress=False)
+    assert rep["texels"]["coverage"] > 0.8 and load_mesh(tmp_path / "rec" / "mesh.obj").uv is not None
