@@ -62,3 +62,18 @@ def test_build_makes_a_valid_installable_zip(tmp_path):
             inner = set(w.namelist())
     assert "ntp_engine/assets/devices/ntp_led_32x16.toml" in inner and "ntp_engine/cli.py" in inner
     assert any(n.startswith("ntp_engine/assets/models/compact/") for n in inner)
+
+
+def test_engine_wheel_installs_and_finds_its_assets(tmp_path):
+    wheel = build_extension.engine_wheel(tmp_path)
+    target = tmp_path / "site"
+    r = subprocess.run([sys.executable, "-m", "pip", "install", "-q", "--no-deps", "--target", str(target), str(wheel)],
+                       capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    probe = ("import ntp_engine.device as d, ntp_engine.models as m; "
+             "print(d.ASSETS); print(d.Device.load().name); print(m.resolve(None))")
+    out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, cwd=tmp_path,
+                         env={"PYTHONPATH": str(target), "PATH": "/usr/bin:/bin"})
+    assert out.returncode == 0, out.stderr
+    assets, name, model = out.stdout.split()
+    assert assets.startswith(str(target)) and name == "ntp-led-32x16" and model.startswith(str(target))

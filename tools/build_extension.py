@@ -17,11 +17,13 @@ Other platforms: run with ``--platform`` set to pip's tag for the target (``win_
 from __future__ import annotations
 
 import argparse
+import base64
+import hashlib
 import shutil
 import subprocess
 import sys
-import tempfile
 import tomllib
+import zipfile
 from pathlib import Path
 
 import tomli_w
@@ -51,20 +53,35 @@ def dependency_pins() -> list[str]:
 
 
 def engine_wheel(wheels: Path) -> Path:
-    with tempfile.TemporaryDirectory() as tmp:
-        src = Path(tmp)
-        shutil.copytree(ROOT / "ntp_engine", src / "ntp_engine", ignore=shutil.ignore_patterns("__pycache__"))
-        shutil.copytree(ROOT / "assets", src / "ntp_engine" / "assets")
-        project = tomllib.loads((ROOT / "pyproject.toml").read_text())
-        project["project"]["dependencies"] = []  # the extension's wheels list carries them
-        project["project"].pop("readme", None)
-        project["project"].pop("scripts", None)
-        project["tool"]["setuptools"] = {"packages": {"find": {"include": ["ntp_engine*"]}},
-                                         "package-data": {"ntp_engine": ["py.typed", "assets/**/*"]}}
-        (src / "pyproject.toml").write_text(tomli_w.dumps(project))
-        subprocess.run([sys.executable, "-m", "pip", "wheel", "-q", "--no-deps", "--no-build-isolation", "-w",
-                        str(wheels), str(src)], check=True)
-    return next(wheels.glob("ntp_engine-*.whl"))
+    """``ntp_engine`` with ``assets/`` inside the package as a pure-Python wheel, written directly
+    (a wheel is a zip with a ``.dist-info``; no build backend needed, so this works offline)."""
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+    name, version = "ntp_engine", project["version"]
+    files: list[tuple[str, Path]] = []
+    for base, prefix in ((ROOT / "ntp_engine", "ntp_engine"), (ROOT / "assets", "ntp_engine/assets")):
+        for f in sorted(base.rglob("*")):
+            if f.is_file() and "__pycache__" not in f.parts and f.suffix != ".pyc":
+                files.append((f"{prefix}/{f.relative_to(base).as_posix()}", f))
+    dist = f"{name}-{version}.dist-info"
+    meta = {f"{dist}/METADATA": f"Metadata-Version: 2.1\nName: ntp-engine\nVersion: {version}\n"
+                                 f"Summary: {project['description']}\nRequires-Python: {project['requires-python']}\n",
+            f"{dist}/WHEEL": "Wheel-Version: 1.0\nGenerator: ntp tools/build_extension.py\nRoot-Is-Purelib: true\n"
+                              "Tag: py3-none-any\n"}
+    target = wheels / f"{name}-{version}-py3-none-any.whl"
+    record = []
+
+    def entry(data: bytes, arc: str) -> None:
+        digest = base64.urlsafe_b64encode(hashlib.sha256(data).digest()).rstrip(b"=").decode()
+        record.append(f"{arc},sha256={digest},{len(data)}")
+        z.writestr(arc, data)
+
+    with zipfile.ZipFile(target, "w", zipfile.ZIP_DEFLATED) as z:
+        for arc, f in files:
+            entry(f.read_bytes(), arc)
+        for arc, text in meta.items():
+            entry(text.encode(), arc)
+        z.writestr(f"{dist}/RECORD", "\n".join(record + [f"{dist}/RECORD,,"]) + "\n")
+    return target
 
 
 def build(out: Path, with_dependencies: bool = True, platforms: list[str] | None = None) -> Path:
