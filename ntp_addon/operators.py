@@ -124,7 +124,16 @@ class NTP_OT_register_photos(bpy.types.Operator):
         return {"FINISHED"}
 
 
-_PROGRESS = re.compile(r"([A-Za-z][A-Za-z +()]*?):\s+(\d+)%")
+_PROGRESS = re.compile(r"([A-Za-z][A-Za-z +(),]*?):\s+(\d+)%")
+
+
+def parse_progress(lines: list[str]) -> tuple[str, float] | None:
+    """(stage, percent) of the newest tqdm line among ``lines`` (``'traces:  45%|####  | 9/20 ...'``)."""
+    for line in reversed(lines):
+        m = _PROGRESS.search(line)
+        if m:
+            return m.group(1).strip(), float(m.group(2))
+    return None
 
 
 class NTP_OT_reconstruct(bpy.types.Operator):
@@ -175,12 +184,10 @@ class NTP_OT_reconstruct(bpy.types.Operator):
         return True
 
     def _poll_progress(self, context) -> None:
-        for line in reversed(self._lines[-5:]):
-            m = _PROGRESS.search(line)
-            if m:
-                s = _settings(context)
-                s.status, s.progress = f"{m.group(1).strip()}: {m.group(2)}%", float(m.group(2))
-                break
+        found = parse_progress(self._lines[-5:])
+        if found:
+            s = _settings(context)
+            s.status, s.progress = f"{found[0]}: {found[1]:.0f}%", found[1]
 
     def _finish(self, context) -> set[str]:
         out, _ = self._proc.communicate()

@@ -187,3 +187,14 @@ def test_cycles_render_agrees_with_the_engine(demo_result):
     print("SSIM accurate %.4f principled %.4f" % (r["accurate"]["ssim"], r["principled"]["ssim"]))
     assert r["accurate"]["ssim"] > 0.95 and r["accurate"]["psnr_db"] > 28
     assert r["principled"]["ssim"] > 0.75
+
+
+def test_reconstruct_progress_is_read_from_the_engines_progress_bars():
+    from ntp_addon.operators import parse_progress
+
+    lines = ["resuming", "blur check:  40%|####      | 8/20 [00:01<00:02, 7.1photo/s]",
+             "SfM (features, matching, mapping):  67%|######6   | 2/3 [00:09<00:04, 4.6s/stage]",
+             "network + fit:  13%|#3        | 8738/65518 [00:11<01:16, 737.68texel/s]", "wrote out"]
+    assert parse_progress(lines) == ("network + fit", 13.0)
+    assert parse_progress(lines[:3]) == ("SfM (features, matching, mapping)", 67.0)
+    assert parse_progress(["nothing here"]) is None
