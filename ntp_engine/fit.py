@@ -417,3 +417,45 @@ def fit_albedo(device, pattern: Tensor | None, pixels: Tensor, position: Tensor,
     rd, rs = bounded_ls2(basis_d.transpose(1, 2).double(), basis_s.transpose(1, 2).double(), y.transpose(1, 2),
                          w.transpose(1, 2), RHO_D_MAX, RHO_S_MAX)
     return rd.to(dtype), rs.to(dtype)
+
+
+def highlights_and_albedo(device, pixels: Tensor, position: Tensor, normal_geo: Tensor, tangent_geo: Tensor,
+                          mask: Tensor, geometry: GeometryFit) -> tuple[Tensor, Tensor, Tensor]:
+    """``flag_unseen_highlights`` then ``fit_albedo`` (device pattern, no visibility) in one pass:
+    the emitter geometry and the fitted lobe of every entry are computed once and serve both Eq. 6
+    and Eq. 1; only texels that fall back to the default lobe get their lobe evaluated again.
+    Same arguments and results as the two (``geometry`` updated in place); returns
+    (beta ``(N,)``, rho_d, rho_s ``(N, 3)``)."""
+    from .measurement import local_emitter_geometry, ratios_from_lobe, specular_lobe, terms_from_lobe
+
+    dtype = pixels.dtype
+    N, V = mask.shape
+    n_cam, t_cam = _to_views(geometry, normal_geo, tangent_geo)
+    x = torch.where(mask[..., None], position, torch.tensor([0.0, 0.0, 0.3], dtype=dtype))
+    geo = local_emitter_geometry(device, x.reshape(-1, 3), n_cam.reshape(-1, 3), t_cam.reshape(-1, 3))
+    per_entry = lambda a: a.to(dtype)[:, None].expand(N, V).reshape(-1)
+    ax, ay = per_entry(geometry.alpha_x), per_entry(geometry.alpha_y)
+    spec = specular_lobe(geo, ax, ay)  # (N V, K)
+    ratio = ratios_from_lobe(geo, spec, ax, ay, per_entry(geometry.rho_s)).reshape(N, V)
+    from .measurement import confidence_from_ratios
+
+    beta = confidence_from_ratios(ratio, mask)
+    unseen = beta < BETA_MIN
+    fa = torch.full_like(geometry.alpha_x, FALLBACK_ALPHA)
+    geometry.alpha_x = torch.where(unseen, fa, geometry.alpha_x)
+    geometry.alpha_y = torch.where(unseen, fa, geometry.alpha_y)
+    geometry.flags = geometry.flags | unseen.long() * FLAG_NO_HIGHLIGHT
+    redo = unseen[:, None].expand(N, V).reshape(-1).nonzero().squeeze(1)
+    if len(redo):
+        f = torch.full((len(redo),), FALLBACK_ALPHA, dtype=dtype)
+        spec[redo] = specular_lobe(geo.rows(redo), f, f)
+    a_l, s_l = terms_from_lobe(geo, spec)
+    p = torch.as_tensor(device.pattern, dtype=dtype)
+    p_eff, exposure = device.effective_pattern(p), device.exposure(p)
+    basis_d = (exposure * (a_l @ p_eff) / math.pi).reshape(N, V, 3)
+    basis_s = (exposure * (s_l @ p_eff)).reshape(N, V, 3)
+    w = mask[..., None].expand(N, V, 3).to(torch.float64)
+    y = torch.where(mask[..., None], pixels, torch.zeros_like(pixels)).to(torch.float64)
+    rd, rs = bounded_ls2(basis_d.transpose(1, 2).double(), basis_s.transpose(1, 2).double(), y.transpose(1, 2),
+                         w.transpose(1, 2), RHO_D_MAX, RHO_S_MAX)
+    return beta, rd.to(dtype), rs.to(dtype)

@@ -10,6 +10,7 @@ pixel value is ``device.gain * B`` before the response curve.
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Callable
 
 import torch
@@ -114,17 +115,17 @@ def view_highlight_ratio(device: Device, x: Tensor, n: Tensor, t: Tensor, alpha_
     """Eq. 6's per-view ratio for one point seen in V views: x, n, t ``(..., V, 3)`` camera space,
     alphas and grayscale rho_s ``(...)``. Returns ``(..., V)`` in [0, ~1]."""
     lead = x.shape[:-1]  # (..., V)
-    frame = frame_from_normal_tangent(n, t).reshape(-1, 3, 3)
-    xf = x.reshape(-1, 3)
-    wi_l, _, _, _ = _local_emitters(device, xf, frame)  # (M, K, 3)
-    wo_l = to_local(safe_normalize(-xf), frame)  # (M, 3)
-    ax = torch.as_tensor(alpha_x, dtype=x.dtype, device=x.device)[..., None].expand(lead).reshape(-1)
-    ay = torch.as_tensor(alpha_y, dtype=x.dtype, device=x.device)[..., None].expand(lead).reshape(-1)
-    rs = torch.as_tensor(rho_s, dtype=x.dtype, device=x.device)
+    flat = lambda a: torch.as_tensor(a, dtype=x.dtype, device=x.device)
+    ax, ay = (flat(a)[..., None].expand(lead).reshape(-1) for a in (alpha_x, alpha_y))
+    rs = flat(rho_s)
     rs = (rs[..., None] if rs.dim() else rs).expand(lead).reshape(-1)
-    spec = ggx_specular(wi_l, wo_l[:, None, :], ax[:, None], ay[:, None])  # (M, K)
-    ratio = highlight_ratio(rs[:, None] * spec, specular_peak(wo_l, ax, ay, rs))
-    return ratio.reshape(lead)
+    geo = local_emitter_geometry(device, x.reshape(-1, 3), n.reshape(-1, 3), t.reshape(-1, 3))
+    return ratios_from_lobe(geo, specular_lobe(geo, ax, ay), ax, ay, rs).reshape(lead)
+
+
+def ratios_from_lobe(geo: "EmitterGeometry", spec: Tensor, alpha_x: Tensor, alpha_y: Tensor, rho_s: Tensor) -> Tensor:
+    """Eq. 6's ratio per point ``(M,)`` from its lobe toward every emitter sample ``spec (M, K)``."""
+    return highlight_ratio(rho_s[:, None] * spec, specular_peak(geo.wo_l, alpha_x, alpha_y, rho_s))
 
 
 def confidence(device: Device, x: Tensor, n: Tensor, t: Tensor, alpha_x: Tensor, alpha_y: Tensor,
@@ -151,6 +152,43 @@ def _local_emitters(device: Device, x: Tensor, frame: Tensor) -> tuple[Tensor, T
     return wi_l, r2, cos_l, wq
 
 
+@dataclass
+class EmitterGeometry:
+    """Points ``(M,)`` against every emitter sample (K = L * Q), local frames: what Eq. 1 needs
+    besides the lobe. ``falloff`` = w_q Psi V / r^2 ``(M, K)``; ``wi_l (M, K, 3)``; ``wo_l (M, 3)``."""
+    wi_l: Tensor
+    wo_l: Tensor
+    falloff: Tensor
+    shape: tuple[int, int]  # (L, Q)
+
+    def rows(self, idx: Tensor) -> "EmitterGeometry":
+        return EmitterGeometry(self.wi_l[idx], self.wo_l[idx], self.falloff[idx], self.shape)
+
+
+def local_emitter_geometry(device: Device, x: Tensor, n: Tensor, t: Tensor,
+                           visibility: Tensor | None = None) -> EmitterGeometry:
+    """``x, n, t (M, 3)`` camera space; ``visibility`` broadcastable to ``(M, L, Q)``."""
+    frame = frame_from_normal_tangent(n, t)  # (M, 3, 3)
+    wi_l, r2, cos_l, wq = _local_emitters(device, x, frame)
+    L, Q = wq.shape
+    falloff = wq.reshape(-1) * device.psi(cos_l) / r2
+    if visibility is not None:
+        falloff = falloff * torch.broadcast_to(visibility, (len(x), L, Q)).reshape(-1, L * Q).to(x.dtype)
+    return EmitterGeometry(wi_l, to_local(safe_normalize(-x), frame), falloff, (L, Q))
+
+
+def specular_lobe(geo: EmitterGeometry, alpha_x: Tensor, alpha_y: Tensor, f0: float = F0_DIELECTRIC) -> Tensor:
+    """The rho_s = 1 lobe toward every emitter sample ``(M, K)``; alphas ``(M,)``."""
+    return ggx_specular(geo.wi_l, geo.wo_l[:, None, :], alpha_x[:, None], alpha_y[:, None], f0)
+
+
+def terms_from_lobe(geo: EmitterGeometry, spec: Tensor) -> tuple[Tensor, Tensor]:
+    """A_l and S_l ``(M, L)`` of the factorised Eq. 1 (see ``emitter_terms``)."""
+    L, Q = geo.shape
+    w = geo.falloff * geo.wi_l[..., 2].clamp_min(0.0) * (geo.wo_l[:, 2:3] > 0).to(geo.falloff.dtype)
+    return w.reshape(-1, L, Q).sum(-1), (w * spec).reshape(-1, L, Q).sum(-1)
+
+
 def emitter_terms(device: Device, x: Tensor, n: Tensor, t: Tensor, alpha_x: Tensor, alpha_y: Tensor,
                   visibility: Tensor | None = None, f0: float = F0_DIELECTRIC) -> tuple[Tensor, Tensor]:
     """The two per-emitter scalars of the factorised Eq. 1, ``(..., L)`` each, for points
@@ -160,20 +198,14 @@ def emitter_terms(device: Device, x: Tensor, n: Tensor, t: Tensor, alpha_x: Tens
     emitter-side cosines likewise), so no (..., L, 3) BRDF tensors are built.
     ``visibility`` broadcastable to ``(..., L, Q)``."""
     lead = x.shape[:-1]
-    x, n, t = x.reshape(-1, 3), n.reshape(-1, 3), t.reshape(-1, 3)
     alpha_x, alpha_y = alpha_x.expand(lead).reshape(-1), alpha_y.expand(lead).reshape(-1)
-    frame = frame_from_normal_tangent(n, t)  # (N, 3, 3)
-    wi_l, r2, cos_l, wq = _local_emitters(device, x, frame)
-    L, Q = wq.shape
-    falloff = wq.reshape(-1) * device.psi(cos_l) / r2
+    vis = None
     if visibility is not None:
-        vis = torch.broadcast_to(visibility, (*lead, L, Q)).reshape(-1, L * Q)
-        falloff = falloff * vis.to(x.dtype)
-    wo_l = to_local(safe_normalize(-x), frame)  # (N, 3)
-    spec = ggx_specular(wi_l, wo_l[:, None, :], alpha_x[:, None], alpha_y[:, None], f0)
-    w = falloff * wi_l[..., 2].clamp_min(0.0) * (wo_l[:, 2:3] > 0).to(x.dtype)
-    a_l, s_l = w.reshape(-1, L, Q).sum(-1), (w * spec).reshape(-1, L, Q).sum(-1)
-    return a_l.reshape(*lead, L), s_l.reshape(*lead, L)
+        L, Q = device.emitter_samples(x.dtype, x.device)[1].shape
+        vis = torch.broadcast_to(visibility, (*lead, L, Q)).reshape(-1, L, Q)
+    geo = local_emitter_geometry(device, x.reshape(-1, 3), n.reshape(-1, 3), t.reshape(-1, 3), vis)
+    a_l, s_l = terms_from_lobe(geo, specular_lobe(geo, alpha_x, alpha_y, f0))
+    return a_l.reshape(*lead, -1), s_l.reshape(*lead, -1)
 
 
 def measure_terms(device: Device, a_l: Tensor, s_l: Tensor, rho_d: Tensor, rho_s: Tensor,

@@ -16,7 +16,7 @@ from tqdm import tqdm
 from .atomic import write_text_atomic
 from .device import Device
 from .errors import NtpInputError
-from .fit import FLAG_NO_LOBE, GeometryFit, fit_albedo, fit_geometry, flag_unseen_highlights
+from .fit import FLAG_NO_LOBE, GeometryFit, fit_geometry, highlights_and_albedo
 from .images import write_exr, write_png
 from .inference import RaggedTraces, predict
 from .maps import SVBRDFMaps, fill_missing
@@ -78,9 +78,8 @@ def fit_traces(net, device: Device, traces: RaggedTraces, pixel_scale: float, ba
             ent, mask = traces.padded(idx[sub], max_views=ALBEDO_VIEWS)
             gs = GeometryFit(*(None if v is None else v[sub] for v in
                                (g.normal, g.tangent, g.alpha_x, g.alpha_y, g.rho_s, g.flags, g.log_rmse)))
-            flag_unseen_highlights(device, ent[..., 3:6], ent[..., 6:9], ent[..., 9:12], mask, gs)
-            rd, rs = fit_albedo(device, None, ent[..., :3] / pixel_scale, ent[..., 3:6],
-                                ent[..., 6:9], ent[..., 9:12], mask, gs)
+            _, rd, rs = highlights_and_albedo(device, ent[..., :3] / pixel_scale, ent[..., 3:6], ent[..., 6:9],
+                                              ent[..., 9:12], mask, gs)
             rho_d[i[sub]], rho_s[i[sub]] = rd.numpy(), rs.numpy()
             ax[i[sub]], ay[i[sub]], flags[i[sub]] = gs.alpha_x.numpy(), gs.alpha_y.numpy(), gs.flags.numpy()
         bar.update(len(idx))

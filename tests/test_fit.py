@@ -168,3 +168,30 @@ def test_texels_whose_highlight_was_never_seen_are_flagged_with_the_fallback_lob
     assert float(beta[0]) == pytest.approx(1.0) and float(beta[1]) < 1e-3
     assert geo.flags.tolist() == [0, FLAG_NO_HIGHLIGHT]
     assert geo.alpha_x.tolist() == pytest.approx([0.02, 0.3]) and torch.isfinite(geo.normal).all()
+
+
+def test_one_pass_highlight_check_and_albedo_equal_the_two_steps():
+    import copy
+
+    from ntp_engine.fit import fit_albedo, flag_unseen_highlights, highlights_and_albedo
+
+    dev = Device.load()
+    cfg = SyntheticConfig(views_min=12, views_max=12)
+    b = sample_batch(dev, 24, torch.Generator().manual_seed(11), cfg, dtype=torch.float64)
+    p = b.params
+    pattern = torch.as_tensor(dev.pattern)
+    pixels = dev.exposure(pattern) * torch.einsum("bvlc,lc->bvc", b.m_phys, dev.effective_pattern(pattern))
+    g = GeometryFit(p["n_local"], p["t_local"], p["alpha_x"].clone(), p["alpha_y"].clone(), p["rho_s"].mean(-1),
+                    torch.zeros(24, dtype=torch.int64), None)
+    g.alpha_x[:8], g.alpha_y[:8] = 0.006, 0.006  # lobes too sharp for the views to have seen: fall back
+    mask = b.length_mask.clone()
+    mask[:, -2:] = False
+    two = copy.deepcopy(g)
+    beta2 = flag_unseen_highlights(dev, b.position, b.normal_geo, b.tangent_geo, mask, two)
+    rd2, rs2 = fit_albedo(dev, None, pixels, b.position, b.normal_geo, b.tangent_geo, mask, two)
+    beta1, rd1, rs1 = highlights_and_albedo(dev, pixels, b.position, b.normal_geo, b.tangent_geo, mask, g)
+    assert (two.flags != 0).any() and (two.flags == 0).any()  # both paths exercised
+    torch.testing.assert_close(beta1, beta2)
+    assert torch.equal(g.flags, two.flags) and torch.equal(g.alpha_x, two.alpha_x)
+    torch.testing.assert_close(rd1, rd2)
+    torch.testing.assert_close(rs1, rs2)
