@@ -90,15 +90,20 @@ def ransac_plane(points: np.ndarray, threshold: float, iterations: int = 400,
     return normal, float(normal @ centre), np.abs(points @ normal - normal @ centre) < threshold
 
 
-def _surface_samples(mesh: Mesh, count: int, seed: int = 0) -> np.ndarray:
+def _surface_samples(mesh: Mesh, count: int, seed: int = 0, normals: bool = False):
+    """Area-uniform points on the mesh ``(count, 3)`` (and their faces' unit normals)."""
     tri = mesh.triangles
-    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    area = 0.5 * np.linalg.norm(cross, axis=1)
     rng = np.random.default_rng(seed)
     f = rng.choice(len(tri), count, p=area / area.sum())
     u, v = rng.random(count), rng.random(count)
     flip = u + v > 1
     u[flip], v[flip] = 1 - u[flip], 1 - v[flip]
-    return tri[f, 0] + u[:, None] * (tri[f, 1] - tri[f, 0]) + v[:, None] * (tri[f, 2] - tri[f, 0])
+    pts = tri[f, 0] + u[:, None] * (tri[f, 1] - tri[f, 0]) + v[:, None] * (tri[f, 2] - tri[f, 0])
+    if not normals:
+        return pts
+    return pts, cross[f] / np.maximum(2 * area[f, None], 1e-300)
 
 
 def align_to_mesh(points: np.ndarray, poses: list[np.ndarray], mesh: Mesh, working_distance: float,
@@ -114,7 +119,7 @@ def align_to_mesh(points: np.ndarray, poses: list[np.ndarray], mesh: Mesh, worki
     lo, hi = mesh.vertices.min(0), mesh.vertices.max(0)
     size = float(np.linalg.norm(hi - lo))
     z_support = float(lo[2])
-    samples = _surface_samples(mesh, 200_000)
+    samples, sample_normals = _surface_samples(mesh, 200_000, normals=True)
     tree = cKDTree(samples)
 
     if support_plane:
@@ -195,7 +200,30 @@ def align_to_mesh(points: np.ndarray, poses: list[np.ndarray], mesh: Mesh, worki
             value, dist = score(s, yaw, txy)
             if best is None or value < best[0]:
                 best = (value, s, yaw, txy, dist)
-    _, s, yaw, txy, dist = best
+    _, s, yaw, txy, _ = best
+
+    # polish: point-to-plane Gauss-Newton on (scale, azimuth, x, y) over the inliers — free of the
+    # samples' spacing, which biases point-to-point correspondences by a few tenths of a millimetre
+    for _ in range(iterations):
+        xp = place(A, s, yaw, txy)
+        dist, j = tree.query(xp)
+        kept = dist < tau
+        if kept.sum() < 4:
+            break
+        a, q, nq = A[kept], samples[j[kept]], sample_normals[j[kept]]
+        c, sn = np.cos(yaw), np.sin(yaw)
+        rot = a[:, :2] @ np.array([[c, sn], [-sn, c]])  # R(yaw) a_xy
+        drot = a[:, :2] @ np.array([[-sn, c], [-c, -sn]])  # dR/dyaw a_xy
+        J = np.column_stack([(nq[:, :2] * rot).sum(1) + nq[:, 2] * a[:, 2], (nq[:, :2] * drot).sum(1),
+                             nq[:, 0], nq[:, 1]])
+        rhs = (nq * q).sum(1) - nq[:, 2] * target[2]
+        s_new, w, tx, ty = np.linalg.lstsq(J, rhs, rcond=None)[0]
+        yaw_new = yaw + w / s_new
+        moved = abs(s_new / s - 1) + abs(yaw_new - yaw)
+        s, yaw, txy = float(s_new), float(yaw_new), np.array([tx, ty])
+        if moved < 1e-10:
+            break
+    value, dist = score(s, yaw, txy)
     c, sn = np.cos(yaw), np.sin(yaw)
     R = np.array([[c, -sn, 0], [sn, c, 0], [0, 0, 1]]) @ R_tilt
     t = np.array([txy[0], txy[1], target[2]]) - s * R @ anchor
