@@ -387,9 +387,31 @@ def bounded_ls2(a: Tensor, b: Tensor, y: Tensor, w: Tensor, hi_a: float, hi_b: f
     return best_u, best_v
 
 
+def _albedo_ls(basis_d: Tensor, basis_s: Tensor, pixels: Tensor, mask: Tensor, rho_s_prior: Tensor | None,
+               prior_weight: float) -> tuple[Tensor, Tensor]:
+    """The bounded 2-variable least squares per texel and channel, in float64; bases and pixels
+    ``(N, V, 3)``. With ``prior_weight`` w > 0, one pseudo-observation per channel asks rho_s to be
+    ``rho_s_prior (N,)`` (the lobe fitted to the network's lumitexel) with the weight of w views of
+    typical specular signal: diffuse-dominant texels seen in few views no longer trade diffuse for a
+    broad, bright lobe."""
+    N, V = mask.shape
+    w = mask[..., None].expand(N, V, 3).to(torch.float64)
+    y = torch.where(mask[..., None], pixels, torch.zeros_like(pixels)).to(torch.float64)
+    a, b = basis_d.double(), basis_s.double()
+    if prior_weight > 0 and rho_s_prior is not None:
+        scale = ((b.abs() * w).sum(1) / w.sum(1).clamp_min(1)).clamp_min(1e-12)  # (N, 3)
+        a = torch.cat([a, torch.zeros_like(scale)[:, None]], 1)
+        b = torch.cat([b, scale[:, None]], 1)
+        y = torch.cat([y, (scale * rho_s_prior.double()[:, None])[:, None]], 1)
+        w = torch.cat([w, torch.full_like(scale, float(prior_weight))[:, None]], 1)
+    rd, rs = bounded_ls2(a.transpose(1, 2), b.transpose(1, 2), y.transpose(1, 2), w.transpose(1, 2),
+                         RHO_D_MAX, RHO_S_MAX)
+    return rd, rs
+
+
 def fit_albedo(device, pattern: Tensor | None, pixels: Tensor, position: Tensor, normal_geo: Tensor,
                tangent_geo: Tensor, mask: Tensor, geometry: GeometryFit,
-               visibility: Tensor | None = None) -> tuple[Tensor, Tensor]:
+               visibility: Tensor | None = None, prior_weight: float = 0.0) -> tuple[Tensor, Tensor]:
     """RGB rho_d ``(N, 3)`` in [0, 1] and rho_s ``(N, 3)`` in [0, 10] from a trace's own linear pixel
     values ``pixels (N, V, 3)`` (``device.exposure(pattern) * B``) with the fitted geometry.
     Eq. 1 is evaluated in the dtype of ``pixels`` (float32 is plenty), the least squares in float64.
@@ -411,16 +433,12 @@ def fit_albedo(device, pattern: Tensor | None, pixels: Tensor, position: Tensor,
     p_eff = device.effective_pattern(p)
     basis_d = exposure * (a_l @ p_eff) / math.pi
     basis_s = exposure * (s_l @ p_eff)
-    w = mask[..., None].expand(N, V, 3).to(torch.float64)
-    y = torch.where(mask[..., None], pixels, torch.zeros_like(pixels)).to(torch.float64)
-    # channels to the front: (N, 3, V); the 2-variable least squares in float64
-    rd, rs = bounded_ls2(basis_d.transpose(1, 2).double(), basis_s.transpose(1, 2).double(), y.transpose(1, 2),
-                         w.transpose(1, 2), RHO_D_MAX, RHO_S_MAX)
+    rd, rs = _albedo_ls(basis_d, basis_s, pixels, mask, geometry.rho_s, prior_weight)
     return rd.to(dtype), rs.to(dtype)
 
 
 def highlights_and_albedo(device, pixels: Tensor, position: Tensor, normal_geo: Tensor, tangent_geo: Tensor,
-                          mask: Tensor, geometry: GeometryFit) -> tuple[Tensor, Tensor, Tensor]:
+                          mask: Tensor, geometry: GeometryFit, prior_weight: float = 0.0) -> tuple[Tensor, Tensor, Tensor]:
     """``flag_unseen_highlights`` then ``fit_albedo`` (device pattern, no visibility) in one pass:
     the emitter geometry and the fitted lobe of every entry are computed once and serve both Eq. 6
     and Eq. 1; only texels that fall back to the default lobe get their lobe evaluated again.
@@ -454,8 +472,5 @@ def highlights_and_albedo(device, pixels: Tensor, position: Tensor, normal_geo: 
     p_eff, exposure = device.effective_pattern(p), device.exposure(p)
     basis_d = (exposure * (a_l @ p_eff) / math.pi).reshape(N, V, 3)
     basis_s = (exposure * (s_l @ p_eff)).reshape(N, V, 3)
-    w = mask[..., None].expand(N, V, 3).to(torch.float64)
-    y = torch.where(mask[..., None], pixels, torch.zeros_like(pixels)).to(torch.float64)
-    rd, rs = bounded_ls2(basis_d.transpose(1, 2).double(), basis_s.transpose(1, 2).double(), y.transpose(1, 2),
-                         w.transpose(1, 2), RHO_D_MAX, RHO_S_MAX)
+    rd, rs = _albedo_ls(basis_d, basis_s, pixels, mask, geometry.rho_s, prior_weight)
     return beta, rd.to(dtype), rs.to(dtype)

@@ -26,11 +26,12 @@ from .errors import NtpInputError
 from .inference import RaggedTraces
 from .mesh import load_mesh, save_obj
 from .raycast import RayCaster
-from .reconstruct import fit_traces, model_exposure, uv_atlas, write_result
+from .reconstruct import ALBEDO_VIEWS, RHO_S_PRIOR_WEIGHT, fit_traces, model_exposure, uv_atlas, write_result
 from .register import MIN_REGISTERED, register
 from .scan import Scan, read_photo
 from .select import BLUR_MARGIN, Selection, select_photos
 from .texels import rasterize
+from . import trace
 from .trace import assemble
 
 
@@ -156,6 +157,7 @@ def reconstruct(scan: Scan, out: Path, resolution: int = 1024, model: str | None
                                                   "rejected": st.rejected}))
 
     folder, h_tr = cache.get("traces", {"atlas": h_atlas, "poses": h_pose, "support": scan.support_plane,
+                                        "max_shadowed_drive": trace.MAX_SHADOWED_DRIVE,
                                         "device": scan.device.to_dict()}, traces_stage)
     net, meta = models.load(model, scan.device)
     scale = model_exposure(net) / float(scan.device.exposure(scan.device.pattern))
@@ -173,7 +175,8 @@ def reconstruct(scan: Scan, out: Path, resolution: int = 1024, model: str | None
     def fit_stage(d: Path) -> None:
         np.savez(d / "fit.npz", **fit_traces(net, scan.device, traces, scale, progress=progress))
 
-    folder, _ = cache.get("fit", {"traces": h_tr, **model_key}, fit_stage)
+    fit_key = {"albedo_views": ALBEDO_VIEWS, "rho_s_prior_weight": RHO_S_PRIOR_WEIGHT}
+    folder, _ = cache.get("fit", {"traces": h_tr, **model_key, **fit_key}, fit_stage)
     with np.load(folder / "fit.npz") as z:
         fitted = {k: z[k] for k in z.files}
     timed("network_and_fit", t0)

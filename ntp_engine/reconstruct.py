@@ -43,6 +43,7 @@ def uv_atlas(mesh: Mesh, resolution: int) -> Mesh:
 
 
 ALBEDO_VIEWS = 16  # entries per texel for the beta check and the albedo LS (Eq. 1 per entry and emitter)
+RHO_S_PRIOR_WEIGHT = 1.0  # the network's rho_s counts as one view in the albedo LS (fit._albedo_ls)
 
 
 def model_exposure(net) -> float:
@@ -79,7 +80,7 @@ def fit_traces(net, device: Device, traces: RaggedTraces, pixel_scale: float, ba
             gs = GeometryFit(*(None if v is None else v[sub] for v in
                                (g.normal, g.tangent, g.alpha_x, g.alpha_y, g.rho_s, g.flags, g.log_rmse)))
             _, rd, rs = highlights_and_albedo(device, ent[..., :3] / pixel_scale, ent[..., 3:6], ent[..., 6:9],
-                                              ent[..., 9:12], mask, gs)
+                                              ent[..., 9:12], mask, gs, prior_weight=RHO_S_PRIOR_WEIGHT)
             rho_d[i[sub]], rho_s[i[sub]] = rd.numpy(), rs.numpy()
             ax[i[sub]], ay[i[sub]], flags[i[sub]] = gs.alpha_x.numpy(), gs.alpha_y.numpy(), gs.flags.numpy()
         bar.update(len(idx))

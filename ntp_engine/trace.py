@@ -23,7 +23,7 @@ from .raycast import RayCaster
 from .texels import Texels
 
 VALID_CODE = (32.0, 224.0)
-MAX_SHADOWED_DRIVE = 0.005  # fraction of the pattern's drive the support may block in a used photo
+MAX_SHADOWED_DRIVE = 0.05  # fraction of the pattern's drive the support may block in a used photo
 MIN_COS_VIEW = 0.3
 
 
