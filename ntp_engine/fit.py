@@ -342,12 +342,18 @@ def flag_unseen_highlights(device, position: Tensor, normal_geo: Tensor, tangent
     x = torch.where(mask[..., None], position, torch.tensor([0.0, 0.0, 0.3], dtype=position.dtype))
     beta = confidence(device, x, n_cam, t_cam, geometry.alpha_x.to(x.dtype), geometry.alpha_y.to(x.dtype),
                       geometry.rho_s.to(x.dtype), valid=mask)
+    _fall_back_where_unseen(geometry, beta)
+    return beta
+
+
+def _fall_back_where_unseen(geometry: GeometryFit, beta: Tensor) -> Tensor:
+    """Texels with beta < BETA_MIN get the fallback lobe and FLAG_NO_HIGHLIGHT; returns that mask."""
     unseen = beta < BETA_MIN
     fa = torch.full_like(geometry.alpha_x, FALLBACK_ALPHA)
     geometry.alpha_x = torch.where(unseen, fa, geometry.alpha_x)
     geometry.alpha_y = torch.where(unseen, fa, geometry.alpha_y)
     geometry.flags = geometry.flags | unseen.long() * FLAG_NO_HIGHLIGHT
-    return beta
+    return unseen
 
 
 # ----------------------------------------------------------------------------------- albedo
@@ -444,7 +450,8 @@ def highlights_and_albedo(device, pixels: Tensor, position: Tensor, normal_geo: 
     and Eq. 1; only texels that fall back to the default lobe get their lobe evaluated again.
     Same arguments and results as the two (``geometry`` updated in place); returns
     (beta ``(N,)``, rho_d, rho_s ``(N, 3)``)."""
-    from .measurement import local_emitter_geometry, ratios_from_lobe, specular_lobe, terms_from_lobe
+    from .measurement import (confidence_from_ratios, local_emitter_geometry, ratios_from_lobe, specular_lobe,
+                              terms_from_lobe)
 
     dtype = pixels.dtype
     N, V = mask.shape
@@ -455,14 +462,9 @@ def highlights_and_albedo(device, pixels: Tensor, position: Tensor, normal_geo: 
     ax, ay = per_entry(geometry.alpha_x), per_entry(geometry.alpha_y)
     spec = specular_lobe(geo, ax, ay)  # (N V, K)
     ratio = ratios_from_lobe(geo, spec, ax, ay, per_entry(geometry.rho_s)).reshape(N, V)
-    from .measurement import confidence_from_ratios
 
     beta = confidence_from_ratios(ratio, mask)
-    unseen = beta < BETA_MIN
-    fa = torch.full_like(geometry.alpha_x, FALLBACK_ALPHA)
-    geometry.alpha_x = torch.where(unseen, fa, geometry.alpha_x)
-    geometry.alpha_y = torch.where(unseen, fa, geometry.alpha_y)
-    geometry.flags = geometry.flags | unseen.long() * FLAG_NO_HIGHLIGHT
+    unseen = _fall_back_where_unseen(geometry, beta)
     redo = unseen[:, None].expand(N, V).reshape(-1).nonzero().squeeze(1)
     if len(redo):
         f = torch.full((len(redo),), FALLBACK_ALPHA, dtype=dtype)
