@@ -86,44 +86,6 @@ class NTP_OT_import_mesh(bpy.types.Operator):
         return {"FINISHED"}
 
 
-class NTP_OT_register_photos(bpy.types.Operator):
-    """Camera poses for the scan's photos (its poses file, else structure-from-motion aligned to the
-    mesh), shown as camera objects with their photos as backgrounds"""
-
-    bl_idname = "ntp.register_photos"
-    bl_label = "Register photos"
-    bl_options = {"REGISTER", "UNDO"}
-
-    def execute(self, context):
-        from ntp_engine.pipeline import register_scan
-
-        try:
-            scan = _load_scan(context)
-            poses, report, _ = register_scan(scan, result_folder(context), progress=False)
-        except NtpInputError as err:
-            self.report({"ERROR"}, str(err))
-            return {"CANCELLED"}
-        coll = bpy.data.collections.get("NTP Cameras")
-        if coll is None:
-            coll = bpy.data.collections.new("NTP Cameras")
-            context.scene.collection.children.link(coll)
-        for o in list(coll.objects):
-            bpy.data.objects.remove(o, do_unlink=True)
-        for name in sorted(poses):
-            cam = bscene.camera_object(f"NTP {name}", scan.device, poses[name], coll)
-            img = bpy.data.images.load(str(scan.photos_dir / name), check_existing=True)
-            cam.data.show_background_images = True
-            cam.data.background_images.new().image = img
-            cam.data.display_size = 0.02
-        reg = report["registration"]
-        msg = f"{len(poses)} photos registered ({reg['source']})"
-        if "alignment" in reg:
-            msg += f", alignment residual {reg['alignment']['residual_m'] * 1e3:.2f} mm"
-        _settings(context).status = msg
-        self.report({"INFO"}, msg)
-        return {"FINISHED"}
-
-
 _PROGRESS = re.compile(r"([A-Za-z][A-Za-z +(),]*?):\s+(\d+)%")
 
 
@@ -136,25 +98,21 @@ def parse_progress(lines: list[str]) -> tuple[str, float] | None:
     return None
 
 
-class NTP_OT_reconstruct(bpy.types.Operator):
-    """Reconstruct texture maps from the scan in a background process (ESC cancels; a re-run resumes)"""
-
-    bl_idname = "ntp.reconstruct"
-    bl_label = "Reconstruct"
+class _EngineProcess:
+    """An ``ntp`` command in a child process: modal with a timer in the UI (progress from its bars,
+    ESC terminates it), waited for in background mode. Subclasses give ``_command`` and
+    ``_succeeded``."""
 
     _proc = None
     _timer = None
     _reader = None
 
     def _command(self, context) -> list[str]:
-        s = _settings(context)
-        cmd = [sys.executable, "-m", "ntp_engine.cli", "reconstruct", str(_abs(s.scan_folder)),
-               "--out", str(result_folder(context)), "--resolution", str(s.resolution)]
-        if s.model:
-            cmd += ["--model", s.model]
-        if s.device:
-            cmd += ["--device", str(_abs(s.device))]
-        return cmd
+        raise NotImplementedError
+
+    def _succeeded(self, context, stdout: str) -> str:
+        """Act on a finished child; returns the status line."""
+        raise NotImplementedError
 
     def _start(self, context) -> bool:
         try:
@@ -198,9 +156,12 @@ class NTP_OT_reconstruct(bpy.types.Operator):
             s.status = errors[-1]
             self.report({"ERROR"}, errors[-1])
             return {"CANCELLED"}
-        s.status, s.progress = out.strip().splitlines()[-1] if out.strip() else "done", 100.0
-        if not s.result_folder:
-            s.result_folder = str(result_folder(context))
+        try:
+            s.status, s.progress = self._succeeded(context, out), 100.0
+        except NtpInputError as err:
+            s.status = str(err)
+            self.report({"ERROR"}, s.status)
+            return {"CANCELLED"}
         self.report({"INFO"}, s.status)
         return {"FINISHED"}
 
@@ -231,7 +192,7 @@ class NTP_OT_reconstruct(bpy.types.Operator):
         if event.type == "TIMER":
             self._poll_progress(context)
             wm.progress_update(int(_settings(context).progress))
-            context.workspace.status_text_set(f"NTP reconstruct — {_settings(context).status} (ESC to cancel)")
+            context.workspace.status_text_set(f"NTP {self.bl_label} — {_settings(context).status} (ESC to cancel)")
             for area in context.screen.areas:
                 area.tag_redraw()
             if self._proc.poll() is not None:
@@ -245,6 +206,66 @@ class NTP_OT_reconstruct(bpy.types.Operator):
             wm.event_timer_remove(self._timer)
         wm.progress_end()
         context.workspace.status_text_set(None)
+
+
+
+
+def _engine_args(context) -> list[str]:
+    s = _settings(context)
+    args = [str(_abs(s.scan_folder)), "--out", str(result_folder(context))]
+    if s.device:
+        args += ["--device", str(_abs(s.device))]
+    return args
+
+
+class NTP_OT_register_photos(_EngineProcess, bpy.types.Operator):
+    """Camera poses for the scan's photos (its poses file, else structure-from-motion aligned to the
+    mesh) in a background process, then a camera object per photo with the photo as background"""
+
+    bl_idname = "ntp.register_photos"
+    bl_label = "Register photos"
+    bl_options = {"REGISTER", "UNDO"}
+
+    def _command(self, context) -> list[str]:
+        return [sys.executable, "-m", "ntp_engine.cli", "register", *_engine_args(context)]
+
+    def _succeeded(self, context, stdout: str) -> str:
+        from ntp_engine.scan import load_poses
+
+        scan = _load_scan(context)
+        poses = load_poses(result_folder(context) / "poses.json")
+        coll = bpy.data.collections.get("NTP Cameras")
+        if coll is None:
+            coll = bpy.data.collections.new("NTP Cameras")
+            context.scene.collection.children.link(coll)
+        for o in list(coll.objects):
+            bpy.data.objects.remove(o, do_unlink=True)
+        for name in sorted(poses):
+            cam = bscene.camera_object(f"NTP {name}", scan.device, poses[name], coll)
+            img = bpy.data.images.load(str(scan.photos_dir / name), check_existing=True)
+            cam.data.show_background_images = True
+            cam.data.background_images.new().image = img
+            cam.data.display_size = 0.02
+        return stdout.strip().splitlines()[-1] if stdout.strip() else f"{len(poses)} photos registered"
+
+
+class NTP_OT_reconstruct(_EngineProcess, bpy.types.Operator):
+    """Reconstruct texture maps from the scan in a background process (ESC cancels; a re-run resumes)"""
+
+    bl_idname = "ntp.reconstruct"
+    bl_label = "Reconstruct"
+
+    def _command(self, context) -> list[str]:
+        s = _settings(context)
+        cmd = [sys.executable, "-m", "ntp_engine.cli", "reconstruct", *_engine_args(context),
+               "--resolution", str(s.resolution)]
+        return cmd + (["--model", s.model] if s.model else [])
+
+    def _succeeded(self, context, stdout: str) -> str:
+        s = _settings(context)
+        if not s.result_folder:
+            s.result_folder = str(result_folder(context))
+        return stdout.strip().splitlines()[-1] if stdout.strip() else "done"
 
 
 class NTP_OT_build_material(bpy.types.Operator):

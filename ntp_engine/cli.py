@@ -35,6 +35,13 @@ def _parser() -> argparse.ArgumentParser:
                     help="drop photos whose blur score exceeds the scan's median by this much")
     rc.add_argument("--quiet", action="store_true", help="no progress bars")
 
+    rg = sub.add_parser("register", help="photo selection + camera poses (SfM aligned to the mesh) -> OUT/poses.json")
+    rg.add_argument("scan", type=Path, help="scan folder (scan.toml, mesh, photos/)")
+    rg.add_argument("--out", type=Path, required=True, help="result folder (its cache is shared with reconstruct)")
+    rg.add_argument("--device", type=Path, default=None, help="device TOML instead of the one scan.toml names")
+    rg.add_argument("--blur-margin", type=float, default=0.08)
+    rg.add_argument("--quiet", action="store_true", help="no progress bars")
+
     dev = sub.add_parser("device", help="print a device calibration file, or list the shipped ones")
     dev.add_argument("path", type=Path, nargs="?", default=None, help="device TOML (default: the default device)")
     dev.add_argument("--list", action="store_true", help="list the shipped devices")
@@ -111,6 +118,24 @@ def main(argv: list[str] | None = None) -> int:
 
             demo.run(args.out, views=args.views, scale=args.scale, resolution=args.resolution, seed=args.seed,
                      known_poses=args.known_poses, model=args.model, progress=not args.quiet, blend=not args.no_blend)
+        elif args.command == "register":
+            import json
+
+            from .atomic import write_text_atomic
+            from .pipeline import register_scan
+            from .scan import load_scan
+
+            scan = load_scan(args.scan)
+            if args.device:
+                from .device import Device
+
+                scan.device = Device.load(args.device)
+            poses, rep, _ = register_scan(scan, args.out, args.blur_margin, progress=not args.quiet)
+            write_text_atomic(args.out / "poses.json", json.dumps({n: m.tolist() for n, m in poses.items()}, indent=1))
+            write_text_atomic(args.out / "registration.json", json.dumps(rep, indent=2))
+            reg = rep["registration"]
+            extra = f", alignment residual {reg['alignment']['residual_m'] * 1e3:.2f} mm" if "alignment" in reg else ""
+            print(f"{len(poses)} photos registered ({reg['source']}){extra}; wrote {args.out / 'poses.json'}")
         elif args.command == "reconstruct":
             from .pipeline import reconstruct
             from .scan import load_scan
