@@ -17,6 +17,7 @@ import bpy
 import numpy as np
 
 from ntp_engine.device import Device, list_devices
+from ntp_engine.evaluate import compare_images
 from ntp_engine.maps import SVBRDFMaps
 from ntp_engine.mesh import load_mesh
 from ntp_engine.virtual_scan import ScanConfig, Scene, scaled_device, trajectory
@@ -71,18 +72,6 @@ def cycles_render(obj: bpy.types.Object, mat: bpy.types.Material, pose: np.ndarr
     return img, time.perf_counter() - t0
 
 
-def compare(a: np.ndarray, b: np.ndarray, mask: np.ndarray) -> dict:
-    from skimage.metrics import structural_similarity
-
-    k = 1.0 / max(float(np.percentile(a[mask], 99)), 1e-12)
-    da, db = (np.clip(x * k, 0, 1) ** (1 / 2.2) for x in (a, b))
-    da[~mask], db[~mask] = 0, 0
-    _, smap = structural_similarity(da, db, data_range=1.0, channel_axis=-1, full=True)
-    mse = float(((da - db)[mask] ** 2).mean())
-    return {"ssim": float(smap.mean(-1)[mask].mean()), "psnr_db": float(10 * np.log10(1.0 / max(mse, 1e-12))),
-            "display": (da, db)}
-
-
 def run(result: str | Path, views: int = 3, scale: float = 0.25, samples: int = 64, work: Path | None = None,
         save_png: bool = False) -> dict:
     """Render the result with both materials in Cycles and with the engine from ``views`` novel
@@ -104,7 +93,7 @@ def run(result: str | Path, views: int = 3, scale: float = 0.25, samples: int = 
             ref, mask = engine_render(result, pose, light, cam)
             for name, mat in (("principled", principled), ("accurate", accurate)):
                 img, sec = cycles_render(obj, mat, pose, light, cam, work / f"{name}_{k}.exr", samples)
-                c = compare(ref, img, mask)
+                c = compare_images(ref, img, mask)
                 if save_png:
                     write_png(work / f"{name}_{k}.png", np.concatenate(c["display"], 1))
                 rows[name].append({"ssim": c["ssim"], "psnr_db": c["psnr_db"]})

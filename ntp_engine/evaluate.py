@@ -4,8 +4,8 @@
   reconstructed and true normals (degrees), RMSE of the diffuse albedo (linear RGB), coverage;
 - relit SSIM: the engine renders the true and the reconstructed asset from novel viewpoints, each
   lit by the point-light device (a novel light: a single point, unlike the LED array of the scan),
-  with exact shadows; 8-bit-like display values (clip, gamma 2.2); SSIM averaged over the object's
-  pixels only (the backdrop would inflate it).
+  with exact shadows; one display transform for both (the truth's 99th percentile to 1, clip,
+  gamma 2.2); SSIM averaged over the object's pixels only (the backdrop would inflate it).
 
 Both assets must share the UV layout (true for scans of a mesh with UVs, whose UVs the pipeline
 keeps).
@@ -35,10 +35,23 @@ def map_errors(result: Path, truth: Path) -> dict:
             "diffuse_rmse": float(np.sqrt((d ** 2).mean())), "observed_fraction": float(observed.mean())}
 
 
-def relit_ssim(result: Path, truth_mesh: Path, truth_maps: Path, lights: int = 3, scale: float = 0.25,
-               seed: int = 1000, save_dir: Path | None = None) -> dict:
+def compare_images(reference: np.ndarray, test: np.ndarray, mask: np.ndarray) -> dict:
+    """SSIM and PSNR of two linear renders ``(H, W, 3)`` over ``mask`` pixels, after one display
+    transform for both: scaled so the reference's 99th percentile is 1, clipped, gamma 2.2 (no
+    saturated plateau hides differences). SSIM is the mean of the SSIM map over the mask."""
     from skimage.metrics import structural_similarity
 
+    k = 1.0 / max(float(np.percentile(reference[mask], 99)), 1e-12)
+    da, db = (np.clip(x * k, 0, 1) ** (1 / 2.2) for x in (reference, test))
+    da[~mask], db[~mask] = 0, 0
+    _, smap = structural_similarity(da, db, data_range=1.0, channel_axis=-1, full=True)
+    mse = float(((da - db)[mask] ** 2).mean())
+    return {"ssim": float(smap.mean(-1)[mask].mean()), "psnr_db": float(10 * np.log10(1.0 / max(mse, 1e-12))),
+            "display": (da, db)}
+
+
+def relit_ssim(result: Path, truth_mesh: Path, truth_maps: Path, lights: int = 3, scale: float = 0.25,
+               seed: int = 1000, save_dir: Path | None = None) -> dict:
     from .images import write_png
 
     point = Device.load(next(p for p in list_devices() if p.name == "point_light.toml"))
@@ -51,10 +64,9 @@ def relit_ssim(result: Path, truth_mesh: Path, truth_maps: Path, lights: int = 3
         a, ha = true_scene.render_linear(pose, cam, exact_shadows=True)
         b, _ = rec_scene.render_linear(pose, cam, exact_shadows=True)
         obj = (ha["geom"] == 0).reshape(a.shape[:2])
-        da, db = (np.clip(x, 0, 1) ** (1 / 2.2) for x in (a, b))
-        da[~obj], db[~obj] = 0, 0
-        _, smap = structural_similarity(da, db, data_range=1.0, channel_axis=-1, full=True)
-        scores.append(float(smap.mean(-1)[obj].mean()))
+        c = compare_images(a, b, obj)
+        scores.append(c["ssim"])
+        da, db = c["display"]
         if save_dir is not None:
             write_png(save_dir / f"relit_{k}.png", np.concatenate([da, db], 1))
     return {"relit_ssim": float(np.mean(scores)), "relit_ssim_per_light": scores}
