@@ -16,9 +16,13 @@ from pathlib import Path
 from typing import Callable
 
 
+def _plain(o):
+    return o.tolist() if hasattr(o, "tolist") else str(o)  # arrays in full (str() would elide them)
+
+
 def digest(obj) -> str:
-    """Stable hash of a JSON-able key."""
-    return hashlib.sha256(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()[:20]
+    """Stable hash of a JSON-able key (numpy arrays included element by element)."""
+    return hashlib.sha256(json.dumps(obj, sort_keys=True, default=_plain).encode()).hexdigest()[:20]
 
 
 def file_key(path: Path) -> dict:
@@ -44,7 +48,7 @@ class StageCache:
         tmp = Path(tempfile.mkdtemp(prefix=f".{stage}.", dir=self.folder))
         try:
             compute(tmp)
-            (tmp / "key.json").write_text(json.dumps({"digest": h, "key": key}, indent=1, default=str))
+            (tmp / "key.json").write_text(json.dumps({"digest": h, "key": key}, indent=1, default=_plain))
             if final.exists():
                 shutil.rmtree(final)
             os.replace(tmp, final)

@@ -137,3 +137,12 @@ def test_mesh_without_uvs_gets_an_xatlas_atlas(scan24, tmp_path):
     rep = reconstruct(load_scan(scan, scan / "ground_truth" / "poses.json"), tmp_path / "rec", resolution=32,
                       progress=False)
     assert rep["texels"]["coverage"] > 0.8 and load_mesh(tmp_path / "rec" / "mesh.obj").uv is not None
+
+
+def test_cache_keys_see_every_element_of_an_array():
+    from ntp_engine.cache import digest
+
+    a = np.zeros((512, 3))
+    b = a.copy()
+    b[256, 1] = 1e-3  # in the middle, where numpy's repr would write "..."
+    assert digest({"pattern": a}) != digest({"pattern": b}) and digest({"pattern": a}) == digest({"pattern": a.copy()})
