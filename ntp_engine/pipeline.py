@@ -98,7 +98,9 @@ def register_scan(scan: Scan, out: Path, blur_margin: float = BLUR_MARGIN, progr
                     "inlier_points": al.kept_points, "support_points": al.support_points}}, indent=1))
             shutil.rmtree(d / "sfm", ignore_errors=True)  # the database is large and not needed again
 
-        folder, h_pose = cache.get("register", {"select": h_sel, **mesh_key}, run_sfm)
+        folder, h_pose = cache.get("register", {"select": h_sel, **mesh_key, "support": scan.support_plane,
+                                                "camera": {"K": scan.device.K, "distortion": scan.device.distortion,
+                                                           "valid_center": scan.device.valid_center}}, run_sfm)
         poses = {n: np.array(m) for n, m in json.loads((folder / "poses.json").read_text()).items()}
         reg_info = json.loads((folder / "registration.json").read_text())
     timed("register", t0)
