@@ -16,7 +16,6 @@ import threading
 from pathlib import Path
 
 import bpy
-import numpy as np
 
 from ntp_engine.errors import NtpInputError
 

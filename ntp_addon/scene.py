@@ -16,6 +16,7 @@ import numpy as np
 from mathutils import Matrix
 
 from ntp_engine.device import Device
+from ntp_engine.virtual_scan import look_at
 
 FLIP = np.diag([1.0, -1.0, -1.0, 1.0])
 
@@ -84,18 +85,6 @@ def bounds(obj: bpy.types.Object) -> tuple[np.ndarray, float]:
     return 0.5 * (lo + hi), float(0.5 * np.linalg.norm(hi - lo))
 
 
-def _look_at(position: np.ndarray, target: np.ndarray) -> np.ndarray:
-    """Camera-from-world (OpenCV axes) looking from ``position`` at ``target``, z up."""
-    f = (target - position) / np.linalg.norm(target - position)
-    right = np.cross(f, [0.0, 0.0, 1.0])
-    right /= max(np.linalg.norm(right), 1e-12)
-    down = np.cross(f, right)
-    R = np.stack([right, down, f])
-    m = np.eye(4)
-    m[:3, :3], m[:3, 3] = R, -R @ position
-    return m
-
-
 def relight_rig(obj: bpy.types.Object, width: int = 640, height: int = 512, samples: int = 64,
                 turntable_frames: int = 0) -> dict[str, bpy.types.Object]:
     """A look-dev scene around ``obj``: Cycles, a camera, a three-point area-light rig (key, fill,
@@ -117,7 +106,7 @@ def relight_rig(obj: bpy.types.Object, width: int = 640, height: int = 512, samp
     fake.width, fake.height = width, height
     f = 0.5 * width / math.tan(math.radians(22))
     fake.K = np.array([[f, 0, (width - 1) / 2], [0, f, (height - 1) / 2], [0, 0, 1]])
-    cam = camera_object("NTP Camera", fake, _look_at(cam_pos, centre), coll)
+    cam = camera_object("NTP Camera", fake, look_at(cam_pos, centre), coll)
     scene.camera = cam
     rig = {"camera": cam}
     for name, direction, share, size in (("Key", (-0.6, -0.6, 0.7), 1.0, 0.5), ("Fill", (0.8, -0.4, 0.3), 0.3, 1.0),
@@ -130,7 +119,7 @@ def relight_rig(obj: bpy.types.Object, width: int = 640, height: int = 512, samp
         data.size = size * dist
         light = bpy.data.objects.new(f"NTP {name}", data)
         pos = centre + dist * d
-        m = np.linalg.inv(_look_at(pos, centre)) @ FLIP  # area lights emit along -Z, like cameras look
+        m = np.linalg.inv(look_at(pos, centre)) @ FLIP  # area lights emit along -Z, like cameras look
         light.matrix_world = Matrix(m.tolist())
         coll.objects.link(light)
         rig[name.lower()] = light

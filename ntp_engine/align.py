@@ -7,12 +7,14 @@ frame, ``x_mesh = s R x_sfm + t``.
 
 Method (SfM clouds of a hand-held scan are mostly the support, with only tens of points on the
 object): RANSAC plane = the support; the optical axes converge on the object, and the scanner is
-held at its working distance (the valid volume's centre), which gives the scale; then a trimmed,
-scale-aware ICP of the points above the plane against dense samples of the mesh, with the local
-support points held onto the support plane, from 24 start azimuths. The winner has the lowest
-score: a truncated quadratic (MSAC) of the object points' distances to the mesh plus one outlier's
-cost per support point that would lie under the object (the hole the object leaves in the support
-cloud is its footprint, which fixes the azimuth where the object's own points are few).
+held at its working distance (the valid volume's centre), which gives the starting scale. With the
+plane fixing tilt and height, a trimmed, scale-aware ICP of the points above the plane against
+dense samples of the mesh solves azimuth, scale and the in-plane shift, from 36 start azimuths and
+then on a 0.25-degree grid around the best; the winner has the lowest score: a truncated quadratic
+(MSAC) of the object points' distances to the mesh plus one outlier's cost per support point that
+would lie under the object (the hole the object leaves in the support cloud is its footprint, which
+fixes the azimuth where the object's own points are few). A point-to-plane Gauss-Newton polish
+ends it.
 """
 from __future__ import annotations
 
@@ -45,19 +47,6 @@ class Alignment:
         out[:3, :3] = R_c @ self.rotation.T
         out[:3, 3] = self.scale * t_c - out[:3, :3] @ self.translation
         return out
-
-
-def weighted_similarity(src: np.ndarray, dst: np.ndarray, w: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
-    """Least-squares ``dst ≈ s R src + t`` with weights (Umeyama 1991). (N, 3), (N, 3), (N,)."""
-    w = w / w.sum()
-    ms, md = w @ src, w @ dst
-    a, b = src - ms, dst - md
-    U, S, Vt = np.linalg.svd((b * w[:, None]).T @ a)
-    D = np.eye(3)
-    D[2, 2] = np.sign(np.linalg.det(U @ Vt))
-    R = U @ D @ Vt
-    s = float(np.trace(np.diag(S) @ D) / (w @ (a * a).sum(1)))
-    return s, R, md - s * R @ ms
 
 
 def convergence_point(camera_from_world: list[np.ndarray]) -> np.ndarray:

@@ -32,7 +32,6 @@ from .scan import Scan, read_photo
 from .select import BLUR_MARGIN, Selection, select_photos
 from .texels import rasterize
 from . import trace
-from .trace import assemble
 
 
 def _pose_error(poses: dict[str, np.ndarray], truth: dict[str, np.ndarray]) -> dict:
@@ -50,6 +49,14 @@ def _pose_error(poses: dict[str, np.ndarray], truth: dict[str, np.ndarray]) -> d
             "rotation_median_deg": float(np.median(dr)), "rotation_max_deg": float(np.max(dr))}
 
 
+def _stage_timer(report: dict):
+    """``timed(name, t0)`` records a stage's wall seconds since ``t0`` in ``report["stages"]``."""
+    def timed(name: str, t0: float) -> None:
+        report["stages"][name] = round(time.perf_counter() - t0, 3)
+
+    return timed
+
+
 def register_scan(scan: Scan, out: Path, blur_margin: float = BLUR_MARGIN, progress: bool = True,
                   reference_poses: dict[str, np.ndarray] | None = None,
                   cache: StageCache | None = None) -> tuple[dict[str, np.ndarray], dict, str]:
@@ -57,9 +64,7 @@ def register_scan(scan: Scan, out: Path, blur_margin: float = BLUR_MARGIN, progr
     ``out/cache``. Returns (camera-from-world poses by photo name, report entries, poses key)."""
     cache = cache or StageCache(Path(out) / "cache")
     report: dict = {"stages": {}}
-
-    def timed(name: str, t0: float) -> None:
-        report["stages"][name] = round(time.perf_counter() - t0, 3)
+    timed = _stage_timer(report)
 
     # 1. photo selection
     t0 = time.perf_counter()
@@ -124,9 +129,7 @@ def reconstruct(scan: Scan, out: Path, resolution: int = 1024, model: str | None
     cache = StageCache(out / "cache")
     t_all = time.perf_counter()
     report: dict = {"scan": str(scan.folder), "stages": {}}
-
-    def timed(name: str, t0: float) -> None:
-        report["stages"][name] = round(time.perf_counter() - t0, 3)
+    timed = _stage_timer(report)
 
     poses, reg_report, h_pose = register_scan(scan, out, blur_margin, progress, reference_poses, cache)
     report["stages"].update(reg_report.pop("stages"))
@@ -151,7 +154,7 @@ def reconstruct(scan: Scan, out: Path, resolution: int = 1024, model: str | None
 
     def traces_stage(d: Path) -> None:
         photos = (read_photo(scan.photos_dir / n, scan.device).astype(np.uint8) for n in names)
-        tr, st = assemble(texels, photos, [poses[n] for n in names], scan.device, RayCaster([mesh.triangles]),
+        tr, st = trace.assemble(texels, photos, [poses[n] for n in names], scan.device, RayCaster([mesh.triangles]),
                           progress=progress, support_z=float(mesh.vertices[:, 2].min()) if scan.support_plane else None)
         np.savez(d / "traces.npz", entries=tr.entries.numpy(), offsets=tr.offsets.numpy())
         (d / "stats.json").write_text(json.dumps({"entries": st.entries, "views_used": st.views_used,

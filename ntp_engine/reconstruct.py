@@ -55,8 +55,8 @@ def model_exposure(net) -> float:
 
 def fit_traces(net, device: Device, traces: RaggedTraces, pixel_scale: float, batch: int = 4096,
                progress: bool = False) -> dict[str, np.ndarray]:
-    """Network + geometry fit + RGB albedo per trace. ``pixel_scale`` is what ``assemble`` applied
-    to the linear pixels (undone for the physical albedo LS). Returns per-trace arrays in the
+    """Network + geometry fit + RGB albedo per trace. ``pixel_scale`` is the factor the traces' linear
+    pixels were scaled by to the model's exposure (undone for the physical albedo LS). Returns per-trace arrays in the
     texel's geometric frame: n_loc, t_loc (N, 3), alpha (N, 2), flags (N,), rho_d, rho_s (N, 3)."""
     N = traces.num_traces
     n_loc, t_loc = np.zeros((N, 3)), np.zeros((N, 3))

@@ -100,6 +100,18 @@ def emitter_clusters(device: Device, k: int) -> tuple[np.ndarray, np.ndarray]:
     return centres, assign.reshape(pts.shape[:2])
 
 
+def look_at(position: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """Camera-from-world 4x4 (OpenCV axes: x right, y down, z forward) at ``position`` looking at
+    ``target``, level with world z up."""
+    z = (target - position) / np.linalg.norm(target - position)
+    x = np.cross(z, [0.0, 0.0, 1.0])  # right = forward x up
+    x /= np.linalg.norm(x)
+    R = np.stack([x, np.cross(z, x), z])  # rows: camera axes in world coordinates
+    pose = np.eye(4)
+    pose[:3, :3], pose[:3, 3] = R, -R @ position
+    return pose
+
+
 def trajectory(center: np.ndarray, device: Device, cfg: ScanConfig, rng: np.random.Generator) -> list[np.ndarray]:
     """Camera-from-world 4x4 poses of a hand-held sweep around ``center``."""
     working = float(np.linalg.norm(device.valid_center))
@@ -112,18 +124,11 @@ def trajectory(center: np.ndarray, device: Device, cfg: ScanConfig, rng: np.rand
         el = float(np.clip(el, e0, e1))
         d = np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)])
         centre = center + (working + rng.normal(0, cfg.distance_jitter)) * d
-        aim = center + rng.normal(0, cfg.aim_jitter, 3)
-        z = aim - centre
-        z /= np.linalg.norm(z)
-        up = np.array([0.0, 0.0, 1.0])
-        x = np.cross(z, up)  # OpenCV: x right, y down; right = forward x up
-        x /= np.linalg.norm(x)
-        y = np.cross(z, x)
+        pose = look_at(centre, center + rng.normal(0, cfg.aim_jitter, 3))
+        x, y = pose[0, :3].copy(), pose[1, :3].copy()
         roll = math.radians(rng.normal(0, cfg.roll_deg))
-        x, y = math.cos(roll) * x + math.sin(roll) * y, -math.sin(roll) * x + math.cos(roll) * y
-        R = np.stack([x, y, z])  # rows: camera axes in world coordinates
-        pose = np.eye(4)
-        pose[:3, :3], pose[:3, 3] = R, -R @ centre
+        pose[0, :3], pose[1, :3] = math.cos(roll) * x + math.sin(roll) * y, -math.sin(roll) * x + math.cos(roll) * y
+        pose[:3, 3] = -pose[:3, :3] @ centre
         poses.append(pose)
     return poses
 

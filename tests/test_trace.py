@@ -6,7 +6,7 @@ from ntp_engine.measurement import measurement_rgb
 from ntp_engine.raycast import RayCaster
 from ntp_engine.texels import rasterize
 from ntp_engine.trace import MIN_COS_VIEW, assemble
-from ntp_engine.virtual_scan import ScanConfig, Scene, load_asset, scaled_device, trajectory
+from ntp_engine.virtual_scan import ScanConfig, Scene, load_asset, look_at, scaled_device, trajectory
 
 
 def test_traces_from_a_virtual_scan_match_the_renderer_and_respect_the_filters():
@@ -47,15 +47,6 @@ def test_photos_whose_leds_the_support_shadows_are_skipped():
     mesh, _, _ = load_asset(None, None, None)
     cam = scaled_device(Device.load(), 0.05)
     tx = rasterize(mesh, (16, 16))
-
-    def look_at(c, target):
-        z = (target - c) / np.linalg.norm(target - c)
-        x = np.cross(z, [0.0, 0.0, 1.0]) if abs(z[2]) < 0.99 else np.array([1.0, 0, 0])  # y down
-        x /= np.linalg.norm(x)
-        m = np.eye(4)
-        m[:3, :3] = np.stack([x, np.cross(z, x), z])
-        m[:3, 3] = -m[:3, :3] @ c
-        return m
 
     target = np.array([0.0, 0.0, 0.03])
     above = look_at(target + [0.0, -0.15, 0.27], target)  # the panel is well above the table
