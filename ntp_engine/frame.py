@@ -71,6 +71,22 @@ def to_world(v: Tensor, frame: Tensor) -> Tensor:
     return torch.stack([v0 * frame[..., 0, i] + v1 * frame[..., 1, i] + v2 * frame[..., 2, i] for i in range(3)], -1)
 
 
+def rotation_from_vector(r: Tensor) -> Tensor:
+    """Rotation matrices ``(..., 3, 3)`` from rotation vectors ``r (..., 3)`` (axis * angle, radians;
+    Rodrigues). Convention: right-handed, ``R @ v`` rotates column vectors; ``r = 0`` gives identity
+    (the series form keeps small angles exact, no division by the angle)."""
+    theta2 = (r * r).sum(-1, keepdim=True)[..., None]
+    small = theta2 < 1e-8
+    safe = torch.where(small, torch.ones_like(theta2), theta2).sqrt()  # no sqrt'(0) in the graph
+    a = torch.where(small, 1 - theta2 / 6, torch.sin(safe) / safe)
+    b = torch.where(small, 0.5 - theta2 / 24, (1 - torch.cos(safe)) / (safe * safe))
+    zero = torch.zeros_like(r[..., 0])
+    K = torch.stack([zero, -r[..., 2], r[..., 1], r[..., 2], zero, -r[..., 0], -r[..., 1], r[..., 0], zero],
+                    -1).reshape(*r.shape[:-1], 3, 3)
+    eye = torch.eye(3, dtype=r.dtype, device=r.device).expand_as(K)
+    return eye + a * K + b * (K @ K)
+
+
 def reflect(v: Tensor, n: Tensor) -> Tensor:
     """Mirror direction of ``v`` about unit ``n`` (both pointing away from the surface)."""
     return 2.0 * (v * n).sum(-1, keepdim=True) * n - v

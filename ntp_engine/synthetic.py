@@ -24,7 +24,7 @@ from torch import Tensor
 
 from .brdf import ALPHA_MAX, ALPHA_MIN, RHO_D_MAX, RHO_S_MAX
 from .device import Device
-from .frame import any_tangent, safe_normalize
+from .frame import any_tangent, rotation_from_vector, safe_normalize
 from .lumitexel import render_lumitexels
 from .measurement import emitter_terms, view_highlight_ratio
 
@@ -38,6 +38,11 @@ class SyntheticConfig:
     roughness_jitter: float = 0.15  # per-view multiplicative N(1, sigma) on alphas
     min_cos_view: float = 0.3  # wo . n^ > 0.3, the pipeline's grazing test
     rho_s_max: float = RHO_S_MAX
+    # a hand-held sweep sees a point from correlated directions (DESIGN: docs/network.md): this
+    # fraction of traces rotates one scanner pose per trace by a random rotation per view whose
+    # rotation vector is N(0, sigma^2 I), sigma log-uniform in sweep_sigma (radians)
+    sweep_fraction: float = 0.5
+    sweep_sigma: tuple[float, float] = (0.05, 0.6)
 
 
 @dataclass
@@ -113,6 +118,17 @@ def sample_visible_normals(x: Tensor, min_cos: float, gen: torch.Generator) -> T
     return cos[..., None] * wo + sin[..., None] * side
 
 
+def sweep_frames(n_geo: Tensor, t_geo: Tensor, sigma: Tensor, gen: torch.Generator) -> tuple[Tensor, Tensor]:
+    """Geometric frames of a hand-held sweep: view 0's frame ``n_geo, t_geo (B, V, 3)`` rotated per
+    view by a rotation vector ~ N(0, sigma^2 I), ``sigma (B,)`` radians (camera space). Normal and
+    tangent turn together (the scanner's roll is correlated too). Views may leave the visible cone:
+    the caller masks them as the pipeline's grazing test would."""
+    B, V, _ = n_geo.shape
+    r = sigma[:, None, None] * torch.randn(B, V, 3, generator=gen, dtype=n_geo.dtype, device=n_geo.device)
+    rot = rotation_from_vector(r)
+    return (rot @ n_geo[:, :1, :, None])[..., 0], (rot @ t_geo[:, :1, :, None])[..., 0]
+
+
 def sample_batch(device_cal: Device, batch: int, gen: torch.Generator, cfg: SyntheticConfig | None = None,
                  dtype=torch.float32, device=None, views: int | None = None) -> TraceBatch:
     """One batch of synthetic traces. ``views`` fixes every trace's length (else random per trace)."""
@@ -133,6 +149,14 @@ def sample_batch(device_cal: Device, batch: int, gen: torch.Generator, cfg: Synt
     x = sample_positions(device_cal, (batch, V), gen, dtype, device)
     n_geo = sample_visible_normals(x, cfg.min_cos_view, gen)
     t_geo = _random_orthogonal(n_geo, gen)
+    seen = torch.ones(batch, V, dtype=torch.bool, device=device)
+    if cfg.sweep_fraction > 0:
+        sweep = torch.rand(batch, generator=gen, dtype=dtype, device=device) < cfg.sweep_fraction
+        sigma = _log_uniform((batch,), *cfg.sweep_sigma, gen, dtype, device)
+        n_sw, t_sw = sweep_frames(n_geo, t_geo, sigma, gen)
+        n_geo = torch.where(sweep[:, None, None], n_sw, n_geo)
+        t_geo = torch.where(sweep[:, None, None], t_sw, t_geo)
+        seen = (safe_normalize(-x) * n_geo).sum(-1) > cfg.min_cos_view
     b_geo = torch.linalg.cross(n_geo, t_geo, dim=-1)
     geo = torch.stack([t_geo, b_geo, n_geo], dim=-2)  # (B, V, 3, 3) rows
     n_cam = (geo * n_local[:, None, :, None]).sum(-2)
@@ -151,7 +175,7 @@ def sample_batch(device_cal: Device, batch: int, gen: torch.Generator, cfg: Synt
         lengths = torch.randint(cfg.views_min, cfg.views_max + 1, (batch,), generator=gen, device=device)
     else:
         lengths = torch.full((batch,), V, device=device)
-    mask = torch.arange(V, device=device)[None, :] < lengths[:, None]
+    mask = (torch.arange(V, device=device)[None, :] < lengths[:, None]) & seen
 
     d, s = render_lumitexels(n_local, t_local, p["rho_d"].mean(-1, keepdim=True), p["rho_s"].mean(-1, keepdim=True),
                              p["alpha_x"], p["alpha_y"])

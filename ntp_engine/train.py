@@ -38,6 +38,7 @@ class TrainConfig:
     checkpoint_every: int = 250
     val_batches: int = 8
     views_max: int = 64
+    sweep_fraction: float = 0.5  # traces whose views come from a correlated hand-held sweep
 
 
 def _step_generator(seed: int, step: int, device) -> torch.Generator:
@@ -106,7 +107,8 @@ def train(out: Path, ncfg: NetworkConfig, tcfg: TrainConfig, device_path: Path |
     out.mkdir(parents=True, exist_ok=True)
     torch_device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
     device_cal = Device.load(device_path)
-    scfg = SyntheticConfig(views_min=min(16, tcfg.views_max), views_max=tcfg.views_max)
+    scfg = SyntheticConfig(views_min=min(16, tcfg.views_max), views_max=tcfg.views_max,
+                           sweep_fraction=tcfg.sweep_fraction)
     ckpt_path = out / "checkpoint.pt"
     model = TraceNet(ncfg, device_cal).to(torch_device)
     params = [p for n, p in model.named_parameters() if p.requires_grad and n != "pattern_logits"]

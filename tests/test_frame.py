@@ -1,6 +1,7 @@
 import torch
 
-from ntp_engine.frame import any_tangent, frame_from_normal_tangent, safe_normalize, to_local, to_world
+from ntp_engine.frame import (any_tangent, frame_from_normal_tangent, rotation_from_vector, safe_normalize, to_local,
+                              to_world)
 
 F64 = torch.float64
 
@@ -45,3 +46,18 @@ def test_safe_normalize_zero_has_finite_gradient():
     out.sum().backward()
     assert torch.equal(out, torch.tensor([[0, 0, 1.0], [0, 0, 1.0]]))
     assert torch.isfinite(v.grad).all()
+
+
+def test_rotation_from_vector():
+    r = torch.randn(1000, 3, dtype=torch.float64) * torch.logspace(-9, 0.5, 1000, dtype=torch.float64)[:, None]
+    R = rotation_from_vector(r)
+    eye = torch.eye(3, dtype=torch.float64).expand_as(R)
+    torch.testing.assert_close(R.transpose(-1, -2) @ R, eye, atol=1e-12, rtol=0)
+    torch.testing.assert_close(torch.linalg.det(R), torch.ones(1000, dtype=torch.float64))
+    torch.testing.assert_close((R @ r[..., None])[..., 0], r)  # the axis stays put
+    quarter = rotation_from_vector(torch.tensor([0.0, 0.0, torch.pi / 2], dtype=torch.float64))
+    torch.testing.assert_close(quarter @ torch.tensor([1.0, 0, 0], dtype=torch.float64),
+                               torch.tensor([0.0, 1, 0], dtype=torch.float64))  # right-handed
+    z = torch.zeros(3, requires_grad=True)
+    rotation_from_vector(z).sum().backward()
+    assert torch.isfinite(z.grad).all()
