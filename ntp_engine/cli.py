@@ -69,6 +69,8 @@ def _parser() -> argparse.ArgumentParser:
                     help="learning rate of the lighting layer (default: --lr; the pattern moves slowly at 3e-4)")
     tr.add_argument("--seed", type=int, default=0, help="data seed")
     tr.add_argument("--views", type=int, default=64, help="maximum trace length in training")
+    tr.add_argument("--init-from", type=Path, default=None,
+                    help="start a new run from another run's weights and step (the pattern setting may differ)")
     tr.add_argument("--sweep-fraction", type=float, default=0.5,
                     help="fraction of training traces seen from a correlated hand-held sweep (else i.i.d. views)")
     tr.add_argument("--pattern", default="learned",
@@ -180,7 +182,7 @@ def main(argv: list[str] | None = None) -> int:
             tcfg = TrainConfig(steps=args.steps, batch=args.batch, lr=args.lr, pattern_lr=args.pattern_lr, seed=args.seed,
                                views_max=args.views, validate_every=args.validate_every,
                                sweep_fraction=args.sweep_fraction)
-            result = train(args.out, ncfg, tcfg, args.device, resume=args.resume)
+            result = train(args.out, ncfg, tcfg, args.device, resume=args.resume, init_from=args.init_from)
             print(f"step {result['step']}: validation loss {result['val_loss']:.4f} "
                   f"(diffuse {result['val_diffuse']:.4f}, specular {result['val_specular']:.3f})")
             if args.export:

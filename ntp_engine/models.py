@@ -69,6 +69,7 @@ def export(checkpoint: Path, folder: Path, summary: dict) -> None:
                                                           "device_gain": float(ck["model"]["gain"])}, indent=2))
     write_text_atomic(folder / "summary.json", json.dumps({"steps": ck["step"], "data_seed": ck["train"]["seed"],
                                                            "batch": ck["train"]["batch"], "lr": ck["train"]["lr"],
+                                                           "sweep_fraction": ck["train"].get("sweep_fraction", 0.0),
                                                            **summary}, indent=2))
 
 

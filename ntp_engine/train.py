@@ -102,8 +102,34 @@ def _match_optimizer_order(state: dict, opt: torch.optim.Optimizer) -> dict:
     return {"state": new_state, "param_groups": groups}
 
 
+def _warm_start(model: TraceNet, ncfg: NetworkConfig, source: Path, torch_device) -> tuple[int, int]:
+    """Load another run's weights into ``model`` (same preset, any pattern setting); returns that
+    run's (step, data seed) so the new run continues its data stream. The new run's pattern starts
+    at the source's pattern scaled to a maximum of 0.5: auto-exposure measures a scaled pattern
+    identically, and at 0.5 the sigmoid's gradient is largest (a full-on source, frozen at 1, would
+    otherwise never move). A frozen new pattern keeps its own value. The optimiser starts afresh."""
+    path = source / "checkpoint.pt" if source.is_dir() else source
+    if not path.is_file():
+        raise SystemExit(f"{path}: no checkpoint to start from")
+    ck = torch.load(path, map_location=torch_device, weights_only=False)
+    other = {k: v for k, v in ck["network"].items() if k != "frozen_pattern"}
+    if other != {k: v for k, v in ncfg.to_dict().items() if k != "frozen_pattern"}:
+        raise SystemExit(f"{path}: trained with a different network config (only the pattern may differ)")
+    state = dict(ck["model"])
+    if ncfg.frozen_pattern is None:
+        p = torch.sigmoid(state["pattern_logits"].double())
+        p = (0.5 * p / p.max().clamp_min(1e-12)).clamp(1e-6, 1 - 1e-6)
+        state["pattern_logits"] = torch.log(p / (1 - p)).to(state["pattern_logits"].dtype)
+    else:
+        state["pattern_logits"] = model.pattern_logits.detach().clone()
+    model.load_state_dict(state)
+    return int(ck["step"]), int(ck["train"]["seed"])
+
+
 def train(out: Path, ncfg: NetworkConfig, tcfg: TrainConfig, device_path: Path | None = None,
-          resume: bool = False, progress: bool = True) -> dict:
+          resume: bool = False, progress: bool = True, init_from: Path | None = None) -> dict:
+    """Train into ``out`` (see the module docstring). ``init_from``: a run folder or checkpoint whose
+    weights and step start this new run (``_warm_start``); ignored when resuming."""
     out.mkdir(parents=True, exist_ok=True)
     torch_device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
     device_cal = Device.load(device_path)
@@ -134,6 +160,9 @@ def train(out: Path, ncfg: NetworkConfig, tcfg: TrainConfig, device_path: Path |
         print(f"resuming {ckpt_path} at step {step}")
     elif ckpt_path.exists() and not resume:
         raise SystemExit(f"{ckpt_path}: exists; pass --resume to continue it or choose another --out")
+    elif init_from is not None:
+        step, tcfg.seed = _warm_start(model, ncfg, Path(init_from), torch_device)
+        print(f"starting from {init_from} at step {step}")
     write_text_atomic(out / "config.json", json.dumps({"network": ncfg.to_dict(), "train": asdict(tcfg),
                                                         "device": device_cal.name, "parameters": num_parameters(model)},
                                                        indent=2))

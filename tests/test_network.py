@@ -1,3 +1,4 @@
+import pytest
 import torch
 
 from ntp_engine.device import Device
@@ -138,3 +139,33 @@ def test_resume_matches_optimizer_state_saved_in_another_parameter_order():
     new.load_state_dict(_match_optimizer_order(old.state_dict(), new))
     for p in (a, b, c):
         assert torch.equal(new.state[p]["exp_avg"], old.state[p]["exp_avg"])
+
+
+def test_warm_start_from_a_frozen_full_on_run_measures_the_same_and_learns(tmp_path):
+    from ntp_engine.synthetic import sample_batch
+    from ntp_engine.train import TrainConfig, train
+
+    tc = dict(batch=4, validate_every=2, val_batches=1, views_max=8)
+    src, dst = tmp_path / "full_on", tmp_path / "learned"
+    train(src, NetworkConfig(preset="small", frozen_pattern="full_on"), TrainConfig(steps=2, **tc), progress=False)
+    train(dst, NetworkConfig(preset="small"), TrainConfig(steps=4, pattern_lr=0.05, **tc), progress=False,
+          init_from=src)
+    a, b = (torch.load(r / "checkpoint.pt", weights_only=False) for r in (src, dst))
+    assert b["step"] == 4 and b["train"]["seed"] == a["train"]["seed"]
+    # the learned pattern started at 0.5 (auto-exposure sees full-on) and moved; the rest came along
+    assert 0.4 < torch.sigmoid(b["model"]["pattern_logits"]).mean() < 0.6
+    assert not torch.allclose(b["model"]["pattern_logits"], torch.zeros_like(b["model"]["pattern_logits"]))
+    # at the start, the two measure a batch identically (no noise): the warm start changes nothing
+    dev = Device.load()
+    full, half = TraceNet(NetworkConfig(preset="small", frozen_pattern="full_on"), dev), TraceNet(NetworkConfig(preset="small"), dev)
+    with torch.no_grad():
+        half.pattern_logits.zero_()
+    batch = sample_batch(dev, 4, torch.Generator().manual_seed(0), views=6)
+    (p1, v1), (p2, v2) = full.measure_batch(batch, noise=False), half.measure_batch(batch, noise=False)
+    assert torch.equal(v1, v2) and torch.allclose(p1, p2, atol=1.5 / 255)
+    with pytest.raises(SystemExit, match="different network config"):
+        train(tmp_path / "other", NetworkConfig(preset="compact"), TrainConfig(steps=1, **tc), progress=False,
+              init_from=src)
+    with pytest.raises(SystemExit, match="no checkpoint"):
+        train(tmp_path / "none", NetworkConfig(preset="small"), TrainConfig(steps=1, **tc), progress=False,
+              init_from=tmp_path / "missing")
