@@ -5,7 +5,9 @@ space (n^ faces the camera with wo.n^ > 0.3, t^ random orthogonal: a random scan
 fixed *shading* frame (n, t) expressed in the geometric frame: n is n^ = +z perturbed by a random
 orthogonal vector of length ~ N(0, 0.15) (Eq. 4's imprecise geometric normal), t random
 orthogonal to n. The same local shading frame is used in every view (a rigid object), so the true
-camera-space frame of view j is n_j = F^_j^T n, t_j = F^_j^T t. The labels are the grayscale
+camera-space frame of view j is n_j = F^_j^T n, t_j = F^_j^T t. The views' geometric frames are
+i.i.d., or — for ``sweep_fraction`` of the traces — one pose per trace turned by small correlated
+rotations (``sweep_frames``), as a hand-held sweep sees a point. The labels are the grayscale
 (channel-mean rho) lumitexels in the geometric frame, which is also the network's output frame.
 
 What stays *outside* this module, because it depends on the (learned) pattern: the measurement

@@ -108,3 +108,18 @@ def test_padded_subsampling_spreads_over_the_trace():
     assert ms.sum(1).tolist() == [2, 4, 4]
     assert sub[1, :, 0].tolist() == [2.0, 5.0, 8.0, 11.0]  # first, evenly spread, last
     assert sub[0, :2, 0].tolist() == [0.0, 1.0] and (sub[0, 2:] == 0).all()
+
+
+def test_bench_network_trains_the_pattern_comparison_from_shared_halfway_networks():
+    """The Fig. 14 protocol without --quick: optimised and full-on continue the same half-way
+    full-on network; only the optimised one's pattern moves."""
+    from ntp_engine.bench import network as bench_network
+
+    nets = bench_network._comparison_models(False, 2, Device.load())
+    assert set(nets) == {"optimized", "full_on", "point"}
+    opt, full, point = (nets[k].pattern().detach() for k in ("optimized", "full_on", "point"))
+    assert (full > 0.99).all() and (point > 0.99).all(1).sum() == 1
+    assert 0.4 < float(opt.mean()) < 0.6 and float(opt.std()) > 0  # started at 0.5 and learned
+    shared = [k for k in nets["full_on"].state_dict() if k.startswith("encoder")]
+    assert shared and all(nets["optimized"].state_dict()[k].shape == nets["full_on"].state_dict()[k].shape
+                          for k in shared)

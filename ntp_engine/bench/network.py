@@ -4,8 +4,12 @@ and the shipped model's inference rate.
 - ``val_loss_by_pattern``: Eq. 5 validation loss of three networks that differ only in their
   pattern (jointly optimised, fixed full-on, fixed single point light; paper Fig. 14). ``--quick``
   reads the comparison networks shipped in ``assets/models/compare_*``; otherwise they are trained
-  here first (``--steps``). Either way they are evaluated on validation data generated now, with a
-  seed no training run used.
+  here first (``--steps`` each, ``small`` preset): full-on and point for half the steps, then every
+  network goes on from there for the other half (``train --init-from``, fresh Adam) — the optimised
+  one from the full-on network with its pattern learning (``PATTERN_LR``), starting from what
+  auto-exposure measures as full-on. So optimised and full-on differ only in what the pattern
+  learning did. Either way they are evaluated on ``PATTERN_BATCHES`` batches of validation data
+  generated now, with a seed no training run used.
 - ``val_loss_by_test_views``: the shipped model on traces of exactly 8 ... 128 views (Fig. 16).
 - ``traces_per_s``: the shipped model on 64-view traces through the inference API.
 """
@@ -27,6 +31,8 @@ from . import dump_json, print_table
 
 PATTERNS = {"optimized": "learned", "full_on": "full_on", "point": "point"}
 BENCH_SEED = 424_242  # training uses seeds 0.., validation 1_000_003..: this data is new to every model
+PATTERN_LR = 3e-3  # the lighting layer's own learning rate in the comparison (docs/network.md)
+PATTERN_BATCHES = 64  # 4096 traces: the three losses differ by less than 8 batches' noise
 
 
 def evaluate(model, device: Device, views: int | None, batches: int, batch: int = 64, seed: int = BENCH_SEED) -> float:
@@ -36,17 +42,20 @@ def evaluate(model, device: Device, views: int | None, batches: int, batch: int 
 
 
 def _comparison_models(quick: bool, steps: int, device: Device) -> dict:
+    if quick:
+        return {name: models.load(models.MODELS_DIR / f"compare_{name}", device)[0] for name in PATTERNS}
+    root = Path(tempfile.mkdtemp(prefix="ntp-bench-network-"))
+    tc = lambda n, **kw: TrainConfig(steps=n, validate_every=max(n // 4, 1), val_batches=2, **kw)  # log only
+    for name in ("full_on", "point"):  # first half
+        train(root / f"{name}_half", NetworkConfig(preset="small", frozen_pattern=name), tc(steps // 2))
     out = {}
-    for name, pattern in PATTERNS.items():
-        if quick:
-            net, _ = models.load(models.MODELS_DIR / f"compare_{name}", device)
-        else:
-            run = Path(tempfile.mkdtemp(prefix=f"ntp-bench-{name}-"))
-            train(run, NetworkConfig(preset="small", frozen_pattern=None if pattern == "learned" else pattern),
-                  TrainConfig(steps=steps, validate_every=max(steps // 4, 1)))
-            models.export(run / "checkpoint.pt", run / "model", {})
-            net, _ = models.load(run / "model", device)
-        out[name] = net
+    for name, pattern in PATTERNS.items():  # second half, every network from a half-way checkpoint
+        frozen = None if pattern == "learned" else pattern
+        source = root / ("point_half" if name == "point" else "full_on_half")
+        train(root / name, NetworkConfig(preset="small", frozen_pattern=frozen),
+              tc(steps, pattern_lr=PATTERN_LR if frozen is None else None), init_from=source)
+        models.export(root / name / "checkpoint.pt", root / name / "model", {})
+        out[name] = models.load(root / name / "model", device)[0]
     return out
 
 
@@ -67,14 +76,15 @@ def traces_per_second(model, device: Device, traces: int = 4096, views: int = 64
 def run(quick: bool = False, steps: int = 3000, json_path=None, batches: int | None = None,
         rate_traces: int = 4096) -> dict:
     device = Device.load()
-    batches = batches or (8 if quick else 32)
+    pattern_batches = batches or PATTERN_BATCHES
+    batches = batches or (16 if quick else 32)
     nets = _comparison_models(quick, steps, device)
-    by_pattern = {name: evaluate(net, device, None, batches) for name, net in nets.items()}
+    by_pattern = {name: evaluate(net, device, None, pattern_batches) for name, net in nets.items()}
     shipped, meta = models.load(None, device)
     by_views = {str(v): evaluate(shipped, device, v, batches if v <= 64 else max(batches // 2, 1))
                 for v in (8, 16, 32, 64, 128)}
     rate = traces_per_second(shipped, device, traces=rate_traces)
-    print(f"validation loss (Eq. 5) on {batches * 64} fresh traces per entry")
+    print(f"validation loss (Eq. 5) on fresh traces: {pattern_batches * 64} per pattern, {batches * 64} per view count")
     print_table([(k, f"{v:.4f}") for k, v in by_pattern.items()], ("pattern (preset small)", "val loss"))
     print()
     print_table([(k, f"{v:.4f}") for k, v in by_views.items()], (f"test views ({meta['network']['preset']})", "val loss"))
