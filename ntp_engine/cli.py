@@ -114,6 +114,22 @@ def _parser() -> argparse.ArgumentParser:
     return p
 
 
+def _scan(args, poses: Path | None = None):
+    """The scan folder of ``args.scan`` with ``--device`` (if given) in place of scan.toml's device."""
+    from .scan import load_scan
+
+    scan = load_scan(args.scan, poses)
+    if args.device:
+        from .device import Device
+
+        scan.device = Device.load(args.device)
+    return scan
+
+
+def _alignment_note(reg: dict) -> str:
+    return f", alignment residual {reg['alignment']['residual_m'] * 1e3:.2f} mm" if "alignment" in reg else ""
+
+
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     try:
@@ -127,34 +143,21 @@ def main(argv: list[str] | None = None) -> int:
 
             from .atomic import write_text_atomic
             from .pipeline import register_scan
-            from .scan import load_scan
 
-            scan = load_scan(args.scan)
-            if args.device:
-                from .device import Device
-
-                scan.device = Device.load(args.device)
-            poses, rep, _ = register_scan(scan, args.out, args.blur_margin, progress=not args.quiet)
+            poses, rep, _ = register_scan(_scan(args), args.out, args.blur_margin, progress=not args.quiet)
             write_text_atomic(args.out / "poses.json", json.dumps({n: m.tolist() for n, m in poses.items()}, indent=1))
             write_text_atomic(args.out / "registration.json", json.dumps(rep, indent=2))
             reg = rep["registration"]
-            extra = f", alignment residual {reg['alignment']['residual_m'] * 1e3:.2f} mm" if "alignment" in reg else ""
-            print(f"{len(poses)} photos registered ({reg['source']}){extra}; wrote {args.out / 'poses.json'}")
+            print(f"{len(poses)} photos registered ({reg['source']}){_alignment_note(reg)}; "
+                  f"wrote {args.out / 'poses.json'}")
         elif args.command == "reconstruct":
             from .pipeline import reconstruct
-            from .scan import load_scan
 
-            scan = load_scan(args.scan, args.poses)
-            if args.device:
-                from .device import Device
-
-                scan.device = Device.load(args.device)
-            rep = reconstruct(scan, args.out, resolution=args.resolution,
+            rep = reconstruct(_scan(args, args.poses), args.out, resolution=args.resolution,
                               model=args.model, blur_margin=args.blur_margin, progress=not args.quiet)
-            reg = rep["registration"]
-            extra = f", alignment residual {reg['alignment']['residual_m'] * 1e3:.2f} mm" if "alignment" in reg else ""
             print(f"wrote {args.out}: {rep['texels']['coverage']:.1%} of {rep['texels']['total']} texels observed, "
-                  f"{rep['photos']['used']} of {rep['photos']['total']} photos used{extra}, {rep['seconds']:.1f} s")
+                  f"{rep['photos']['used']} of {rep['photos']['total']} photos used"
+                  f"{_alignment_note(rep['registration'])}, {rep['seconds']:.1f} s")
         elif args.command == "device":
             from .device import Device, list_devices
 

@@ -321,6 +321,18 @@ def _gauss_newton(m, idx, n, t, ax, ay, rho, active, steps):
 
 
 # ------------------------------------------------------------------------- unseen highlights
+def _parked(position: Tensor, mask: Tensor) -> Tensor:
+    """``position (N, V, 3)`` with padded entries moved to a harmless point in front of the camera."""
+    return torch.where(mask[..., None], position, torch.tensor([0.0, 0.0, 0.3], dtype=position.dtype))
+
+
+def _albedo_bases(device, pattern: Tensor, a_l: Tensor, s_l: Tensor) -> tuple[Tensor, Tensor]:
+    """Pixel values of a unit diffuse and a unit specular surface under ``pattern`` (auto-exposed),
+    from the factorised Eq. 1 terms ``(..., L)``: ``(..., 3)`` each."""
+    p_eff, exposure = device.effective_pattern(pattern), device.exposure(pattern)
+    return exposure * (a_l @ p_eff) / math.pi, exposure * (s_l @ p_eff)
+
+
 def _to_views(geometry: GeometryFit, normal_geo: Tensor, tangent_geo: Tensor) -> tuple[Tensor, Tensor]:
     """The fitted shading frame (lumitexel frame) in each view's camera space ``(N, V, 3)``."""
     dtype = normal_geo.dtype
@@ -339,7 +351,7 @@ def flag_unseen_highlights(device, position: Tensor, normal_geo: Tensor, tangent
     from .measurement import confidence
 
     n_cam, t_cam = _to_views(geometry, normal_geo, tangent_geo)
-    x = torch.where(mask[..., None], position, torch.tensor([0.0, 0.0, 0.3], dtype=position.dtype))
+    x = _parked(position, mask)
     beta = confidence(device, x, n_cam, t_cam, geometry.alpha_x.to(x.dtype), geometry.alpha_y.to(x.dtype),
                       geometry.rho_s.to(x.dtype), valid=mask)
     _fall_back_where_unseen(geometry, beta)
@@ -432,13 +444,9 @@ def fit_albedo(device, pattern: Tensor | None, pixels: Tensor, position: Tensor,
     ax = geometry.alpha_x.to(dtype)[:, None].expand(N, V)
     ay = geometry.alpha_y.to(dtype)[:, None].expand(N, V)
     p = torch.as_tensor(device.pattern, dtype=dtype) if pattern is None else pattern.to(dtype)
-    exposure = device.exposure(p)
-    x = torch.where(mask[..., None], position, torch.tensor([0.0, 0.0, 0.3], dtype=dtype))
     # one pass gives both bases: a unit diffuse and a unit specular surface under the pattern
-    a_l, s_l = emitter_terms(device, x, n_cam, t_cam, ax, ay, visibility)
-    p_eff = device.effective_pattern(p)
-    basis_d = exposure * (a_l @ p_eff) / math.pi
-    basis_s = exposure * (s_l @ p_eff)
+    a_l, s_l = emitter_terms(device, _parked(position, mask), n_cam, t_cam, ax, ay, visibility)
+    basis_d, basis_s = _albedo_bases(device, p, a_l, s_l)
     rd, rs = _albedo_ls(basis_d, basis_s, pixels, mask, geometry.rho_s, prior_weight)
     return rd.to(dtype), rs.to(dtype)
 
@@ -456,7 +464,7 @@ def highlights_and_albedo(device, pixels: Tensor, position: Tensor, normal_geo: 
     dtype = pixels.dtype
     N, V = mask.shape
     n_cam, t_cam = _to_views(geometry, normal_geo, tangent_geo)
-    x = torch.where(mask[..., None], position, torch.tensor([0.0, 0.0, 0.3], dtype=dtype))
+    x = _parked(position, mask)
     geo = local_emitter_geometry(device, x.reshape(-1, 3), n_cam.reshape(-1, 3), t_cam.reshape(-1, 3))
     per_entry = lambda a: a.to(dtype)[:, None].expand(N, V).reshape(-1)
     ax, ay = per_entry(geometry.alpha_x), per_entry(geometry.alpha_y)
@@ -470,9 +478,7 @@ def highlights_and_albedo(device, pixels: Tensor, position: Tensor, normal_geo: 
         f = torch.full((len(redo),), FALLBACK_ALPHA, dtype=dtype)
         spec[redo] = specular_lobe(geo.rows(redo), f, f)
     a_l, s_l = terms_from_lobe(geo, spec)
-    p = torch.as_tensor(device.pattern, dtype=dtype)
-    p_eff, exposure = device.effective_pattern(p), device.exposure(p)
-    basis_d = (exposure * (a_l @ p_eff) / math.pi).reshape(N, V, 3)
-    basis_s = (exposure * (s_l @ p_eff)).reshape(N, V, 3)
+    basis_d, basis_s = _albedo_bases(device, torch.as_tensor(device.pattern, dtype=dtype),
+                                     a_l.reshape(N, V, -1), s_l.reshape(N, V, -1))
     rd, rs = _albedo_ls(basis_d, basis_s, pixels, mask, geometry.rho_s, prior_weight)
     return beta, rd.to(dtype), rs.to(dtype)

@@ -37,7 +37,7 @@ def test_sfm_end_to_end_poses_match_the_truth(tmp_path_factory, tmp_path):
     err = reg["pose_error"]
     print("pose error vs truth:", err, "alignment:", reg["alignment"])
     # SfM varies from run to run with threads
-    assert err["centre_median_m"] < 5e-3 and err["rotation_median_deg"] < 1.5  # measured 2.6-2.9 mm, 0.78-0.86 deg
+    assert err["centre_median_m"] < 5e-3 and err["rotation_median_deg"] < 1.0  # measured 2.6-2.9 mm, 0.78-0.86 deg
     assert reg["alignment"]["residual_m"] < 1e-3 and reg["alignment"]["inlier_points"] >= 8
     assert rep["texels"]["coverage"] > 0.9
     assert set(rep["stages"]) == {"select", "register", "atlas", "traces", "network_and_fit", "maps"}
