@@ -40,6 +40,22 @@ class DeviceFileError(NtpInputError):
     """A malformed device calibration file."""
 
 
+def auto_exposure(mean_drive: float | Tensor, gain: float | Tensor, full_on_drive: float | Tensor,
+                  max_exposure: float | Tensor) -> float | Tensor:
+    """Linear pixel value per unit of B: ``gain / max(mean_drive, full_on_drive / max_exposure)``.
+
+    Convention: ``mean_drive`` is the mean of ``pattern @ M^T`` over emitters and channels,
+    ``full_on_drive`` the same for the full-on pattern (``gain`` is calibrated for it). The camera's
+    exposure follows the pattern's mean drive (auto-exposure), so a dimmer pattern is not penalised,
+    but only up to ``max_exposure`` times the full-on exposure (a hand-held capture's motion-blur
+    limit): a pattern dimmer than ``full_on_drive / max_exposure`` gives darker photos."""
+    floor = full_on_drive / max_exposure
+    if isinstance(mean_drive, Tensor):
+        return gain / torch.maximum(mean_drive, torch.as_tensor(floor, dtype=mean_drive.dtype,
+                                                                device=mean_drive.device)).clamp_min(1e-12)
+    return gain / max(float(mean_drive), float(floor), 1e-12)
+
+
 @dataclass
 class Device:
     """A scanner. Arrays are float64 numpy; ``torch_arrays`` gives tensors for computation."""
@@ -66,6 +82,7 @@ class Device:
     response: str = "linear"  # 8-bit camera response: linear | gamma | srgb
     gamma: float = 2.2
     gain: float = 1.0  # linear pixel value (1 = code 255) per unit of B under the full-on pattern
+    max_exposure: float = 4.0  # longest exposure, x the full-on one (hand-held motion-blur limit)
     grid_shape: tuple[int, int] | None = None  # (columns, rows) when emitters form a grid
     description: str = ""
     source: Path | None = field(default=None, compare=False)
@@ -87,15 +104,9 @@ class Device:
         return p @ self.color_matrix.T
 
     def exposure(self, pattern: np.ndarray | Tensor | None = None) -> float | Tensor:
-        """Linear pixel value per unit of B under ``pattern``: ``gain / mean(pattern @ M^T)``.
-
-        Auto-exposure: the camera's exposure follows the pattern's mean drive, so a dimmer pattern
-        is not penalised by underexposure (``gain`` is calibrated for the full-on pattern)."""
+        """Linear pixel value per unit of B under ``pattern`` (see ``auto_exposure``)."""
         p_eff = self.effective_pattern(pattern)
-        mean = p_eff.mean()
-        if isinstance(mean, Tensor):
-            return self.gain / mean.clamp_min(1e-6)
-        return self.gain / max(float(mean), 1e-6)
+        return auto_exposure(p_eff.mean(), self.gain, float(self.color_matrix.sum(1).mean()), self.max_exposure)
 
     def emitter_samples(self, dtype=torch.float32, device=None) -> tuple[Tensor, Tensor]:
         """Quadrature points ``(L, Q, 3)`` on each emitter and weights ``(L, Q)`` summing to 1."""
@@ -228,6 +239,7 @@ class Device:
             "cx": float(self.K[0, 2]), "cy": float(self.K[1, 2]),
             "distortion": self.distortion.tolist(),
             "response": self.response, "gamma": self.gamma, "gain": self.gain,
+            "max_exposure": self.max_exposure,
         }
         return {
             "name": self.name,
@@ -326,7 +338,8 @@ def _dig(data: dict, dotted: str):
 
 _KNOWN_KEYS = {
     "": {"name", "description", "camera", "emitters", "valid_volume", "pattern"},
-    "camera": {"width", "height", "fx", "fy", "cx", "cy", "distortion", "response", "gamma", "gain"},
+    "camera": {"width", "height", "fx", "fy", "cx", "cy", "distortion", "response", "gamma", "gain",
+               "max_exposure"},
     "emitters": {"kind", "layout", "count", "pitch", "center", "axis", "v_axis", "normal", "positions",
                  "normals", "axes", "size", "quadrature", "color_matrix", "angular", "grid_shape"},
     "emitters.angular": {"kind", "exponent", "angles_deg", "values"},
@@ -357,6 +370,9 @@ def _parse(data: dict, path: Path) -> Device:
     response = r.choice(data, "camera.response", RESPONSES, default="linear")
     gamma = r.number(data, "camera.gamma", 2.2, positive=True)
     gain = r.number(data, "camera.gain", 1.0, positive=True)
+    max_exposure = r.number(data, "camera.max_exposure", 4.0, positive=True)
+    if max_exposure < 1:
+        raise r.fail("camera.max_exposure", "must be >= 1 (times the full-on pattern's exposure)")
 
     r.table(data, "emitters")  # must exist; its keys are read by dotted name below
     kind = r.choice(data, "emitters.kind", EMITTER_KINDS)
@@ -437,7 +453,8 @@ def _parse(data: dict, path: Path) -> Device:
         emitter_axes=axes, emitter_size=size, quadrature=(int(quad[0]), int(quad[1])),
         angular_kind=angular_kind, angular_exponent=exponent, angular_table=table,
         color_matrix=color_matrix, pattern=pattern, valid_center=valid_center, valid_size=valid_size,
-        valid_axes=valid_axes, response=response, gamma=gamma, gain=gain, grid_shape=grid_shape,
+        valid_axes=valid_axes, response=response, gamma=gamma, gain=gain,
+        max_exposure=max_exposure, grid_shape=grid_shape,
         source=path,
     )
 

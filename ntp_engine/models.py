@@ -1,7 +1,8 @@
 """Shipped trace networks (``assets/models/NAME/``): export from a training run, load for inference.
 
 A model folder holds ``model.pt`` (float16 state dict), ``config.json`` (network config, the
-device it was trained for and that device's gain: the exposure its inputs are normalised to), ``pattern.csv`` (the learned pattern, float) and ``summary.json``
+device it was trained for and that device's gain and exposure limit: the exposure its inputs are
+normalised to), ``pattern.csv`` (the learned pattern, float) and ``summary.json``
 (training steps, data seed, final validation losses, wall time).
 """
 from __future__ import annotations
@@ -20,7 +21,7 @@ from .network import NetworkConfig, TraceNet
 MODELS_DIR = ASSETS / "models"
 DEFAULT_MODEL = "compact"
 # buffers derived from the device file at load time, not stored with the weights
-DEVICE_BUFFERS = ("color_matrix", "gain", "pos_matrix", "pos_center")
+DEVICE_BUFFERS = ("color_matrix", "gain", "max_exposure", "pos_matrix", "pos_center")
 
 
 def resolve(name_or_path: str | Path | None) -> Path:
@@ -48,6 +49,8 @@ def load(name_or_path: str | Path | None = None, device: Device | None = None,
                             f"unexpected {unexpected})")
     if "device_gain" in meta:  # the exposure the network was trained with, whatever device is passed
         net.gain.fill_(float(meta["device_gain"]))
+    if "device_max_exposure" in meta:
+        net.max_exposure.fill_(float(meta["device_max_exposure"]))
     summary = folder / "summary.json"
     meta["summary"] = json.loads(summary.read_text()) if summary.exists() else {}
     return net.to(map_location).eval(), meta
@@ -66,7 +69,8 @@ def export(checkpoint: Path, folder: Path, summary: dict) -> None:
     with atomic_path(folder / "pattern.csv") as tmp:
         np.savetxt(tmp, pattern, delimiter=",", fmt="%.6f")
     write_text_atomic(folder / "config.json", json.dumps({"network": ck["network"], "device": ck["device"],
-                                                          "device_gain": float(ck["model"]["gain"])}, indent=2))
+                                                          "device_gain": float(ck["model"]["gain"]),
+                                                          "device_max_exposure": float(ck["model"]["max_exposure"])}, indent=2))
     write_text_atomic(folder / "summary.json", json.dumps({"steps": ck["step"], "data_seed": ck["train"]["seed"],
                                                            "batch": ck["train"]["batch"], "lr": ck["train"]["lr"],
                                                            "sweep_fraction": ck["train"].get("sweep_fraction", 0.0),

@@ -8,7 +8,8 @@ log(1 + x) of the grayscale specular lumitexel (6144), both in the trace's (n^, 
 
 In training, the lighting layer turns physical lumitexels into measurements: pattern = sigmoid(w)
 (one weight per emitter and LED colour, i.e. it *is* the pattern), B = (pattern M^T) . m_phys,
-then multiplicative noise, 8-bit quantisation (straight-through) and the pipeline's validity test
+scaled by the camera's auto-exposure (capped at ``max_exposure`` x the full-on exposure, so a
+dim pattern costs light: ``device.auto_exposure``), then multiplicative noise, 8-bit quantisation (straight-through) and the pipeline's validity test
 (every channel's code in [32, 224]) decide which views enter the trace. Max pooling is masked:
 padding or invalid entries never win; a trace with no valid entry pools to zeros.
 """
@@ -20,7 +21,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from .device import Device
+from .device import Device, auto_exposure
 
 PRESETS: dict[str, dict] = {
     # widths as published: 6 shared per-entry layers to a 1024-D feature, 5 fc, then 4 / 7 fc
@@ -101,6 +102,7 @@ class TraceNet(nn.Module):
                 self.pattern_logits.copy_(torch.as_tensor(np.log(p / (1 - p)), dtype=torch.float32))
         self.register_buffer("color_matrix", torch.as_tensor(device.color_matrix, dtype=torch.float32))
         self.register_buffer("gain", torch.tensor(float(device.gain)))
+        self.register_buffer("max_exposure", torch.tensor(float(device.max_exposure)))
         axes = torch.as_tensor(device.valid_axes, dtype=torch.float32)
         half = torch.as_tensor(device.valid_size / 2, dtype=torch.float32)
         self.register_buffer("pos_matrix", (axes / half[:, None]).T.contiguous())  # x -> box coords
@@ -122,7 +124,13 @@ class TraceNet(nn.Module):
 
     def _p_eff_exposure(self) -> tuple[Tensor, Tensor]:
         p_eff = self.pattern() @ self.color_matrix.T
-        return p_eff, self.gain / p_eff.mean().clamp_min(1e-6)  # as Device.exposure: auto-exposure
+        return p_eff, auto_exposure(p_eff.mean(), self.gain, self.color_matrix.sum(1).mean(), self.max_exposure)
+
+    def exposure(self) -> float:
+        """Linear pixel value per unit of B under this network's pattern (``Device.exposure``'s rule
+        with the gain and exposure limit it was trained with)."""
+        with torch.no_grad():
+            return float(self._p_eff_exposure()[1])
 
     def measure(self, m_phys: Tensor, length_mask: Tensor, gen: torch.Generator | None = None,
                 noise: bool = True) -> tuple[Tensor, Tensor]:
@@ -167,8 +175,8 @@ class TraceNet(nn.Module):
 def lumitexel_loss(pred_diffuse: Tensor, pred_log_specular: Tensor, label_diffuse: Tensor,
                    label_specular: Tensor, beta: Tensor, lambda_d: float = 1.0, lambda_s: float = 0.01,
                    weight: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
-    """Eq. 5, averaged over the batch: (total, diffuse part, specular part). ``weight (B,)`` drops
-    traces with no valid view."""
+    """Eq. 5, averaged over the batch: (total, diffuse part, specular part); ``weight (B,)``
+    optionally weights the traces."""
     ld = ((pred_diffuse - label_diffuse) ** 2).sum(-1)
     ls = beta * ((pred_log_specular - torch.log1p(label_specular)) ** 2).sum(-1)
     if weight is None:

@@ -26,7 +26,7 @@ from .errors import NtpInputError
 from .inference import RaggedTraces
 from .mesh import load_mesh, save_obj
 from .raycast import RayCaster
-from .reconstruct import ALBEDO_VIEWS, RHO_S_PRIOR_WEIGHT, fit_traces, model_exposure, uv_atlas, write_result
+from .reconstruct import ALBEDO_VIEWS, RHO_S_PRIOR_WEIGHT, fit_traces, uv_atlas, write_result
 from .register import MIN_REGISTERED, register
 from .scan import Scan, read_photo
 from .select import BLUR_MARGIN, Selection, select_photos
@@ -165,7 +165,7 @@ def reconstruct(scan: Scan, out: Path, resolution: int = 1024, model: str | None
                                         "max_shadowed_drive": trace.MAX_SHADOWED_DRIVE,
                                         "device": scan.device.to_dict()}, traces_stage)
     net, meta = models.load(model, scan.device)
-    scale = model_exposure(net) / float(scan.device.exposure(scan.device.pattern))
+    scale = net.exposure() / float(scan.device.exposure(scan.device.pattern))
     with np.load(folder / "traces.npz") as z:
         entries = torch.from_numpy(z["entries"])
         entries[:, :3] *= scale

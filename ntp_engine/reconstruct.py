@@ -46,13 +46,6 @@ ALBEDO_VIEWS = 16  # entries per texel for the beta check and the albedo LS (Eq.
 RHO_S_PRIOR_WEIGHT = 1.0  # the network's rho_s counts as one view in the albedo LS (fit._albedo_ls)
 
 
-def model_exposure(net) -> float:
-    """The auto-exposure the network was trained with (its own pattern); photos taken with another
-    exposure are rescaled to it before inference."""
-    p_eff = net.pattern().detach().double() @ net.color_matrix.double().T
-    return float(net.gain) / float(p_eff.mean())
-
-
 def fit_traces(net, device: Device, traces: RaggedTraces, pixel_scale: float, batch: int = 4096,
                progress: bool = False) -> dict[str, np.ndarray]:
     """Network + geometry fit + RGB albedo per trace. ``pixel_scale`` is the factor the traces' linear

@@ -53,8 +53,9 @@ def batch_loss(model: TraceNet, batch: TraceBatch, gen: torch.Generator, noise: 
     beta = confidence_from_ratios(batch.highlight_ratio, valid)
     entries = model.entries(pixel, batch.position, batch.normal_geo, batch.tangent_geo)
     pred_d, pred_s = model(entries, valid)
-    has_view = valid.any(1).to(pred_d.dtype)
-    total, ld, ls = lumitexel_loss(pred_d, pred_s, batch.label_diffuse, batch.label_specular, beta, weight=has_view)
+    # a trace left with no valid view still counts: the network answers it from the pooled zeros
+    # (its prior), so a pattern that leaves traces empty pays for them (Fig. 14)
+    total, ld, ls = lumitexel_loss(pred_d, pred_s, batch.label_diffuse, batch.label_specular, beta)
     return total, ld, ls, valid
 
 
@@ -106,7 +107,7 @@ def _warm_start(model: TraceNet, ncfg: NetworkConfig, source: Path, torch_device
     """Load another run's weights into ``model`` (same preset, any pattern setting); returns that
     run's (step, data seed) so the new run continues its data stream. The new run's pattern starts
     at the source's pattern scaled to a maximum of 0.5: auto-exposure measures a scaled pattern
-    identically, and at 0.5 the sigmoid's gradient is largest (a full-on source, frozen at 1, would
+    identically (while its exposure stays under the device's limit: full-on at 0.5 needs 2x), and at 0.5 the sigmoid's gradient is largest (a full-on source, frozen at 1, would
     otherwise never move). A frozen new pattern keeps its own value. The optimiser starts afresh."""
     path = source / "checkpoint.pt" if source.is_dir() else source
     if not path.is_file():
@@ -116,6 +117,7 @@ def _warm_start(model: TraceNet, ncfg: NetworkConfig, source: Path, torch_device
     if other != {k: v for k, v in ncfg.to_dict().items() if k != "frozen_pattern"}:
         raise SystemExit(f"{path}: trained with a different network config (only the pattern may differ)")
     state = dict(ck["model"])
+    state.setdefault("max_exposure", model.max_exposure.clone())  # runs from before the exposure limit
     if ncfg.frozen_pattern is None:
         p = torch.sigmoid(state["pattern_logits"].double())
         p = (0.5 * p / p.max().clamp_min(1e-12)).clamp(1e-6, 1 - 1e-6)
@@ -150,7 +152,7 @@ def train(out: Path, ncfg: NetworkConfig, tcfg: TrainConfig, device_path: Path |
         ck = torch.load(ckpt_path, map_location=torch_device, weights_only=False)
         if ck["network"] != ncfg.to_dict():
             raise SystemExit(f"{ckpt_path}: checkpoint was trained with a different network config")
-        model.load_state_dict(ck["model"])
+        model.load_state_dict({"max_exposure": model.max_exposure.clone(), **ck["model"]})  # see _warm_start
         if len(ck["optimizer"]["param_groups"]) != len(opt.param_groups):
             raise SystemExit(f"{ckpt_path}: the checkpoint's optimiser has {len(ck['optimizer']['param_groups'])} "
                              "parameter group(s); resume with the same --pattern-lr setting")

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import torch
 
-from ntp_engine.device import DEFAULT_DEVICE, Device, DeviceFileError, list_devices
+from ntp_engine.device import DEFAULT_DEVICE, Device, DeviceFileError, auto_exposure, list_devices
 
 
 def test_shipped_devices_load():
@@ -64,6 +64,7 @@ BAD = [
     ("size = [0.15, 0.15, 0.15]", "size = [0.15, -1.0, 0.15]", "valid_volume.size"),
     ("exponent = 1.0", "exponent = -2.0", "emitters.angular.exponent"),
     ("[valid_volume]", "[valid_volume\n", "not valid TOML"),
+    ("gain = 0.000543", "gain = 0.000543\nmax_exposure = 0.5", "camera.max_exposure"),
 ]
 
 
@@ -126,3 +127,16 @@ def test_projection_matches_colmap_opencv_model():
     ours = d.project(torch.tensor(pts)).numpy()
     np.testing.assert_allclose(ours, cam.img_from_cam(pts), atol=1e-6)
     assert torch.isnan(d.project(torch.tensor([[0.0, 0.0, -1.0]], dtype=torch.float64))).all()
+
+
+def test_auto_exposure_follows_the_pattern_up_to_the_limit():
+    dev = Device.load()
+    full = dev.exposure(np.ones((512, 3)))
+    assert full == pytest.approx(dev.gain)
+    assert dev.exposure(np.full((512, 3), 0.5)) == pytest.approx(2 * full)  # within the limit: compensated
+    point = np.zeros((512, 3))
+    point[0] = 1.0
+    assert dev.exposure(point) == pytest.approx(dev.max_exposure * full)  # capped: 512x dimmer than full-on
+    t = dev.exposure(torch.full((512, 3), 0.01, dtype=torch.float64))
+    assert isinstance(t, torch.Tensor) and float(t) == pytest.approx(4 * full)
+    assert auto_exposure(0.0, 1.0, 1.0, 2.0) == pytest.approx(2.0)  # a black pattern: the limit, finite

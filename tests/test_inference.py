@@ -94,9 +94,11 @@ def test_loaded_model_keeps_its_training_exposure_whatever_the_device(tmp_path):
     import dataclasses
 
     dev = Device.load()
-    brighter = dataclasses.replace(dev, gain=dev.gain * 1.5)  # e.g. a scan's device.toml
+    brighter = dataclasses.replace(dev, gain=dev.gain * 1.5, max_exposure=1.0)  # e.g. a scan's device.toml
     net, meta = models.load(None, brighter)
     assert float(net.gain) == pytest.approx(meta["device_gain"]) == pytest.approx(dev.gain)
+    assert float(net.max_exposure) == pytest.approx(meta["device_max_exposure"]) == pytest.approx(dev.max_exposure)
+    assert net.exposure() == pytest.approx(dev.exposure(net.pattern().detach().double().numpy()), rel=1e-5)
 
 
 def test_padded_subsampling_spreads_over_the_trace():

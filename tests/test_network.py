@@ -60,6 +60,30 @@ def test_measure_quantises_and_applies_the_validity_range():
     torch.testing.assert_close(codes, codes.round(), atol=1e-3, rtol=0)
 
 
+def test_a_pattern_dimmer_than_the_exposure_limit_gives_darker_pixels():
+    full_net, point_net = _net(frozen_pattern="full_on"), _net(frozen_pattern="point")
+    # one LED of 512 is exposed only max_exposure (4) times longer than full-on
+    assert point_net.exposure() == pytest.approx(4 * full_net.exposure(), rel=1e-4)
+    m = torch.full((1, 1, 512, 3), 200 / 255 / float(full_net.gain) / 512)  # code 200 under full-on
+    ones = torch.ones(1, 1, dtype=torch.bool)
+    (full, ok_full), (point, ok_point) = (n.measure(m, ones, noise=False) for n in (full_net, point_net))
+    assert torch.allclose(full * 255, torch.full_like(full, 200.0), atol=0.5) and ok_full.all()
+    assert float((point * 255).max()) <= 2.0 and not ok_point.any()  # 128x darker: no valid view
+
+
+def test_traces_left_without_a_valid_view_still_count_in_the_loss():
+    dev = Device.load()
+    batch = sample_batch(dev, 16, torch.Generator().manual_seed(3), SyntheticConfig(views_min=4, views_max=8))
+    net = _net(frozen_pattern="point").eval()
+    _, ld, _, valid = batch_loss(net, batch, torch.Generator().manual_seed(4))
+    empty = ~valid.any(1)
+    assert empty.any()
+    with torch.no_grad():  # an empty trace is answered from the pooled zeros (the prior) and scored
+        prior_d, _ = net(torch.zeros(1, 1, 12), torch.zeros(1, 1, dtype=torch.bool))
+    err_empty = ((prior_d - batch.label_diffuse[empty]) ** 2).sum(-1).sum()
+    assert float(ld) * len(valid) >= float(err_empty) - 1e-3
+
+
 def test_confidence_respects_valid_views():
     ratio = torch.tensor([[0.9, 0.1], [0.0, 0.0]])
     assert confidence_from_ratios(ratio).tolist() == [1.0, 0.0]
