@@ -66,18 +66,18 @@ def validate(model: TraceNet, device_cal: Device, tcfg: TrainConfig, scfg: Synth
     (data seed + VAL_SEED_OFFSET); ``seed`` picks another. ``views`` fixes the trace length."""
     was_training = model.training
     model.eval()
-    sums = np.zeros(3)
+    per_batch = np.zeros((batches or tcfg.val_batches, 3))
     valid_frac = 0.0
-    n = batches or tcfg.val_batches
-    for k in range(n):
+    for k in range(len(per_batch)):
         gen = _step_generator(tcfg.seed + VAL_SEED_OFFSET if seed is None else seed, k, torch_device)
         batch = sample_batch(device_cal, tcfg.batch, gen, scfg, device=torch_device, views=views)
         total, ld, ls, valid = batch_loss(model, batch, gen)
-        sums += [float(total), float(ld), float(ls)]
+        per_batch[k] = [float(total), float(ld), float(ls)]
         valid_frac += float(valid.float().sum() / batch.length_mask.float().sum())
     model.train(was_training)
-    sums /= n
-    return {"val_loss": sums[0], "val_diffuse": sums[1], "val_specular": sums[2], "val_valid_views": valid_frac / n}
+    sums = per_batch.mean(0)
+    return {"val_loss": sums[0], "val_diffuse": sums[1], "val_specular": sums[2],
+            "val_valid_views": valid_frac / len(per_batch), "val_loss_per_batch": per_batch[:, 0].tolist()}
 
 
 def _match_optimizer_order(state: dict, opt: torch.optim.Optimizer) -> dict:
@@ -213,4 +213,5 @@ def train(out: Path, ncfg: NetworkConfig, tcfg: TrainConfig, device_path: Path |
     log.close()
     if not last:
         last = validate(model, device_cal, tcfg, scfg, torch_device)
+    last.pop("val_loss_per_batch")
     return {"step": step, "elapsed_s": elapsed, **last}

@@ -83,11 +83,16 @@ def test_network_benchmark_reads_shipped_models_and_reports_the_keys(tmp_path):
     from ntp_engine.bench import network as bench_network
 
     out = tmp_path / "bn.json"
-    bench_network.run(quick=True, json_path=out, batches=1, rate_traces=256)
+    bench_network.run(quick=True, json_path=out, batches=2, rate_traces=256)
     r = json.loads(out.read_text())
-    assert set(r["val_loss_by_pattern"]) == {"optimized", "full_on", "point"}
+    by = r["val_loss_by_pattern"]
+    assert set(by) == {"optimized", "full_on", "point"}
     assert set(r["val_loss_by_test_views"]) == {"8", "16", "32", "64", "128"}
-    assert r["traces_per_s"] > 0 and all(v > 0 for v in r["val_loss_by_pattern"].values())
+    assert r["traces_per_s"] > 0 and all(v > 0 for v in by.values())
+    for k in ("optimized", "point"):  # paired over the same batches: the mean difference is the difference
+        d = r["val_loss_minus_full_on"][k]
+        assert d["mean"] == pytest.approx(by[k] - by["full_on"], abs=1e-9) and d["standard_error"] >= 0
+    assert all(0 <= v <= 1 for v in r["valid_views_by_pattern"].values())
 
 
 def test_loaded_model_keeps_its_training_exposure_whatever_the_device(tmp_path):

@@ -9,7 +9,9 @@ and the shipped model's inference rate.
   one from the full-on network with its pattern learning (``PATTERN_LR``), starting from what
   auto-exposure measures as full-on. So optimised and full-on differ only in what the pattern
   learning did. Either way they are evaluated on ``PATTERN_BATCHES`` batches of validation data
-  generated now, with a seed no training run used.
+  generated now, with a seed no training run used; the same batches for each, so
+  ``val_loss_minus_full_on`` gives each difference with its paired standard error over batches,
+  and ``valid_views_by_pattern`` the fraction of views in [32, 224] under the exposure limit.
 - ``val_loss_by_test_views``: the shipped model on traces of exactly 8 ... 128 views (Fig. 16).
 - ``traces_per_s``: the shipped model on 64-view traces through the inference API.
 """
@@ -19,6 +21,7 @@ import tempfile
 import time
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from .. import models
@@ -35,10 +38,17 @@ PATTERN_LR = 3e-3  # the lighting layer's own learning rate in the comparison (d
 PATTERN_BATCHES = 64  # 4096 traces: the three losses differ by less than 8 batches' noise
 
 
-def evaluate(model, device: Device, views: int | None, batches: int, batch: int = 64, seed: int = BENCH_SEED) -> float:
-    """Eq. 5 loss on ``batches`` fresh batches (a seed no training run uses)."""
+def evaluate(model, device: Device, views: int | None, batches: int, batch: int = 64, seed: int = BENCH_SEED) -> dict:
+    """``train.validate`` on ``batches`` fresh batches (a seed no training run uses): every model
+    sees the same traces, so per-batch losses pair up across models."""
     tcfg = TrainConfig(batch=batch, val_batches=batches)
-    return validate(model, device, tcfg, SyntheticConfig(), torch.device("cpu"), views=views, seed=seed)["val_loss"]
+    return validate(model, device, tcfg, SyntheticConfig(), torch.device("cpu"), views=views, seed=seed)
+
+
+def paired_difference(a: list[float], b: list[float]) -> tuple[float, float]:
+    """Mean and standard error of ``a - b`` over the same validation batches."""
+    d = np.asarray(a) - np.asarray(b)
+    return float(d.mean()), float(d.std(ddof=1) / np.sqrt(len(d))) if len(d) > 1 else float("nan")
 
 
 def _comparison_models(quick: bool, steps: int, device: Device) -> dict:
@@ -79,18 +89,26 @@ def run(quick: bool = False, steps: int = 3000, json_path=None, batches: int | N
     pattern_batches = batches or PATTERN_BATCHES
     batches = batches or (16 if quick else 32)
     nets = _comparison_models(quick, steps, device)
-    by_pattern = {name: evaluate(net, device, None, pattern_batches) for name, net in nets.items()}
+    stats = {name: evaluate(net, device, None, pattern_batches) for name, net in nets.items()}
+    by_pattern = {name: st["val_loss"] for name, st in stats.items()}
+    vs_full_on = {name: paired_difference(stats[name]["val_loss_per_batch"], stats["full_on"]["val_loss_per_batch"])
+                  for name in ("optimized", "point")}
     shipped, meta = models.load(None, device)
-    by_views = {str(v): evaluate(shipped, device, v, batches if v <= 64 else max(batches // 2, 1))
+    by_views = {str(v): evaluate(shipped, device, v, batches if v <= 64 else max(batches // 2, 1))["val_loss"]
                 for v in (8, 16, 32, 64, 128)}
     rate = traces_per_second(shipped, device, traces=rate_traces)
     print(f"validation loss (Eq. 5) on fresh traces: {pattern_batches * 64} per pattern, {batches * 64} per view count")
-    print_table([(k, f"{v:.4f}") for k, v in by_pattern.items()], ("pattern (preset small)", "val loss"))
+    print_table([(k, f"{v:.4f}", f"{stats[k]['val_valid_views']:.1%}",
+                  "" if k == "full_on" else f"{vs_full_on[k][0]:+.4f} ± {vs_full_on[k][1]:.4f}")
+                 for k, v in by_pattern.items()],
+                ("pattern (preset small)", "val loss", "valid views", "- full-on (paired, ± s.e.)"))
     print()
     print_table([(k, f"{v:.4f}") for k, v in by_views.items()], (f"test views ({meta['network']['preset']})", "val loss"))
     print(f"\ninference: {rate:.0f} traces/s (64 views, {torch.get_num_threads()} threads, "
           f"preset {meta['network']['preset']})")
     result = {"val_loss_by_pattern": by_pattern, "val_loss_by_test_views": by_views, "traces_per_s": rate,
+              "valid_views_by_pattern": {k: st["val_valid_views"] for k, st in stats.items()},
+              "val_loss_minus_full_on": {k: {"mean": m, "standard_error": se} for k, (m, se) in vs_full_on.items()},
               "shipped_model": meta.get("summary", {}), "threads": torch.get_num_threads()}
     dump_json(json_path, result)
     return result
