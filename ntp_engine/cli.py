@@ -75,6 +75,9 @@ def _parser() -> argparse.ArgumentParser:
                     help="fraction of training traces seen from a correlated hand-held sweep (else i.i.d. views)")
     tr.add_argument("--pattern", default="learned",
                     help="learned, or a frozen pattern: full_on, point, binary, or a CSV/NPY file")
+    tr.add_argument("--pattern-init", default=None,
+                    help="a learned pattern's starting value: full_on, point, binary or a CSV/NPY file, clipped to "
+                         "[0.1, 0.9] (default: 0.5 everywhere, or the --init-from run's pattern)")
     tr.add_argument("--device", type=Path, default=None, help="device TOML (default: the paper's LED array)")
     tr.add_argument("--validate-every", type=int, default=500)
     tr.add_argument("--export", type=Path, default=None,
@@ -184,7 +187,7 @@ def main(argv: list[str] | None = None) -> int:
             ncfg = NetworkConfig(preset=args.preset, frozen_pattern=None if args.pattern == "learned" else args.pattern)
             tcfg = TrainConfig(steps=args.steps, batch=args.batch, lr=args.lr, pattern_lr=args.pattern_lr, seed=args.seed,
                                views_max=args.views, validate_every=args.validate_every,
-                               sweep_fraction=args.sweep_fraction)
+                               sweep_fraction=args.sweep_fraction, pattern_init=args.pattern_init)
             result = train(args.out, ncfg, tcfg, args.device, resume=args.resume, init_from=args.init_from)
             print(f"step {result['step']}: validation loss {result['val_loss']:.4f} "
                   f"(diffuse {result['val_diffuse']:.4f}, specular {result['val_specular']:.3f})")

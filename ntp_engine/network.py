@@ -97,9 +97,7 @@ class TraceNet(nn.Module):
         L = device.num_emitters
         self.pattern_logits = nn.Parameter(torch.zeros(L, 3), requires_grad=cfg.frozen_pattern is None)
         if cfg.frozen_pattern is not None:
-            p = np.clip(frozen_pattern(cfg.frozen_pattern, device), 1e-6, 1 - 1e-6)
-            with torch.no_grad():
-                self.pattern_logits.copy_(torch.as_tensor(np.log(p / (1 - p)), dtype=torch.float32))
+            self.set_pattern(frozen_pattern(cfg.frozen_pattern, device))
         self.register_buffer("color_matrix", torch.as_tensor(device.color_matrix, dtype=torch.float32))
         self.register_buffer("gain", torch.tensor(float(device.gain)))
         self.register_buffer("max_exposure", torch.tensor(float(device.max_exposure)))
@@ -121,6 +119,12 @@ class TraceNet(nn.Module):
     def pattern(self) -> Tensor:
         """The lighting pattern ``(L, 3)`` in [0, 1]."""
         return torch.sigmoid(self.pattern_logits)
+
+    @torch.no_grad()
+    def set_pattern(self, pattern: np.ndarray, margin: float = 1e-6) -> None:
+        """Set the lighting layer to ``pattern (L, 3)``, clipped to [margin, 1 - margin]."""
+        p = np.clip(np.asarray(pattern, dtype=np.float64), margin, 1 - margin)
+        self.pattern_logits.copy_(torch.as_tensor(np.log(p / (1 - p)), dtype=self.pattern_logits.dtype))
 
     def _p_eff_exposure(self) -> tuple[Tensor, Tensor]:
         p_eff = self.pattern() @ self.color_matrix.T

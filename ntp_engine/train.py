@@ -21,10 +21,11 @@ from tqdm import tqdm
 from .atomic import atomic_path, write_text_atomic
 from .device import Device
 from .measurement import confidence_from_ratios
-from .network import NetworkConfig, TraceNet, lumitexel_loss, num_parameters
+from .network import NetworkConfig, TraceNet, frozen_pattern, lumitexel_loss, num_parameters
 from .synthetic import SyntheticConfig, TraceBatch, sample_batch
 
 VAL_SEED_OFFSET = 1_000_003
+PATTERN_INIT_MARGIN = 0.1  # a learned pattern started from a given one is clipped to [0.1, 0.9]
 
 
 @dataclass
@@ -39,6 +40,7 @@ class TrainConfig:
     val_batches: int = 8
     views_max: int = 64
     sweep_fraction: float = 0.5  # traces whose views come from a correlated hand-held sweep
+    pattern_init: str | None = None  # a learned pattern's start (a frozen-pattern name or file); None: 0.5
 
 
 def _step_generator(seed: int, step: int, device) -> torch.Generator:
@@ -162,9 +164,13 @@ def train(out: Path, ncfg: NetworkConfig, tcfg: TrainConfig, device_path: Path |
         print(f"resuming {ckpt_path} at step {step}")
     elif ckpt_path.exists() and not resume:
         raise SystemExit(f"{ckpt_path}: exists; pass --resume to continue it or choose another --out")
-    elif init_from is not None:
-        step, tcfg.seed = _warm_start(model, ncfg, Path(init_from), torch_device)
-        print(f"starting from {init_from} at step {step}")
+    else:
+        if init_from is not None:
+            step, tcfg.seed = _warm_start(model, ncfg, Path(init_from), torch_device)
+            print(f"starting from {init_from} at step {step}")
+        if tcfg.pattern_init is not None and ncfg.frozen_pattern is None:
+            # kept off 0 and 1, where the sigmoid's gradient vanishes
+            model.set_pattern(frozen_pattern(tcfg.pattern_init, device_cal), margin=PATTERN_INIT_MARGIN)
     write_text_atomic(out / "config.json", json.dumps({"network": ncfg.to_dict(), "train": asdict(tcfg),
                                                         "device": device_cal.name, "parameters": num_parameters(model)},
                                                        indent=2))

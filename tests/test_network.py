@@ -193,3 +193,18 @@ def test_warm_start_from_a_frozen_full_on_run_measures_the_same_and_learns(tmp_p
     with pytest.raises(SystemExit, match="no checkpoint"):
         train(tmp_path / "none", NetworkConfig(preset="small"), TrainConfig(steps=1, **tc), progress=False,
               init_from=tmp_path / "missing")
+
+
+def test_a_learned_pattern_can_start_from_a_given_one(tmp_path):
+    from ntp_engine.network import frozen_pattern
+    from ntp_engine.train import TrainConfig, train
+
+    tc = TrainConfig(steps=1, batch=4, validate_every=1, val_batches=1, views_max=8, lr=1e-9, pattern_init="binary")
+    train(tmp_path / "run", NetworkConfig(preset="small"), tc, progress=False)
+    p = torch.sigmoid(torch.load(tmp_path / "run" / "checkpoint.pt", weights_only=False)["model"]["pattern_logits"])
+    expected = torch.as_tensor(frozen_pattern("binary", Device.load()), dtype=p.dtype).clamp(0.1, 0.9)
+    torch.testing.assert_close(p, expected, atol=1e-4, rtol=0)  # one step at lr 1e-9 moves nothing
+    frozen = TrainConfig(steps=1, batch=4, validate_every=1, val_batches=1, views_max=8, pattern_init="binary")
+    train(tmp_path / "frozen", NetworkConfig(preset="small", frozen_pattern="full_on"), frozen, progress=False)
+    q = torch.sigmoid(torch.load(tmp_path / "frozen" / "checkpoint.pt", weights_only=False)["model"]["pattern_logits"])
+    assert float(q.min()) > 0.99  # a frozen pattern ignores the start value
