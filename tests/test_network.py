@@ -81,7 +81,7 @@ def test_traces_left_without_a_valid_view_still_count_in_the_loss():
     with torch.no_grad():  # an empty trace is answered from the pooled zeros (the prior) and scored
         prior_d, _ = net(torch.zeros(1, 1, 12), torch.zeros(1, 1, dtype=torch.bool))
     err_empty = ((prior_d - batch.label_diffuse[empty]) ** 2).sum(-1).sum()
-    assert float(ld) * len(valid) >= float(err_empty) - 1e-3
+    assert float(ld.detach()) * len(valid) >= float(err_empty) - 1e-3
 
 
 def test_confidence_respects_valid_views():
