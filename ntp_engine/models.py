@@ -68,9 +68,9 @@ def export(checkpoint: Path, folder: Path, summary: dict) -> None:
     pattern = torch.sigmoid(ck["model"]["pattern_logits"].float()).numpy()
     with atomic_path(folder / "pattern.csv") as tmp:
         np.savetxt(tmp, pattern, delimiter=",", fmt="%.6f")
-    write_text_atomic(folder / "config.json", json.dumps({"network": ck["network"], "device": ck["device"],
-                                                          "device_gain": float(ck["model"]["gain"]),
-                                                          "device_max_exposure": float(ck["model"]["max_exposure"])}, indent=2))
+    write_text_atomic(folder / "config.json", json.dumps({
+        "network": ck["network"], "device": ck["device"], "device_gain": float(ck["model"]["gain"]),
+        "device_max_exposure": float(ck["model"]["max_exposure"])}, indent=2))
     write_text_atomic(folder / "summary.json", json.dumps({"steps": ck["step"], "data_seed": ck["train"]["seed"],
                                                            "batch": ck["train"]["batch"], "lr": ck["train"]["lr"],
                                                            "sweep_fraction": ck["train"].get("sweep_fraction", 0.0),

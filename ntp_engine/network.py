@@ -9,8 +9,9 @@ log(1 + x) of the grayscale specular lumitexel (6144), both in the trace's (n^, 
 In training, the lighting layer turns physical lumitexels into measurements: pattern = sigmoid(w)
 (one weight per emitter and LED colour, i.e. it *is* the pattern), B = (pattern M^T) . m_phys,
 scaled by the camera's auto-exposure (capped at ``max_exposure`` x the full-on exposure, so a
-dim pattern costs light: ``device.auto_exposure``), then multiplicative noise, 8-bit quantisation (straight-through) and the pipeline's validity test
-(every channel's code in [32, 224]) decide which views enter the trace. Max pooling is masked:
+dim pattern costs light: ``device.auto_exposure``), then multiplicative noise, 8-bit quantisation
+(straight-through) and the pipeline's validity test (every channel's code in [32, 224]) decide
+which views enter the trace. Max pooling is masked:
 padding or invalid entries never win; a trace with no valid entry pools to zeros.
 """
 from __future__ import annotations
@@ -177,16 +178,11 @@ class TraceNet(nn.Module):
 
 
 def lumitexel_loss(pred_diffuse: Tensor, pred_log_specular: Tensor, label_diffuse: Tensor,
-                   label_specular: Tensor, beta: Tensor, lambda_d: float = 1.0, lambda_s: float = 0.01,
-                   weight: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
-    """Eq. 5, averaged over the batch: (total, diffuse part, specular part); ``weight (B,)``
-    optionally weights the traces."""
-    ld = ((pred_diffuse - label_diffuse) ** 2).sum(-1)
-    ls = beta * ((pred_log_specular - torch.log1p(label_specular)) ** 2).sum(-1)
-    if weight is None:
-        weight = torch.ones_like(ld)
-    denom = weight.sum().clamp_min(1.0)
-    ld, ls = (weight * ld).sum() / denom, (weight * ls).sum() / denom
+                   label_specular: Tensor, beta: Tensor, lambda_d: float = 1.0,
+                   lambda_s: float = 0.01) -> tuple[Tensor, Tensor, Tensor]:
+    """Eq. 5, averaged over the batch: (total, diffuse part, specular part)."""
+    ld = ((pred_diffuse - label_diffuse) ** 2).sum(-1).mean()
+    ls = (beta * ((pred_log_specular - torch.log1p(label_specular)) ** 2).sum(-1)).mean()
     return lambda_d * ld + lambda_s * ls, ld, ls
 
 

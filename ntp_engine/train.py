@@ -105,12 +105,19 @@ def _match_optimizer_order(state: dict, opt: torch.optim.Optimizer) -> dict:
     return {"state": new_state, "param_groups": groups}
 
 
+def _load_state(model: TraceNet, state: dict) -> None:
+    """A checkpoint's weights and buffers into ``model``; a run from before the exposure limit has no
+    ``max_exposure`` and keeps the model's (the device's)."""
+    model.load_state_dict({"max_exposure": model.max_exposure.clone(), **state})
+
+
 def _warm_start(model: TraceNet, ncfg: NetworkConfig, source: Path, torch_device) -> tuple[int, int]:
     """Load another run's weights into ``model`` (same preset, any pattern setting); returns that
     run's (step, data seed) so the new run continues its data stream. The new run's pattern starts
     at the source's pattern scaled to a maximum of 0.5: auto-exposure measures a scaled pattern
-    identically (while its exposure stays under the device's limit: full-on at 0.5 needs 2x), and at 0.5 the sigmoid's gradient is largest (a full-on source, frozen at 1, would
-    otherwise never move). A frozen new pattern keeps its own value. The optimiser starts afresh."""
+    identically (while its exposure stays under the device's limit: full-on at 0.5 needs 2x), and
+    at 0.5 the sigmoid's gradient is largest (a full-on source, frozen at 1, would otherwise never
+    move). A frozen new pattern keeps its own value. The optimiser starts afresh."""
     path = source / "checkpoint.pt" if source.is_dir() else source
     if not path.is_file():
         raise SystemExit(f"{path}: no checkpoint to start from")
@@ -118,15 +125,14 @@ def _warm_start(model: TraceNet, ncfg: NetworkConfig, source: Path, torch_device
     other = {k: v for k, v in ck["network"].items() if k != "frozen_pattern"}
     if other != {k: v for k, v in ncfg.to_dict().items() if k != "frozen_pattern"}:
         raise SystemExit(f"{path}: trained with a different network config (only the pattern may differ)")
-    state = dict(ck["model"])
-    state.setdefault("max_exposure", model.max_exposure.clone())  # runs from before the exposure limit
+    own = model.pattern_logits.detach().clone()
+    _load_state(model, ck["model"])
     if ncfg.frozen_pattern is None:
-        p = torch.sigmoid(state["pattern_logits"].double())
-        p = (0.5 * p / p.max().clamp_min(1e-12)).clamp(1e-6, 1 - 1e-6)
-        state["pattern_logits"] = torch.log(p / (1 - p)).to(state["pattern_logits"].dtype)
-    else:
-        state["pattern_logits"] = model.pattern_logits.detach().clone()
-    model.load_state_dict(state)
+        p = torch.sigmoid(ck["model"]["pattern_logits"].double())
+        model.set_pattern((0.5 * p / p.max().clamp_min(1e-12)).cpu().numpy())
+    else:  # a frozen pattern keeps its own value
+        with torch.no_grad():
+            model.pattern_logits.copy_(own)
     return int(ck["step"]), int(ck["train"]["seed"])
 
 
@@ -154,7 +160,7 @@ def train(out: Path, ncfg: NetworkConfig, tcfg: TrainConfig, device_path: Path |
         ck = torch.load(ckpt_path, map_location=torch_device, weights_only=False)
         if ck["network"] != ncfg.to_dict():
             raise SystemExit(f"{ckpt_path}: checkpoint was trained with a different network config")
-        model.load_state_dict({"max_exposure": model.max_exposure.clone(), **ck["model"]})  # see _warm_start
+        _load_state(model, ck["model"])
         if len(ck["optimizer"]["param_groups"]) != len(opt.param_groups):
             raise SystemExit(f"{ckpt_path}: the checkpoint's optimiser has {len(ck['optimizer']['param_groups'])} "
                              "parameter group(s); resume with the same --pattern-lr setting")

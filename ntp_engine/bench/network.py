@@ -57,7 +57,8 @@ def _comparison_models(quick: bool, steps: int, device: Device) -> dict:
     root = Path(tempfile.mkdtemp(prefix="ntp-bench-network-"))
     tc = lambda n, **kw: TrainConfig(steps=n, validate_every=max(n // 4, 1), val_batches=2, **kw)  # log only
     for name in ("full_on", "point"):  # first half
-        train(root / f"{name}_half", NetworkConfig(preset="small", frozen_pattern=name), tc(steps // 2, sweep_fraction=0.0))
+        train(root / f"{name}_half", NetworkConfig(preset="small", frozen_pattern=name),
+              tc(steps // 2, sweep_fraction=0.0))
     out = {}
     for name, pattern in PATTERNS.items():  # second half, every network from a half-way checkpoint
         frozen = None if pattern == "learned" else pattern
