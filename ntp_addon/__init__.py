@@ -4,6 +4,7 @@ Sidebar tab "NTP" in the 3D view (``panel``), operators (``operators``), scene p
 (``properties``), material building (``material`` over the bpy-free ``derive``), Cycles scene
 helpers (``scene``), headless export (``python -m ntp_addon.batch``).
 """
+
 from __future__ import annotations
 
 import bpy

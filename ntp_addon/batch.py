@@ -8,6 +8,7 @@ material (KHR_materials_anisotropy, KHR_materials_specular) and renders a Cycles
 key-light rig. Each output is written to a temporary name and renamed. Exit code 2 and one line on
 stderr for bad input.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -18,9 +19,10 @@ from pathlib import Path
 
 import bpy  # noqa: F401  (before torch, which the engine imports)
 
-from ntp_engine.errors import NtpInputError
+from ntp_engine.io.errors import NtpInputError
 
-from . import material, scene as bscene
+from . import material
+from . import scene as bscene
 
 
 def _tmp_beside(target: Path) -> Path:
@@ -30,9 +32,16 @@ def _tmp_beside(target: Path) -> Path:
     return Path(tmp)
 
 
-def export(result: Path, blend: Path | None = None, gltf: Path | None = None, preview: Path | None = None,
-           variant: str = material.DEFAULT_VARIANT, samples: int = 64, size: tuple[int, int] = (640, 512),
-           turntable: int = 0) -> dict:
+def export(
+    result: Path,
+    blend: Path | None = None,
+    gltf: Path | None = None,
+    preview: Path | None = None,
+    variant: str = material.DEFAULT_VARIANT,
+    samples: int = 64,
+    size: tuple[int, int] = (640, 512),
+    turntable: int = 0,
+) -> dict:
     bpy.ops.wm.read_factory_settings(use_empty=True)
     ri_check = material.read_result(result)  # validate before creating anything
     del ri_check
@@ -48,8 +57,14 @@ def export(result: Path, blend: Path | None = None, gltf: Path | None = None, pr
             bpy.ops.object.select_all(action="DESELECT")
             obj.select_set(True)
             bpy.context.view_layer.objects.active = obj
-            bpy.ops.export_scene.gltf(filepath=str(tmp), export_format="GLB", use_selection=True,
-                                      export_tangents=True, export_cameras=False, export_lights=False)
+            bpy.ops.export_scene.gltf(
+                filepath=str(tmp),
+                export_format="GLB",
+                use_selection=True,
+                export_tangents=True,
+                export_cameras=False,
+                export_lights=False,
+            )
             os.replace(tmp, gltf)
         finally:
             obj.data.materials[0] = chosen

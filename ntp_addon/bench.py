@@ -1,10 +1,10 @@
 """``ntp bench blender`` (runs as ``python -m ntp_addon.bench``): Cycles renders of the demo asset
 with both materials against the engine's render of the same maps, under 3 novel point lights
 (SSIM/PSNR, seconds per render), and seconds per preview render of the relight rig."""
+
 from __future__ import annotations
 
 import argparse
-import json
 import shutil
 import sys
 import tempfile
@@ -13,16 +13,16 @@ from pathlib import Path
 
 import bpy  # noqa: F401  (before torch)
 
-from ntp_engine.demo_asset import DEMO_DIR
+from ntp_engine.bench import dump_json, print_table
+from ntp_engine.io.assets import DEMO_DIR
 
-from . import compare, material, scene as bscene
+from . import compare, material
+from . import scene as bscene
 
 DEMO = DEMO_DIR
 
 
 def run(views: int = 3, scale: float = 0.25, samples: int = 64, json_path: Path | None = None) -> dict:
-    from ntp_engine.bench import dump_json, print_table
-
     with tempfile.TemporaryDirectory() as tmp:
         result = Path(tmp) / "demo"
         result.mkdir()
@@ -42,12 +42,25 @@ def run(views: int = 3, scale: float = 0.25, samples: int = 64, json_path: Path 
         preview_s = time.perf_counter() - t0
     rows = []
     for v in ("accurate", "principled"):
-        rows.append((v, f"{r[v]['ssim']:.4f}", f"{r[v]['psnr_db']:.2f}",
-                     " ".join(f"{x['ssim']:.3f}" for x in r[v]["per_view"]), f"{r[v]['seconds_per_render']:.2f}"))
+        rows.append(
+            (
+                v,
+                f"{r[v]['ssim']:.4f}",
+                f"{r[v]['psnr_db']:.2f}",
+                " ".join(f"{x['ssim']:.3f}" for x in r[v]["per_view"]),
+                f"{r[v]['seconds_per_render']:.2f}",
+            )
+        )
     print_table(rows, ("material", "SSIM", "PSNR dB", "SSIM per light", "s / render"))
     print(f"preview render (640x512, {samples} spp, key/fill/rim rig, 4 bounces): {preview_s:.2f} s")
-    data = {"views": views, "scale": scale, "samples": samples, **{v: r[v] for v in r},
-            "preview_seconds": preview_s, "default_variant": material.DEFAULT_VARIANT}
+    data = {
+        "views": views,
+        "scale": scale,
+        "samples": samples,
+        **{v: r[v] for v in r},
+        "preview_seconds": preview_s,
+        "default_variant": material.DEFAULT_VARIANT,
+    }
     dump_json(json_path, data)
     return data
 

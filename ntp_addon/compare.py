@@ -6,6 +6,7 @@ Both images are compared on the object's pixels only, after the same display tra
 the engine's 99th percentile is 1, clipped, gamma 2.2): SSIM (mean of the SSIM map over the object)
 and PSNR.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -16,19 +17,25 @@ from pathlib import Path
 import bpy
 import numpy as np
 
-from ntp_engine.device import Device, list_devices
-from ntp_engine.evaluate import compare_images
-from ntp_engine.maps import SVBRDFMaps
-from ntp_engine.mesh import load_mesh
-from ntp_engine.virtual_scan import ScanConfig, Scene, scaled_device, trajectory
+from ntp_engine.io.images import write_png
+from ntp_engine.io.maps import SVBRDFMaps
+from ntp_engine.io.mesh import load_mesh
+from ntp_engine.scanner.camera import resampled
+from ntp_engine.scanner.device_file import shipped_device
+from ntp_engine.scanner.scanner import Scanner
+from ntp_engine.sim.evaluate import NOVEL_LIGHT_DEVICE, compare_images
+from ntp_engine.sim.renderer import Scene
+from ntp_engine.sim.virtual_scan import ScanConfig, trajectory
 
-from . import material, scene as bscene
+from . import material
+from . import scene as bscene
 
 POWER_W = 10.0
 
 
-def point_device(scale: float) -> Device:
-    return scaled_device(Device.load(next(p for p in list_devices() if p.name == "point_light.toml")), scale)
+def point_device(scale: float) -> Scanner:
+    """The shipped point-light device with its camera at ``scale``."""
+    return resampled(shipped_device(NOVEL_LIGHT_DEVICE), scale)
 
 
 def novel_views(result: Path, count: int, seed: int = 2024, scale: float = 0.25) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -45,18 +52,33 @@ def novel_views(result: Path, count: int, seed: int = 2024, scale: float = 0.25)
     return out
 
 
-def engine_render(result: Path, pose: np.ndarray, light_world: np.ndarray, cam: Device) -> tuple[np.ndarray, np.ndarray]:
+def engine_render(
+    result: Path, pose: np.ndarray, light_world: np.ndarray, cam: Scanner
+) -> tuple[np.ndarray, np.ndarray]:
     """Linear radiance ``(H, W, 3)`` under a Blender point light of POWER_W, and the object mask."""
-    dev = dataclasses.replace(cam, emitter_positions=(pose[:3, :3] @ light_world + pose[:3, 3])[None],
-                              emitter_normals=np.array([[0.0, 0.0, 1.0]]), emitter_axes=np.array([[1.0, 0.0, 0.0]]),
-                              angular_exponent=0.0, color_matrix=np.eye(3), pattern=np.ones((1, 3)))
+    dev = dataclasses.replace(
+        cam,
+        emitter_positions=(pose[:3, :3] @ light_world + pose[:3, 3])[None],
+        emitter_normals=np.array([[0.0, 0.0, 1.0]]),
+        emitter_axes=np.array([[1.0, 0.0, 0.0]]),
+        angular_exponent=0.0,
+        color_matrix=np.eye(3),
+        pattern=np.ones((1, 3)),
+    )
     sc = Scene(load_mesh(result / "mesh.obj"), SVBRDFMaps.load(result), dev, clusters=1)
     img, hit = sc.render_linear(pose, cam, exact_shadows=True)
     return img / sc.exposure * POWER_W / (4 * math.pi), (hit["geom"] == 0).reshape(img.shape[:2])
 
 
-def cycles_render(obj: bpy.types.Object, mat: bpy.types.Material, pose: np.ndarray, light_world: np.ndarray,
-                  cam: Device, out: Path, samples: int) -> tuple[np.ndarray, float]:
+def cycles_render(
+    obj: bpy.types.Object,
+    mat: bpy.types.Material,
+    pose: np.ndarray,
+    light_world: np.ndarray,
+    cam: Scanner,
+    out: Path,
+    samples: int,
+) -> tuple[np.ndarray, float]:
     scene = bpy.context.scene
     bscene.setup_cycles(scene, cam.width, cam.height, samples)
     obj.data.materials[0] = mat
@@ -72,13 +94,17 @@ def cycles_render(obj: bpy.types.Object, mat: bpy.types.Material, pose: np.ndarr
     return img, time.perf_counter() - t0
 
 
-def run(result: str | Path, views: int = 3, scale: float = 0.25, samples: int = 64, work: Path | None = None,
-        save_png: bool = False) -> dict:
+def run(
+    result: str | Path,
+    views: int = 3,
+    scale: float = 0.25,
+    samples: int = 64,
+    work: Path | None = None,
+    save_png: bool = False,
+) -> dict:
     """Render the result with both materials in Cycles and with the engine from ``views`` novel
     views/lights; SSIM/PSNR per variant and seconds per Cycles render."""
     import tempfile
-
-    from ntp_engine.images import write_png
 
     result = Path(result)
     bpy.ops.wm.read_factory_settings(use_empty=True)
@@ -98,6 +124,12 @@ def run(result: str | Path, views: int = 3, scale: float = 0.25, samples: int = 
                     write_png(work / f"{name}_{k}.png", np.concatenate(c["display"], 1))
                 rows[name].append({"ssim": c["ssim"], "psnr_db": c["psnr_db"]})
                 seconds[name].append(sec)
-    return {v: {"ssim": float(np.mean([r["ssim"] for r in rows[v]])),
-                "psnr_db": float(np.mean([r["psnr_db"] for r in rows[v]])),
-                "per_view": rows[v], "seconds_per_render": float(np.mean(seconds[v]))} for v in rows}
+    return {
+        v: {
+            "ssim": float(np.mean([r["ssim"] for r in rows[v]])),
+            "psnr_db": float(np.mean([r["psnr_db"] for r in rows[v]])),
+            "per_view": rows[v],
+            "seconds_per_render": float(np.mean(seconds[v])),
+        }
+        for v in rows
+    }

@@ -1,7 +1,7 @@
 """Per-texel inputs of the two Blender materials, derived from a result folder's maps (bpy-free).
 
 Convention: arrays are ``(H, W, C)`` in the maps' layout (row 0 = top, v = 1). The mesh's UV tangent
-frame per texel (``ntp_engine.texels``: dP/du made orthogonal to the interpolated normal) stands in
+frame per texel (``ntp_engine.pipeline.texels``: dP/du made orthogonal to the interpolated normal) stands in
 for Blender's UV tangent (MikkTSpace), which it matches up to the per-vertex averaging.
 
 Cycles facts these follow (Cycles 4.x/5.x kernel, ``svm_closure.h``):
@@ -12,15 +12,14 @@ Cycles facts these follow (Cycles 4.x/5.x kernel, ``svm_closure.h``):
   alpha_x = r^2 / (1 + a), alpha_y = r^2 (1 + a) for a < 0, a clamped to +-0.99 — ratios up to
   10^4, so the accurate variant keeps every measured ratio of the paper's range (0.006..0.5).
 """
+
 from __future__ import annotations
 
 import numpy as np
 
-from ntp_engine.maps import SVBRDFMaps, fill_missing
-from ntp_engine.mesh import Mesh
-from ntp_engine.texels import rasterize
-
-F0_DIELECTRIC = 0.04
+from ntp_engine.io.maps import SVBRDFMaps, fill_missing
+from ntp_engine.io.mesh import Mesh
+from ntp_engine.pipeline.texels import rasterize
 
 
 def uv_frames(mesh: Mesh, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
@@ -57,9 +56,13 @@ def principled_inputs(maps: SVBRDFMaps, mesh: Mesh) -> dict[str, np.ndarray]:
     tg = _unit(t_uv - (t_uv * n_geo).sum(-1, keepdims=True) * n_geo)
     bg = np.cross(n_geo, tg)
     n_ts = np.stack([(n * tg).sum(-1), (n * bg).sum(-1), (n * n_geo).sum(-1)], -1)
-    return {"roughness": ((ax * ay) ** 0.25)[..., None], "anisotropy": aniso,
-            "specular_level": 0.5 * s, "specular_tint": maps.specular_albedo / s,
-            "normal_tangent_space": 0.5 * _unit(n_ts) + 0.5}
+    return {
+        "roughness": ((ax * ay) ** 0.25)[..., None],
+        "anisotropy": aniso,
+        "specular_level": 0.5 * s,
+        "specular_tint": maps.specular_albedo / s,
+        "normal_tangent_space": 0.5 * _unit(n_ts) + 0.5,
+    }
 
 
 def glossy_inputs(maps: SVBRDFMaps) -> dict[str, np.ndarray]:
@@ -73,11 +76,11 @@ def glossy_inputs(maps: SVBRDFMaps) -> dict[str, np.ndarray]:
 def principled_alphas(roughness: np.ndarray, anisotropic: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(larger, smaller) alpha Cycles' Principled BSDF makes of Roughness and Anisotropic."""
     s = np.sqrt(1 - 0.9 * np.clip(anisotropic, 0, 1))
-    return roughness ** 2 / s, roughness ** 2 * s
+    return roughness**2 / s, roughness**2 * s
 
 
 def glossy_alphas(roughness: np.ndarray, anisotropy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(alpha_x, alpha_y) Cycles' Glossy BSDF makes of Roughness and Anisotropy."""
     a = np.clip(anisotropy, -0.99, 0.99)
-    r2 = roughness ** 2
+    r2 = roughness**2
     return np.where(a >= 0, r2 * (1 - a), r2 / (1 + a)), np.where(a >= 0, r2 / (1 - a), r2 * (1 + a))

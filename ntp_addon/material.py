@@ -15,6 +15,7 @@ same maps.
 All inputs are read and derived before any datablock is created: a bad result folder raises
 ``NtpInputError`` naming the file, and nothing half-built is left behind.
 """
+
 from __future__ import annotations
 
 import math
@@ -24,9 +25,10 @@ from pathlib import Path
 import bpy
 import numpy as np
 
-from ntp_engine.errors import NtpInputError
-from ntp_engine.maps import MAP_FILES, SVBRDFMaps
-from ntp_engine.mesh import load_mesh
+from ntp_engine.io.errors import NtpInputError
+from ntp_engine.io.maps import MAP_FILES, SVBRDFMaps
+from ntp_engine.io.mesh import load_mesh
+from ntp_engine.physics.brdf import F0_DIELECTRIC
 
 from . import derive
 
@@ -113,14 +115,30 @@ def _principled(ri: ResultInputs, name: str) -> bpy.types.Material:
     T.link(bsdf, "BSDF", out, "Surface")
     bsdf.inputs["Metallic"].default_value = 0.0
     bsdf.inputs["IOR"].default_value = 1.5
-    T.link(T.image(_file_image(ri.folder / "diffuse_albedo.exr", LINEAR), -3, 4, "diffuse albedo"), "Color",
-           bsdf, "Base Color")
-    T.link(T.image(_packed_image(f"{name} specular level", p["specular_level"]), -3, 3, "specular IOR level"),
-           "Color", bsdf, "Specular IOR Level")
-    T.link(T.image(_packed_image(f"{name} specular tint", p["specular_tint"]), -3, 2, "specular tint"), "Color",
-           bsdf, "Specular Tint")
-    T.link(T.image(_packed_image(f"{name} roughness", p["roughness"]), -3, 1, "roughness (ax ay)^1/4"), "Color",
-           bsdf, "Roughness")
+    T.link(
+        T.image(_file_image(ri.folder / "diffuse_albedo.exr", LINEAR), -3, 4, "diffuse albedo"),
+        "Color",
+        bsdf,
+        "Base Color",
+    )
+    T.link(
+        T.image(_packed_image(f"{name} specular level", p["specular_level"]), -3, 3, "specular IOR level"),
+        "Color",
+        bsdf,
+        "Specular IOR Level",
+    )
+    T.link(
+        T.image(_packed_image(f"{name} specular tint", p["specular_tint"]), -3, 2, "specular tint"),
+        "Color",
+        bsdf,
+        "Specular Tint",
+    )
+    T.link(
+        T.image(_packed_image(f"{name} roughness", p["roughness"]), -3, 1, "roughness (ax ay)^1/4"),
+        "Color",
+        bsdf,
+        "Roughness",
+    )
     # anisotropy: the glTF importer's arrangement, so the exporter recognises it
     tex = T.image(_packed_image(f"{name} anisotropy", p["anisotropy"]), -7, -1, "anisotropy (dir RG, strength B)")
     mad = T.node("ShaderNodeVectorMath", -6, -1, operation="MULTIPLY_ADD")
@@ -145,8 +163,14 @@ def _principled(ri: ResultInputs, name: str) -> bpy.types.Material:
     tangent = T.node("ShaderNodeTangent", -2, -2, direction_type="UV_MAP")
     T.link(tangent, "Tangent", bsdf, "Tangent")
     nmap = T.node("ShaderNodeNormalMap", -2, -3, space="TANGENT")
-    T.link(T.image(_packed_image(f"{name} normal (tangent space)", p["normal_tangent_space"]), -3, -3,
-                   "normal, tangent space"), "Color", nmap, "Color")
+    T.link(
+        T.image(
+            _packed_image(f"{name} normal (tangent space)", p["normal_tangent_space"]), -3, -3, "normal, tangent space"
+        ),
+        "Color",
+        nmap,
+        "Color",
+    )
     T.link(nmap, "Normal", bsdf, "Normal")
     return mat
 
@@ -163,28 +187,38 @@ def _accurate(ri: ResultInputs, name: str) -> bpy.types.Material:
     glossy = T.node("ShaderNodeBsdfGlossy", 1, -1, distribution="GGX")
     T.link(diffuse, 0, add, 0)
     T.link(glossy, 0, add, 1)
-    T.link(T.image(_file_image(ri.folder / "diffuse_albedo.exr", LINEAR), -1, 2, "diffuse albedo"), "Color",
-           diffuse, "Color")
+    T.link(
+        T.image(_file_image(ri.folder / "diffuse_albedo.exr", LINEAR), -1, 2, "diffuse albedo"),
+        "Color",
+        diffuse,
+        "Color",
+    )
     # object-space frame maps -> world space
     n_img = T.image(_file_image(ri.folder / "normal.exr", DATA), -4, 0, "normal (object space)")
-    n_xf = T.node("ShaderNodeVectorTransform", -3, 0, vector_type="NORMAL", convert_from="OBJECT",
-                  convert_to="WORLD")
+    n_xf = T.node("ShaderNodeVectorTransform", -3, 0, vector_type="NORMAL", convert_from="OBJECT", convert_to="WORLD")
     n_unit = T.node("ShaderNodeVectorMath", -2, 0, operation="NORMALIZE")
     T.link(n_img, "Color", n_xf, 0)
     T.link(n_xf, 0, n_unit, 0)
     t_img = T.image(_file_image(ri.folder / "tangent.exr", DATA), -4, -2, "tangent (object space)")
-    t_xf = T.node("ShaderNodeVectorTransform", -3, -2, vector_type="VECTOR", convert_from="OBJECT",
-                  convert_to="WORLD")
+    t_xf = T.node("ShaderNodeVectorTransform", -3, -2, vector_type="VECTOR", convert_from="OBJECT", convert_to="WORLD")
     t_unit = T.node("ShaderNodeVectorMath", -2, -2, operation="NORMALIZE")
     T.link(t_img, "Color", t_xf, 0)
     T.link(t_xf, 0, t_unit, 0)
     T.link(n_unit, "Vector", diffuse, "Normal")
     T.link(n_unit, "Vector", glossy, "Normal")
     T.link(t_unit, "Vector", glossy, "Tangent")
-    T.link(T.image(_packed_image(f"{name} roughness", g["roughness"]), -1, -2, "roughness (ax ay)^1/4"), "Color",
-           glossy, "Roughness")
-    T.link(T.image(_packed_image(f"{name} anisotropy", g["anisotropy"]), -1, -3, "anisotropy (signed)"), "Color",
-           glossy, "Anisotropy")
+    T.link(
+        T.image(_packed_image(f"{name} roughness", g["roughness"]), -1, -2, "roughness (ax ay)^1/4"),
+        "Color",
+        glossy,
+        "Roughness",
+    )
+    T.link(
+        T.image(_packed_image(f"{name} anisotropy", g["anisotropy"]), -1, -3, "anisotropy (signed)"),
+        "Color",
+        glossy,
+        "Anisotropy",
+    )
     # colour = rho_s * (0.04 + 0.96 (1 - n.v)^5)
     lw = T.node("ShaderNodeLayerWeight", -2, 1, "Schlick: 1 - n.v")
     lw.inputs["Blend"].default_value = 0.5
@@ -192,7 +226,7 @@ def _accurate(ri: ResultInputs, name: str) -> bpy.types.Material:
     pw = T.node("ShaderNodeMath", -1, 1, "^5", operation="POWER")
     pw.inputs[1].default_value = 5.0
     fr = T.node("ShaderNodeMath", 0, 1, "0.04 + 0.96 x", operation="MULTIPLY_ADD")
-    fr.inputs[1].default_value, fr.inputs[2].default_value = 1 - derive.F0_DIELECTRIC, derive.F0_DIELECTRIC
+    fr.inputs[1].default_value, fr.inputs[2].default_value = 1 - F0_DIELECTRIC, F0_DIELECTRIC
     T.link(lw, "Facing", pw, 0)
     T.link(pw, 0, fr, 0)
     spec = T.image(_file_image(ri.folder / "specular_albedo.exr", LINEAR), -1, 0, "specular albedo")
@@ -203,8 +237,9 @@ def _accurate(ri: ResultInputs, name: str) -> bpy.types.Material:
     return mat
 
 
-def build_materials(result: str | Path, obj: bpy.types.Object | None = None,
-                    variant: str = DEFAULT_VARIANT) -> tuple[bpy.types.Material, bpy.types.Material]:
+def build_materials(
+    result: str | Path, obj: bpy.types.Object | None = None, variant: str = DEFAULT_VARIANT
+) -> tuple[bpy.types.Material, bpy.types.Material]:
     """Both materials for a result folder; ``obj`` (if given) gets ``variant`` in its first slot.
     The other material is kept with a fake user so a saved .blend holds both."""
     if variant not in ("principled", "accurate"):

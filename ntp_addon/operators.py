@@ -2,24 +2,29 @@
 file) and leaves the file consistent: inputs are validated before any datablock is created.
 
 Reconstruct runs ``ntp reconstruct`` in a separate process (the engine's cache makes a cancelled run
-resumable): modal with a timer in the UI, progress parsed from its progress bars into the operator's
-progress, the status bar and ``scene.ntp``; ESC cancels. In background mode (no event loop) it waits
-for the process instead.
+resumable): modal with a timer in the UI; the child writes its progress as JSON lines to a file
+(``ntp ... --progress FILE``, ``ntp_engine.io.progress``), read each tick into the operator's progress,
+the status bar and ``scene.ntp`` (stage, percent, time left); ESC cancels. In background mode (no
+event loop) it waits for the process instead.
 """
+
 from __future__ import annotations
 
 import os
-import re
 import subprocess
 import sys
+import tempfile
 import threading
 from pathlib import Path
 
 import bpy
 
-from ntp_engine.errors import NtpInputError
+from ntp_engine.io.errors import NtpInputError
+from ntp_engine.io.progress import read_progress
+from ntp_engine.pipeline.scan_folder import load_poses, load_scan
 
-from . import material, scene as bscene
+from . import material
+from . import scene as bscene
 
 
 def _settings(context):
@@ -31,16 +36,10 @@ def _abs(path: str) -> Path:
 
 
 def _load_scan(context):
-    from ntp_engine.device import Device
-    from ntp_engine.scan import load_scan
-
     s = _settings(context)
     if not s.scan_folder:
         raise NtpInputError(None, "set the scan folder first")
-    scan = load_scan(_abs(s.scan_folder))
-    if s.device:
-        scan.device = Device.load(_abs(s.device))
-    return scan
+    return load_scan(_abs(s.scan_folder), device_file=_abs(s.device) if s.device else None)
 
 
 def result_folder(context) -> Path:
@@ -85,26 +84,25 @@ class NTP_OT_import_mesh(bpy.types.Operator):
         return {"FINISHED"}
 
 
-_PROGRESS = re.compile(r"([A-Za-z][A-Za-z +(),]*?):\s+(\d+)%")
-
-
-def parse_progress(lines: list[str]) -> tuple[str, float] | None:
-    """(stage, percent) of the newest tqdm line among ``lines`` (``'traces:  45%|####  | 9/20 ...'``)."""
-    for line in reversed(lines):
-        m = _PROGRESS.search(line)
-        if m:
-            return m.group(1).strip(), float(m.group(2))
-    return None
+def progress_status(record: dict) -> tuple[str, float]:
+    """(status line, percent) for one progress record of the engine: stage, percent, time left."""
+    total, done = record.get("total"), record.get("done", 0)
+    percent = 100.0 * done / total if total else 0.0
+    eta = record.get("eta_s")
+    left = f", {eta:.0f} s left" if eta is not None and done < (total or 0) else ""
+    return f"{record.get('stage', '')}: {percent:.0f}%{left}", percent
 
 
 class _EngineProcess:
-    """An ``ntp`` command in a child process: modal with a timer in the UI (progress from its bars,
-    ESC terminates it), waited for in background mode. Subclasses give ``_command`` and
-    ``_succeeded``."""
+    """An ``ntp`` command in a child process: modal with a timer in the UI (progress from its JSON
+    lines, ESC terminates it), waited for in background mode. Subclasses give ``_command`` (the
+    arguments after ``ntp``) and ``_succeeded``."""
 
     _proc = None
     _timer = None
     _reader = None
+    _progress_file: Path | None = None
+    _progress_offset = 0
 
     def _command(self, context) -> list[str]:
         raise NotImplementedError
@@ -120,35 +118,44 @@ class _EngineProcess:
             self.report({"ERROR"}, str(err))
             return False
         self._lines: list[str] = []
-        self._stage = ""
+        fd, name = tempfile.mkstemp(prefix="ntp-progress-", suffix=".jsonl")
+        os.close(fd)
+        self._progress_file, self._progress_offset = Path(name), 0
         env = dict(os.environ)  # the child must see the packages Blender sees (extension wheels)
         env["PYTHONPATH"] = os.pathsep.join(p for p in sys.path if p)
-        self._proc = subprocess.Popen(self._command(context), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                                      text=True, bufsize=1, env=env)
+        cmd = [
+            sys.executable,
+            "-m",
+            "ntp_engine.cli",
+            *self._command(context),
+            "--quiet",
+            "--progress",
+            str(self._progress_file),
+        ]
+        self._proc = subprocess.Popen(
+            cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, bufsize=1, env=env
+        )
 
-        def read():  # tqdm redraws with \r: split on both
-            buf = ""
-            for ch in iter(lambda: self._proc.stderr.read(1), ""):
-                if ch in "\r\n":
-                    if buf.strip():
-                        self._lines.append(buf.strip())
-                    buf = ""
-                else:
-                    buf += ch
+        def read():  # stderr holds only errors (--quiet): keep its lines for the report
+            for line in self._proc.stderr:
+                if line.strip():
+                    self._lines.append(line.strip())
 
         self._reader = threading.Thread(target=read, daemon=True)
         self._reader.start()
         return True
 
     def _poll_progress(self, context) -> None:
-        found = parse_progress(self._lines[-5:])
-        if found:
+        records, self._progress_offset = read_progress(self._progress_file, self._progress_offset)
+        if records:
             s = _settings(context)
-            s.status, s.progress = f"{found[0]}: {found[1]:.0f}%", found[1]
+            s.status, s.progress = progress_status(records[-1])
 
     def _finish(self, context) -> set[str]:
         out, _ = self._proc.communicate()
         self._reader.join(timeout=5)
+        if self._progress_file is not None:
+            self._progress_file.unlink(missing_ok=True)
         s = _settings(context)
         if self._proc.returncode != 0:
             errors = [ln for ln in self._lines if "error" in ln.lower()] or self._lines[-1:] or ["failed"]
@@ -200,13 +207,13 @@ class _EngineProcess:
         return {"PASS_THROUGH"}
 
     def _cleanup(self, context) -> None:
+        if self._progress_file is not None:
+            self._progress_file.unlink(missing_ok=True)
         wm = context.window_manager
         if self._timer is not None:
             wm.event_timer_remove(self._timer)
         wm.progress_end()
         context.workspace.status_text_set(None)
-
-
 
 
 def _engine_args(context) -> list[str]:
@@ -226,11 +233,9 @@ class NTP_OT_register_photos(_EngineProcess, bpy.types.Operator):
     bl_options = {"REGISTER", "UNDO"}
 
     def _command(self, context) -> list[str]:
-        return [sys.executable, "-m", "ntp_engine.cli", "register", *_engine_args(context)]
+        return ["register", *_engine_args(context)]
 
     def _succeeded(self, context, stdout: str) -> str:
-        from ntp_engine.scan import load_poses
-
         scan = _load_scan(context)
         poses = load_poses(result_folder(context) / "poses.json")
         coll = bpy.data.collections.get("NTP Cameras")
@@ -240,7 +245,7 @@ class NTP_OT_register_photos(_EngineProcess, bpy.types.Operator):
         for o in list(coll.objects):
             bpy.data.objects.remove(o, do_unlink=True)
         for name in sorted(poses):
-            cam = bscene.camera_object(f"NTP {name}", scan.device, poses[name], coll)
+            cam = bscene.camera_object(f"NTP {name}", scan.scanner, poses[name], coll)
             img = bpy.data.images.load(str(scan.photos_dir / name), check_existing=True)
             cam.data.show_background_images = True
             cam.data.background_images.new().image = img
@@ -256,8 +261,7 @@ class NTP_OT_reconstruct(_EngineProcess, bpy.types.Operator):
 
     def _command(self, context) -> list[str]:
         s = _settings(context)
-        cmd = [sys.executable, "-m", "ntp_engine.cli", "reconstruct", *_engine_args(context),
-               "--resolution", str(s.resolution)]
+        cmd = ["reconstruct", *_engine_args(context), "--resolution", str(s.resolution)]
         return cmd + (["--model", s.model] if s.model else [])
 
     def _succeeded(self, context, stdout: str) -> str:
@@ -307,5 +311,10 @@ class NTP_OT_relight_preview(bpy.types.Operator):
         return {"FINISHED"}
 
 
-CLASSES = (NTP_OT_import_mesh, NTP_OT_register_photos, NTP_OT_reconstruct, NTP_OT_build_material,
-           NTP_OT_relight_preview)
+CLASSES = (
+    NTP_OT_import_mesh,
+    NTP_OT_register_photos,
+    NTP_OT_reconstruct,
+    NTP_OT_build_material,
+    NTP_OT_relight_preview,
+)

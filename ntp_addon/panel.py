@@ -1,15 +1,16 @@
 """The "NTP" tab in the 3D view's sidebar: scan settings, the five operators, status, device."""
+
 from __future__ import annotations
 
 import bpy
 
-from ntp_engine.device import Device
-from ntp_engine.errors import NtpInputError
+from ntp_engine.io.errors import NtpInputError
+from ntp_engine.scanner.device_file import load_scanner
 
 
 def _device_lines(path: str) -> list[str]:
     try:
-        return Device.load(bpy.path.abspath(path) if path else None).summary().splitlines()
+        return load_scanner(bpy.path.abspath(path) if path else None).summary().splitlines()
     except NtpInputError as err:
         return [f"error: {err}"]
 

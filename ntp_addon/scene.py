@@ -6,8 +6,10 @@ cameras look down -Z with +Y up, so world-from-camera is flipped by diag(1, -1, 
 centres sit at integer coordinates, so the image centre is ((W - 1) / 2, (H - 1) / 2). A Blender
 point light of power P has radiant intensity P / (4 pi) W/sr.
 """
+
 from __future__ import annotations
 
+import dataclasses
 import math
 from pathlib import Path
 
@@ -15,14 +17,17 @@ import bpy
 import numpy as np
 from mathutils import Matrix
 
-from ntp_engine.device import Device
-from ntp_engine.virtual_scan import look_at
+from ntp_engine.io.images import read_image
+from ntp_engine.scanner.camera import look_at
+from ntp_engine.scanner.device_file import load_scanner
+from ntp_engine.scanner.scanner import Scanner
 
 FLIP = np.diag([1.0, -1.0, -1.0, 1.0])
 
 
-def camera_object(name: str, cam: Device, camera_from_world: np.ndarray,
-                  collection: bpy.types.Collection | None = None) -> bpy.types.Object:
+def camera_object(
+    name: str, cam: Scanner, camera_from_world: np.ndarray, collection: bpy.types.Collection | None = None
+) -> bpy.types.Object:
     """A camera object with the device's pinhole intrinsics (distortion is not modelled) at a pose."""
     data = bpy.data.cameras.new(name)
     data.sensor_fit = "HORIZONTAL"
@@ -56,8 +61,9 @@ def setup_cycles(scene: bpy.types.Scene, width: int, height: int, samples: int =
     scene.world = None  # a new World carries a grey background; none is black
 
 
-def point_light(name: str, position: np.ndarray, power_w: float,
-                collection: bpy.types.Collection | None = None) -> bpy.types.Object:
+def point_light(
+    name: str, position: np.ndarray, power_w: float, collection: bpy.types.Collection | None = None
+) -> bpy.types.Object:
     data = bpy.data.lights.new(name, type="POINT")
     data.energy = power_w
     data.shadow_soft_size = 0.0
@@ -69,7 +75,6 @@ def point_light(name: str, position: np.ndarray, power_w: float,
 
 def render_exr(scene: bpy.types.Scene, path: Path) -> np.ndarray:
     """Render the scene's camera to a float EXR; returns linear RGB ``(H, W, 3)`` (row 0 = top)."""
-    from ntp_engine.images import read_image
 
     scene.render.image_settings.file_format = "OPEN_EXR"
     scene.render.image_settings.color_depth = "32"
@@ -80,13 +85,16 @@ def render_exr(scene: bpy.types.Scene, path: Path) -> np.ndarray:
 
 def bounds(obj: bpy.types.Object) -> tuple[np.ndarray, float]:
     """World-space bounding-box centre and radius of an object."""
-    corners = np.array([obj.matrix_world @ v.co for v in obj.data.vertices]) if len(obj.data.vertices) else np.zeros((1, 3))
+    corners = (
+        np.array([obj.matrix_world @ v.co for v in obj.data.vertices]) if len(obj.data.vertices) else np.zeros((1, 3))
+    )
     lo, hi = corners.min(0), corners.max(0)
     return 0.5 * (lo + hi), float(0.5 * np.linalg.norm(hi - lo))
 
 
-def relight_rig(obj: bpy.types.Object, width: int = 640, height: int = 512, samples: int = 64,
-                turntable_frames: int = 0) -> dict[str, bpy.types.Object]:
+def relight_rig(
+    obj: bpy.types.Object, width: int = 640, height: int = 512, samples: int = 64, turntable_frames: int = 0
+) -> dict[str, bpy.types.Object]:
     """A look-dev scene around ``obj``: Cycles, a camera, a three-point area-light rig (key, fill,
     rim) in a collection ``NTP Relight``; optionally a turntable (the object turns 360 degrees about
     world z over ``turntable_frames`` frames, linear). Existing rig objects are replaced."""
@@ -102,20 +110,26 @@ def relight_rig(obj: bpy.types.Object, width: int = 640, height: int = 512, samp
     centre, radius = bounds(obj)
     dist = max(radius, 1e-3) * 4.0
     cam_pos = centre + dist * np.array([0.0, -0.82, 0.57])
-    fake = Device.load()
-    fake.width, fake.height = width, height
     f = 0.5 * width / math.tan(math.radians(22))
-    fake.K = np.array([[f, 0, (width - 1) / 2], [0, f, (height - 1) / 2], [0, 0, 1]])
-    cam = camera_object("NTP Camera", fake, look_at(cam_pos, centre), coll)
+    lens = dataclasses.replace(
+        load_scanner(),
+        width=width,
+        height=height,
+        K=np.array([[f, 0, (width - 1) / 2], [0, f, (height - 1) / 2], [0, 0, 1]]),
+    )
+    cam = camera_object("NTP Camera", lens, look_at(cam_pos, centre), coll)
     scene.camera = cam
     rig = {"camera": cam}
-    for name, direction, share, size in (("Key", (-0.6, -0.6, 0.7), 1.0, 0.5), ("Fill", (0.8, -0.4, 0.3), 0.3, 1.0),
-                                         ("Rim", (0.2, 0.9, 0.6), 0.6, 0.4)):
+    for name, direction, share, size in (
+        ("Key", (-0.6, -0.6, 0.7), 1.0, 0.5),
+        ("Fill", (0.8, -0.4, 0.3), 0.3, 1.0),
+        ("Rim", (0.2, 0.9, 0.6), 0.6, 0.4),
+    ):
         d = np.array(direction) / np.linalg.norm(direction)
         data = bpy.data.lights.new(f"NTP {name}", type="AREA")
         # irradiance ~ P / (pi d^2) from a small area light: P = share * pi^2 d^2 puts a white
         # Lambertian surface facing the key light near display white, at any object scale
-        data.energy = share * math.pi ** 2 * dist ** 2
+        data.energy = share * math.pi**2 * dist**2
         data.size = size * dist
         light = bpy.data.objects.new(f"NTP {name}", data)
         pos = centre + dist * d

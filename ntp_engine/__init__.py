@@ -1,7 +1,14 @@
 """ntp engine: the headless, bpy-free core of neural trace photography.
 
-Data flow and conventions: ``docs/`` and ../shared/DESIGN.md. Modules, in the order data flows:
-``device`` (scanner calibration), ``frame`` and ``brdf`` (anisotropic GGX), ``lumitexel`` (the
-network's output space), ``measurement`` (Eq. 1 and the confidence of Eq. 6).
+The package tree is the data flow; each subpackage imports only those before it:
+
+    io -> scanner -> physics -> learn -> fit -> pipeline -> sim -> bench, cli
+
+``io`` files and plumbing; ``scanner`` the device (record, camera, pattern, device file);
+``physics`` frames, GGX, lumitexels, Eq. 1 and Eq. 6; ``learn`` synthetic traces, the network,
+training and inference; ``fit`` GGX from lumitexels and albedo from pixels; ``pipeline`` a scan
+folder to maps (``ntp reconstruct``); ``sim`` the virtual scanner, evaluation and the demo.
+Conventions: ``docs/conventions.md``; the layout and its rules: ``docs/architecture.md``.
 """
+
 __version__ = "0.1.0"

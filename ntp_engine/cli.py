@@ -1,50 +1,242 @@
-"""The ``ntp`` command line."""
+"""The ``ntp`` command line: one handler per subcommand (``set_defaults(func=...)``), each a thin
+call into the engine. Bad input is one line on stderr and exit code 2."""
+
 from __future__ import annotations
 
 import argparse
+import subprocess
 import sys
 from pathlib import Path
 
-from .errors import NtpInputError
+from .bench import fit as bench_fit
+from .bench import network as bench_network
+from .bench import physics as bench_physics
+from .bench import scan as bench_scan
+from .bench import stability as bench_stability
+from .bench import virtual_scan as bench_virtual_scan
+from .io.errors import NtpInputError
+from .io.progress import Progress
+from .learn import models
+from .learn.network import NetworkConfig
+from .learn.train import TrainConfig, train
+from .pipeline.photo_selection import BLUR_MARGIN
+from .pipeline.scan_folder import Scan, load_scan
+from .pipeline.stages import DEFAULT_RESOLUTION, reconstruct, register_photos, write_registration
+from .scanner.device_file import DEFAULT_DEVICE, list_devices, load_scanner, write_pattern
+from .sim import demo
+from .sim.virtual_scan import ScanConfig, virtual_scan
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run ``ntp`` with ``argv`` (default: the process's); returns the exit code."""
+    args = _parser().parse_args(argv)
+    try:
+        return args.func(args)
+    except NtpInputError as err:
+        print(f"ntp: error: {err}", file=sys.stderr)
+        return 2
+
+
+def _progress(args: argparse.Namespace) -> Progress:
+    return Progress(bars=not args.quiet, json_path=args.progress)
+
+
+def _scan(args: argparse.Namespace, poses: Path | None = None) -> Scan:
+    return load_scan(args.scan, poses, device_file=args.device)
+
+
+def _alignment_note(reg: dict) -> str:
+    return f", alignment residual {reg['alignment']['residual_m'] * 1e3:.2f} mm" if "alignment" in reg else ""
+
+
+# ------------------------------------------------------------------------------------ handlers
+def _demo(args: argparse.Namespace) -> int:
+    demo.run(
+        args.out,
+        views=args.views,
+        scale=args.scale,
+        resolution=args.resolution,
+        seed=args.seed,
+        known_poses=args.known_poses,
+        model=args.model,
+        progress=_progress(args),
+        blend=not args.no_blend,
+    )
+    return 0
+
+
+def _register(args: argparse.Namespace) -> int:
+    poses, rep, _ = register_photos(_scan(args), args.out, args.blur_margin, progress=_progress(args))
+    write_registration(args.out, poses, rep)
+    reg = rep["registration"]
+    print(f"{len(poses)} photos registered ({reg['source']}){_alignment_note(reg)}; wrote {args.out / 'poses.json'}")
+    return 0
+
+
+def _reconstruct(args: argparse.Namespace) -> int:
+    rep = reconstruct(
+        _scan(args, args.poses),
+        args.out,
+        resolution=args.resolution,
+        model=args.model,
+        blur_margin=args.blur_margin,
+        progress=_progress(args),
+    )
+    print(
+        f"wrote {args.out}: {rep['texels']['coverage']:.1%} of {rep['texels']['total']} texels observed, "
+        f"{rep['photos']['used']} of {rep['photos']['total']} photos used"
+        f"{_alignment_note(rep['registration'])}, {rep['seconds']:.1f} s"
+    )
+    return 0
+
+
+def _device(args: argparse.Namespace) -> int:
+    if args.list:
+        for path in list_devices():
+            print(f"{path.name:24s} {load_scanner(path).description}")
+    else:
+        print(load_scanner(args.path).summary())
+    return 0
+
+
+def _virtual_scan(args: argparse.Namespace) -> int:
+    cfg = ScanConfig(
+        views=args.views, scale=args.scale, seed=args.seed, exposure=args.exposure, blur_fraction=args.blur_fraction
+    )
+    info = virtual_scan(args.out, args.asset, args.mesh, args.maps, args.device, cfg, progress=_progress(args))
+    print(f"wrote {args.out}: {args.views} photos, {info['seconds_per_photo']:.2f} s per photo")
+    return 0
+
+
+def _train(args: argparse.Namespace) -> int:
+    ncfg = NetworkConfig(preset=args.preset, frozen_pattern=None if args.pattern == "learned" else args.pattern)
+    tcfg = TrainConfig(
+        steps=args.steps,
+        batch=args.batch,
+        lr=args.lr,
+        pattern_lr=args.pattern_lr,
+        seed=args.seed,
+        views_max=args.views,
+        validate_every=args.validate_every,
+        sweep_fraction=args.sweep_fraction,
+        pattern_init=args.pattern_init,
+    )
+    result = train(
+        args.out, ncfg, tcfg, args.device, resume=args.resume, init_from=args.init_from, progress=_progress(args)
+    )
+    print(
+        f"step {result['step']}: validation loss {result['val_loss']:.4f} "
+        f"(diffuse {result['val_diffuse']:.4f}, specular {result['val_specular']:.3f})"
+    )
+    if args.export:
+        models.export(args.out / "checkpoint.pt", args.export, result)
+        print(f"exported {args.export}")
+        if args.export_pattern_to_device:
+            print(f"wrote {write_pattern(args.device or DEFAULT_DEVICE, models.pattern_of(args.export))}")
+    return 0
+
+
+def _bench_stability(args: argparse.Namespace) -> int:
+    r = bench_stability.run(samples=args.samples, seed=args.seed, json_path=args.json)
+    return 1 if r["nonfinite"] or r["total"]["negative_values"] else 0
+
+
+def _bench_virtual_scan(args: argparse.Namespace) -> int:
+    bench_virtual_scan.run(photos=args.photos, json_path=args.json)
+    return 0
+
+
+def _bench_fit(args: argparse.Namespace) -> int:
+    bench_fit.run(quick=args.quick, texels=args.texels, baseline_texels=args.baseline_texels, json_path=args.json)
+    return 0
+
+
+def _bench_network(args: argparse.Namespace) -> int:
+    bench_network.run(quick=args.quick, steps=args.steps, json_path=args.json)
+    return 0
+
+
+def _bench_scan(args: argparse.Namespace) -> int:
+    bench_scan.run(args.sizes, json_path=args.json, plot=args.plot, known_poses=args.known_poses)
+    return 0
+
+
+def _bench_blender(args: argparse.Namespace) -> int:
+    # in its own process: the engine never imports bpy
+    cmd = [sys.executable, "-m", "ntp_addon.bench", "--views", str(args.views), "--samples", str(args.samples)]
+    return subprocess.call(cmd + (["--json", str(args.json)] if args.json else []))
+
+
+def _bench_physics(args: argparse.Namespace) -> int:
+    bench_physics.run(json_path=args.json)
+    return 0
+
+
+# ------------------------------------------------------------------------------------ the parser
+def _sizes(text: str) -> list[tuple[int, int]]:
+    try:
+        return [(int(a), int(b)) for a, b in (item.lower().split("x") for item in text.split(","))]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected PHOTOSxRES,...") from None
+
+
+def _quiet_and_progress(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.add_argument(
+        "--progress",
+        type=Path,
+        default=None,
+        metavar="FILE",
+        help="append progress as JSON lines to FILE (stage, done, total, unit, elapsed_s, eta_s)",
+    )
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="ntp", description="Neural trace photography: hand-held "
-                                "reflectance scans to relightable Blender assets.")
+    p = argparse.ArgumentParser(
+        prog="ntp", description="Neural trace photography: hand-held reflectance scans to relightable Blender assets."
+    )
     sub = p.add_subparsers(dest="command", metavar="COMMAND", required=True)
 
     d = sub.add_parser("demo", help="virtual-scan the bundled demo, reconstruct it, print errors vs truth")
     d.add_argument("--out", type=Path, default=Path("ntp_demo_out"), help="output folder (scan/, result/)")
-    d.add_argument("--views", type=int, default=60, help="photos in the virtual scan")
-    d.add_argument("--scale", type=float, default=0.25, help="camera resolution scale (1.0 = 2448x2048)")
-    d.add_argument("--resolution", type=int, default=256, help="texture maps are RESOLUTION^2")
+    d.add_argument("--views", type=int, default=demo.DEMO_VIEWS, help="photos in the virtual scan")
+    d.add_argument("--scale", type=float, default=demo.DEMO_SCALE, help="camera resolution scale (1.0 = 2448x2048)")
+    d.add_argument("--resolution", type=int, default=demo.DEMO_RESOLUTION, help="texture maps are RESOLUTION^2")
     d.add_argument("--seed", type=int, default=0)
     d.add_argument("--model", default=None, help="shipped model name or a model folder (default: compact)")
     d.add_argument("--known-poses", action="store_true", help="use the scan's true poses instead of SfM")
-    d.add_argument("--quiet", action="store_true", help="no progress bars")
     d.add_argument("--no-blend", action="store_true", help="skip the Blender export (.blend, .glb, preview)")
+    _quiet_and_progress(d)
+    d.set_defaults(func=_demo)
 
     rc = sub.add_parser("reconstruct", help="a scan folder to texture maps (resumes from OUT/cache)")
     rc.add_argument("scan", type=Path, help="scan folder (scan.toml, mesh, photos/)")
     rc.add_argument("--out", type=Path, required=True, help="result folder")
-    rc.add_argument("--resolution", type=int, default=1024, help="texture maps are RESOLUTION^2")
+    rc.add_argument("--resolution", type=int, default=DEFAULT_RESOLUTION, help="texture maps are RESOLUTION^2")
     rc.add_argument("--model", default=None, help="shipped model name or a model folder (default: compact)")
     rc.add_argument("--poses", type=Path, default=None, help="poses JSON (camera-from-world per photo); skips SfM")
     rc.add_argument("--device", type=Path, default=None, help="device TOML instead of the one scan.toml names")
-    rc.add_argument("--blur-margin", type=float, default=0.08,
-                    help="drop photos whose blur score exceeds the scan's median by this much")
-    rc.add_argument("--quiet", action="store_true", help="no progress bars")
+    rc.add_argument(
+        "--blur-margin",
+        type=float,
+        default=BLUR_MARGIN,
+        help="drop photos whose blur score exceeds the scan's median by this much",
+    )
+    _quiet_and_progress(rc)
+    rc.set_defaults(func=_reconstruct)
 
     rg = sub.add_parser("register", help="photo selection + camera poses (SfM aligned to the mesh) -> OUT/poses.json")
     rg.add_argument("scan", type=Path, help="scan folder (scan.toml, mesh, photos/)")
     rg.add_argument("--out", type=Path, required=True, help="result folder (its cache is shared with reconstruct)")
     rg.add_argument("--device", type=Path, default=None, help="device TOML instead of the one scan.toml names")
-    rg.add_argument("--blur-margin", type=float, default=0.08)
-    rg.add_argument("--quiet", action="store_true", help="no progress bars")
+    rg.add_argument("--blur-margin", type=float, default=BLUR_MARGIN)
+    _quiet_and_progress(rg)
+    rg.set_defaults(func=_register)
 
     dev = sub.add_parser("device", help="print a device calibration file, or list the shipped ones")
     dev.add_argument("path", type=Path, nargs="?", default=None, help="device TOML (default: the default device)")
     dev.add_argument("--list", action="store_true", help="list the shipped devices")
+    dev.set_defaults(func=_device)
 
     vs = sub.add_parser("virtual-scan", help="simulate a hand-held capture of a mesh with known maps")
     vs.add_argument("--out", type=Path, required=True, help="scan folder to write")
@@ -57,6 +249,8 @@ def _parser() -> argparse.ArgumentParser:
     vs.add_argument("--seed", type=int, default=0)
     vs.add_argument("--exposure", type=float, default=1.5, help="x the device's auto-exposure")
     vs.add_argument("--blur-fraction", type=float, default=0.0, help="fraction of photos with motion blur")
+    _quiet_and_progress(vs)
+    vs.set_defaults(func=_virtual_scan)
 
     tr = sub.add_parser("train", help="train the trace network and its lighting pattern (resumable)")
     tr.add_argument("--preset", default="compact", choices=["compact", "paper", "small"])
@@ -65,25 +259,50 @@ def _parser() -> argparse.ArgumentParser:
     tr.add_argument("--resume", action="store_true", help="continue the checkpoint in --out")
     tr.add_argument("--batch", type=int, default=64)
     tr.add_argument("--lr", type=float, default=3e-4)
-    tr.add_argument("--pattern-lr", type=float, default=None,
-                    help="learning rate of the lighting layer (default: --lr; the pattern moves slowly at 3e-4)")
+    tr.add_argument(
+        "--pattern-lr",
+        type=float,
+        default=None,
+        help="learning rate of the lighting layer (default: --lr; the pattern moves slowly at 3e-4)",
+    )
     tr.add_argument("--seed", type=int, default=0, help="data seed")
     tr.add_argument("--views", type=int, default=64, help="maximum trace length in training")
-    tr.add_argument("--init-from", type=Path, default=None,
-                    help="start a new run from another run's weights and step (the pattern setting may differ)")
-    tr.add_argument("--sweep-fraction", type=float, default=0.5,
-                    help="fraction of training traces seen from a correlated hand-held sweep (else i.i.d. views)")
-    tr.add_argument("--pattern", default="learned",
-                    help="learned, or a frozen pattern: full_on, point, binary, or a CSV/NPY file")
-    tr.add_argument("--pattern-init", default=None,
-                    help="a learned pattern's starting value: full_on, point, binary or a CSV/NPY file, clipped to "
-                         "[0.1, 0.9] (default: 0.5 everywhere, or the --init-from run's pattern)")
+    tr.add_argument(
+        "--init-from",
+        type=Path,
+        default=None,
+        help="start a new run from another run's weights and step (the pattern setting may differ)",
+    )
+    tr.add_argument(
+        "--sweep-fraction",
+        type=float,
+        default=0.5,
+        help="fraction of training traces seen from a correlated hand-held sweep (else i.i.d. views)",
+    )
+    tr.add_argument(
+        "--pattern", default="learned", help="learned, or a frozen pattern: full_on, point, binary, or a CSV/NPY file"
+    )
+    tr.add_argument(
+        "--pattern-init",
+        default=None,
+        help="a learned pattern's starting value: full_on, point, binary or a CSV/NPY file, clipped to "
+        "[0.1, 0.9] (default: 0.5 everywhere, or the --init-from run's pattern)",
+    )
     tr.add_argument("--device", type=Path, default=None, help="device TOML (default: the paper's LED array)")
     tr.add_argument("--validate-every", type=int, default=500)
-    tr.add_argument("--export", type=Path, default=None,
-                    help="after training, write a model folder here (e.g. assets/models/compact)")
-    tr.add_argument("--export-pattern-to-device", action="store_true",
-                    help="also write the learned pattern, quantised to 8 bits, into the device file")
+    tr.add_argument(
+        "--export",
+        type=Path,
+        default=None,
+        help="after training, write a model folder here (e.g. assets/models/compact)",
+    )
+    tr.add_argument(
+        "--export-pattern-to-device",
+        action="store_true",
+        help="also write the learned pattern, quantised to 8 bits, into the device file",
+    )
+    _quiet_and_progress(tr)
+    tr.set_defaults(func=_train)
 
     b = sub.add_parser("bench", help="benchmarks: run time and error in one run")
     bsub = b.add_subparsers(dest="bench", metavar="NAME", required=True)
@@ -91,158 +310,37 @@ def _parser() -> argparse.ArgumentParser:
     st.add_argument("--samples", type=int, default=10_000_000)
     st.add_argument("--seed", type=int, default=0)
     st.add_argument("--json", type=Path, default=None)
+    st.set_defaults(func=_bench_stability)
     bv = bsub.add_parser("virtual-scan", help="seconds per photo (scale 0.25, 1.0) and shadow-cluster error")
     bv.add_argument("--photos", type=int, default=3)
     bv.add_argument("--json", type=Path, default=None)
+    bv.set_defaults(func=_bench_virtual_scan)
     bf = bsub.add_parser("fit", help="batched GGX fitter vs per-texel scipy L-BFGS-B (speed and error)")
     bf.add_argument("--quick", action="store_true", help="2048 texels (baseline on 32) instead of 16384 (192)")
     bf.add_argument("--texels", type=int, default=None)
     bf.add_argument("--baseline-texels", type=int, default=None)
     bf.add_argument("--json", type=Path, default=None)
+    bf.set_defaults(func=_bench_fit)
     bn = bsub.add_parser("network", help="val. loss by pattern and by test views; inference traces/s")
     bn.add_argument("--quick", action="store_true", help="use the shipped comparison networks (no training)")
     bn.add_argument("--steps", type=int, default=3000, help="training steps per comparison network")
     bn.add_argument("--json", type=Path, default=None)
+    bn.set_defaults(func=_bench_network)
     bs = bsub.add_parser("scan", help="whole pipeline on virtual scans of 2-3 sizes: stage times vs errors")
-    bs.add_argument("--sizes", default=None, help="PHOTOSxRES,... (default 24x128,48x256,96x256)")
+    bs.add_argument("--sizes", type=_sizes, default=None, help="PHOTOSxRES,... (default 24x128,48x256,96x256)")
     bs.add_argument("--known-poses", action="store_true", help="skip SfM (true poses)")
     bs.add_argument("--plot", type=Path, default=Path("bench_scan.png"), help="PNG of run time against error")
     bs.add_argument("--json", type=Path, default=None)
+    bs.set_defaults(func=_bench_scan)
     bb = bsub.add_parser("blender", help="Cycles (both materials) vs the engine's render; preview seconds")
     bb.add_argument("--views", type=int, default=3)
     bb.add_argument("--samples", type=int, default=64)
     bb.add_argument("--json", type=Path, default=None)
+    bb.set_defaults(func=_bench_blender)
     ph = bsub.add_parser("physics", help="BRDF evaluations/s, lumitexels/s, measurements/s (f32 vs f64)")
     ph.add_argument("--json", type=Path, default=None)
+    ph.set_defaults(func=_bench_physics)
     return p
-
-
-def _scan(args, poses: Path | None = None):
-    """The scan folder of ``args.scan`` with ``--device`` (if given) in place of scan.toml's device."""
-    from .scan import load_scan
-
-    scan = load_scan(args.scan, poses)
-    if args.device:
-        from .device import Device
-
-        scan.device = Device.load(args.device)
-    return scan
-
-
-def _alignment_note(reg: dict) -> str:
-    return f", alignment residual {reg['alignment']['residual_m'] * 1e3:.2f} mm" if "alignment" in reg else ""
-
-
-def main(argv: list[str] | None = None) -> int:
-    args = _parser().parse_args(argv)
-    try:
-        if args.command == "demo":
-            from . import demo
-
-            demo.run(args.out, views=args.views, scale=args.scale, resolution=args.resolution, seed=args.seed,
-                     known_poses=args.known_poses, model=args.model, progress=not args.quiet, blend=not args.no_blend)
-        elif args.command == "register":
-            import json
-
-            from .atomic import write_text_atomic
-            from .pipeline import register_scan
-
-            poses, rep, _ = register_scan(_scan(args), args.out, args.blur_margin, progress=not args.quiet)
-            write_text_atomic(args.out / "poses.json", json.dumps({n: m.tolist() for n, m in poses.items()}, indent=1))
-            write_text_atomic(args.out / "registration.json", json.dumps(rep, indent=2))
-            reg = rep["registration"]
-            print(f"{len(poses)} photos registered ({reg['source']}){_alignment_note(reg)}; "
-                  f"wrote {args.out / 'poses.json'}")
-        elif args.command == "reconstruct":
-            from .pipeline import reconstruct
-
-            rep = reconstruct(_scan(args, args.poses), args.out, resolution=args.resolution,
-                              model=args.model, blur_margin=args.blur_margin, progress=not args.quiet)
-            print(f"wrote {args.out}: {rep['texels']['coverage']:.1%} of {rep['texels']['total']} texels observed, "
-                  f"{rep['photos']['used']} of {rep['photos']['total']} photos used"
-                  f"{_alignment_note(rep['registration'])}, {rep['seconds']:.1f} s")
-        elif args.command == "device":
-            from .device import Device, list_devices
-
-            if args.list:
-                for path in list_devices():
-                    print(f"{path.name:24s} {Device.load(path).description}")
-            else:
-                print(Device.load(args.path).summary())
-        elif args.command == "virtual-scan":
-            from .virtual_scan import ScanConfig, virtual_scan
-
-            if not 0 < args.scale <= 1 or args.views < 1 or not 0 <= args.blur_fraction <= 1:
-                raise NtpInputError(None, "need 0 < --scale <= 1, --views >= 1, 0 <= --blur-fraction <= 1")
-            cfg = ScanConfig(views=args.views, scale=args.scale, seed=args.seed, exposure=args.exposure,
-                             blur_fraction=args.blur_fraction)
-            info = virtual_scan(args.out, args.asset, args.mesh, args.maps, args.device, cfg)
-            print(f"wrote {args.out}: {args.views} photos, {info['seconds_per_photo']:.2f} s per photo")
-        elif args.command == "train":
-            from . import models
-            from .device import DEFAULT_DEVICE
-            from .network import NetworkConfig
-            from .train import TrainConfig, train
-
-            ncfg = NetworkConfig(preset=args.preset, frozen_pattern=None if args.pattern == "learned" else args.pattern)
-            tcfg = TrainConfig(steps=args.steps, batch=args.batch, lr=args.lr, pattern_lr=args.pattern_lr, seed=args.seed,
-                               views_max=args.views, validate_every=args.validate_every,
-                               sweep_fraction=args.sweep_fraction, pattern_init=args.pattern_init)
-            result = train(args.out, ncfg, tcfg, args.device, resume=args.resume, init_from=args.init_from)
-            print(f"step {result['step']}: validation loss {result['val_loss']:.4f} "
-                  f"(diffuse {result['val_diffuse']:.4f}, specular {result['val_specular']:.3f})")
-            if args.export:
-                models.export(args.out / "checkpoint.pt", args.export, result)
-                print(f"exported {args.export}")
-                if args.export_pattern_to_device:
-                    import numpy as np
-
-                    pattern = np.loadtxt(args.export / "pattern.csv", delimiter=",", ndmin=2)
-                    csv_path = models.write_pattern_to_device(pattern, args.device or DEFAULT_DEVICE)
-                    print(f"wrote {csv_path}")
-        elif args.command == "bench":
-            if args.bench == "stability":
-                from .bench import stability
-
-                r = stability.run(samples=args.samples, seed=args.seed, json_path=args.json)
-                return 1 if r["nonfinite"] or r["total"]["negative_values"] else 0
-            if args.bench == "virtual-scan":
-                from .bench import virtual_scan as bench_vs
-
-                bench_vs.run(photos=args.photos, json_path=args.json)
-            if args.bench == "fit":
-                from .bench import fit as bench_fit
-
-                bench_fit.run(quick=args.quick, texels=args.texels, baseline_texels=args.baseline_texels,
-                              json_path=args.json)
-            if args.bench == "network":
-                from .bench import network as bench_network
-
-                bench_network.run(quick=args.quick, steps=args.steps, json_path=args.json)
-            if args.bench == "scan":
-                from .bench import scan as bench_scan
-
-                sizes = None
-                if args.sizes:
-                    try:
-                        sizes = [tuple(int(v) for v in item.lower().split("x")) for item in args.sizes.split(",")]
-                    except ValueError:
-                        raise NtpInputError(None, f"--sizes {args.sizes!r}: expected PHOTOSxRES,...") from None
-                bench_scan.run(sizes, json_path=args.json, plot=args.plot, known_poses=args.known_poses)
-            if args.bench == "blender":  # in its own process: the engine never imports bpy
-                import subprocess
-
-                cmd = [sys.executable, "-m", "ntp_addon.bench", "--views", str(args.views), "--samples",
-                       str(args.samples)] + (["--json", str(args.json)] if args.json else [])
-                return subprocess.call(cmd)
-            if args.bench == "physics":
-                from .bench import physics
-
-                physics.run(json_path=args.json)
-    except NtpInputError as err:
-        print(f"ntp: error: {err}", file=sys.stderr)
-        return 2
-    return 0
 
 
 if __name__ == "__main__":

@@ -1,11 +1,12 @@
 """The `ntp` command line as a user runs it (a real subprocess)."""
+
 import json
 import subprocess
 import sys
 
 import numpy as np
 
-from ntp_engine.images import read_image
+from ntp_engine.io.images import read_image
 
 
 def ntp(*args, cwd=None):
@@ -21,8 +22,9 @@ def test_help_lists_commands():
 
 def test_demo_runs_end_to_end_and_reports_errors(tmp_path):
     d = tmp_path / "demo"
-    out = ntp("demo", "--out", str(d), "--views", "8", "--scale", "0.1", "--resolution", "24", "--known-poses",
-              "--quiet")
+    out = ntp(
+        "demo", "--out", str(d), "--views", "8", "--scale", "0.1", "--resolution", "24", "--known-poses", "--quiet"
+    )
     assert out.returncode == 0, out.stderr
     assert "relit_ssim" in out.stdout and "normal_median_deg" in out.stdout
     summary = json.loads((d / "demo.json").read_text())
@@ -34,8 +36,20 @@ def test_demo_runs_end_to_end_and_reports_errors(tmp_path):
     relit = read_image(d / "relit" / "relit_0.png")
     assert relit.shape[1] > relit.shape[0] and np.isfinite(relit).all()  # truth | reconstruction
     # a second run reuses the scan and every cached stage
-    again = ntp("demo", "--out", str(d), "--views", "8", "--scale", "0.1", "--resolution", "24", "--known-poses",
-                "--quiet", "--no-blend")
+    again = ntp(
+        "demo",
+        "--out",
+        str(d),
+        "--views",
+        "8",
+        "--scale",
+        "0.1",
+        "--resolution",
+        "24",
+        "--known-poses",
+        "--quiet",
+        "--no-blend",
+    )
     assert again.returncode == 0, again.stderr
     rep = json.loads((d / "result" / "report.json").read_text())
     assert rep["cached_stages"] == ["select", "atlas", "traces", "fit"]

@@ -14,6 +14,7 @@ Other platforms: run with ``--platform`` set to pip's tag for the target (``win_
 ``macosx_11_0_arm64``, ...) and the manifest's ``platforms`` to match (``windows-x64``,
 ``macos-arm64``); torch's CPU wheels for Windows/macOS are on PyPI as the default build.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -63,10 +64,12 @@ def engine_wheel(wheels: Path) -> Path:
             if f.is_file() and "__pycache__" not in f.parts and f.suffix != ".pyc":
                 files.append((f"{prefix}/{f.relative_to(base).as_posix()}", f))
     dist = f"{name}-{version}.dist-info"
-    meta = {f"{dist}/METADATA": f"Metadata-Version: 2.1\nName: ntp-engine\nVersion: {version}\n"
-                                 f"Summary: {project['description']}\nRequires-Python: {project['requires-python']}\n",
-            f"{dist}/WHEEL": "Wheel-Version: 1.0\nGenerator: ntp tools/build_extension.py\nRoot-Is-Purelib: true\n"
-                              "Tag: py3-none-any\n"}
+    meta = {
+        f"{dist}/METADATA": f"Metadata-Version: 2.1\nName: ntp-engine\nVersion: {version}\n"
+        f"Summary: {project['description']}\nRequires-Python: {project['requires-python']}\n",
+        f"{dist}/WHEEL": "Wheel-Version: 1.0\nGenerator: ntp tools/build_extension.py\nRoot-Is-Purelib: true\n"
+        "Tag: py3-none-any\n",
+    }
     target = wheels / f"{name}-{version}-py3-none-any.whl"
     record = []
 
@@ -95,8 +98,25 @@ def build(out: Path, with_dependencies: bool = True, platforms: list[str] | None
     engine_wheel(wheels)
     if with_dependencies:
         tags = [a for p in (platforms or PLATFORMS) for a in ("--platform", p)]
-        subprocess.run([sys.executable, "-m", "pip", "download", "-q", "-d", str(wheels), "--only-binary=:all:",
-                        *tags, "--python-version", "3.11", "--implementation", "cp", *dependency_pins()], check=True)
+        subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "pip",
+                "download",
+                "-q",
+                "-d",
+                str(wheels),
+                "--only-binary=:all:",
+                *tags,
+                "--python-version",
+                "3.11",
+                "--implementation",
+                "cp",
+                *dependency_pins(),
+            ],
+            check=True,
+        )
         for w in wheels.glob("*.whl"):
             if w.name.split("-")[0].lower() in EXCLUDE:
                 w.unlink()
@@ -106,16 +126,20 @@ def build(out: Path, with_dependencies: bool = True, platforms: list[str] | None
     tool = blender_ext()
     subprocess.run([sys.executable, str(tool), "validate", str(stage)], check=True)
     out.mkdir(parents=True, exist_ok=True)
-    subprocess.run([sys.executable, str(tool), "build", "--source-dir", str(stage), "--output-dir", str(out)],
-                   check=True)
+    subprocess.run(
+        [sys.executable, str(tool), "build", "--source-dir", str(stage), "--output-dir", str(out)], check=True
+    )
     return next(out.glob(f"{manifest['id']}-{manifest['version']}*.zip"))
 
 
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--out", type=Path, default=ROOT / "dist")
-    p.add_argument("--no-dependency-wheels", action="store_true",
-                   help="only the ntp_engine wheel (for tests; the add-on then needs the deps installed)")
+    p.add_argument(
+        "--no-dependency-wheels",
+        action="store_true",
+        help="only the ntp_engine wheel (for tests; the add-on then needs the deps installed)",
+    )
     p.add_argument("--platform", action="append", default=None, help="pip platform tag(s) of the target")
     a = p.parse_args()
     print(f"wrote {build(a.out, not a.no_dependency_wheels, a.platform)}")

@@ -1,12 +1,13 @@
 """Benchmarks (`ntp bench NAME`): run time and error side by side, measured in one run."""
+
 from __future__ import annotations
 
 import json
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
-from ..atomic import write_text_atomic
+from ..io.atomic import write_text_atomic
 
 
 def timed(fn: Callable[[], object], repeat: int = 3) -> float:
@@ -21,6 +22,7 @@ def timed(fn: Callable[[], object], repeat: int = 3) -> float:
 
 
 def print_table(rows: list[tuple], header: tuple) -> None:
+    """Rows under a header, columns padded to their widest cell."""
     cols = [header] + [tuple(str(c) for c in r) for r in rows]
     widths = [max(len(r[i]) for r in cols) for i in range(len(header))]
     for k, r in enumerate(cols):
@@ -30,6 +32,7 @@ def print_table(rows: list[tuple], header: tuple) -> None:
 
 
 def dump_json(path: str | Path | None, data: dict) -> None:
+    """Write ``data`` as JSON to ``path`` (atomic) if a path is given."""
     if path:
         write_text_atomic(path, json.dumps(data, indent=2))
         print(f"wrote {path}")

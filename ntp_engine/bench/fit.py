@@ -2,34 +2,34 @@
 synthetic lumitexels: exact ones, and the network's predictions for the same points (the noise a
 network leaves; log-space Gaussian noise if no trained model is shipped yet). Errors are compared on
 the texels both methods fitted; texels/s of each from its own run."""
+
 from __future__ import annotations
 
 import time
 
 import torch
 
-from ..device import Device
-from ..fit import GeometryFit, fit_geometry, lumitexel_log_rmse
-from ..fit_baseline import fit_geometry_lbfgsb
-from ..synthetic import SyntheticConfig, sample_batch
+from ..fit.baseline import fit_geometry_lbfgsb
+from ..fit.geometry import GeometryFit, fit_geometry, lumitexel_log_rmse
+from ..learn import models
+from ..learn.synthetic import SyntheticConfig, sample_batch
+from ..scanner.device_file import load_scanner
 from . import dump_json, print_table
 
 
 def _cases(n: int, seed: int, chunk: int = 128) -> dict:
     """Ground truth and the two inputs for ``n`` synthetic points."""
-    device = Device.load()
+    scanner = load_scanner()
     model, source = None, "log-normal noise sigma 0.05 (no shipped model)"
     try:
-        from .. import models
-
-        model, meta = models.load(None, device)
+        model, meta = models.load(None, scanner)
         source = f"network '{meta['network']['preset']}' on 64-view synthetic traces"
     except Exception:  # noqa: BLE001 - the benchmark still runs before a model is shipped
         model = None
     gen = torch.Generator().manual_seed(seed)
     gt = {k: [] for k in ("n", "t", "ax", "ay", "exact", "noisy")}
     for i in range(0, n, chunk):
-        b = sample_batch(device, min(chunk, n - i), gen, SyntheticConfig(), views=64)
+        b = sample_batch(scanner, min(chunk, n - i), gen, SyntheticConfig(), views=64)
         gt["n"].append(b.params["n_local"])
         gt["t"].append(b.params["t_local"])
         gt["ax"].append(b.params["alpha_x"])
@@ -60,8 +60,9 @@ def _errors(fit: GeometryFit, gt: dict, inp: torch.Tensor, sel: slice) -> dict:
     aniso = ax_gt > 2 * ay_gt
     ex = (fit.alpha_x[sel].log() - ax_gt.log()).abs()
     ey = (fit.alpha_y[sel].log() - ay_gt.log()).abs()
-    sub = GeometryFit(*(getattr(fit, f)[sel] if getattr(fit, f) is not None else None
-                        for f in GeometryFit.__dataclass_fields__))
+    sub = GeometryFit(
+        *(getattr(fit, f)[sel] if getattr(fit, f) is not None else None for f in GeometryFit.__dataclass_fields__)
+    )
     rmse_in = lumitexel_log_rmse(sub, inp[sel])
     rmse_gt = lumitexel_log_rmse(sub, gt["exact"][sel])
     return {
@@ -76,8 +77,10 @@ def _errors(fit: GeometryFit, gt: dict, inp: torch.Tensor, sel: slice) -> dict:
     }
 
 
-def run(quick: bool = False, texels: int | None = None, baseline_texels: int | None = None, seed: int = 7,
-        json_path=None) -> dict:
+def run(
+    quick: bool = False, texels: int | None = None, baseline_texels: int | None = None, seed: int = 7, json_path=None
+) -> dict:
+    """Fit ``texels`` synthetic lumitexels batched and ``baseline_texels`` by L-BFGS-B; print and return both."""
     texels = texels or (2048 if quick else 16384)
     baseline_texels = baseline_texels or (32 if quick else 192)
     gt = _cases(texels, seed)
@@ -99,20 +102,45 @@ def run(quick: bool = False, texels: int | None = None, baseline_texels: int | N
         el = {"texels_per_s": baseline_texels / t_l, **_errors(base, gt, inp, common)}
         result[kind] = {"batched": eb, "baseline": el, "speedup": eb["texels_per_s"] / el["texels_per_s"]}
         for name, e in (("batched", eb), ("baseline", el)):
-            rows.append((kind, name, f"{e['texels_per_s']:.0f}", f"{e['lumitexel_log_rmse']:.2e}",
-                         f"{e['lumitexel_log_rmse_vs_truth']:.2e}", f"{e['normal_deg_median']:.3f}",
-                         f"{e['normal_deg_p90']:.3f}", f"{e['alpha_x_log_err_median']:.3f}",
-                         f"{e['alpha_y_log_err_median']:.3f}", f"{e['tangent_deg_median_anisotropic']:.2f}"))
-    print_table(rows, ("input", "method", "texels/s", "log-RMSE", "log-RMSE vs truth", "normal med deg",
-                       "normal p90", "|dlog ax|", "|dlog ay|", "tangent deg (aniso)"))
+            rows.append(
+                (
+                    kind,
+                    name,
+                    f"{e['texels_per_s']:.0f}",
+                    f"{e['lumitexel_log_rmse']:.2e}",
+                    f"{e['lumitexel_log_rmse_vs_truth']:.2e}",
+                    f"{e['normal_deg_median']:.3f}",
+                    f"{e['normal_deg_p90']:.3f}",
+                    f"{e['alpha_x_log_err_median']:.3f}",
+                    f"{e['alpha_y_log_err_median']:.3f}",
+                    f"{e['tangent_deg_median_anisotropic']:.2f}",
+                )
+            )
+    print_table(
+        rows,
+        (
+            "input",
+            "method",
+            "texels/s",
+            "log-RMSE",
+            "log-RMSE vs truth",
+            "normal med deg",
+            "normal p90",
+            "|dlog ax|",
+            "|dlog ay|",
+            "tangent deg (aniso)",
+        ),
+    )
     for kind in ("exact", "noisy"):
         print(f"{kind}: batched is {result[kind]['speedup']:.0f}x the baseline's texels/s")
     # the issue's keys: batched/baseline with texels_per_s and lumitexel_log_rmse (exact input),
     # the noisy-input figures beside them
     for name in ("batched", "baseline"):
-        result[name] = {"texels_per_s": result["exact"][name]["texels_per_s"],
-                        "lumitexel_log_rmse": result["exact"][name]["lumitexel_log_rmse"],
-                        "texels_per_s_noisy": result["noisy"][name]["texels_per_s"],
-                        "lumitexel_log_rmse_noisy": result["noisy"][name]["lumitexel_log_rmse"]}
+        result[name] = {
+            "texels_per_s": result["exact"][name]["texels_per_s"],
+            "lumitexel_log_rmse": result["exact"][name]["lumitexel_log_rmse"],
+            "texels_per_s_noisy": result["noisy"][name]["texels_per_s"],
+            "lumitexel_log_rmse_noisy": result["noisy"][name]["lumitexel_log_rmse"],
+        }
     dump_json(json_path, result)
     return result

@@ -2,19 +2,25 @@
 virtual scans of the demo asset at several sizes (photos x texture resolution), with per-stage
 time and the errors against ground truth side by side; the number of photos is the knob the paper
 studies (Figs. 15-16). Writes a table, JSON and a matplotlib plot of run time against error."""
+
 from __future__ import annotations
 
 import tempfile
 from pathlib import Path
 
-from .. import demo
+from ..sim import demo
 from . import dump_json, print_table
 
 SIZES = [(24, 128), (48, 256), (96, 256)]  # (photos, map resolution); 0.25 camera scale
 
 
-def run(sizes: list[tuple[int, int]] | None = None, json_path: Path | None = None, plot: Path | None = None,
-        work: Path | None = None, known_poses: bool = False) -> dict:
+def run(
+    sizes: list[tuple[int, int]] | None = None,
+    json_path: Path | None = None,
+    plot: Path | None = None,
+    work: Path | None = None,
+    known_poses: bool = False,
+) -> dict:
     sizes = sizes or SIZES
     rows, results = [], []
     with tempfile.TemporaryDirectory(prefix="ntp-bench-scan-") as tmp:
@@ -22,17 +28,48 @@ def run(sizes: list[tuple[int, int]] | None = None, json_path: Path | None = Non
             out = (work or Path(tmp)) / f"v{views}_r{res}"
             s = demo.run(out, views=views, resolution=res, known_poses=known_poses, progress=False, blend=False)
             st = s["seconds"]["stages"]
-            r = {"photos": views, "resolution": res, **s["metrics"], "pose_error": s["pose_error"],
-                 "seconds_virtual_scan": s["seconds"]["virtual_scan"], "seconds_reconstruct": s["seconds"]["reconstruct"],
-                 "stages": st}
+            r = {
+                "photos": views,
+                "resolution": res,
+                **s["metrics"],
+                "pose_error": s["pose_error"],
+                "seconds_virtual_scan": s["seconds"]["virtual_scan"],
+                "seconds_reconstruct": s["seconds"]["reconstruct"],
+                "stages": st,
+            }
             results.append(r)
             pe = s["pose_error"].get("centre_median_m", float("nan")) * 1e3
-            rows.append((views, f"{res}^2", f"{st['register']:.1f}", f"{st['traces']:.1f}",
-                         f"{st['network_and_fit']:.1f}", f"{s['seconds']['reconstruct']:.1f}", f"{pe:.2f}",
-                         f"{r['normal_median_deg']:.2f}", f"{r['diffuse_rmse']:.4f}", f"{r['relit_ssim']:.4f}",
-                         f"{r['coverage']:.3f}"))
-    print_table(rows, ("photos", "maps", "SfM s", "traces s", "net+fit s", "reconstruct s", "pose mm",
-                       "normal deg", "diffuse RMSE", "relit SSIM", "coverage"))
+            rows.append(
+                (
+                    views,
+                    f"{res}^2",
+                    f"{st['register']:.1f}",
+                    f"{st['traces']:.1f}",
+                    f"{st['network_and_fit']:.1f}",
+                    f"{s['seconds']['reconstruct']:.1f}",
+                    f"{pe:.2f}",
+                    f"{r['normal_median_deg']:.2f}",
+                    f"{r['diffuse_rmse']:.4f}",
+                    f"{r['relit_ssim']:.4f}",
+                    f"{r['coverage']:.3f}",
+                )
+            )
+    print_table(
+        rows,
+        (
+            "photos",
+            "maps",
+            "SfM s",
+            "traces s",
+            "net+fit s",
+            "reconstruct s",
+            "pose mm",
+            "normal deg",
+            "diffuse RMSE",
+            "relit SSIM",
+            "coverage",
+        ),
+    )
     if plot is not None:
         import matplotlib
 
@@ -41,12 +78,20 @@ def run(sizes: list[tuple[int, int]] | None = None, json_path: Path | None = Non
 
         fig, ax = plt.subplots(1, 3, figsize=(13, 3.8))
         t = [r["seconds_reconstruct"] for r in results]
-        for a, key, label in zip(ax, ("normal_median_deg", "diffuse_rmse", "relit_ssim"),
-                                 ("normal median error (deg)", "diffuse albedo RMSE", "relit SSIM (higher is better)")):
+        for a, key, label in zip(
+            ax,
+            ("normal_median_deg", "diffuse_rmse", "relit_ssim"),
+            ("normal median error (deg)", "diffuse albedo RMSE", "relit SSIM (higher is better)"),
+        ):
             a.plot(t, [r[key] for r in results], "o-")
             for r, x in zip(results, t):
-                a.annotate(f"{r['photos']} photos, {r['resolution']}²", (x, r[key]), fontsize=8,
-                           textcoords="offset points", xytext=(4, 4))
+                a.annotate(
+                    f"{r['photos']} photos, {r['resolution']}²",
+                    (x, r[key]),
+                    fontsize=8,
+                    textcoords="offset points",
+                    xytext=(4, 4),
+                )
             a.set_xlabel("reconstruct wall time (s, 2 CPU cores)")
             a.set_ylabel(label)
             a.grid(alpha=0.3)

@@ -1,6 +1,7 @@
 """``ntp bench stability``: the BRDF's values and gradients in float32 over random and adversarial
 inputs; counts non-finite or negative results (must be 0) and the error against float64 evaluated
 on the very same (float32-rounded) inputs."""
+
 from __future__ import annotations
 
 import math
@@ -9,12 +10,20 @@ import time
 import torch
 from tqdm import tqdm
 
-from ..brdf import ALPHA_MAX, ALPHA_MIN, RHO_S_MAX, ggx
-from ..frame import reflect
+from ..physics.brdf import ALPHA_MAX, ALPHA_MIN, RHO_S_MAX, ggx
+from ..physics.frame import reflect
 from . import dump_json, print_table
 
-CASES = ("random", "grazing_z0", "near_grazing", "below_horizon", "mirror_peak", "wi_eq_wo",
-         "wi_opposite_wo", "alpha_bounds")
+CASES = (
+    "random",
+    "grazing_z0",
+    "near_grazing",
+    "below_horizon",
+    "mirror_peak",
+    "wi_eq_wo",
+    "wi_opposite_wo",
+    "alpha_bounds",
+)
 
 
 def _unit(v: torch.Tensor) -> torch.Tensor:
@@ -73,8 +82,12 @@ def _eval(inputs: dict[str, torch.Tensor], dtype) -> tuple[torch.Tensor, dict[st
 
 def run(samples: int = 10_000_000, batch: int = 500_000, seed: int = 0, json_path=None) -> dict:
     gen = torch.Generator().manual_seed(seed)
-    per_case = {c: dict(samples=0, nonfinite_values=0, negative_values=0, nonfinite_grads=0,
-                        max_rel_err=0.0, max_grad_rel_err=0.0) for c in CASES}
+    per_case = {
+        c: dict(
+            samples=0, nonfinite_values=0, negative_values=0, nonfinite_grads=0, max_rel_err=0.0, max_grad_rel_err=0.0
+        )
+        for c in CASES
+    }
     t0 = time.perf_counter()
     batch = min(batch, max(1, math.ceil(samples / len(CASES))))  # every case runs, even in small runs
     n_batches = math.ceil(samples / batch)
@@ -89,7 +102,7 @@ def run(samples: int = 10_000_000, batch: int = 500_000, seed: int = 0, json_pat
         s["nonfinite_values"] += int((~torch.isfinite(f32)).sum())
         s["negative_values"] += int((f32 < 0).sum())
         s["nonfinite_grads"] += int(sum((~torch.isfinite(g)).sum() for g in g32.values()))
-        rel = ((f32.double() - f64).abs() / f64.abs().clamp_min(1e-30))
+        rel = (f32.double() - f64).abs() / f64.abs().clamp_min(1e-30)
         rel = torch.where(f64 == 0, (f32 != 0).double(), rel)
         s["max_rel_err"] = max(s["max_rel_err"], float(rel.max()))
         # per-sample relative error of the whole gradient vector (all inputs)
@@ -99,20 +112,44 @@ def run(samples: int = 10_000_000, batch: int = 500_000, seed: int = 0, json_pat
         gerr = torch.where(gv64.norm(dim=-1) == 0, (gv32.norm(dim=-1) != 0).double(), gerr)
         s["max_grad_rel_err"] = max(s["max_grad_rel_err"], float(gerr.max()))
     seconds = time.perf_counter() - t0
-    total = {k: sum(s[k] for s in per_case.values()) for k in ("samples", "nonfinite_values",
-                                                                "negative_values", "nonfinite_grads")}
+    total = {
+        k: sum(s[k] for s in per_case.values())
+        for k in ("samples", "nonfinite_values", "negative_values", "nonfinite_grads")
+    }
     total["max_rel_err"] = max(s["max_rel_err"] for s in per_case.values())
     total["max_grad_rel_err"] = max(s["max_grad_rel_err"] for s in per_case.values())
-    rows = [(c, s["samples"], s["nonfinite_values"], s["negative_values"], s["nonfinite_grads"],
-             f"{s['max_rel_err']:.2e}", f"{s['max_grad_rel_err']:.2e}") for c, s in per_case.items()]
-    rows.append(("TOTAL", *(total[k] for k in ("samples", "nonfinite_values", "negative_values",
-                                              "nonfinite_grads")),
-                 f"{total['max_rel_err']:.2e}", f"{total['max_grad_rel_err']:.2e}"))
-    print(f"GGX float32 stability: {total['samples']:,} samples in {seconds:.1f} s "
-          "(error vs float64 on the same inputs)")
-    print_table(rows, ("case", "samples", "nonfinite f", "negative f", "nonfinite grad",
-                       "max rel err f", "max rel err grad"))
-    result = {"samples": total["samples"], "nonfinite": total["nonfinite_values"] + total["nonfinite_grads"],
-              "total": total, "cases": per_case, "seconds": seconds}
+    rows = [
+        (
+            c,
+            s["samples"],
+            s["nonfinite_values"],
+            s["negative_values"],
+            s["nonfinite_grads"],
+            f"{s['max_rel_err']:.2e}",
+            f"{s['max_grad_rel_err']:.2e}",
+        )
+        for c, s in per_case.items()
+    ]
+    rows.append(
+        (
+            "TOTAL",
+            *(total[k] for k in ("samples", "nonfinite_values", "negative_values", "nonfinite_grads")),
+            f"{total['max_rel_err']:.2e}",
+            f"{total['max_grad_rel_err']:.2e}",
+        )
+    )
+    print(
+        f"GGX float32 stability: {total['samples']:,} samples in {seconds:.1f} s (error vs float64 on the same inputs)"
+    )
+    print_table(
+        rows, ("case", "samples", "nonfinite f", "negative f", "nonfinite grad", "max rel err f", "max rel err grad")
+    )
+    result = {
+        "samples": total["samples"],
+        "nonfinite": total["nonfinite_values"] + total["nonfinite_grads"],
+        "total": total,
+        "cases": per_case,
+        "seconds": seconds,
+    }
     dump_json(json_path, result)
     return result

@@ -1,15 +1,18 @@
 """``ntp bench virtual-scan``: seconds per photo of the demo asset at scale 0.25 and 1.0, and the
 error of clustered shadows against exact per-emitter shadow rays (on the demo dome with an
 occluding wall beside it, so there are shadows to get wrong)."""
+
 from __future__ import annotations
 
 import time
 
 import numpy as np
 
-from ..device import Device
-from ..mesh import Mesh, smooth_normals
-from ..virtual_scan import ScanConfig, Scene, load_asset, scaled_device, trajectory
+from ..io.mesh import Mesh, smooth_normals
+from ..scanner.camera import resampled
+from ..scanner.device_file import load_scanner
+from ..sim.renderer import Scene
+from ..sim.virtual_scan import ScanConfig, load_asset, take_photo, trajectory
 from . import dump_json, print_table
 
 
@@ -26,27 +29,27 @@ def _with_wall(mesh: Mesh) -> Mesh:
 
 def run(photos: int = 3, json_path=None) -> dict:
     mesh, maps, _ = load_asset(None, None, None)
-    device = Device.load()
+    scanner = load_scanner()
     cfg = ScanConfig(views=24)
     rng = np.random.default_rng(0)
-    scene = Scene(mesh, maps, device, cfg.clusters, cfg.exposure)
-    poses = trajectory(scene.center, device, cfg, rng)
+    scene = Scene(mesh, maps, scanner, cfg.clusters, cfg.exposure)
+    poses = trajectory(scene.center, scanner, cfg, rng)
     result, rows = {}, []
     for scale, n in ((0.25, photos), (1.0, max(1, photos // 2))):
-        cam = scaled_device(device, scale)
+        cam = resampled(scanner, scale)
         cfg.scale = scale
-        scene.photo(poses[0], cam, cfg, rng)  # warm-up
+        take_photo(scene, poses[0], cam, cfg, rng)  # warm-up
         t0 = time.perf_counter()
         for i in range(n):
-            scene.photo(poses[1 + i], cam, cfg, rng)
+            take_photo(scene, poses[1 + i], cam, cfg, rng)
         sec = (time.perf_counter() - t0) / n
         result[f"seconds_per_photo_scale_{scale:g}"] = sec
         rows.append((f"{scale:g}", f"{cam.width}x{cam.height}", f"{sec:.2f}", f"{sec * 120 / 60:.1f}"))
     print_table(rows, ("scale", "pixels", "s / photo", "min / 120 photos"))
 
     # shadow error: clusters vs exact, on object pixels of a few views of the dome beside a wall
-    walled = Scene(_with_wall(mesh), maps, device, cfg.clusters, cfg.exposure)
-    cam = scaled_device(device, 0.25)
+    walled = Scene(_with_wall(mesh), maps, scanner, cfg.clusters, cfg.exposure)
+    cam = resampled(scanner, 0.25)
     errs, t_c, t_e, lit = [], 0.0, 0.0, []
     for i in (2, 9, 16):
         lin, info = walled.render_linear(poses[i], cam)
@@ -62,11 +65,20 @@ def run(photos: int = 3, json_path=None) -> dict:
         errs.append(np.abs(a - b)[bright].max(-1) / b[bright].max(-1))
         lit.append(bright.mean())
     e = np.concatenate(errs) if errs else np.zeros(1)
-    result.update({"shadow_clusters": cfg.clusters, "shadow_rel_err_median": float(np.median(e)),
-                   "shadow_rel_err_p99": float(np.percentile(e, 99)), "shadow_rel_err_max": float(e.max()),
-                   "shadow_pixels": int(e.size), "shadow_cost_ratio_exact_over_clusters": t_e / max(t_c, 1e-9)})
-    print(f"shadows, {cfg.clusters} clusters vs exact per-LED rays ({e.size} object pixels, dome beside a wall): "
-          f"relative error median {np.median(e):.2e}, p99 {np.percentile(e, 99):.2e}, max {e.max():.2e}; "
-          f"exact costs {t_e / max(t_c, 1e-9):.1f}x")
+    result.update(
+        {
+            "shadow_clusters": cfg.clusters,
+            "shadow_rel_err_median": float(np.median(e)),
+            "shadow_rel_err_p99": float(np.percentile(e, 99)),
+            "shadow_rel_err_max": float(e.max()),
+            "shadow_pixels": int(e.size),
+            "shadow_cost_ratio_exact_over_clusters": t_e / max(t_c, 1e-9),
+        }
+    )
+    print(
+        f"shadows, {cfg.clusters} clusters vs exact per-LED rays ({e.size} object pixels, dome beside a wall): "
+        f"relative error median {np.median(e):.2e}, p99 {np.percentile(e, 99):.2e}, max {e.max():.2e}; "
+        f"exact costs {t_e / max(t_c, 1e-9):.1f}x"
+    )
     dump_json(json_path, result)
     return result

@@ -1,0 +1,14 @@
+"""Errors shown to users as one line that names the file and what is wrong."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+
+class NtpInputError(ValueError):
+    """Bad user input: ``str(err)`` is ``"<file>: <problem>"`` on one line."""
+
+    def __init__(self, path: str | Path | None, problem: str):
+        self.path = None if path is None else Path(path)
+        self.problem = " ".join(str(problem).split())  # always one line
+        super().__init__(f"{self.path}: {self.problem}" if self.path else self.problem)

@@ -1,0 +1,128 @@
+"""SVBRDF texture maps in a mesh's UV layout (DESIGN.md output contract).
+
+Files (linear float EXR): ``diffuse_albedo.exr`` (RGB rho_d), ``specular_albedo.exr`` (RGB rho_s),
+``normal.exr`` (object-space unit normal), ``tangent.exr`` (object-space unit tangent, alpha_x
+along it), ``roughness.exr`` (R = alpha_x, G = alpha_y, B = 0).
+Convention: texel (row, col) of an H x W map has its centre at uv = ((col + 0.5) / W,
+1 - (row + 0.5) / H): row 0 is the top of the file and v = 1 (Blender's UV origin is bottom-left).
+Sampling is bilinear with clamped edges; normal/tangent samples are re-normalised.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .errors import NtpInputError
+from .images import read_image, write_exr
+
+MAP_FILES = {
+    "diffuse_albedo": "diffuse_albedo.exr",
+    "specular_albedo": "specular_albedo.exr",
+    "normal": "normal.exr",
+    "tangent": "tangent.exr",
+    "roughness": "roughness.exr",
+}
+
+
+@dataclass
+class SVBRDFMaps:
+    diffuse_albedo: np.ndarray  # (H, W, 3)
+    specular_albedo: np.ndarray  # (H, W, 3)
+    normal: np.ndarray  # (H, W, 3) unit, object space
+    tangent: np.ndarray  # (H, W, 3) unit, object space
+    roughness: np.ndarray  # (H, W, 2): alpha_x, alpha_y
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.diffuse_albedo.shape[:2]
+
+    def save(self, folder: str | Path) -> None:
+        folder = Path(folder)
+        for name, file in MAP_FILES.items():
+            data = getattr(self, name)
+            if name == "roughness":
+                data = np.concatenate([data, np.zeros(data.shape[:2] + (1,))], -1)
+            write_exr(folder / file, data)
+
+    @classmethod
+    def load(cls, folder: str | Path) -> SVBRDFMaps:
+        """Read the five maps; one-line errors name the file (missing, unreadable, wrong size)."""
+        folder = Path(folder)
+        arrays, shape = {}, None
+        for name, file in MAP_FILES.items():
+            path = folder / file
+            if not path.is_file():
+                raise NtpInputError(path, "map file missing")
+            img = read_image(path)
+            if img.shape[2] < 3:
+                raise NtpInputError(path, f"expected 3 channels, got {img.shape[2]}")
+            if shape is None:
+                shape = img.shape[:2]
+            elif img.shape[:2] != shape:
+                raise NtpInputError(
+                    path,
+                    f"size {img.shape[1]}x{img.shape[0]} differs from "
+                    f"{shape[1]}x{shape[0]} of {MAP_FILES['diffuse_albedo']}",
+                )
+            if not np.isfinite(img).all():
+                raise NtpInputError(path, "map contains NaN or Inf")
+            arrays[name] = img[..., :2] if name == "roughness" else img[..., :3]
+        return cls(**{k: v.astype(np.float64) for k, v in arrays.items()})
+
+    def sample(self, uv: np.ndarray) -> dict[str, np.ndarray]:
+        """Bilinear samples at ``uv (N, 2)``: each map ``(N, C)``; normals/tangents re-normalised,
+        the tangent made orthogonal to the normal."""
+        out = {name: bilinear(getattr(self, name), uv) for name in MAP_FILES}
+        n = _unit(out["normal"])
+        t = out["tangent"] - (out["tangent"] * n).sum(-1, keepdims=True) * n
+        out["normal"], out["tangent"] = n, _unit(t)
+        return out
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    return v / np.maximum(np.linalg.norm(v, axis=-1, keepdims=True), 1e-12)
+
+
+def uv_to_pixel(uv: np.ndarray, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """Continuous (row, col) pixel coordinates (centres at integers) of ``uv (N, 2)``."""
+    h, w = shape
+    return (1.0 - uv[:, 1]) * h - 0.5, uv[:, 0] * w - 0.5
+
+
+def texel_uv(shape: tuple[int, int]) -> np.ndarray:
+    """uv ``(H, W, 2)`` of every texel centre."""
+    h, w = shape
+    rows, cols = np.meshgrid(np.arange(h), np.arange(w), indexing="ij")
+    return np.stack([(cols + 0.5) / w, 1.0 - (rows + 0.5) / h], -1)
+
+
+def bilinear(img: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """Bilinear samples ``(N, C)`` of a map at ``uv (N, 2)`` (edges clamped)."""
+    r, c = uv_to_pixel(uv, img.shape[:2])
+    return bilinear_pixels(img, r, c)
+
+
+def bilinear_pixels(img: np.ndarray, r: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """Bilinear samples ``(N, C)`` of an ``(H, W, C)`` image at continuous (row, col) pixel
+    coordinates, pixel centres at integers, clamped to the image."""
+    h, w = img.shape[:2]
+    r = np.clip(r, 0, h - 1)
+    c = np.clip(c, 0, w - 1)
+    r0, c0 = np.floor(r).astype(np.int64), np.floor(c).astype(np.int64)
+    r1, c1 = np.minimum(r0 + 1, h - 1), np.minimum(c0 + 1, w - 1)
+    fr, fc = (r - r0)[:, None], (c - c0)[:, None]
+    return (1 - fr) * ((1 - fc) * img[r0, c0] + fc * img[r0, c1]) + fr * ((1 - fc) * img[r1, c0] + fc * img[r1, c1])
+
+
+def fill_missing(img: np.ndarray, known: np.ndarray) -> np.ndarray:
+    """Every unknown texel takes the value of the nearest known one (seams, holes, unobserved
+    texels); ``known (H, W)`` bool. Returns a new array; all-unknown input is returned unchanged."""
+    from scipy import ndimage
+
+    if known.all() or not known.any():
+        return img.copy()
+    _, (ri, ci) = ndimage.distance_transform_edt(~known, return_indices=True)
+    return img[ri, ci]

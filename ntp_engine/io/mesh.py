@@ -1,0 +1,90 @@
+"""Triangle meshes with UVs: loading (OBJ/PLY via trimesh), smooth normals, OBJ writing.
+
+Convention: metres; UV origin at the bottom-left of the texture (Blender/OpenGL), so texture row 0
+(the top of an image file) is v = 1. Vertices are split where UVs are (one UV per vertex).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .atomic import atomic_path
+from .errors import NtpInputError
+
+
+@dataclass
+class Mesh:
+    vertices: np.ndarray  # (V, 3) float64, m
+    faces: np.ndarray  # (F, 3) int64
+    uv: np.ndarray | None  # (V, 2) or None
+    normals: np.ndarray  # (V, 3) unit, area-weighted smooth normals unless the file had them
+
+    @property
+    def triangles(self) -> np.ndarray:
+        return self.vertices[self.faces]
+
+    def face_normals(self) -> np.ndarray:
+        tri = self.triangles
+        n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30)
+
+    def area(self) -> float:
+        tri = self.triangles
+        return float(0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1).sum())
+
+
+def smooth_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Area-weighted vertex normals; vertices split at UV seams are merged by position first, so
+    a seam does not show in the shading."""
+    tri = vertices[faces]
+    fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # length = 2 * area
+    _, key = np.unique(np.round(vertices, 9), axis=0, return_inverse=True)
+    key = key.reshape(-1)
+    acc = np.zeros((key.max() + 1, 3))
+    for k in range(3):
+        np.add.at(acc, key[faces[:, k]], fn)
+    n = acc[key]
+    return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30)
+
+
+def load_mesh(path: str | Path) -> Mesh:
+    """Read an OBJ or PLY (metres). Raises NtpInputError naming the file on any problem."""
+    import trimesh
+
+    path = Path(path)
+    if not path.is_file():
+        raise NtpInputError(path, "mesh file not found")
+    try:
+        m = trimesh.load(path, force="mesh", process=False)
+    except Exception as err:  # noqa: BLE001 - trimesh raises many types for bad files
+        raise NtpInputError(path, f"cannot read mesh ({type(err).__name__}: {err})") from None
+    if not isinstance(m, trimesh.Trimesh) or len(m.faces) == 0:
+        raise NtpInputError(path, "no triangles in mesh")
+    vertices = np.asarray(m.vertices, dtype=np.float64)
+    faces = np.asarray(m.faces, dtype=np.int64)
+    if not np.isfinite(vertices).all():
+        raise NtpInputError(path, "mesh has non-finite vertex coordinates")
+    uv = None
+    vis = getattr(m, "visual", None)
+    if vis is not None and getattr(vis, "uv", None) is not None and len(vis.uv) == len(vertices):
+        uv = np.asarray(vis.uv, dtype=np.float64)
+    return Mesh(vertices, faces, uv, smooth_normals(vertices, faces))
+
+
+def save_obj(path: str | Path, mesh: Mesh) -> None:
+    """Write positions, UVs (if any) and normals; faces as v/vt/vn (atomic)."""
+    lines = ["# ntp mesh (metres)"]
+    lines += [f"v {x:.7g} {y:.7g} {z:.7g}" for x, y, z in mesh.vertices]
+    if mesh.uv is not None:
+        lines += [f"vt {u:.7g} {v:.7g}" for u, v in mesh.uv]
+    lines += [f"vn {x:.6g} {y:.6g} {z:.6g}" for x, y, z in mesh.normals]
+    f = mesh.faces + 1
+    if mesh.uv is not None:
+        lines += [f"f {a}/{a}/{a} {b}/{b}/{b} {c}/{c}/{c}" for a, b, c in f]
+    else:
+        lines += [f"f {a}//{a} {b}//{b} {c}//{c}" for a, b, c in f]
+    with atomic_path(path) as tmp:
+        tmp.write_text("\n".join(lines) + "\n")

@@ -1,0 +1,138 @@
+"""Shipped trace networks (``assets/models/NAME/``): export from a training run, load for inference.
+
+A model folder holds ``model.pt`` (float16 state dict; the lighting layer in float32),
+``config.json`` (network config, the device it was trained for and that device's gain and exposure
+limit: the exposure its inputs are normalised to), ``pattern.csv`` (the learned pattern, float) and
+``summary.json`` (training steps, data seed, final validation losses, wall time).
+
+One home for the pattern: a network measures with the pattern it was trained with (its lighting
+layer), so a capture must have been lit by that pattern. Loading a model for a scanner whose
+pattern differs by more than the driver's 8-bit quantisation is an error naming both files.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ..io.assets import MODELS_DIR
+from ..io.atomic import atomic_path, write_text_atomic
+from ..io.errors import NtpInputError
+from ..scanner.device_file import load_scanner
+from ..scanner.pattern import QUANTUM, patterns_agree
+from ..scanner.scanner import Scanner
+from .network import NetworkConfig, TraceNet
+
+DEFAULT_MODEL = "compact"
+# buffers derived from the device file at load time, not stored with the weights
+DEVICE_BUFFERS = ("color_matrix", "gain", "max_exposure", "pos_matrix", "pos_center")
+
+
+def resolve(name_or_path: str | Path | None) -> Path:
+    """A model folder: a shipped model's name (default ``compact``) or a path."""
+    p = Path(name_or_path) if name_or_path else MODELS_DIR / DEFAULT_MODEL
+    if not p.exists() and (MODELS_DIR / str(name_or_path)).exists():
+        p = MODELS_DIR / str(name_or_path)
+    if not (p / "model.pt").exists():
+        raise NtpInputError(
+            p,
+            "not a model folder (no model.pt); shipped models: "
+            + ", ".join(sorted(q.name for q in MODELS_DIR.glob("*") if (q / "model.pt").exists())),
+        )
+    return p
+
+
+def load(
+    name_or_path: str | Path | None = None, scanner: Scanner | None = None, map_location: str | torch.device = "cpu"
+) -> tuple[TraceNet, dict]:
+    """(network in eval mode, float32, metadata dict) for measurements taken by ``scanner``.
+
+    With a ``scanner`` (a capture's device), its pattern must be the network's, to 8-bit
+    quantisation (else ``NtpInputError`` naming the model's ``pattern.csv`` and the device file).
+    Without one, the default device's geometry is used with the network's own pattern — for
+    synthetic evaluation, where the network's pattern is the truth."""
+    folder = resolve(name_or_path)
+    meta = json.loads((folder / "config.json").read_text())
+    cfg = NetworkConfig(**meta["network"])
+    net = TraceNet(cfg, scanner or load_scanner())
+    state = torch.load(folder / "model.pt", map_location=map_location, weights_only=True)
+    missing, unexpected = net.load_state_dict({k: v.float() for k, v in state.items()}, strict=False)
+    if unexpected or set(missing) - set(DEVICE_BUFFERS):
+        raise NtpInputError(
+            folder / "model.pt", f"weights do not match the config (missing {missing}, unexpected {unexpected})"
+        )
+    if "device_gain" in meta:  # the exposure the network was trained with, whatever device is passed
+        net.gain.fill_(float(meta["device_gain"]))
+    if "device_max_exposure" in meta:
+        net.max_exposure.fill_(float(meta["device_max_exposure"]))
+    if scanner is not None:
+        check_pattern(net, folder, scanner)
+    summary = folder / "summary.json"
+    meta["summary"] = json.loads(summary.read_text()) if summary.exists() else {}
+    return net.to(map_location).eval(), meta
+
+
+def check_pattern(net: TraceNet, folder: Path, scanner: Scanner) -> None:
+    """Raise ``NtpInputError`` unless ``scanner``'s pattern is ``net``'s to 8-bit quantisation."""
+    ours = net.pattern().detach().double().cpu().numpy()
+    if patterns_agree(ours, scanner.pattern):
+        return
+    worst = float(np.abs(ours - scanner.pattern).max()) if ours.shape == scanner.pattern.shape else float("nan")
+    raise NtpInputError(
+        folder / "pattern.csv",
+        f"the network was trained with another lighting pattern than "
+        f"{scanner.source or scanner.name} lights (differs by up to {worst / QUANTUM:.1f}/255): "
+        "use the model trained for this pattern, or write its pattern into the device file "
+        "(ntp train --export-pattern-to-device)",
+    )
+
+
+def export(checkpoint: Path, folder: Path, summary: dict) -> None:
+    """Write a model folder from a training checkpoint (weights as float16)."""
+    ck = torch.load(checkpoint, map_location="cpu", weights_only=False)
+    folder.mkdir(parents=True, exist_ok=True)
+    # device-derived buffers (colour matrix, gain, box) come from the device file at load time
+    state = {
+        k: (v.half() if v.is_floating_point() and k != "pattern_logits" else v)
+        for k, v in ck["model"].items()
+        if k not in DEVICE_BUFFERS
+    }
+    with atomic_path(folder / "model.pt") as tmp:
+        torch.save(state, tmp)
+    pattern = torch.sigmoid(ck["model"]["pattern_logits"].float()).numpy()
+    with atomic_path(folder / "pattern.csv") as tmp:
+        np.savetxt(tmp, pattern, delimiter=",", fmt="%.6f")
+    write_text_atomic(
+        folder / "config.json",
+        json.dumps(
+            {
+                "network": ck["network"],
+                "device": ck["device"],
+                "device_gain": float(ck["model"]["gain"]),
+                "device_max_exposure": float(ck["model"]["max_exposure"]),
+            },
+            indent=2,
+        ),
+    )
+    write_text_atomic(
+        folder / "summary.json",
+        json.dumps(
+            {
+                "steps": ck["step"],
+                "data_seed": ck["train"]["seed"],
+                "batch": ck["train"]["batch"],
+                "lr": ck["train"]["lr"],
+                "sweep_fraction": ck["train"].get("sweep_fraction", 0.0),
+                **summary,
+            },
+            indent=2,
+        ),
+    )
+
+
+def pattern_of(name_or_path: str | Path | None = None) -> np.ndarray:
+    """The lighting pattern ``(L, 3)`` a model was trained with (its ``pattern.csv``)."""
+    return np.loadtxt(resolve(name_or_path) / "pattern.csv", delimiter=",", ndmin=2)

@@ -1,0 +1,66 @@
+"""The trace table: N traces of different lengths as one ``(E, 12)`` entry table in CSR form.
+
+Trace k is ``entries[offsets[k]:offsets[k+1]]``. An entry is (linear pixel RGB, position in camera
+space in metres, geometric normal n^, geometric tangent t^), in the camera space of its view (paper
+Eq. 4); the network normalises positions itself. Entries of one trace are in photo order.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+ENTRY_SIZE = 12  # pixel RGB, x, n^, t^
+
+
+@dataclass
+class RaggedTraces:
+    entries: Tensor  # (E, 12) float32
+    offsets: Tensor  # (N + 1,) int64, offsets[0] = 0, offsets[-1] = E
+
+    def __post_init__(self):
+        if self.entries.ndim != 2 or self.entries.shape[1] != ENTRY_SIZE:
+            raise ValueError(f"entries must be (E, 12), got {tuple(self.entries.shape)}")
+        if self.offsets.ndim != 1 or int(self.offsets[0]) != 0 or int(self.offsets[-1]) != len(self.entries):
+            raise ValueError("offsets must start at 0 and end at the number of entries")
+        if (self.offsets[1:] < self.offsets[:-1]).any():
+            raise ValueError("offsets must not decrease")
+
+    @property
+    def num_traces(self) -> int:
+        """N."""
+        return len(self.offsets) - 1
+
+    @property
+    def lengths(self) -> Tensor:
+        """Entries per trace ``(N,)``."""
+        return self.offsets[1:] - self.offsets[:-1]
+
+    def padded(self, idx: Tensor, max_views: int | None = None) -> tuple[Tensor, Tensor]:
+        """Traces ``idx (n,)`` as padded entries ``(n, V, 12)`` (zeros past each length, V the
+        longest of them, at least 1) and their mask ``(n, V)``. ``max_views`` keeps at most that
+        many entries per trace, spread evenly over it (first and last included)."""
+        lengths = self.lengths[idx]
+        keep = lengths if max_views is None else lengths.clamp_max(max_views)
+        width = max(int(keep.max()) if len(idx) else 0, 1)
+        pos = torch.arange(width)[None, :]
+        mask = pos < keep[:, None]
+        if len(self.entries) == 0:
+            return torch.zeros(len(idx), width, ENTRY_SIZE), mask
+        if max_views is None:
+            offset = pos.expand(len(idx), width)
+        else:  # evenly spread: k * (L - 1) / (K - 1) for k < K
+            step = (lengths - 1).clamp_min(0).double() / (keep - 1).clamp_min(1).double()
+            offset = torch.round(pos.double() * step[:, None]).long()
+        gather = (self.offsets[idx][:, None] + offset).clamp_max(len(self.entries) - 1)
+        return torch.where(mask[..., None], self.entries[gather], torch.zeros(())), mask
+
+    @classmethod
+    def from_padded(cls, entries: Tensor, mask: Tensor) -> RaggedTraces:
+        """From ``(N, V, 12)`` entries and a ``(N, V)`` mask (any pattern of valid views)."""
+        lengths = mask.sum(1)
+        offsets = torch.zeros(len(lengths) + 1, dtype=torch.int64)
+        offsets[1:] = torch.cumsum(lengths, 0)
+        return cls(entries[mask].to(torch.float32), offsets)

@@ -1,0 +1,310 @@
+"""Similarity alignment of a structure-from-motion reconstruction to the pre-scanned mesh.
+
+Convention: the mesh frame is z up, metres, and (by default) the object stands on a flat support
+whose plane is the mesh's lowest z — how a pre-scan on a table or marker mat comes out. SfM poses
+are camera-from-world 4x4 in an arbitrary frame and scale; the result maps SfM points to the mesh
+frame, ``x_mesh = s R x_sfm + t``.
+
+Method (SfM clouds of a hand-held scan are mostly the support, with only tens of points on the
+object): RANSAC plane = the support; the optical axes converge on the object, and the scanner is
+held at its working distance (the valid volume's centre), which gives the starting scale. With the
+plane fixing tilt and height, a trimmed, scale-aware ICP of the points above the plane against
+dense samples of the mesh solves azimuth, scale and the in-plane shift, from 36 start azimuths and
+then on a 0.25-degree grid around the best; the winner has the lowest score: a truncated quadratic
+(MSAC) of the object points' distances to the mesh plus one outlier's cost per support point that
+would lie under the object (the hole the object leaves in the support cloud is its footprint, which
+fixes the azimuth where the object's own points are few). A point-to-plane Gauss-Newton polish
+ends it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from ..io.mesh import Mesh
+from ..io.raycast import RayCaster
+
+
+@dataclass
+class Alignment:
+    """A similarity from the SfM frame to the mesh frame, ``x_mesh = s R x_sfm + t``, and its fit."""
+
+    scale: float
+    rotation: np.ndarray  # (3, 3)
+    translation: np.ndarray  # (3,)
+    residual_m: float  # RMS distance of the inlier object points to the mesh, metres
+    object_points: int  # SfM points above the support used by the ICP
+    kept_points: int  # of which are inliers (closer to the mesh than 0.6% of its size)
+    support_points: int
+
+    def apply(self, x: np.ndarray) -> np.ndarray:
+        """SfM points ``(..., 3)`` in the mesh frame (metres)."""
+        return self.scale * x @ self.rotation.T + self.translation
+
+    def camera_from_mesh(self, camera_from_sfm: np.ndarray) -> np.ndarray:
+        """(4, 4) pose in the SfM frame -> the same camera's pose in the mesh frame (metres)."""
+        R_c, t_c = camera_from_sfm[:3, :3], camera_from_sfm[:3, 3]
+        out = np.eye(4)
+        out[:3, :3] = R_c @ self.rotation.T
+        out[:3, 3] = self.scale * t_c - out[:3, :3] @ self.translation
+        return out
+
+
+def convergence_point(camera_from_world: list[np.ndarray]) -> np.ndarray:
+    """Least-squares point closest to every camera's optical axis (+z of the camera)."""
+    A, b = np.zeros((3, 3)), np.zeros(3)
+    for m in camera_from_world:
+        c, d = -m[:3, :3].T @ m[:3, 3], m[2, :3]
+        P = np.eye(3) - np.outer(d, d)
+        A += P
+        b += P @ c
+    return np.linalg.lstsq(A, b, rcond=None)[0]  # parallel axes: the least-norm point
+
+
+def ransac_plane(
+    points: np.ndarray, threshold: float, iterations: int = 400, seed: int = 0
+) -> tuple[np.ndarray, float, np.ndarray]:
+    """Dominant plane ``n·x = d`` (unit n) and its inlier mask; refined by least squares."""
+    rng = np.random.default_rng(seed)
+    tri = points[rng.integers(0, len(points), (iterations, 3))]
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    ok = np.linalg.norm(n, axis=1) > 0
+    n = n[ok] / np.linalg.norm(n[ok], axis=1, keepdims=True)
+    d = (n * tri[ok, 0]).sum(1)
+    counts = np.zeros(len(n), np.int64)
+    for a in range(0, len(n), 50):  # (50, P) distances at a time
+        counts[a : a + 50] = (np.abs(n[a : a + 50] @ points.T - d[a : a + 50, None]) < threshold).sum(1)
+    best = int(np.argmax(counts))
+    inl = np.abs(points @ n[best] - d[best]) < threshold
+    centre = points[inl].mean(0)
+    normal = np.linalg.svd(points[inl] - centre)[2][2]
+    return normal, float(normal @ centre), np.abs(points @ normal - normal @ centre) < threshold
+
+
+def surface_samples(mesh: Mesh, count: int, seed: int = 0, normals: bool = False):
+    """Area-uniform points on the mesh ``(count, 3)`` (and their faces' unit normals)."""
+    tri = mesh.triangles
+    cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    area = 0.5 * np.linalg.norm(cross, axis=1)
+    rng = np.random.default_rng(seed)
+    f = rng.choice(len(tri), count, p=area / area.sum())
+    u, v = rng.random(count), rng.random(count)
+    flip = u + v > 1
+    u[flip], v[flip] = 1 - u[flip], 1 - v[flip]
+    pts = tri[f, 0] + u[:, None] * (tri[f, 1] - tri[f, 0]) + v[:, None] * (tri[f, 2] - tri[f, 0])
+    if not normals:
+        return pts
+    return pts, cross[f] / np.maximum(2 * area[f, None], 1e-300)
+
+
+INLIER_FRACTION = 0.006  # of the object's size: an SfM point this close to the mesh is an inlier (1 mm at 16 cm)
+SURFACE_SAMPLES = 200_000
+COARSE_AZIMUTHS_DEG = np.arange(0, 360, 10)
+FINE_AZIMUTHS_DEG = np.arange(-8, 8.01, 0.25)
+
+
+@dataclass
+class _SupportFrame:
+    """Where the object is in the SfM cloud: a rotation making the support plane z = 0 (tilt), the
+    SfM point that goes to ``target`` in the mesh frame, and which points are object and support."""
+
+    R_tilt: np.ndarray
+    anchor: np.ndarray
+    target: np.ndarray
+    object_mask: np.ndarray
+    support_mask: np.ndarray
+
+
+def _support_frame(
+    points: np.ndarray,
+    centres: np.ndarray,
+    c: np.ndarray,
+    s0: float,
+    lo: np.ndarray,
+    hi: np.ndarray,
+    samples: np.ndarray,
+    support_plane: bool,
+) -> _SupportFrame:
+    """The support plane (RANSAC) fixes tilt and height; points above it near the object are the
+    object's, points on it around the object the support's. Without a support: points within the
+    object's size of the cameras' convergence point."""
+    size = float(np.linalg.norm(hi - lo))
+    if not support_plane:
+        obj = np.linalg.norm(points - c, axis=1) * s0 < size
+        return _SupportFrame(
+            np.eye(3), points[obj].mean(0) if obj.any() else c, samples.mean(0), obj, np.zeros(len(points), bool)
+        )
+    n, d, on_plane = ransac_plane(points, threshold=0.004 * size / s0)
+    if (centres @ n - d).mean() < 0:
+        n, d = -n, -d
+    height = points @ n - d
+    foot = c - (c @ n - d) * n
+    radial = np.linalg.norm((points - foot) - height[:, None] * n, axis=1) * s0
+    obj = (height * s0 > 0.01 * size) & (height * s0 < 1.3 * (hi[2] - lo[2])) & (radial < 0.75 * size)
+    support = on_plane & (radial < 1.5 * size)
+    # rotation taking n to +z, then the foot of the convergence point onto the mesh's centre
+    z = np.array([0.0, 0.0, 1.0])
+    v, cth = np.cross(n, z), float(n @ z)
+    K = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
+    R_tilt = np.eye(3) + K + K @ K / (1 + cth) if cth > -0.999 else np.diag([1.0, -1.0, -1.0])
+    target = np.array([(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, float(lo[2])])
+    return _SupportFrame(R_tilt, foot, target, obj, support)
+
+
+class _AzimuthSearch:
+    """Scale, azimuth and in-plane shift of the object points ``A`` (support plane as z = 0, SfM
+    units) against the mesh samples, scored with the support points ``B`` (see the module docstring)."""
+
+    def __init__(
+        self,
+        A: np.ndarray,
+        B: np.ndarray,
+        mesh: Mesh,
+        samples: np.ndarray,
+        sample_normals: np.ndarray,
+        target: np.ndarray,
+        size: float,
+        keep: float,
+        iterations: int,
+    ):
+        self.A, self.B, self.target, self.size = A, B, target, size
+        self.keep, self.iterations = keep, iterations
+        self.samples, self.sample_normals = samples, sample_normals
+        self.tree = cKDTree(self.samples)
+        self.tau = INLIER_FRACTION * size
+        self.caster = RayCaster([mesh.triangles])
+        self.up = np.tile([0.0, 0.0, 1.0], (len(B), 1))
+
+    def place(self, X: np.ndarray, s: float, yaw: float, txy: np.ndarray) -> np.ndarray:
+        """Points ``X`` scaled, turned by ``yaw`` about z and shifted: mesh frame."""
+        c, sn = np.cos(yaw), np.sin(yaw)
+        xy = s * X[:, :2] @ np.array([[c, sn], [-sn, c]]) + txy
+        return np.column_stack([xy, s * X[:, 2] + self.target[2]])
+
+    def score(self, s: float, yaw: float, txy: np.ndarray) -> tuple[float, np.ndarray]:
+        """Truncated quadratic (MSAC) of the object points' distances to the mesh, plus an outlier's
+        cost per support point under the object; and those distances."""
+        tau = self.tau
+        dist, _ = self.tree.query(self.place(self.A, s, yaw, txy))
+        value = float(np.minimum(dist, tau) @ np.minimum(dist, tau))
+        if len(self.B):  # support points cannot lie under the object: each one there costs an outlier
+            xs = self.place(self.B, s, yaw, txy)
+            xs[:, 2] += 0.1 * tau
+            value += tau**2 * float(self.caster.occluded(xs, self.up, np.full(len(self.B), 2 * self.size)).sum())
+        return value, dist
+
+    def icp(self, s: float, yaw: float, txy: np.ndarray, free_yaw: bool) -> tuple[float, float, np.ndarray]:
+        """Trimmed, scale-aware ICP of (s, yaw, txy); the azimuth held unless ``free_yaw``."""
+        A, samples = self.A, self.samples
+        for _ in range(self.iterations):
+            dist, j = self.tree.query(self.place(A, s, yaw, txy))
+            kept = dist <= max(np.quantile(dist, self.keep), self.tau)
+            a, q = A[kept], samples[j[kept]]
+            yaw_new = yaw
+            if free_yaw:  # yaw from the 2D Procrustes of the xy parts
+                ac, qc = a[:, :2] - a[:, :2].mean(0), q[:, :2] - q[:, :2].mean(0)
+                yaw_new = float(np.arctan2((ac[:, 0] * qc[:, 1] - ac[:, 1] * qc[:, 0]).sum(), (ac * qc).sum()))
+            c, sn = np.cos(yaw_new), np.sin(yaw_new)
+            rot = a[:, :2] @ np.array([[c, sn], [-sn, c]])
+            n = len(a)  # (s, tx, ty) by linear least squares over x, y and z
+            M = np.zeros((3 * n, 3))
+            M[:n, 0], M[:n, 1] = rot[:, 0], 1
+            M[n : 2 * n, 0], M[n : 2 * n, 2] = rot[:, 1], 1
+            M[2 * n :, 0] = a[:, 2]
+            rhs = np.concatenate([q[:, 0], q[:, 1], q[:, 2] - self.target[2]])
+            s_new, tx, ty = np.linalg.lstsq(M, rhs, rcond=None)[0]
+            moved = abs(s_new / s - 1) + abs(yaw_new - yaw) + np.abs(np.array([tx, ty]) - txy).max() / self.size
+            s, yaw, txy = float(s_new), yaw_new, np.array([tx, ty])
+            if moved < 1e-9:
+                break
+        return s, yaw, txy
+
+    def search(self, s0: float) -> tuple[float, float, np.ndarray]:
+        """The best-scoring (s, yaw, txy): free ICP from every coarse azimuth, then the azimuth held
+        on a fine grid around the winner (point-to-point ICP barely turns a nearly round object; the
+        score still tells)."""
+        best: tuple[float, float, float, np.ndarray] | None = None
+        for yaw0 in np.radians(COARSE_AZIMUTHS_DEG):
+            best = self._keep_better(best, *self.icp(s0, float(yaw0), self.target[:2].copy(), True))
+        assert best is not None
+        for yaw0 in best[2] + np.radians(FINE_AZIMUTHS_DEG):
+            best = self._keep_better(best, *self.icp(best[1], float(yaw0), best[3].copy(), False))
+        return best[1], best[2], best[3]
+
+    def _keep_better(self, best, s: float, yaw: float, txy: np.ndarray):
+        value, _ = self.score(s, yaw, txy)
+        return (value, s, yaw, txy) if best is None or value < best[0] else best
+
+    def polish(self, s: float, yaw: float, txy: np.ndarray) -> tuple[float, float, np.ndarray]:
+        """Point-to-plane Gauss-Newton on (scale, azimuth, x, y) over the inliers — free of the
+        samples' spacing, which biases point-to-point correspondences by a few tenths of a mm."""
+        A = self.A
+        for _ in range(self.iterations):
+            dist, j = self.tree.query(self.place(A, s, yaw, txy))
+            kept = dist < self.tau
+            if kept.sum() < 4:
+                break
+            a, q, nq = A[kept], self.samples[j[kept]], self.sample_normals[j[kept]]
+            c, sn = np.cos(yaw), np.sin(yaw)
+            rot = a[:, :2] @ np.array([[c, sn], [-sn, c]])  # R(yaw) a_xy
+            drot = a[:, :2] @ np.array([[-sn, c], [-c, -sn]])  # dR/dyaw a_xy
+            J = np.column_stack(
+                [(nq[:, :2] * rot).sum(1) + nq[:, 2] * a[:, 2], (nq[:, :2] * drot).sum(1), nq[:, 0], nq[:, 1]]
+            )
+            rhs = (nq * q).sum(1) - nq[:, 2] * self.target[2]
+            s_new, w, tx, ty = np.linalg.lstsq(J, rhs, rcond=None)[0]
+            yaw_new = yaw + w / s_new
+            moved = abs(s_new / s - 1) + abs(yaw_new - yaw)
+            s, yaw, txy = float(s_new), float(yaw_new), np.array([tx, ty])
+            if moved < 1e-10:
+                break
+        return s, yaw, txy
+
+
+def align_to_mesh(
+    points: np.ndarray,
+    poses: list[np.ndarray],
+    mesh: Mesh,
+    working_distance: float,
+    support_plane: bool = True,
+    keep: float = 0.5,
+    iterations: int = 40,
+) -> Alignment:
+    """Similarity from the SfM frame to the mesh frame. ``points`` (P, 3) SfM cloud, ``poses`` the
+    registered cameras (camera-from-SfM), ``working_distance`` metres from camera to object centre.
+
+    Stages: starting scale (cameras at the working distance from where their axes converge) ->
+    support frame -> azimuth search -> polish. Raises ValueError when there is nothing to align
+    (too few points above the support)."""
+    c = convergence_point(poses)
+    centres = np.array([-m[:3, :3].T @ m[:3, 3] for m in poses])
+    s0 = working_distance / float(np.median(np.linalg.norm(centres - c, axis=1)))
+    lo, hi = mesh.vertices.min(0), mesh.vertices.max(0)
+    size = float(np.linalg.norm(hi - lo))
+    samples, sample_normals = surface_samples(mesh, SURFACE_SAMPLES, normals=True)
+    frame = _support_frame(points, centres, c, s0, lo, hi, samples, support_plane)
+    P, S = points[frame.object_mask], points[frame.support_mask]
+    if len(P) < 6:
+        raise ValueError(f"only {len(P)} structure-from-motion points lie on the object (need 6)")
+    search = _AzimuthSearch(
+        (P - frame.anchor) @ frame.R_tilt.T,
+        (S - frame.anchor) @ frame.R_tilt.T,
+        mesh,
+        samples,
+        sample_normals,
+        frame.target,
+        size,
+        keep,
+        iterations,
+    )
+    s, yaw, txy = search.polish(*search.search(s0))
+    _, dist = search.score(s, yaw, txy)
+    c, sn = np.cos(yaw), np.sin(yaw)
+    R = np.array([[c, -sn, 0], [sn, c, 0], [0, 0, 1]]) @ frame.R_tilt
+    t = np.array([txy[0], txy[1], frame.target[2]]) - s * R @ frame.anchor
+    kept = dist < search.tau
+    rms = float(np.sqrt((dist[kept] ** 2).mean())) if kept.any() else float("inf")
+    return Alignment(s, R, t, rms, len(P), int(kept.sum()), len(S))

@@ -1,0 +1,82 @@
+"""The result folder (DESIGN.md output contract): maps, confidence, previews, mesh and material.json.
+
+Per-trace fits (``fit_traces``) are turned from each texel's geometric frame into object space and
+laid out in the UV map; texels no trace reached keep the geometric frame and take their values from
+the nearest observed texel (seams and holes dilated), marked in ``confidence.exr`` (R = a usable
+lobe was fitted, G = trace length).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from ..fit.geometry import FLAG_NO_LOBE
+from ..io.atomic import write_text_atomic
+from ..io.images import write_exr, write_png
+from ..io.maps import MAP_FILES, SVBRDFMaps, fill_missing
+from ..io.mesh import Mesh, save_obj
+from ..physics.brdf import ALPHA_MAX, F0_DIELECTRIC, RHO_S_MAX
+from .texels import Texels
+
+PREVIEW_GAMMA = 2.2
+
+
+def write_result(out: Path, mesh: Mesh, texels: Texels, fitted: dict[str, np.ndarray], lengths: np.ndarray) -> None:
+    """Maps (EXR), confidence, previews, mesh, material.json into ``out`` (each file atomically).
+    Texels without a trace keep the geometric frame and get their values from the nearest observed
+    texel (seams and holes dilated)."""
+    observed = lengths > 0
+    frame = np.stack([texels.tangent, np.cross(texels.normal, texels.tangent), texels.normal], 1)  # rows
+    n_obj = np.einsum("tji,tj->ti", frame, fitted["n_loc"])
+    t_obj = np.einsum("tji,tj->ti", frame, fitted["t_loc"])
+    n_obj = np.where(observed[:, None], n_obj, texels.normal)
+    t_obj = np.where(observed[:, None], t_obj, texels.tangent)
+    H, W = texels.shape
+    known = np.zeros((H, W), bool)
+    known[texels.row, texels.col] = observed
+
+    def to_map(values: np.ndarray) -> np.ndarray:
+        img = np.zeros((H, W, values.shape[1]))
+        img[texels.row, texels.col] = values
+        return fill_missing(img, known)
+
+    n_map, t_map = to_map(n_obj), to_map(t_obj)
+    n_map /= np.maximum(np.linalg.norm(n_map, axis=-1, keepdims=True), 1e-12)
+    t_map -= (t_map * n_map).sum(-1, keepdims=True) * n_map
+    t_map /= np.maximum(np.linalg.norm(t_map, axis=-1, keepdims=True), 1e-12)
+    maps = SVBRDFMaps(to_map(fitted["rho_d"]), to_map(fitted["rho_s"]), n_map, t_map, to_map(fitted["alpha"]))
+    out.mkdir(parents=True, exist_ok=True)
+    maps.save(out)
+    conf = np.zeros((H, W, 3))
+    conf[texels.row, texels.col, 0] = observed & ((fitted["flags"] & FLAG_NO_LOBE) == 0)
+    conf[texels.row, texels.col, 1] = lengths
+    write_exr(out / "confidence.exr", conf)
+    previews = out / "previews"
+    write_png(previews / "diffuse_albedo.png", maps.diffuse_albedo ** (1 / PREVIEW_GAMMA))
+    write_png(previews / "specular_albedo.png", (maps.specular_albedo / RHO_S_MAX) ** (1 / PREVIEW_GAMMA))
+    write_png(previews / "normal.png", 0.5 * (maps.normal + 1))
+    write_png(previews / "tangent.png", 0.5 * (maps.tangent + 1))
+    write_png(previews / "roughness.png", np.concatenate([maps.roughness / ALPHA_MAX, np.zeros((H, W, 1))], -1))
+    save_obj(out / "mesh.obj", mesh)
+    write_text_atomic(
+        out / "material.json",
+        json.dumps(
+            {
+                "model": "anisotropic GGX (ntp)",
+                "maps": dict(MAP_FILES),
+                "conventions": {
+                    "normal": "object space, unit",
+                    "tangent": "object space, unit, alpha_x along it",
+                    "roughness": "R = alpha_x, G = alpha_y",
+                    "albedo": "linear",
+                    "units": "metres",
+                    "fresnel_f0": F0_DIELECTRIC,
+                    "uv_origin": "bottom-left",
+                },
+            },
+            indent=2,
+        ),
+    )

@@ -1,0 +1,126 @@
+"""The scan folder format (DESIGN.md), read and written here: ``scan.toml`` naming the mesh, the photos folder, the device file and,
+optionally, a poses file (camera-from-world 4x4 per photo name; SfM is skipped with it) and
+``support_plane = false`` when the object does not stand on a flat support at the mesh's lowest z
+(default true: SfM alignment uses the support, and photos whose LEDs the support shadows are
+skipped).
+
+Every problem is a one-line ``NtpInputError`` naming the file; photos that cannot be read are not
+errors but are listed (``Scan.unreadable``). The pipeline never writes into a scan folder; a
+virtual scanner creates one with ``write_scan_toml``.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..io.atomic import write_text_atomic
+from ..io.errors import NtpInputError
+from ..io.images import read_image
+from ..io.toml_file import read_toml
+from ..scanner.device_file import load_scanner
+from ..scanner.scanner import Scanner
+
+PHOTO_SUFFIXES = (".png", ".jpg", ".jpeg")
+
+
+@dataclass
+class Scan:
+    """A scan folder as read: paths, the scanner that took it, its photos and optional poses."""
+
+    folder: Path
+    mesh_path: Path
+    photos_dir: Path
+    scanner: Scanner
+    photo_paths: list[Path]
+    poses: dict[str, np.ndarray] | None = None
+    unreadable: list[str] = field(default_factory=list)
+    support_plane: bool = True  # the object stands on a flat support at the mesh's lowest z
+
+
+def _path(folder: Path, table: dict, key: str, toml: Path, required: bool = True) -> Path | None:
+    value = table.get(key)
+    if value is None:
+        if required:
+            raise NtpInputError(toml, f"key '{key}' missing")
+        return None
+    if not isinstance(value, str) or not value:
+        raise NtpInputError(toml, f"key '{key}': expected a path string, got {value!r}")
+    p = (folder / value).resolve()
+    if not p.exists():
+        raise NtpInputError(toml, f"key '{key}': {value} does not exist")
+    return p
+
+
+def load_poses(path: Path) -> dict[str, np.ndarray]:
+    """``{"photo name": 4x4 camera-from-world}``; each must be a finite rigid transform."""
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as err:
+        raise NtpInputError(path, f"cannot read poses ({err})") from None
+    if not isinstance(data, dict) or not data:
+        raise NtpInputError(path, "expected an object mapping photo names to 4x4 matrices")
+    poses = {}
+    for name, m in data.items():
+        try:
+            a = np.asarray(m, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise NtpInputError(path, f"pose of {name!r} is not numeric") from None
+        if a.shape != (4, 4) or not np.isfinite(a).all():
+            raise NtpInputError(path, f"pose of {name!r} must be a finite 4x4 matrix")
+        R = a[:3, :3]
+        if np.abs(R @ R.T - np.eye(3)).max() > 1e-4 or np.linalg.det(R) < 0:
+            raise NtpInputError(path, f"pose of {name!r} is not a rotation plus translation")
+        poses[name] = a
+    return poses
+
+
+def load_scan(folder: str | Path, poses_file: str | Path | None = None, device_file: str | Path | None = None) -> Scan:
+    """Read ``folder/scan.toml`` and what it names. ``poses_file`` overrides its poses file,
+    ``device_file`` the device file it names (e.g. a recalibration)."""
+    folder = Path(folder)
+    toml = folder / "scan.toml"
+    table = read_toml(toml, "no scan.toml in the scan folder")
+    mesh = _path(folder, table, "mesh", toml)
+    photos = _path(folder, table, "photos", toml)
+    if not photos.is_dir():
+        raise NtpInputError(toml, f"key 'photos': {table['photos']} is not a folder")
+    scanner = load_scanner(device_file or _path(folder, table, "device", toml))
+    pose_path = Path(poses_file) if poses_file else _path(folder, table, "poses", toml, required=False)
+    paths = sorted(p for p in photos.iterdir() if p.suffix.lower() in PHOTO_SUFFIXES)
+    if not paths:
+        raise NtpInputError(photos, "no PNG/JPEG photos")
+    support = table.get("support_plane", True)
+    if not isinstance(support, bool):
+        raise NtpInputError(toml, f"key 'support_plane': expected true or false, got {support!r}")
+    return Scan(
+        folder, mesh, photos, scanner, paths, load_poses(pose_path) if pose_path else None, support_plane=support
+    )
+
+
+def read_photo(path: Path, scanner: Scanner) -> np.ndarray | None:
+    """8-bit codes ``(H, W, 3)`` float, or None if unreadable or not the scanner camera's size."""
+    try:
+        img = read_image(path)
+    except NtpInputError:
+        return None
+    if img.shape[:2] != (scanner.height, scanner.width) or img.shape[2] < 3:
+        return None
+    return np.round(img[..., :3] * 255.0)
+
+
+def write_scan_toml(
+    folder: Path,
+    mesh: str = "mesh.obj",
+    photos: str = "photos",
+    device: str = "device.toml",
+    comments: tuple[str, ...] = (),
+) -> None:
+    """Write ``folder/scan.toml`` naming the mesh, the photos folder and the device file (atomic);
+    ``comments`` become ``#`` lines around them, the first before, the rest after."""
+    lines = [f"# {c}" for c in comments[:1]] + [f'mesh = "{mesh}"', f'photos = "{photos}"', f'device = "{device}"']
+    lines += [f"# {c}" for c in comments[1:]] + [""]
+    write_text_atomic(folder / "scan.toml", "\n".join(lines))

@@ -1,0 +1,93 @@
+"""Structure from motion (pycolmap): the photos' camera poses and a sparse cloud in an arbitrary frame.
+
+SIFT features, sequential matching (a hand-held sweep: each photo against its neighbours, with
+quadratic overlap), incremental mapping with the device's intrinsics held fixed (OPENCV model; COLMAP
+puts pixel centres at +0.5, the device file at integers). The largest model wins; photos it does
+not contain are reported as unregistered.
+"""
+
+from __future__ import annotations
+
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..io.errors import NtpInputError
+from ..io.progress import QUIET, Progress
+from ..scanner.scanner import Scanner
+
+MIN_REGISTERED = 3
+
+
+@dataclass
+class SfmResult:
+    """A structure-from-motion model: poses by photo name, sparse points, photos left out."""
+
+    poses: dict[str, np.ndarray]  # photo name -> 4x4 camera-from-world (SfM frame)
+    points: np.ndarray  # (P, 3) sparse points, SfM frame
+    unregistered: list[str]
+
+
+def structure_from_motion(
+    photos_dir: Path,
+    names: list[str],
+    scanner: Scanner,
+    work: Path,
+    overlap: int = 10,
+    progress: Progress = QUIET,
+    peak_threshold: float = 0.0067,
+) -> SfmResult:
+    """SfM poses of ``names`` (camera-from-world in SfM's frame) with the scanner's intrinsics held
+    fixed; ``work`` is emptied and holds COLMAP's database. ``peak_threshold`` is SIFT's (lowering it
+    adds backdrop points, not object points, on virtual scans)."""
+    import pycolmap
+
+    pycolmap.logging.minloglevel = 2  # COLMAP logs every image at INFO; errors still surface
+    bar = progress.counter("SfM (features, matching, mapping)", 3, "stage")
+    if work.exists():
+        shutil.rmtree(work)
+    work.mkdir(parents=True)
+    db = work / "database.db"
+    K, d = scanner.K, scanner.distortion
+    reader = pycolmap.ImageReaderOptions()
+    reader.camera_model = "OPENCV"
+    reader.camera_params = ",".join(str(float(v)) for v in (K[0, 0], K[1, 1], K[0, 2] + 0.5, K[1, 2] + 0.5, *d[:4]))
+    extraction = pycolmap.FeatureExtractionOptions()
+    extraction.sift.peak_threshold = peak_threshold
+    pycolmap.extract_features(
+        db,
+        photos_dir,
+        image_names=names,
+        camera_mode=pycolmap.CameraMode.SINGLE,
+        reader_options=reader,
+        extraction_options=extraction,
+    )
+    bar.update()
+    pairing = pycolmap.SequentialPairingOptions()
+    pairing.overlap = overlap
+    pairing.quadratic_overlap = True
+    pycolmap.match_sequential(db, pairing_options=pairing)
+    bar.update()
+    opts = pycolmap.IncrementalPipelineOptions()
+    opts.ba_refine_focal_length = False
+    opts.ba_refine_principal_point = False
+    opts.ba_refine_extra_params = False
+    models = pycolmap.incremental_mapping(db, photos_dir, work / "sparse", opts)
+    bar.update()
+    bar.close()
+    if not models:
+        raise NtpInputError(
+            photos_dir, "structure-from-motion found no initial image pair (too few features or overlap between photos)"
+        )
+    rec = max(models.values(), key=lambda r: r.num_reg_images())
+    poses = {}
+    for image in rec.images.values():
+        m = np.eye(4)
+        m[:3, :4] = image.cam_from_world().matrix()
+        poses[image.name] = m
+    if len(poses) < MIN_REGISTERED:
+        raise NtpInputError(photos_dir, f"only {len(poses)} photos registered (need {MIN_REGISTERED})")
+    points = np.array([p.xyz for p in rec.points3D.values()]) if rec.num_points3D() else np.zeros((0, 3))
+    return SfmResult(poses, points, sorted(set(names) - set(poses)))

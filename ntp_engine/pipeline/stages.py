@@ -1,0 +1,289 @@
+"""``ntp reconstruct``: a scan folder to texture maps, stage by stage, each stage cached under
+``OUT/cache`` (DESIGN.md data flow):
+
+select (blur, unreadable) -> register (pycolmap SfM + similarity to the mesh; skipped with poses)
+-> atlas (mesh UVs, else xatlas) -> traces (Embree visibility, projection, validity)
+-> fit (network in bounded batches + fitter) -> maps, report.json.
+
+Each stage's key holds its inputs and the previous stage's key, so a changed option recomputes
+from the first stage it affects; an interrupted run resumes from the last finished stage. The
+report (``report.json``) gives each stage's wall seconds, what was kept and why, and the counts.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ..io.atomic import write_text_atomic
+from ..io.errors import NtpInputError
+from ..io.mesh import Mesh, load_mesh, save_obj
+from ..io.progress import QUIET, Progress
+from ..io.raycast import RayCaster
+from ..learn import models
+from ..learn.ragged import RaggedTraces
+from ..scanner.device_file import scanner_to_dict
+from . import traces as trace_assembly
+from .align import align_to_mesh
+from .cache import StageCache, digest, file_key
+from .fit_traces import ALBEDO_VIEWS, RHO_S_PRIOR_WEIGHT, fit_traces
+from .photo_selection import BLUR_MARGIN, Selection, select_photos
+from .result import write_result
+from .scan_folder import Scan, read_photo
+from .sfm import MIN_REGISTERED, structure_from_motion
+from .texels import Texels, rasterize, uv_atlas
+
+DEFAULT_RESOLUTION = 1024  # texture maps are DEFAULT_RESOLUTION^2 unless asked otherwise
+MIN_RESOLUTION = 8
+
+
+class _Report:
+    """The run's report: a dict with a ``stages`` table of wall seconds, filled as stages finish."""
+
+    def __init__(self, **entries: object):
+        self.data: dict = {**entries, "stages": {}}
+
+    def timed(self, name: str, t0: float) -> None:
+        """Record stage ``name``'s wall seconds since ``t0``."""
+        self.data["stages"][name] = round(time.perf_counter() - t0, 3)
+
+
+def register_photos(
+    scan: Scan, out: Path, blur_margin: float = BLUR_MARGIN, progress: Progress = QUIET, cache: StageCache | None = None
+) -> tuple[dict[str, np.ndarray], dict, str]:
+    """Stages 1-2 (photo selection, then the poses file or SfM + alignment), cached under
+    ``out/cache``. Returns (camera-from-world poses by photo name, report entries, poses key)."""
+    cache = cache or StageCache(Path(out) / "cache")
+    report = _Report()
+    t0 = time.perf_counter()
+    sel, h_sel = _select_stage(scan, cache, blur_margin, progress)
+    report.timed("select", t0)
+    report.data["photos"] = {
+        "total": len(scan.photo_paths),
+        "kept": len(sel.kept),
+        "blurry": sel.blurry,
+        "unreadable": sel.unreadable,
+    }
+    if len(sel.kept) < MIN_REGISTERED:
+        raise NtpInputError(scan.photos_dir, f"only {len(sel.kept)} sharp, readable photos (need {MIN_REGISTERED})")
+    t0 = time.perf_counter()
+    if scan.poses is not None:
+        poses = {n: scan.poses[n] for n in sel.kept if n in scan.poses}
+        reg_info = {"source": "poses file", "unregistered": [n for n in sel.kept if n not in scan.poses]}
+        h_pose = digest({n: m.round(9).tolist() for n, m in poses.items()})
+    else:
+        poses, reg_info, h_pose = _register_stage(scan, cache, sel, h_sel, progress)
+    report.timed("register", t0)
+    report.data["registration"] = reg_info
+    if not poses:
+        raise NtpInputError(scan.photos_dir, "no selected photo has a pose")
+    return poses, report.data, h_pose
+
+
+def write_registration(out: Path, poses: dict[str, np.ndarray], report: dict) -> None:
+    """``out/poses.json`` (camera-from-world per photo) and ``out/registration.json`` (the report)."""
+    write_text_atomic(out / "poses.json", json.dumps({n: m.tolist() for n, m in poses.items()}, indent=1))
+    write_text_atomic(out / "registration.json", json.dumps(report, indent=2))
+
+
+def _select_stage(scan: Scan, cache: StageCache, blur_margin: float, progress: Progress) -> tuple[Selection, str]:
+    key = {
+        "photos": [file_key(p) for p in scan.photo_paths],
+        "margin": blur_margin,
+        "camera": [scan.scanner.width, scan.scanner.height],
+    }
+
+    def compute(d: Path) -> None:
+        sel = select_photos(scan.photo_paths, scan.scanner, blur_margin, progress)
+        (d / "selection.json").write_text(json.dumps(sel.to_json(), indent=1))
+
+    folder, h_sel = cache.get("select", key, compute)
+    return Selection.from_json(json.loads((folder / "selection.json").read_text())), h_sel
+
+
+def _register_stage(
+    scan: Scan, cache: StageCache, sel: Selection, h_sel: str, progress: Progress
+) -> tuple[dict[str, np.ndarray], dict, str]:
+    """SfM on the kept photos, then the similarity that puts its cameras on the mesh."""
+
+    def compute(d: Path) -> None:
+        reg = structure_from_motion(scan.photos_dir, sel.kept, scan.scanner, d / "sfm", progress=progress)
+        names = sorted(reg.poses)
+        try:
+            al = align_to_mesh(
+                reg.points,
+                [reg.poses[n] for n in names],
+                load_mesh(scan.mesh_path),
+                float(np.linalg.norm(scan.scanner.valid_center)),
+                support_plane=scan.support_plane,
+            )
+        except ValueError as err:
+            raise NtpInputError(scan.mesh_path, f"cannot align the SfM points to this mesh: {err}") from None
+        (d / "poses.json").write_text(json.dumps({n: al.camera_from_mesh(reg.poses[n]).tolist() for n in names}))
+        (d / "registration.json").write_text(
+            json.dumps(
+                {
+                    "source": "structure from motion",
+                    "registered": len(names),
+                    "unregistered": reg.unregistered,
+                    "sfm_points": len(reg.points),
+                    "alignment": {
+                        "scale": al.scale,
+                        "residual_m": al.residual_m,
+                        "object_points": al.object_points,
+                        "inlier_points": al.kept_points,
+                        "support_points": al.support_points,
+                    },
+                },
+                indent=1,
+            )
+        )
+        shutil.rmtree(d / "sfm", ignore_errors=True)  # the database is large and not needed again
+
+    key = {
+        "select": h_sel,
+        "mesh": file_key(scan.mesh_path),
+        "support": scan.support_plane,
+        "camera": {
+            "K": scan.scanner.K,
+            "distortion": scan.scanner.distortion,
+            "valid_center": scan.scanner.valid_center,
+        },
+    }
+    folder, h_pose = cache.get("register", key, compute)
+    poses = {n: np.array(m) for n, m in json.loads((folder / "poses.json").read_text()).items()}
+    return poses, json.loads((folder / "registration.json").read_text()), h_pose
+
+
+def reconstruct(
+    scan: Scan,
+    out: Path,
+    resolution: int = DEFAULT_RESOLUTION,
+    model: str | None = None,
+    blur_margin: float = BLUR_MARGIN,
+    progress: Progress = QUIET,
+) -> dict:
+    """Run the pipeline on ``scan`` into ``out``; returns the report (also in ``out/report.json``)."""
+    if resolution < MIN_RESOLUTION:
+        raise NtpInputError(None, f"--resolution {resolution}: need at least {MIN_RESOLUTION}")
+    out = Path(out)
+    cache = StageCache(out / "cache")
+    t_all = time.perf_counter()
+    report = _Report(scan=str(scan.folder))
+    poses, reg_report, h_pose = register_photos(scan, out, blur_margin, progress, cache)
+    report.data["stages"].update(reg_report.pop("stages"))
+    report.data.update(reg_report)
+    net, meta = models.load(model, scan.scanner)  # before any work: the model must fit the scanner
+
+    t0 = time.perf_counter()
+    mesh, h_atlas = _atlas_stage(scan, cache, resolution)
+    texels = rasterize(mesh, (resolution, resolution))
+    report.timed("atlas", t0)
+
+    t0 = time.perf_counter()
+    traces, stats, h_tr = _traces_stage(scan, cache, texels, mesh, h_atlas, poses, h_pose, progress)
+    scale = net.exposure() / float(scan.scanner.exposure(scan.scanner.pattern))
+    traces.entries[:, :3] *= scale  # linear pixels as captured -> the model's exposure
+    report.data["traces"] = stats
+    report.timed("traces", t0)
+
+    t0 = time.perf_counter()
+    model_key = {"model": str(models.resolve(model)), "summary": meta.get("summary", {})}
+
+    def fit_stage(d: Path) -> None:
+        np.savez(d / "fit.npz", **fit_traces(net, scan.scanner, traces, scale, progress=progress))
+
+    fit_key = {"albedo_views": ALBEDO_VIEWS, "rho_s_prior_weight": RHO_S_PRIOR_WEIGHT}
+    folder, _ = cache.get("fit", {"traces": h_tr, **model_key, **fit_key}, fit_stage)
+    with np.load(folder / "fit.npz") as z:
+        fitted = {k: z[k] for k in z.files}
+    report.timed("network_and_fit", t0)
+
+    t0 = time.perf_counter()
+    lengths = traces.lengths.numpy()
+    write_result(out, mesh, texels, fitted, lengths)
+    report.timed("maps", t0)
+    observed = lengths > 0
+    report.data.update(
+        {
+            "texels": {
+                "total": len(texels),
+                "observed": int(observed.sum()),
+                "coverage": float(observed.mean()) if len(texels) else 0.0,
+                "flagged": int((fitted["flags"] != 0).sum()),
+                "resolution": resolution,
+            },
+            "model": {"name": model_key["model"], **meta.get("summary", {})},
+            "cached_stages": cache.hits,
+            "seconds": round(time.perf_counter() - t_all, 3),
+        }
+    )
+    report.data["photos"]["used"] = stats["views_used"]
+    write_text_atomic(out / "report.json", json.dumps(report.data, indent=2))
+    return report.data
+
+
+def _atlas_stage(scan: Scan, cache: StageCache, resolution: int) -> tuple[Mesh, str]:
+    """The mesh with the UVs the maps use: its own, else an xatlas atlas for ``resolution``."""
+
+    def compute(d: Path) -> None:
+        mesh = load_mesh(scan.mesh_path)
+        save_obj(d / "mesh.obj", mesh if mesh.uv is not None else uv_atlas(mesh, resolution))
+
+    folder, h_atlas = cache.get("atlas", {"mesh": file_key(scan.mesh_path), "resolution": resolution}, compute)
+    return load_mesh(folder / "mesh.obj"), h_atlas
+
+
+def _traces_stage(
+    scan: Scan,
+    cache: StageCache,
+    texels: Texels,
+    mesh: Mesh,
+    h_atlas: str,
+    poses: dict[str, np.ndarray],
+    h_pose: str,
+    progress: Progress,
+) -> tuple[RaggedTraces, dict, str]:
+    """Every texel's trace (linear pixels as captured) and the assembly's statistics."""
+    names = sorted(poses)
+    support_z = float(mesh.vertices[:, 2].min()) if scan.support_plane else None
+
+    def compute(d: Path) -> None:
+        photos = (read_photo(scan.photos_dir / n, scan.scanner).astype(np.uint8) for n in names)
+        tr, st = trace_assembly.assemble(
+            texels,
+            photos,
+            [poses[n] for n in names],
+            scan.scanner,
+            RayCaster([mesh.triangles]),
+            progress=progress,
+            support_z=support_z,
+        )
+        np.savez(d / "traces.npz", entries=tr.entries.numpy(), offsets=tr.offsets.numpy())
+        (d / "stats.json").write_text(
+            json.dumps(
+                {
+                    "entries": st.entries,
+                    "views_used": st.views_used,
+                    "views_seeing_no_texel": len(names) - st.views_used,
+                    "rejected": st.rejected,
+                }
+            )
+        )
+
+    key = {
+        "atlas": h_atlas,
+        "poses": h_pose,
+        "support": scan.support_plane,
+        "max_shadowed_drive": trace_assembly.MAX_SHADOWED_DRIVE,
+        "device": scanner_to_dict(scan.scanner),
+    }
+    folder, h_tr = cache.get("traces", key, compute)
+    with np.load(folder / "traces.npz") as z:
+        traces = RaggedTraces(torch.from_numpy(z["entries"]), torch.from_numpy(z["offsets"]))
+    return traces, json.loads((folder / "stats.json").read_text()), h_tr

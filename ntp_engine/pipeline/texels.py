@@ -1,0 +1,131 @@
+"""Texels of a mesh's UV atlas: the surface point, geometric normal and tangent behind each texel;
+and the atlas itself for meshes without UVs (xatlas).
+
+Convention: an H x W map, texel (row, col) centred at uv = ((col + 0.5) / W, 1 - (row + 0.5) / H)
+(``io.maps.texel_uv``). A texel belongs to the triangle whose UV triangle contains its centre (ties:
+the lower triangle index). Positions and frames are in the mesh's (object) space: the normal is
+the barycentric blend of the smooth vertex normals, the tangent the UV-derived direction dP/du of
+the triangle made orthogonal to it — a fixed, smooth t^ per texel (Eq. 4 only needs *a* consistent
+frame). Texels no triangle covers are left out (seams and gaps are dilated at the end).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import xatlas
+
+from ..io.mesh import Mesh, smooth_normals
+
+
+@dataclass
+class Texels:
+    """The texels a mesh's UV triangles cover, each with its surface point and geometric frame."""
+
+    shape: tuple[int, int]  # (H, W)
+    row: np.ndarray  # (T,) int
+    col: np.ndarray  # (T,) int
+    face: np.ndarray  # (T,) int
+    bary: np.ndarray  # (T, 3)
+    position: np.ndarray  # (T, 3) object space, m
+    normal: np.ndarray  # (T, 3) unit geometric normal
+    tangent: np.ndarray  # (T, 3) unit, orthogonal to normal
+
+    def __len__(self) -> int:
+        """T, the number of covered texels."""
+        return len(self.row)
+
+    @property
+    def index(self) -> np.ndarray:
+        """Flat map index row * W + col ``(T,)``."""
+        return self.row * self.shape[1] + self.col
+
+
+def _uv_tangents(mesh: Mesh) -> np.ndarray:
+    """Per-face dP/du ``(F, 3)`` (unnormalised; zero for degenerate UV triangles)."""
+    p = mesh.vertices[mesh.faces]
+    uv = mesh.uv[mesh.faces]
+    e1, e2 = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]
+    d1, d2 = uv[:, 1] - uv[:, 0], uv[:, 2] - uv[:, 0]
+    det = d1[:, 0] * d2[:, 1] - d2[:, 0] * d1[:, 1]
+    safe = np.where(np.abs(det) > 1e-20, det, 1.0)
+    t = (e1 * d2[:, 1:2] - e2 * d1[:, 1:2]) / safe[:, None]
+    return np.where((np.abs(det) > 1e-20)[:, None], t, 0.0)
+
+
+def rasterize(mesh: Mesh, shape: tuple[int, int], batch: int = 1 << 22) -> Texels:
+    """All texels of an ``shape = (H, W)`` map covered by the mesh's UV triangles."""
+    if mesh.uv is None:
+        raise ValueError("mesh has no UVs")
+    h, w = shape
+    uv = mesh.uv[mesh.faces]  # (F, 3, 2)
+    px = np.stack([uv[..., 0] * w - 0.5, (1.0 - uv[..., 1]) * h - 0.5], -1)  # (col, row) continuous
+    lo = np.clip(np.ceil(px.min(1) - 1e-9), 0, [w - 1, h - 1]).astype(np.int64)
+    hi = np.clip(np.floor(px.max(1) + 1e-9), 0, [w - 1, h - 1]).astype(np.int64)
+    nx, ny = np.maximum(hi[:, 0] - lo[:, 0] + 1, 0), np.maximum(hi[:, 1] - lo[:, 1] + 1, 0)
+    counts = nx * ny
+    faces_out, cols, rows, barys = [], [], [], []
+    order = np.arange(len(counts))
+    start = 0
+    while start < len(order):  # bounded memory: triangles in groups of ~batch candidates
+        cum = np.cumsum(counts[start:])
+        stop = start + max(1, int(np.searchsorted(cum, batch, side="right")))
+        f = np.repeat(order[start:stop], counts[start:stop])
+        if len(f):
+            first = np.repeat(np.cumsum(counts[start:stop]) - counts[start:stop], counts[start:stop])
+            k = np.arange(len(f)) - first
+            c = lo[f, 0] + k % nx[f]
+            r = lo[f, 1] + k // nx[f]
+            a, b, cc = px[f, 0], px[f, 1], px[f, 2]
+            v0, v1 = b - a, cc - a
+            p = np.stack([c, r], -1) - a
+            den = v0[:, 0] * v1[:, 1] - v1[:, 0] * v0[:, 1]
+            ok_den = np.abs(den) > 1e-12
+            den = np.where(ok_den, den, 1.0)
+            l1 = (p[:, 0] * v1[:, 1] - v1[:, 0] * p[:, 1]) / den
+            l2 = (v0[:, 0] * p[:, 1] - p[:, 0] * v0[:, 1]) / den
+            l0 = 1 - l1 - l2
+            inside = ok_den & (l0 >= -1e-9) & (l1 >= -1e-9) & (l2 >= -1e-9)
+            faces_out.append(f[inside])
+            cols.append(c[inside])
+            rows.append(r[inside])
+            barys.append(np.stack([l0, l1, l2], -1)[inside])
+        start = stop
+    face = np.concatenate(faces_out) if faces_out else np.zeros(0, np.int64)
+    col = np.concatenate(cols) if cols else np.zeros(0, np.int64)
+    row = np.concatenate(rows) if rows else np.zeros(0, np.int64)
+    bary = np.concatenate(barys) if barys else np.zeros((0, 3))
+    # one triangle per texel: the lowest face index among those covering it
+    key = row * w + col
+    order = np.lexsort((face, key))
+    keep = order[np.r_[True, key[order][1:] != key[order][:-1]]] if len(order) else order
+    face, col, row, bary = face[keep], col[keep], row[keep], np.clip(bary[keep], 0, 1)
+    bary /= bary.sum(1, keepdims=True)
+    tri = mesh.faces[face]
+    pos = np.einsum("tk,tkj->tj", bary, mesh.vertices[tri])
+    nrm = np.einsum("tk,tkj->tj", bary, mesh.normals[tri])
+    nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-30)
+    tan = _uv_tangents(mesh)[face]
+    tan = tan - (tan * nrm).sum(1, keepdims=True) * nrm
+    bad = np.linalg.norm(tan, axis=1) < 1e-12
+    if bad.any():  # degenerate UVs: any direction orthogonal to the normal
+        ref = np.where(np.abs(nrm[bad, 0:1]) < 0.9, [[1.0, 0, 0]], [[0, 1.0, 0]])
+        tan[bad] = ref - (ref * nrm[bad]).sum(1, keepdims=True) * nrm[bad]
+    tan /= np.linalg.norm(tan, axis=1, keepdims=True)
+    return Texels((h, w), row, col, face, bary, pos, nrm, tan)
+
+
+def uv_atlas(mesh: Mesh, resolution: int) -> Mesh:
+    """The mesh with xatlas UVs (vertices split at seams); texel density set from the mesh area so
+    the atlas fills a ``resolution``^2 map."""
+    atlas = xatlas.Atlas()
+    atlas.add_mesh(mesh.vertices.astype(np.float32), mesh.faces.astype(np.uint32))
+    pack = xatlas.PackOptions()
+    pack.resolution = resolution
+    pack.texels_per_unit = 0.8 * resolution / max(np.sqrt(mesh.area()), 1e-9)
+    pack.padding = 2
+    atlas.generate(pack_options=pack)
+    vmap, faces, uv = atlas[0]
+    v = mesh.vertices[vmap]
+    return Mesh(v, faces.astype(np.int64), uv.astype(np.float64), smooth_normals(v, faces.astype(np.int64)))

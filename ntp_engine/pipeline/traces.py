@@ -1,0 +1,132 @@
+"""Assembling each texel's trace from registered photos (paper §7, Eq. 4).
+
+For every view j and texel p: the texel's object-space point goes into camera j (pose =
+camera-from-world, the world being the mesh's frame); the entry is kept if (1) the point is in
+front of the camera, projects inside the photo (OpenCV distortion included) and lies in the valid
+volume, (2) nothing of the mesh lies between it and the camera (Embree, from the point offset
+along its normal), (3) wo . n^ > 0.3, and (4) every channel of the bilinearly sampled 8-bit pixel is
+in [32, 224]. The entry is (linear pixel RGB * ``pixel_scale``, x, n^, t^) in camera j's space — the
+layout of ``learn.ragged.RaggedTraces``. Views that see no texel cost one projection only.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from ..io.maps import bilinear_pixels
+from ..io.progress import QUIET, Progress
+from ..io.raycast import RayCaster
+from ..learn.ragged import RaggedTraces
+from ..scanner import camera
+from ..scanner.scanner import Scanner
+from .texels import Texels
+
+MAX_SHADOWED_DRIVE = 0.05  # fraction of the pattern's drive the support may block in a used photo
+MIN_COS_VIEW = 0.3
+
+
+@dataclass
+class TraceStats:
+    """What assembling traces kept and why it rejected the rest (counts of texel-view pairs)."""
+
+    views_used: int
+    entries: int
+    texels_observed: int
+    rejected: dict[str, int]
+
+
+def assemble(
+    texels: Texels,
+    photos: Iterable[np.ndarray],
+    poses: list[np.ndarray],
+    scanner: Scanner,
+    caster: RayCaster,
+    pixel_scale: float = 1.0,
+    eps: float = 2e-5,
+    progress: Progress = QUIET,
+    support_z: float | None = None,
+) -> tuple[RaggedTraces, TraceStats]:
+    """Traces of all texels. ``photos``: 8-bit ``(H, W, 3)`` arrays (any iterable: they are read
+    one at a time); ``poses``: 4x4 camera-from-world, one per photo. ``support_z``: the object
+    stands on a plane z = support_z; a photo in which emitters carrying more than
+    ``MAX_SHADOWED_DRIVE`` of the pattern's drive are below that plane is skipped — the support
+    blocks their light for every point of the object, which Eq. 1 (and the network) do not model."""
+    n_tex = len(texels)
+    keys, rows = [], []
+    rejected = {
+        "behind_or_outside": 0,
+        "valid_volume": 0,
+        "occluded": 0,
+        "grazing": 0,
+        "pixel_range": 0,
+        "support_shadow_views": 0,
+    }
+    views_used = 0
+    if support_z is not None:
+        pts, w = scanner.emitter_samples(torch.float64)
+        drive = w.numpy() * np.asarray(scanner.effective_pattern()).sum(1)[:, None]  # (L, Q)
+        drive = drive / max(drive.sum(), 1e-300)
+        pts = pts.numpy()
+    for img, pose in progress.track(zip(photos, poses), "traces", total=len(poses), unit="photo"):
+        R, t = pose[:3, :3], pose[:3, 3]
+        if support_z is not None:
+            below = ((pts - t) @ R)[..., 2] < support_z  # emitter samples in world, R^T (p - t)
+            if drive[below].sum() > MAX_SHADOWED_DRIVE:
+                rejected["support_shadow_views"] += 1
+                continue
+        x = texels.position @ R.T + t
+        n_hat = texels.normal @ R.T
+        cam_w = -R.T @ t
+        front = x[:, 2] > 1e-6
+        px = np.full((n_tex, 2), -1.0)
+        if front.any():
+            px[front] = camera.project(scanner, torch.as_tensor(x[front])).numpy()
+        inside = (
+            front
+            & (px[:, 0] >= 0)
+            & (px[:, 1] >= 0)
+            & (px[:, 0] <= scanner.width - 1)
+            & (px[:, 1] <= scanner.height - 1)
+        )
+        rejected["behind_or_outside"] += int(n_tex - inside.sum())
+        if not inside.any():
+            continue
+        idx = np.nonzero(inside)[0]
+        in_box = scanner.in_valid_volume(torch.as_tensor(x[idx])).numpy()
+        rejected["valid_volume"] += int((~in_box).sum())
+        idx = idx[in_box]
+        wo = -x[idx] / np.linalg.norm(x[idx], axis=1, keepdims=True)
+        facing = (wo * n_hat[idx]).sum(1) > MIN_COS_VIEW
+        rejected["grazing"] += int((~facing).sum())
+        idx = idx[facing]
+        if len(idx) == 0:
+            continue
+        origin = texels.position[idx] + eps * texels.normal[idx]
+        to_cam = cam_w - origin
+        dist = np.linalg.norm(to_cam, axis=1)
+        occ = caster.occluded(origin, to_cam / dist[:, None], dist - 1e-4)
+        rejected["occluded"] += int(occ.sum())
+        idx = idx[~occ]
+        codes = bilinear_pixels(img.astype(np.float64), px[idx, 1], px[idx, 0])
+        ok = camera.code_is_valid(codes)
+        rejected["pixel_range"] += int((~ok).sum())
+        idx, codes = idx[ok], codes[ok]
+        if len(idx) == 0:
+            continue
+        views_used += 1
+        lin = camera.decode(scanner, torch.as_tensor(codes)).numpy() * pixel_scale
+        entry = np.concatenate([lin, x[idx], n_hat[idx], texels.tangent[idx] @ R.T], 1)
+        keys.append(idx)
+        rows.append(entry.astype(np.float32))
+    key = np.concatenate(keys) if keys else np.zeros(0, np.int64)
+    ent = np.concatenate(rows) if rows else np.zeros((0, 12), np.float32)
+    order = np.argsort(key, kind="stable")  # by texel, views in photo order
+    counts = np.bincount(key, minlength=n_tex)
+    offsets = np.zeros(n_tex + 1, np.int64)
+    offsets[1:] = np.cumsum(counts)
+    traces = RaggedTraces(torch.from_numpy(ent[order]), torch.from_numpy(offsets))
+    return traces, TraceStats(views_used, len(key), int((counts > 0).sum()), rejected)

@@ -1,0 +1,116 @@
+"""The scanner's camera: pinhole projection with OpenCV distortion and its inverse, the 8-bit
+response (encode/decode), the validity test of a measured code, poses that look at a point, and
+the same camera at another resolution.
+
+Convention: camera space is OpenCV's (x right, y down, z forward; metres); pixel centres sit at
+integer coordinates, (0, 0) the centre of the top-left pixel; poses are camera-from-world 4x4.
+Linear pixel values are 1 at code 255. Functions take the ``Scanner`` whose camera they use.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from .scanner import Scanner
+
+VALID_CODE = (32.0, 224.0)  # an 8-bit code in this range is neither noise-dominated nor near clipping
+UNDISTORT_ITERATIONS = 20
+
+
+def code_is_valid(code: np.ndarray | Tensor) -> np.ndarray | Tensor:
+    """Boolean ``(...)``: every channel of the 8-bit codes ``(..., C)`` lies in ``VALID_CODE``
+    (the paper's measurement filter). Works on numpy arrays and torch tensors alike."""
+    lo, hi = VALID_CODE
+    return ((code >= lo) & (code <= hi)).all(-1)
+
+
+def encode(scanner: Scanner, linear: Tensor) -> Tensor:
+    """Linear pixel value (1 = white) to an 8-bit code value in [0, 255] (float, not rounded),
+    through the camera's response (linear, gamma or sRGB); values are clipped to [0, 1] first."""
+    x = linear.clamp(0.0, 1.0)
+    if scanner.response == "gamma":
+        x = x ** (1.0 / scanner.gamma)
+    elif scanner.response == "srgb":
+        x = torch.where(x <= 0.0031308, 12.92 * x, 1.055 * x.clamp_min(1e-12) ** (1 / 2.4) - 0.055)
+    return 255.0 * x
+
+
+def decode(scanner: Scanner, code: Tensor) -> Tensor:
+    """8-bit code value [0, 255] back to a linear pixel value in [0, 1] (``encode``'s inverse)."""
+    x = (code / 255.0).clamp(0.0, 1.0)
+    if scanner.response == "gamma":
+        return x**scanner.gamma
+    if scanner.response == "srgb":
+        return torch.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4)
+    return x
+
+
+def distort(scanner: Scanner, x: Tensor, y: Tensor) -> tuple[Tensor, Tensor]:
+    """OpenCV's distortion (k1 k2 p1 p2 k3) of normalised image coordinates ``x, y (...)``."""
+    k1, k2, p1, p2, k3 = (float(v) for v in scanner.distortion)
+    r2 = x * x + y * y
+    radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    return x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x), y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+
+
+def undistort(scanner: Scanner, xd: np.ndarray, yd: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Normalised coordinates whose ``distort`` is ``xd, yd (...)``: fixed-point inversion of
+    OpenCV's model (``UNDISTORT_ITERATIONS`` steps; exact when there is no distortion)."""
+    k1, k2, p1, p2, k3 = scanner.distortion
+    x, y = xd.copy(), yd.copy()
+    if np.any(scanner.distortion):
+        for _ in range(UNDISTORT_ITERATIONS):
+            r2 = x * x + y * y
+            radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+            dx = 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+            dy = p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+            x, y = (xd - dx) / radial, (yd - dy) / radial
+    return x, y
+
+
+def project(scanner: Scanner, points: Tensor) -> Tensor:
+    """Camera-space ``points (..., 3)`` to pixel coordinates ``(..., 2)`` (x = column, y = row) with
+    distortion. Points with z <= 0 give NaN."""
+    K = torch.as_tensor(scanner.K, dtype=points.dtype, device=points.device)
+    z = points[..., 2]
+    z = torch.where(z > 0, z, torch.full_like(z, float("nan")))
+    xd, yd = distort(scanner, points[..., 0] / z, points[..., 1] / z)
+    return torch.stack([K[0, 0] * xd + K[0, 1] * yd + K[0, 2], K[1, 1] * yd + K[1, 2]], -1)
+
+
+def pixel_rays(scanner: Scanner) -> np.ndarray:
+    """Unit camera-space ray directions ``(H, W, 3)`` through every pixel centre (distortion undone)."""
+    K = scanner.K
+    rows, cols = np.meshgrid(np.arange(scanner.height), np.arange(scanner.width), indexing="ij")
+    x, y = undistort(scanner, (cols - K[0, 2]) / K[0, 0], (rows - K[1, 2]) / K[1, 1])
+    d = np.stack([x, y, np.ones_like(x)], -1)
+    return d / np.linalg.norm(d, axis=-1, keepdims=True)
+
+
+def look_at(position: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """Camera-from-world 4x4 (OpenCV axes) at ``position`` looking at ``target``, level with world
+    z up (the camera's x axis is horizontal). Undefined when looking straight up or down."""
+    z = (target - position) / np.linalg.norm(target - position)
+    x = np.cross(z, [0.0, 0.0, 1.0])  # right = forward x up
+    x /= np.linalg.norm(x)
+    R = np.stack([x, np.cross(z, x), z])  # rows: camera axes in world coordinates
+    pose = np.eye(4)
+    pose[:3, :3], pose[:3, 3] = R, -R @ position
+    return pose
+
+
+def resampled(scanner: Scanner, scale: float) -> Scanner:
+    """The same scanner with its camera resampled to ``scale`` of the resolution (pixel centres
+    kept at integers: c' = (c + 0.5) s - 0.5)."""
+    K = scanner.K.copy()
+    K[0, 0] *= scale
+    K[1, 1] *= scale
+    K[0, 2] = (K[0, 2] + 0.5) * scale - 0.5
+    K[1, 2] = (K[1, 2] + 0.5) * scale - 0.5
+    return dataclasses.replace(
+        scanner, K=K, width=max(1, round(scanner.width * scale)), height=max(1, round(scanner.height * scale))
+    )

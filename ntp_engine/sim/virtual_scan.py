@@ -1,0 +1,173 @@
+"""The virtual scanner: a simulated hand-held capture of a mesh with a known SVBRDF.
+
+Writes exactly what a real capture gives (a scan folder: ``scan.toml``, ``mesh.obj``,
+``device.toml`` with the camera at the photos' resolution, ``photos/*.png``) plus
+``ground_truth/`` (the five maps in the mesh's UV layout, ``poses.json`` camera-from-world, and
+``capture.json`` with the settings, the blurred photos and the timing). Photos are rendered by
+``renderer.Scene``.
+
+Trajectory: a hand-held sweep over the upper hemisphere (a spiral in azimuth, elevation oscillating
+between 15 and 75 deg), the scanner aimed so the object's centre sits at the valid volume's centre,
+with jitter in distance, aim and roll. Seeded: the same seed gives the same scan.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from scipy import ndimage
+
+from ..io.assets import DEMO_DIR
+from ..io.atomic import write_text_atomic
+from ..io.errors import NtpInputError
+from ..io.images import write_png
+from ..io.maps import SVBRDFMaps
+from ..io.mesh import Mesh, load_mesh, save_obj
+from ..io.progress import QUIET, Progress
+from ..pipeline.scan_folder import write_scan_toml
+from ..scanner import camera
+from ..scanner.camera import look_at, resampled
+from ..scanner.device_file import load_scanner, save_scanner
+from ..scanner.scanner import Scanner
+from .renderer import Scene
+
+
+@dataclass
+class ScanConfig:
+    """Settings of a virtual capture (trajectory, sensor, motion blur, rendering)."""
+
+    views: int = 120
+    scale: float = 0.25
+    seed: int = 0
+    elevation_deg: tuple[float, float] = (15.0, 75.0)
+    distance_jitter: float = 0.008  # m
+    aim_jitter: float = 0.006  # m
+    roll_deg: float = 20.0
+    noise_sigma: float = 0.02  # multiplicative sensor noise
+    read_noise: float = 0.5  # 8-bit codes
+    exposure: float = 1.5  # x the device's auto-exposure; recorded in the scan's device.toml gain
+    blur_fraction: float = 0.0
+    blur_px: float = 12.0  # motion-blur streak length in pixels at scale 0.25 (scales with resolution)
+    clusters: int = 64
+    chunk: int = 512
+
+
+def trajectory(center: np.ndarray, scanner: Scanner, cfg: ScanConfig, rng: np.random.Generator) -> list[np.ndarray]:
+    """Camera-from-world 4x4 poses of a hand-held sweep around ``center``."""
+    working = float(np.linalg.norm(scanner.valid_center))
+    e0, e1 = np.radians(cfg.elevation_deg)
+    poses = []
+    for i in range(cfg.views):
+        s = i / max(cfg.views - 1, 1)
+        az = 2 * math.pi * 3.0 * s + rng.normal(0, 0.05)
+        el = e0 + (e1 - e0) * (0.5 - 0.5 * math.cos(2 * math.pi * 3.5 * s)) + rng.normal(0, 0.03)
+        el = float(np.clip(el, e0, e1))
+        d = np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)])
+        centre = center + (working + rng.normal(0, cfg.distance_jitter)) * d
+        pose = look_at(centre, center + rng.normal(0, cfg.aim_jitter, 3))
+        x, y = pose[0, :3].copy(), pose[1, :3].copy()
+        roll = math.radians(rng.normal(0, cfg.roll_deg))
+        pose[0, :3], pose[1, :3] = math.cos(roll) * x + math.sin(roll) * y, -math.sin(roll) * x + math.cos(roll) * y
+        pose[:3, 3] = -pose[:3, :3] @ centre
+        poses.append(pose)
+    return poses
+
+
+def take_photo(
+    scene: Scene, pose: np.ndarray, cam: Scanner, cfg: ScanConfig, rng: np.random.Generator, blur: bool = False
+) -> np.ndarray:
+    """An 8-bit photo ``(H, W, 3)`` uint8 of ``scene`` by the camera ``cam`` at ``pose``: the linear
+    render, optional motion blur, multiplicative noise N(1, sigma), the 8-bit response, read noise,
+    clipping at 255 and rounding."""
+    lin, _ = scene.render_linear(pose, cam, cfg.chunk)
+    if blur:
+        length = max(3, int(round(cfg.blur_px * cfg.scale / 0.25)))
+        angle = rng.uniform(0, 180)
+        kernel = np.zeros((length, length))
+        kernel[length // 2, :] = 1.0
+        kernel = ndimage.rotate(kernel, angle, reshape=False, order=1)
+        kernel /= kernel.sum()
+        lin = np.stack([ndimage.convolve(lin[..., c], kernel, mode="nearest") for c in range(3)], -1)
+    lin = lin * (1 + cfg.noise_sigma * rng.standard_normal(lin.shape))
+    code = camera.encode(cam, torch.as_tensor(lin)).numpy() + cfg.read_noise * rng.standard_normal(lin.shape)
+    return np.clip(np.round(code), 0, 255).astype(np.uint8)
+
+
+def load_asset(asset: str | None, mesh_path: Path | None, maps_dir: Path | None) -> tuple[Mesh, SVBRDFMaps, Path]:
+    """The mesh and maps of an asset folder (``mesh.obj`` + ``ground_truth/``; default the demo), or
+    of ``mesh_path`` with ``maps_dir``; and the mesh's path."""
+    if mesh_path is None:
+        folder = DEMO_DIR if asset in (None, "demo") else Path(asset)
+        if not (folder / "mesh.obj").is_file():
+            raise NtpInputError(folder, "not an asset folder (needs mesh.obj and ground_truth/)")
+        mesh_path, maps_dir = folder / "mesh.obj", folder / "ground_truth"
+    if maps_dir is None:
+        raise NtpInputError(mesh_path, "--mesh needs --maps DIR with the five ground-truth maps")
+    mesh = load_mesh(mesh_path)
+    if mesh.uv is None:
+        raise NtpInputError(mesh_path, "mesh has no UVs, but maps were given (maps need a UV layout)")
+    maps = SVBRDFMaps.load(maps_dir)
+    return mesh, maps, mesh_path
+
+
+def virtual_scan(
+    out: Path,
+    asset: str | None = None,
+    mesh_path: Path | None = None,
+    maps_dir: Path | None = None,
+    device_path: Path | None = None,
+    cfg: ScanConfig | None = None,
+    progress: Progress = QUIET,
+) -> dict:
+    """Capture the asset into the scan folder ``out`` (see the module docstring); returns the
+    capture record (also ``ground_truth/capture.json``)."""
+    cfg = cfg or ScanConfig()
+    if not 0 < cfg.scale <= 1 or cfg.views < 1 or not 0 <= cfg.blur_fraction <= 1:
+        raise NtpInputError(None, "need 0 < --scale <= 1, --views >= 1, 0 <= --blur-fraction <= 1")
+    mesh, maps, src_mesh = load_asset(asset, mesh_path, maps_dir)
+    scanner = load_scanner(device_path)
+    cam = resampled(scanner, cfg.scale)
+    cam.gain = scanner.gain * cfg.exposure  # what this capture used: B = pixel / cam.exposure(pattern)
+    rng = np.random.default_rng(cfg.seed)
+    scene = Scene(mesh, maps, scanner, cfg.clusters, cfg.exposure)
+    poses = trajectory(scene.center, scanner, cfg, rng)
+    n_blur = int(round(cfg.blur_fraction * cfg.views))
+    blurred = set(rng.choice(cfg.views, size=n_blur, replace=False).tolist()) if n_blur else set()
+
+    (out / "photos").mkdir(parents=True, exist_ok=True)
+    gt = out / "ground_truth"
+    gt.mkdir(exist_ok=True)
+    names, t0 = [], time.perf_counter()
+    for i in progress.track(range(cfg.views), "virtual scan", unit="photo"):
+        name = f"{i:04d}.png"
+        img = take_photo(scene, poses[i], cam, cfg, rng, blur=i in blurred)
+        write_png(out / "photos" / name, img.astype(np.float64) / 255.0)
+        names.append(name)
+    seconds = time.perf_counter() - t0
+    save_obj(out / "mesh.obj", mesh)
+    save_scanner(cam, out / "device.toml")
+    maps.save(gt)
+    write_text_atomic(gt / "poses.json", json.dumps({n: p.tolist() for n, p in zip(names, poses)}, indent=1))
+    capture = {
+        "config": asdict(cfg),
+        "source_mesh": str(src_mesh),
+        "device": scanner.name,
+        "blurred_photos": sorted(names[i] for i in blurred),
+        "seconds": seconds,
+        "seconds_per_photo": seconds / max(cfg.views, 1),
+    }
+    write_text_atomic(gt / "capture.json", json.dumps(capture, indent=2))
+    write_scan_toml(
+        out,
+        comments=(
+            "written by ntp virtual-scan",
+            "ground truth for evaluation: ground_truth/ (maps, poses.json, capture.json)",
+        ),
+    )
+    return capture

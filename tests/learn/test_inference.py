@@ -1,0 +1,36 @@
+import torch
+
+from ntp_engine.learn.inference import RaggedTraces, predict, predict_all
+from ntp_engine.learn.network import NetworkConfig, TraceNet
+from ntp_engine.scanner.device_file import load_scanner
+
+
+def _traces(n=9, seed=0):
+    gen = torch.Generator().manual_seed(seed)
+    lengths = torch.randint(0, 12, (n,), generator=gen)
+    lengths[0] = 0  # an empty trace
+    offsets = torch.zeros(n + 1, dtype=torch.int64)
+    offsets[1:] = torch.cumsum(lengths, 0)
+    entries = torch.rand(int(offsets[-1]), 12, generator=gen)
+    return RaggedTraces(entries, offsets)
+
+
+def test_ragged_prediction_matches_padded_forward_in_any_batching():
+    torch.manual_seed(0)
+    net = TraceNet(NetworkConfig(preset="small"), load_scanner()).eval()
+    tr = _traces()
+    d_all, s_all = predict_all(net, tr, max_entries=1 << 12)
+    d_small, s_small = predict_all(net, tr, max_entries=13)  # many tiny batches
+    torch.testing.assert_close(d_all, d_small)
+    torch.testing.assert_close(s_all, s_small)
+    for k in (1, 4):
+        a, b = int(tr.offsets[k]), int(tr.offsets[k + 1])
+        raw = tr.entries[a:b][None]
+        x = net.entries(raw[..., :3], raw[..., 3:6], raw[..., 6:9], raw[..., 9:])
+        with torch.no_grad():
+            d, s = net(x, torch.ones(1, b - a, dtype=torch.bool))
+        torch.testing.assert_close(d_all[k], d[0].clamp_min(0))
+        torch.testing.assert_close(s_all[k], torch.expm1(s[0].clamp_min(0)))
+    assert (s_all >= 0).all() and torch.isfinite(d_all).all()
+    seen = torch.cat([idx for idx, _, _ in predict(net, tr, max_entries=20)])
+    assert sorted(seen.tolist()) == list(range(tr.num_traces))

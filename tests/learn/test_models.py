@@ -1,0 +1,50 @@
+import numpy as np
+import pytest
+import torch
+
+from ntp_engine.io.errors import NtpInputError
+from ntp_engine.learn import models
+from ntp_engine.learn.network import NetworkConfig
+from ntp_engine.scanner.device_file import load_scanner, write_pattern
+
+
+def test_export_and_load_round_trip(tmp_path):
+    from ntp_engine.learn.train import TrainConfig, train
+
+    run = tmp_path / "run"
+    train(
+        run, NetworkConfig(preset="small"), TrainConfig(steps=2, batch=4, validate_every=2, val_batches=1, views_max=8)
+    )
+    models.export(run / "checkpoint.pt", tmp_path / "model", {"val_loss": 1.0})
+    net, meta = models.load(tmp_path / "model")
+    assert meta["network"]["preset"] == "small" and meta["summary"]["steps"] == 2
+    ck = torch.load(run / "checkpoint.pt", weights_only=False)
+    torch.testing.assert_close(net.pattern_logits.detach(), ck["model"]["pattern_logits"])
+    w = ck["model"]["encoder.0.weight"]
+    torch.testing.assert_close(net.encoder[0].weight.detach(), w.half().float())
+    pattern = np.loadtxt(tmp_path / "model" / "pattern.csv", delimiter=",")
+    assert pattern.shape == (512, 3) and ((pattern > 0) & (pattern < 1)).all()
+    with pytest.raises(NtpInputError, match="not a model folder"):
+        models.load(tmp_path / "nothing")
+
+
+def test_pattern_export_to_device_is_quantised(tmp_path):
+    src = load_scanner()
+    dev_file = tmp_path / "dev.toml"
+    dev_file.write_text(open(src.source).read())
+    pattern = np.random.default_rng(0).random((512, 3))
+    write_pattern(dev_file, pattern)
+    loaded = load_scanner(dev_file).pattern
+    np.testing.assert_allclose(loaded, np.round(pattern * 255) / 255, atol=1e-7)
+    np.testing.assert_allclose(loaded * 255, np.round(loaded * 255), atol=1e-5)
+
+
+def test_loaded_model_keeps_its_training_exposure_whatever_the_device(tmp_path):
+    import dataclasses
+
+    dev = load_scanner()
+    brighter = dataclasses.replace(dev, gain=dev.gain * 1.5, max_exposure=1.0)  # e.g. a scan's device.toml
+    net, meta = models.load(None, brighter)
+    assert float(net.gain) == pytest.approx(meta["device_gain"]) == pytest.approx(dev.gain)
+    assert float(net.max_exposure) == pytest.approx(meta["device_max_exposure"]) == pytest.approx(dev.max_exposure)
+    assert net.exposure() == pytest.approx(dev.exposure(net.pattern().detach().double().numpy()), rel=1e-5)

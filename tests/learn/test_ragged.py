@@ -1,0 +1,22 @@
+import pytest
+import torch
+
+from ntp_engine.learn.inference import RaggedTraces
+
+
+def test_bad_ragged_input():
+    with pytest.raises(ValueError):
+        RaggedTraces(torch.zeros(4, 10), torch.tensor([0, 4]))
+    with pytest.raises(ValueError):
+        RaggedTraces(torch.zeros(4, 12), torch.tensor([0, 3]))
+
+
+def test_padded_subsampling_spreads_over_the_trace():
+    entries = torch.arange(20, dtype=torch.float32)[:, None].repeat(1, 12)
+    tr = RaggedTraces(entries, torch.tensor([0, 2, 12, 20]))
+    full, m = tr.padded(torch.tensor([0, 1, 2]))
+    assert m.sum(1).tolist() == [2, 10, 8] and full.shape == (3, 10, 12)
+    sub, ms = tr.padded(torch.tensor([0, 1, 2]), max_views=4)
+    assert ms.sum(1).tolist() == [2, 4, 4]
+    assert sub[1, :, 0].tolist() == [2.0, 5.0, 8.0, 11.0]  # first, evenly spread, last
+    assert sub[0, :2, 0].tolist() == [0.0, 1.0] and (sub[0, 2:] == 0).all()

@@ -1,0 +1,28 @@
+"""``ntp reconstruct`` end to end on virtual scans: SfM + alignment, given poses, caching/resume,
+photo selection, bad input."""
+
+import shutil
+
+import numpy as np
+from scipy.ndimage import gaussian_filter
+
+from ntp_engine.io.images import read_image, write_png
+from ntp_engine.pipeline.photo_selection import blur_score
+from ntp_engine.pipeline.scan_folder import load_scan
+from ntp_engine.pipeline.stages import reconstruct
+
+
+def test_blurry_and_corrupt_photos_are_skipped_and_listed(scan24, tmp_path):
+    scan = tmp_path / "scan"
+    shutil.copytree(scan24, scan)
+    photo = read_image(scan / "photos" / "0003.png")
+    write_png(scan / "photos" / "0003.png", gaussian_filter(photo, (1.5, 1.5, 0)))
+    (scan / "photos" / "0007.png").write_bytes(b"\x89PNG\r\n\x1a\n not really")
+    (scan / "photos" / "0008.png").write_bytes((scan / "photos" / "0008.png").read_bytes()[:200])  # truncated
+    assert blur_score(np.round(photo * 255)) < blur_score(np.round(gaussian_filter(photo, (1.5, 1.5, 0)) * 255))
+    rep = reconstruct(
+        load_scan(scan, scan / "ground_truth" / "poses.json"), tmp_path / "rec", resolution=24, progress=False
+    )
+    assert list(rep["photos"]["blurry"]) == ["0003.png"]
+    assert sorted(rep["photos"]["unreadable"]) == ["0007.png", "0008.png"]
+    assert rep["photos"]["kept"] == 21

@@ -1,0 +1,57 @@
+"""``ntp reconstruct`` end to end on virtual scans: SfM + alignment, given poses, caching/resume,
+photo selection, bad input."""
+
+import json
+import shutil
+import subprocess
+import sys
+
+import pytest
+
+from ntp_engine.io.errors import NtpInputError
+from ntp_engine.pipeline.scan_folder import load_scan
+from ntp_engine.pipeline.stages import reconstruct
+
+
+def test_bad_scan_folders_are_one_line_errors(scan24, tmp_path):
+    scan = tmp_path / "scan"
+    shutil.copytree(scan24, scan)
+    (scan / "mesh.obj").write_text("v 0 0 zero\nf 1 2 3\n")
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "ntp_engine.cli",
+            "reconstruct",
+            str(scan),
+            "--out",
+            str(tmp_path / "o"),
+            "--resolution",
+            "16",
+            "--poses",
+            str(scan / "ground_truth" / "poses.json"),
+            "--quiet",
+        ],
+        capture_output=True,
+        text=True,
+    )
+    assert r.returncode == 2 and "Traceback" not in r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1 and "mesh.obj" in r.stderr
+    (scan / "scan.toml").write_text('mesh = "mesh.obj"\nphotos = 3\n')
+    with pytest.raises(NtpInputError, match="scan.toml.*photos"):
+        load_scan(scan)
+    for p in (scan / "photos").iterdir():
+        p.write_bytes(b"junk")
+    (scan / "scan.toml").write_text('mesh = "mesh.obj"\nphotos = "photos"\ndevice = "device.toml"\n')
+    shutil.copy(scan24 / "mesh.obj", scan / "mesh.obj")
+    with pytest.raises(NtpInputError, match="photos.*only 0 sharp, readable"):
+        reconstruct(load_scan(scan), tmp_path / "o2", resolution=16)
+
+
+def test_scan_folder_errors_name_the_file(scan24, tmp_path):
+    with pytest.raises(NtpInputError, match="scan.toml"):
+        load_scan(tmp_path)
+    bad = tmp_path / "poses.json"
+    bad.write_text(json.dumps({"0000.png": [[1, 0], [0, 1]]}))
+    with pytest.raises(NtpInputError, match="poses.json.*4x4"):
+        load_scan(scan24, bad)
