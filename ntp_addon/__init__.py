@@ -15,12 +15,14 @@ _CLASSES = (*operators.CLASSES, *panel.CLASSES)
 
 
 def register() -> None:
+    """Register the add-on's properties, operators and panels with Blender."""
     properties.register()
     for cls in _CLASSES:
         bpy.utils.register_class(cls)
 
 
 def unregister() -> None:
+    """Remove everything ``register`` added."""
     for cls in reversed(_CLASSES):
         bpy.utils.unregister_class(cls)
     properties.unregister()

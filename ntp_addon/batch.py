@@ -42,6 +42,7 @@ def export(
     size: tuple[int, int] = (640, 512),
     turntable: int = 0,
 ) -> dict:
+    """Import the result, build both materials and write the requested .blend, .glb and preview (each atomically)."""
     bpy.ops.wm.read_factory_settings(use_empty=True)
     ri_check = material.read_result(result)  # validate before creating anything
     del ri_check
@@ -95,6 +96,7 @@ def export(
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Command line of the batch export; returns the exit code (2 for bad input)."""
     p = argparse.ArgumentParser(prog="python -m ntp_addon.batch", description=__doc__.split("\n\n")[0])
     p.add_argument("result", type=Path, help="result folder of ntp reconstruct / ntp demo")
     p.add_argument("--blend", type=Path, default=None)

@@ -23,6 +23,7 @@ DEMO = DEMO_DIR
 
 
 def run(views: int = 3, scale: float = 0.25, samples: int = 64, json_path: Path | None = None) -> dict:
+    """Cycles against the engine for both materials and the preview's render time; printed and returned."""
     with tempfile.TemporaryDirectory() as tmp:
         result = Path(tmp) / "demo"
         result.mkdir()
@@ -66,6 +67,7 @@ def run(views: int = 3, scale: float = 0.25, samples: int = 64, json_path: Path 
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Command line of ``ntp bench blender``."""
     p = argparse.ArgumentParser(prog="ntp bench blender")
     p.add_argument("--views", type=int, default=3)
     p.add_argument("--scale", type=float, default=0.25)

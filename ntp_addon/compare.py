@@ -79,6 +79,7 @@ def cycles_render(
     out: Path,
     samples: int,
 ) -> tuple[np.ndarray, float]:
+    """Render the result in Cycles with ``mat`` from ``pose`` under a point light; (image, seconds)."""
     scene = bpy.context.scene
     bscene.setup_cycles(scene, cam.width, cam.height, samples)
     obj.data.materials[0] = mat
@@ -102,6 +103,7 @@ def run(
     work: Path | None = None,
     save_png: bool = False,
 ) -> dict:
+    """SSIM/PSNR of both materials' Cycles renders against the engine's, per view, and seconds per render."""
     """Render the result with both materials in Cycles and with the engine from ``views`` novel
     views/lights; SSIM/PSNR per variant and seconds per Cycles render."""
     import tempfile

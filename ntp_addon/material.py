@@ -39,6 +39,8 @@ LINEAR, DATA = "Linear Rec.709", "Non-Color"
 
 @dataclass
 class ResultInputs:
+    """A result folder's maps and the node inputs derived from them."""
+
     folder: Path
     maps: SVBRDFMaps
     principled: dict[str, np.ndarray]

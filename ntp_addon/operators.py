@@ -43,6 +43,7 @@ def _load_scan(context):
 
 
 def result_folder(context) -> Path:
+    """The result folder: the setting, else ``<scan>_result`` beside the scan folder."""
     s = _settings(context)
     if s.result_folder:
         return _abs(s.result_folder)
@@ -63,6 +64,7 @@ class NTP_OT_import_mesh(bpy.types.Operator):
     bl_options = {"REGISTER", "UNDO"}
 
     def execute(self, context):
+        """Import the scan's mesh."""
         try:
             scan = _load_scan(context)
         except NtpInputError as err:
@@ -280,6 +282,7 @@ class NTP_OT_build_material(bpy.types.Operator):
     bl_options = {"REGISTER", "UNDO"}
 
     def execute(self, context):
+        """Build both materials from the result folder on the active (or imported) mesh."""
         s = _settings(context)
         folder = result_folder(context)
         try:
@@ -302,6 +305,7 @@ class NTP_OT_relight_preview(bpy.types.Operator):
     bl_options = {"REGISTER", "UNDO"}
 
     def execute(self, context):
+        """Build the look-dev rig around the active mesh."""
         obj = _target_object(context)
         if obj is None:
             self.report({"ERROR"}, "select the mesh to light first")

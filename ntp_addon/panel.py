@@ -16,6 +16,8 @@ def _device_lines(path: str) -> list[str]:
 
 
 class NTP_PT_scan(bpy.types.Panel):
+    """The NTP sidebar tab: scan settings, operators and status."""
+
     bl_idname = "NTP_PT_scan"
     bl_label = "Neural Trace Photography"
     bl_space_type = "VIEW_3D"
@@ -23,6 +25,7 @@ class NTP_PT_scan(bpy.types.Panel):
     bl_category = "NTP"
 
     def draw(self, context):
+        """Lay out the panel."""
         s = context.scene.ntp
         col = self.layout.column(align=True)
         for prop in ("scan_folder", "device", "model", "resolution", "result_folder"):
@@ -45,6 +48,8 @@ class NTP_PT_scan(bpy.types.Panel):
 
 
 class NTP_PT_device(bpy.types.Panel):
+    """The scanner device's summary, under the NTP tab."""
+
     bl_idname = "NTP_PT_device"
     bl_label = "Scanner device"
     bl_space_type = "VIEW_3D"
@@ -54,6 +59,7 @@ class NTP_PT_device(bpy.types.Panel):
     bl_options = {"DEFAULT_CLOSED"}
 
     def draw(self, context):
+        """Lay out the device summary."""
         box = self.layout.box()
         for line in _device_lines(context.scene.ntp.device):
             box.label(text=line)

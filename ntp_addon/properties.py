@@ -8,6 +8,8 @@ from ntp_engine.pipeline.stages import DEFAULT_RESOLUTION, MIN_RESOLUTION
 
 
 class NTPSettings(bpy.types.PropertyGroup):
+    """The add-on's settings on the scene (``scene.ntp``)."""
+
     scan_folder: bpy.props.StringProperty(
         name="Scan folder", subtype="DIR_PATH", description="Folder with scan.toml, the pre-scanned mesh and photos/"
     )
@@ -41,10 +43,12 @@ class NTPSettings(bpy.types.PropertyGroup):
 
 
 def register() -> None:
+    """Register the settings and attach them to every scene."""
     bpy.utils.register_class(NTPSettings)
     bpy.types.Scene.ntp = bpy.props.PointerProperty(type=NTPSettings)
 
 
 def unregister() -> None:
+    """Detach and unregister the settings."""
     del bpy.types.Scene.ntp
     bpy.utils.unregister_class(NTPSettings)

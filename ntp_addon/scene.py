@@ -64,6 +64,7 @@ def setup_cycles(scene: bpy.types.Scene, width: int, height: int, samples: int =
 def point_light(
     name: str, position: np.ndarray, power_w: float, collection: bpy.types.Collection | None = None
 ) -> bpy.types.Object:
+    """A point light of ``power_w`` watts at ``position`` (world, metres)."""
     data = bpy.data.lights.new(name, type="POINT")
     data.energy = power_w
     data.shadow_soft_size = 0.0

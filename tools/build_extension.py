@@ -35,6 +35,7 @@ PLATFORMS = ["manylinux_2_28_x86_64", "manylinux2014_x86_64"]  # torch's CPU whe
 
 
 def blender_ext() -> Path:
+    """The path of the extension packager bundled with bpy (bl_pkg's blender_ext.py)."""
     import bpy  # noqa: F401  (locates the bundled packager)
 
     scripts = Path(bpy.__file__).resolve().parents[2]  # .../bpy/<version>/scripts/modules/bpy/__init__.py
@@ -45,6 +46,7 @@ def blender_ext() -> Path:
 
 
 def dependency_pins() -> list[str]:
+    """The engine's pinned runtime dependencies (requirements.txt, less bpy and test-only tools)."""
     pins = []
     for line in (ROOT / "requirements.txt").read_text().splitlines():
         line = line.split("#")[0].strip()
@@ -88,6 +90,7 @@ def engine_wheel(wheels: Path) -> Path:
 
 
 def build(out: Path, with_dependencies: bool = True, platforms: list[str] | None = None) -> Path:
+    """Build the installable extension zip (the add-on, manifest and wheels) into ``out``."""
     stage = ROOT / "build" / "extension" / "ntp"
     if stage.exists():
         shutil.rmtree(stage)
@@ -133,6 +136,7 @@ def build(out: Path, with_dependencies: bool = True, platforms: list[str] | None
 
 
 def main() -> int:
+    """Command line: build the extension zip into --out."""
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--out", type=Path, default=ROOT / "dist")
     p.add_argument(

@@ -6,6 +6,7 @@ the texels both methods fitted; texels/s of each from its own run."""
 from __future__ import annotations
 
 import time
+from typing import Any
 
 import torch
 
@@ -27,7 +28,7 @@ def _cases(n: int, seed: int, chunk: int = 128) -> dict:
     except Exception:  # noqa: BLE001 - the benchmark still runs before a model is shipped
         model = None
     gen = torch.Generator().manual_seed(seed)
-    gt = {k: [] for k in ("n", "t", "ax", "ay", "exact", "noisy")}
+    gt: dict[str, Any] = {k: [] for k in ("n", "t", "ax", "ay", "exact", "noisy")}
     for i in range(0, n, chunk):
         b = sample_batch(scanner, min(chunk, n - i), gen, SyntheticConfig(), views=64)
         gt["n"].append(b.params["n_local"])
@@ -43,7 +44,7 @@ def _cases(n: int, seed: int, chunk: int = 128) -> dict:
         else:
             noise = 0.05 * torch.randn(b.label_specular.shape, generator=gen)
             gt["noisy"].append(torch.expm1(torch.log1p(b.label_specular) + noise).clamp_min(0))
-    out = {k: torch.cat(v) for k, v in gt.items()}
+    out: dict[str, Any] = {k: torch.cat(v) for k, v in gt.items()}
     out["source"] = source
     return out
 
@@ -60,9 +61,7 @@ def _errors(fit: GeometryFit, gt: dict, inp: torch.Tensor, sel: slice) -> dict:
     aniso = ax_gt > 2 * ay_gt
     ex = (fit.alpha_x[sel].log() - ax_gt.log()).abs()
     ey = (fit.alpha_y[sel].log() - ay_gt.log()).abs()
-    sub = GeometryFit(
-        *(getattr(fit, f)[sel] if getattr(fit, f) is not None else None for f in GeometryFit.__dataclass_fields__)
-    )
+    sub = fit.rows(sel)
     rmse_in = lumitexel_log_rmse(sub, inp[sel])
     rmse_gt = lumitexel_log_rmse(sub, gt["exact"][sel])
     return {

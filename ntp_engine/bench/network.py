@@ -60,7 +60,10 @@ def _comparison_models(quick: bool, steps: int) -> dict:
     if quick:
         return {name: models.load(MODELS_DIR / f"compare_{name}")[0] for name in PATTERNS}
     root = Path(tempfile.mkdtemp(prefix="ntp-bench-network-"))
-    tc = lambda n, **kw: TrainConfig(steps=n, validate_every=max(n // 4, 1), val_batches=2, **kw)  # log only
+
+    def tc(n, **kw):
+        return TrainConfig(steps=n, validate_every=max(n // 4, 1), val_batches=2, **kw)  # log only
+
     for name in ("full_on", "point"):  # first half
         train(
             root / f"{name}_half",
@@ -100,6 +103,7 @@ def traces_per_second(model, scanner: Scanner, traces: int = 4096, views: int = 
 def run(
     quick: bool = False, steps: int = 3000, json_path=None, batches: int | None = None, rate_traces: int = 4096
 ) -> dict:
+    """Pattern comparison, losses by trace length and inference rate; printed and returned (JSON optional)."""
     scanner = load_scanner()
     pattern_batches = batches or PATTERN_BATCHES
     batches = batches or (16 if quick else 32)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import torch
 
@@ -32,9 +33,11 @@ def _frames(n: int, dtype, gen) -> tuple:
 
 
 def run(brdf_batch: int = 1 << 20, lumitexel_batch: int = 256, point_batch: int = 1024, json_path=None) -> dict:
+    """BRDF evaluations, lumitexels and measurements per second in float32 and float64; printed and returned."""
     gen = torch.Generator().manual_seed(0)
     scanner = load_scanner()
-    rows, result = [], {"threads": torch.get_num_threads()}
+    rows: list[tuple] = []
+    result: dict[str, Any] = {"threads": torch.get_num_threads()}
     for dtype in (torch.float32, torch.float64):
         name = str(dtype).replace("torch.", "")
         args = _brdf_inputs(brdf_batch, dtype, gen)

@@ -8,6 +8,7 @@ from __future__ import annotations
 import tempfile
 from pathlib import Path
 
+from ..io.progress import QUIET
 from ..sim import demo
 from . import dump_json, print_table
 
@@ -21,12 +22,13 @@ def run(
     work: Path | None = None,
     known_poses: bool = False,
 ) -> dict:
+    """The demo pipeline at each (photos, resolution) in ``sizes``: stage times and errors, a table, JSON, a plot."""
     sizes = sizes or SIZES
     rows, results = [], []
     with tempfile.TemporaryDirectory(prefix="ntp-bench-scan-") as tmp:
         for views, res in sizes:
             out = (work or Path(tmp)) / f"v{views}_r{res}"
-            s = demo.run(out, views=views, resolution=res, known_poses=known_poses, progress=False, blend=False)
+            s = demo.run(out, views=views, resolution=res, known_poses=known_poses, progress=QUIET, blend=False)
             st = s["seconds"]["stages"]
             r = {
                 "photos": views,

@@ -27,7 +27,9 @@ def _with_wall(mesh: Mesh) -> Mesh:
     return Mesh(v, f, uv, smooth_normals(v, f))
 
 
-def run(photos: int = 3, json_path=None) -> dict:
+def run(photos: int = 3, json_path=None, scales: tuple[float, ...] = (0.25, 1.0), shadow_scale: float = 0.25) -> dict:
+    """Seconds per photo at each of ``scales`` (the first with ``photos`` photos, later ones half as
+    many) and the shadow clusters' error at ``shadow_scale``; printed and returned."""
     mesh, maps, _ = load_asset(None, None, None)
     scanner = load_scanner()
     cfg = ScanConfig(views=24)
@@ -35,7 +37,8 @@ def run(photos: int = 3, json_path=None) -> dict:
     scene = Scene(mesh, maps, scanner, cfg.clusters, cfg.exposure)
     poses = trajectory(scene.center, scanner, cfg, rng)
     result, rows = {}, []
-    for scale, n in ((0.25, photos), (1.0, max(1, photos // 2))):
+    for k, scale in enumerate(scales):
+        n = photos if k == 0 else max(1, photos // 2)
         cam = resampled(scanner, scale)
         cfg.scale = scale
         take_photo(scene, poses[0], cam, cfg, rng)  # warm-up
@@ -49,7 +52,7 @@ def run(photos: int = 3, json_path=None) -> dict:
 
     # shadow error: clusters vs exact, on object pixels of a few views of the dome beside a wall
     walled = Scene(_with_wall(mesh), maps, scanner, cfg.clusters, cfg.exposure)
-    cam = resampled(scanner, 0.25)
+    cam = resampled(scanner, shadow_scale)
     errs, t_c, t_e, lit = [], 0.0, 0.0, []
     for i in (2, 9, 16):
         lin, info = walled.render_linear(poses[i], cam)

@@ -53,7 +53,7 @@ def bounded_ls2(a: Tensor, b: Tensor, y: Tensor, w: Tensor, hi_a: float, hi_b: f
     for u_fixed in (0.0, hi_a):
         v = ((sby - u_fixed * sab) / sbb.clamp_min(tiny)).clamp(0, hi_b)
         cands.append((torch.full_like(v, u_fixed), v))
-    best_u, best_v, best_cost = None, None, None
+    best_u, best_v, best_cost = cands[0][0], cands[0][1], torch.full_like(saa, float("inf"))
     for k, (u, v) in enumerate(cands):
         feasible = (u >= 0) & (u <= hi_a) & (v >= 0) & (v <= hi_b) & torch.isfinite(u) & torch.isfinite(v)
         if k == 0:
@@ -62,12 +62,9 @@ def bounded_ls2(a: Tensor, b: Tensor, y: Tensor, w: Tensor, hi_a: float, hi_b: f
         v = torch.where(feasible, v, torch.zeros_like(v))
         cost = (w * (u[..., None] * a + v[..., None] * b - y) ** 2).sum(-1)
         cost = torch.where(feasible, cost, torch.full_like(cost, float("inf")))
-        if best_cost is None:
-            best_u, best_v, best_cost = u, v, cost
-        else:
-            better = cost < best_cost
-            best_u, best_v = torch.where(better, u, best_u), torch.where(better, v, best_v)
-            best_cost = torch.where(better, cost, best_cost)
+        better = cost < best_cost if k else torch.ones_like(cost, dtype=torch.bool)
+        best_u, best_v = torch.where(better, u, best_u), torch.where(better, v, best_v)
+        best_cost = torch.where(better, cost, best_cost)
     return best_u, best_v
 
 
@@ -146,7 +143,10 @@ def highlights_and_albedo(
     n_cam, t_cam = frame_in_views(geometry, normal_geo, tangent_geo)
     x = parked_positions(position, mask)
     geo = local_emitter_geometry(scanner, x.reshape(-1, 3), n_cam.reshape(-1, 3), t_cam.reshape(-1, 3))
-    per_entry = lambda a: a.to(dtype)[:, None].expand(N, V).reshape(-1)
+
+    def per_entry(a):
+        return a.to(dtype)[:, None].expand(N, V).reshape(-1)
+
     ax, ay = per_entry(geometry.alpha_x), per_entry(geometry.alpha_y)
     spec = specular_lobe(geo, ax, ay)  # (N V, K)
     ratio = ratios_from_lobe(geo, spec, ax, ay, per_entry(geometry.rho_s)).reshape(N, V)

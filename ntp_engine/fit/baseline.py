@@ -36,6 +36,7 @@ def _objective(x_np: np.ndarray, target: torch.Tensor) -> tuple[float, np.ndarra
     model = specular_lumitexel(n, t, rho[None], ax, ay, SPECULAR_RES)[..., 0]
     loss = ((torch.log1p(model) - target) ** 2).mean()
     loss.backward()
+    assert x.grad is not None  # backward() filled it
     return loss.item(), x.grad.numpy()
 
 
@@ -43,7 +44,7 @@ def fit_geometry_lbfgsb(specular: torch.Tensor, max_iter: int = 200) -> Geometry
     """Fit texels one at a time; ``specular (N, 6144)``. Returns the same fields as the batched fit."""
     tab = light_table(SPECULAR_RES, "cpu", torch.float64)
     N = len(specular)
-    out = {k: [] for k in ("n", "t", "ax", "ay", "rho", "flags")}
+    out: dict[str, list] = {k: [] for k in ("n", "t", "ax", "ay", "rho", "flags")}
     bounds = [
         (0.0, math.radians(89.0)),
         (None, None),
@@ -66,9 +67,11 @@ def fit_geometry_lbfgsb(specular: torch.Tensor, max_iter: int = 200) -> Geometry
         theta0 = float(torch.acos(h[2].clamp(-1, 1)))
         phi0 = float(torch.atan2(h[1], h[0]))
         x0 = np.array([min(theta0, math.radians(85)), phi0, 0.0, math.log(0.1), math.log(0.1), 0.0])
+        n0, t0 = _frame_from_params(torch.tensor(x0))[:2]
         peak1 = float(
             specular_lumitexel(
-                *[v for v in _frame_from_params(torch.tensor(x0))[:2]],
+                n0,
+                t0,
                 torch.ones(1, dtype=torch.float64),
                 torch.tensor(0.1, dtype=torch.float64),
                 torch.tensor(0.1, dtype=torch.float64),

@@ -44,6 +44,8 @@ FLAG_NONFINITE, FLAG_ZERO, FLAG_NO_LOBE, FLAG_NO_HIGHLIGHT = 1, 2, 4, 8
 
 @dataclass
 class GeometryFit:
+    """The fitted lobe of N texels in their lumitexel frames (canonical: alpha_x >= alpha_y)."""
+
     normal: Tensor  # (N, 3) shading normal in the lumitexel frame
     tangent: Tensor  # (N, 3) shading tangent, alpha_x along it
     alpha_x: Tensor  # (N,) >= alpha_y
@@ -51,6 +53,18 @@ class GeometryFit:
     rho_s: Tensor  # (N,) grayscale specular scale of the lumitexel
     flags: Tensor  # (N,) int: FLAG_* bits, 0 = good fit
     log_rmse: Tensor | None  # (N,) log(1 + x) RMSE fitted vs input over all lights (if asked for)
+
+    def rows(self, sel: slice | Tensor) -> GeometryFit:
+        """The fit of the texels ``sel`` only."""
+        return GeometryFit(
+            self.normal[sel],
+            self.tangent[sel],
+            self.alpha_x[sel],
+            self.alpha_y[sel],
+            self.rho_s[sel],
+            self.flags[sel],
+            None if self.log_rmse is None else self.log_rmse[sel],
+        )
 
 
 @functools.lru_cache(maxsize=4)
@@ -178,7 +192,7 @@ def fit_geometry(
         e = torch.zeros(0)
         return GeometryFit(torch.zeros(0, 3), torch.zeros(0, 3), e, e, e, torch.zeros(0, dtype=torch.int64), e)
     fields = [f for f in GeometryFit.__dataclass_fields__ if f != "log_rmse"]
-    fit = GeometryFit(*(torch.cat([getattr(o, f) for o in outs]) for f in fields), log_rmse=None)
+    fit = GeometryFit(**{f: torch.cat([getattr(o, f) for o in outs]) for f in fields}, log_rmse=None)
     if with_error:
         fit.log_rmse = lumitexel_log_rmse(fit, specular)
     return fit

@@ -29,6 +29,8 @@ MAP_FILES = {
 
 @dataclass
 class SVBRDFMaps:
+    """The five SVBRDF maps of one asset, ``(H, W, C)`` float64 in the UV layout above."""
+
     diffuse_albedo: np.ndarray  # (H, W, 3)
     specular_albedo: np.ndarray  # (H, W, 3)
     normal: np.ndarray  # (H, W, 3) unit, object space
@@ -37,9 +39,12 @@ class SVBRDFMaps:
 
     @property
     def shape(self) -> tuple[int, int]:
-        return self.diffuse_albedo.shape[:2]
+        """(H, W) of the maps."""
+        h, w = self.diffuse_albedo.shape[:2]
+        return h, w
 
     def save(self, folder: str | Path) -> None:
+        """Write the five EXR files into ``folder`` (roughness gets a zero B channel)."""
         folder = Path(folder)
         for name, file in MAP_FILES.items():
             data = getattr(self, name)
@@ -101,7 +106,7 @@ def texel_uv(shape: tuple[int, int]) -> np.ndarray:
 
 def bilinear(img: np.ndarray, uv: np.ndarray) -> np.ndarray:
     """Bilinear samples ``(N, C)`` of a map at ``uv (N, 2)`` (edges clamped)."""
-    r, c = uv_to_pixel(uv, img.shape[:2])
+    r, c = uv_to_pixel(uv, (img.shape[0], img.shape[1]))
     return bilinear_pixels(img, r, c)
 
 

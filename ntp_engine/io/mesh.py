@@ -17,6 +17,8 @@ from .errors import NtpInputError
 
 @dataclass
 class Mesh:
+    """A triangle mesh in metres, with optional per-vertex UVs and unit vertex normals."""
+
     vertices: np.ndarray  # (V, 3) float64, m
     faces: np.ndarray  # (F, 3) int64
     uv: np.ndarray | None  # (V, 2) or None
@@ -24,14 +26,17 @@ class Mesh:
 
     @property
     def triangles(self) -> np.ndarray:
+        """Corner positions ``(F, 3, 3)``."""
         return self.vertices[self.faces]
 
     def face_normals(self) -> np.ndarray:
+        """Unit face normals ``(F, 3)`` (right-handed winding)."""
         tri = self.triangles
         n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
         return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30)
 
     def area(self) -> float:
+        """Surface area, m^2."""
         tri = self.triangles
         return float(0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1).sum())
 

@@ -16,6 +16,8 @@ from embreex.mesh_construction import TriangleMesh
 
 @dataclass
 class Hits:
+    """The first hit of each ray (``geom`` -1 where a ray hits nothing)."""
+
     geom: np.ndarray  # (R,) int: geometry id, -1 for a miss
     prim: np.ndarray  # (R,) int: triangle index within that geometry
     u: np.ndarray  # (R,) barycentric weight of vertex 1
@@ -24,12 +26,15 @@ class Hits:
 
 
 class RayCaster:
+    """An Embree scene of one or more triangle sets, queried in batches of rays."""
+
     def __init__(self, triangle_sets: list[np.ndarray]):
         """``triangle_sets``: one ``(F, 3, 3)`` array of triangle corners per geometry."""
         self.scene = rtcs.EmbreeScene()
         self._meshes = [TriangleMesh(self.scene, np.ascontiguousarray(t, dtype=np.float32)) for t in triangle_sets]
 
     def intersect(self, origins: np.ndarray, directions: np.ndarray) -> Hits:
+        """The first hit of each ray ``origins, directions (R, 3)``."""
         o = np.ascontiguousarray(origins, dtype=np.float32)
         d = np.ascontiguousarray(directions, dtype=np.float32)
         r = self.scene.run(o, d, output=1)

@@ -44,6 +44,8 @@ PRESETS: dict[str, dict] = {
 
 @dataclass
 class NetworkConfig:
+    """Layer widths (from a preset unless given), dropout, output sizes, the pattern setting and noise."""
+
     preset: str = "compact"
     feature: list[int] = field(default_factory=list)
     trunk: list[int] = field(default_factory=list)
@@ -63,6 +65,7 @@ class NetworkConfig:
                 setattr(self, k, list(v))
 
     def to_dict(self) -> dict:
+        """A JSON-able dict (``NetworkConfig(**d)`` rebuilds it)."""
         return asdict(self)
 
 
@@ -78,6 +81,15 @@ def _mlp(widths: list[int], dropout: float, last_plain: bool) -> nn.Sequential:
 
 
 class TraceNet(nn.Module):
+    """The trace network: lighting-pattern layer and sensor model (training), PointNet encoder, heads."""
+
+    # buffers from the scanner (not trained): colour matrix, exposure calibration, valid box
+    color_matrix: Tensor
+    gain: Tensor
+    max_exposure: Tensor
+    pos_matrix: Tensor
+    pos_center: Tensor
+
     def __init__(self, cfg: NetworkConfig, scanner: Scanner):
         super().__init__()
         self.cfg = cfg
@@ -179,4 +191,5 @@ def lumitexel_loss(
 
 
 def num_parameters(model: nn.Module) -> int:
+    """Number of parameters of ``model``."""
     return sum(p.numel() for p in model.parameters())

@@ -17,6 +17,8 @@ ENTRY_SIZE = 12  # pixel RGB, x, n^, t^
 
 @dataclass
 class RaggedTraces:
+    """N traces of any lengths as one ``(E, 12)`` entry table with CSR ``offsets (N + 1,)``."""
+
     entries: Tensor  # (E, 12) float32
     offsets: Tensor  # (N + 1,) int64, offsets[0] = 0, offsets[-1] = E
 

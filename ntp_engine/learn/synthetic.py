@@ -35,6 +35,8 @@ from ..scanner.scanner import Scanner
 
 @dataclass
 class SyntheticConfig:
+    """How synthetic traces are drawn (trace lengths, frames, jitter, sweeps)."""
+
     views_min: int = 16  # trace length is uniform in [views_min, views_max]
     views_max: int = 64
     normal_sigma: float = 0.15  # geometric-normal perturbation (Eq. 4)
@@ -75,13 +77,10 @@ class TraceBatch:
         )
 
     def to(self, device) -> TraceBatch:
-        move = lambda v: v.to(device)
-        return TraceBatch(
-            **{
-                k: (move(v) if isinstance(v, Tensor) else {kk: move(vv) for kk, vv in v.items()})
-                for k, v in vars(self).items()
-            }
-        )
+        """The batch on torch ``device``."""
+
+        tensors = {k: v.to(device) for k, v in vars(self).items() if isinstance(v, Tensor)}
+        return TraceBatch(**tensors, params={k: v.to(device) for k, v in self.params.items()})
 
 
 def _random_orthogonal(n: Tensor, gen: torch.Generator) -> Tensor:
@@ -181,7 +180,9 @@ def sample_batch(
     t_cam = (geo * t_local[:, None, :, None]).sum(-2)
 
     # per-view material jitter (calibration and model error), clamped to the model's ranges
-    jit = lambda s, shape: 1 + s * torch.randn(*shape, **kw)
+    def jit(s, shape):
+        return 1 + s * torch.randn(*shape, **kw)
+
     rho_d = (p["rho_d"][:, None] * jit(cfg.albedo_jitter, (batch, V, 3))).clamp(0, RHO_D_MAX)
     rho_s = (p["rho_s"][:, None] * jit(cfg.albedo_jitter, (batch, V, 3))).clamp(0, cfg.rho_s_max)
     ax = (p["alpha_x"][:, None] * jit(cfg.roughness_jitter, (batch, V))).clamp(ALPHA_MIN, ALPHA_MAX)

@@ -34,6 +34,8 @@ PATTERN_INIT_MARGIN = 0.1  # a learned pattern started from a given one is clipp
 
 @dataclass
 class TrainConfig:
+    """Training settings: steps, batch, learning rates, seeds, validation and checkpoint cadence, data mix."""
+
     steps: int = 20000
     batch: int = 64
     lr: float = 3e-4
@@ -172,29 +174,10 @@ def train(
     )
     ckpt_path = out / "checkpoint.pt"
     model = TraceNet(ncfg, scanner).to(torch_device)
-    params = [p for n, p in model.named_parameters() if p.requires_grad and n != "pattern_logits"]
-    groups: list[dict] = [{"params": params}]
-    if model.pattern_logits.requires_grad:
-        if tcfg.pattern_lr is None:
-            groups[0]["params"] = params + [model.pattern_logits]
-        else:  # the pattern's logits get tiny gradients: they need their own, larger step
-            groups.append({"params": [model.pattern_logits], "lr": tcfg.pattern_lr})
-    opt = torch.optim.Adam(groups, lr=tcfg.lr, betas=(0.9, 0.999))
+    opt = _optimizer(model, tcfg)
     step, elapsed = 0, 0.0
     if resume and ckpt_path.exists():
-        ck = torch.load(ckpt_path, map_location=torch_device, weights_only=False)
-        if ck["network"] != ncfg.to_dict():
-            raise NtpInputError(ckpt_path, "checkpoint was trained with a different network config")
-        _load_state(model, ck["model"])
-        if len(ck["optimizer"]["param_groups"]) != len(opt.param_groups):
-            raise NtpInputError(
-                ckpt_path,
-                f"the checkpoint's optimiser has {len(ck['optimizer']['param_groups'])} "
-                "parameter group(s); resume with the same --pattern-lr setting",
-            )
-        opt.load_state_dict(_match_optimizer_order(ck["optimizer"], opt))
-        step, elapsed = ck["step"], ck.get("elapsed_s", 0.0)
-        tcfg.seed = ck["train"]["seed"]
+        step, elapsed = _resume(ckpt_path, model, opt, ncfg, tcfg, torch_device)
         print(f"resuming {ckpt_path} at step {step}")
     elif ckpt_path.exists() and not resume:
         raise NtpInputError(ckpt_path, "exists; pass --resume to continue it or choose another --out")
@@ -205,78 +188,97 @@ def train(
         if tcfg.pattern_init is not None and ncfg.frozen_pattern is None:
             # kept off 0 and 1, where the sigmoid's gradient vanishes
             model.set_pattern(named_pattern(tcfg.pattern_init, scanner), margin=PATTERN_INIT_MARGIN)
-    write_text_atomic(
-        out / "config.json",
-        json.dumps(
-            {
-                "network": ncfg.to_dict(),
-                "train": asdict(tcfg),
-                "device": scanner.name,
-                "parameters": num_parameters(model),
-            },
-            indent=2,
-        ),
-    )
-    log_path = out / "log.csv"
-    new_log = not log_path.exists()
-    log = open(log_path, "a", newline="")
-    writer = csv.writer(log)
-    if new_log:
-        writer.writerow(
-            ["step", "train_loss", "val_loss", "val_diffuse", "val_specular", "val_valid_views", "elapsed_s"]
-        )
-
-    def save():
-        nonlocal elapsed
-        with atomic_path(ckpt_path) as tmp:
-            torch.save(
-                {
-                    "model": model.state_dict(),
-                    "optimizer": opt.state_dict(),
-                    "step": step,
-                    "network": ncfg.to_dict(),
-                    "train": asdict(tcfg),
-                    "device": scanner.name,
-                    "elapsed_s": elapsed,
-                },
-                tmp,
-            )
+    run_info = {"network": ncfg.to_dict(), "train": asdict(tcfg), "device": scanner.name}
+    write_text_atomic(out / "config.json", json.dumps({**run_info, "parameters": num_parameters(model)}, indent=2))
 
     model.train()
     running, count = 0.0, 0
-    last = {}
-    bar = progress.counter("train", tcfg.steps, "step")
-    bar.update(step)
+    last: dict = {}
     t_last = time.perf_counter()
-    while step < tcfg.steps:
-        gen = _step_generator(tcfg.seed, step, torch_device)
-        batch = sample_batch(scanner, tcfg.batch, gen, scfg, device=torch_device)
-        loss, _, _, _ = batch_loss(model, batch, gen)
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        opt.step()
-        step += 1
-        running, count = running + loss.item(), count + 1
-        now = time.perf_counter()
-        elapsed, t_last = elapsed + (now - t_last), now
-        bar.update()
-        if step % tcfg.validate_every == 0 or step == tcfg.steps:
-            last = validate(model, scanner, tcfg, scfg, torch_device)
-            writer.writerow(
-                [
-                    step,
-                    running / max(count, 1),
-                    *(f"{last[k]:.6g}" for k in ("val_loss", "val_diffuse", "val_specular", "val_valid_views")),
-                    f"{elapsed:.1f}",
-                ]
-            )
-            log.flush()
-            running, count = 0.0, 0
-        if step % tcfg.checkpoint_every == 0 or step == tcfg.steps:
-            save()
-    bar.close()
-    log.close()
+    with _Log(out / "log.csv") as log, progress.counter("train", tcfg.steps, "step") as bar:
+        bar.update(step)
+        while step < tcfg.steps:
+            gen = _step_generator(tcfg.seed, step, torch_device)
+            batch = sample_batch(scanner, tcfg.batch, gen, scfg, device=torch_device)
+            loss, _, _, _ = batch_loss(model, batch, gen)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+            step += 1
+            running, count = running + loss.item(), count + 1
+            now = time.perf_counter()
+            elapsed, t_last = elapsed + (now - t_last), now
+            bar.update()
+            if step % tcfg.validate_every == 0 or step == tcfg.steps:
+                last = validate(model, scanner, tcfg, scfg, torch_device)
+                log.row(step, running / max(count, 1), last, elapsed)
+                running, count = 0.0, 0
+            if step % tcfg.checkpoint_every == 0 or step == tcfg.steps:
+                checkpoint = {"model": model.state_dict(), "optimizer": opt.state_dict(), "step": step}
+                with atomic_path(ckpt_path) as tmp:
+                    torch.save({**checkpoint, **run_info, "elapsed_s": elapsed}, tmp)
     if not last:
         last = validate(model, scanner, tcfg, scfg, torch_device)
     last.pop("val_loss_per_batch")
     return {"step": step, "elapsed_s": elapsed, **last}
+
+
+def _optimizer(model: TraceNet, tcfg: TrainConfig) -> torch.optim.Adam:
+    """Adam over the network; the lighting layer in its own group when it has its own rate."""
+    params = [p for n, p in model.named_parameters() if p.requires_grad and n != "pattern_logits"]
+    groups: list[dict] = [{"params": params}]
+    if model.pattern_logits.requires_grad:
+        if tcfg.pattern_lr is None:
+            groups[0]["params"] = params + [model.pattern_logits]
+        else:  # the pattern's logits get tiny gradients: they need their own, larger step
+            groups.append({"params": [model.pattern_logits], "lr": tcfg.pattern_lr})
+    return torch.optim.Adam(groups, lr=tcfg.lr, betas=(0.9, 0.999))
+
+
+def _resume(
+    ckpt_path: Path,
+    model: TraceNet,
+    opt: torch.optim.Optimizer,
+    ncfg: NetworkConfig,
+    tcfg: TrainConfig,
+    torch_device: torch.device,
+) -> tuple[int, float]:
+    """Load a run's checkpoint into ``model`` and ``opt`` (and its data seed into ``tcfg``); returns
+    (step, elapsed seconds)."""
+    ck = torch.load(ckpt_path, map_location=torch_device, weights_only=False)
+    if ck["network"] != ncfg.to_dict():
+        raise NtpInputError(ckpt_path, "checkpoint was trained with a different network config")
+    _load_state(model, ck["model"])
+    if len(ck["optimizer"]["param_groups"]) != len(opt.param_groups):
+        raise NtpInputError(
+            ckpt_path,
+            f"the checkpoint's optimiser has {len(ck['optimizer']['param_groups'])} "
+            "parameter group(s); resume with the same --pattern-lr setting",
+        )
+    opt.load_state_dict(_match_optimizer_order(ck["optimizer"], opt))
+    tcfg.seed = ck["train"]["seed"]
+    return ck["step"], ck.get("elapsed_s", 0.0)
+
+
+class _Log:
+    """``log.csv``: one row per validation (appended; the header once)."""
+
+    HEADER = ["step", "train_loss", "val_loss", "val_diffuse", "val_specular", "val_valid_views", "elapsed_s"]
+
+    def __init__(self, path: Path):
+        new = not path.exists()
+        self.file = open(path, "a", newline="")
+        self.writer = csv.writer(self.file)
+        if new:
+            self.writer.writerow(self.HEADER)
+
+    def row(self, step: int, train_loss: float, val: dict, elapsed: float) -> None:
+        values = (f"{val[k]:.6g}" for k in ("val_loss", "val_diffuse", "val_specular", "val_valid_views"))
+        self.writer.writerow([step, train_loss, *values, f"{elapsed:.1f}"])
+        self.file.flush()
+
+    def __enter__(self) -> _Log:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.file.close()

@@ -60,7 +60,10 @@ def view_highlight_ratio(
     """Eq. 6's per-view ratio for one point seen in V views: x, n, t ``(..., V, 3)`` camera space,
     alphas and grayscale rho_s ``(...)``. Returns ``(..., V)`` in [0, ~1]."""
     lead = x.shape[:-1]  # (..., V)
-    flat = lambda a: torch.as_tensor(a, dtype=x.dtype, device=x.device)
+
+    def flat(a):
+        return torch.as_tensor(a, dtype=x.dtype, device=x.device)
+
     ax, ay = (flat(a)[..., None].expand(lead).reshape(-1) for a in (alpha_x, alpha_y))
     rs = flat(rho_s)
     rs = (rs[..., None] if rs.dim() else rs).expand(lead).reshape(-1)

@@ -27,11 +27,14 @@ def digest(obj) -> str:
 
 
 def file_key(path: Path) -> dict:
+    """What identifies an input file in a stage key: name, size and modification time."""
     st = path.stat()
     return {"name": path.name, "size": st.st_size, "mtime_ns": st.st_mtime_ns}
 
 
 class StageCache:
+    """Stage results under ``folder/<stage>/`` with the key they were computed from (``get``)."""
+
     def __init__(self, folder: Path):
         self.folder = Path(folder)
         self.hits: list[str] = []

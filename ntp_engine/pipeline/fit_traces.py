@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..fit.albedo import highlights_and_albedo
-from ..fit.geometry import FALLBACK_ALPHA, GeometryFit, fit_geometry
+from ..fit.geometry import FALLBACK_ALPHA, fit_geometry
 from ..io.progress import QUIET, Progress
 from ..learn.inference import predict
 from ..learn.network import TraceNet
@@ -53,12 +53,7 @@ def fit_traces(
         for a in range(0, len(idx), 256):  # (n, V, L) Eq. 1 terms: keep them cache-sized
             sub = slice(a, a + 256)
             ent, mask = traces.padded(idx[sub], max_views=ALBEDO_VIEWS)
-            gs = GeometryFit(
-                *(
-                    None if v is None else v[sub]
-                    for v in (g.normal, g.tangent, g.alpha_x, g.alpha_y, g.rho_s, g.flags, g.log_rmse)
-                )
-            )
+            gs = g.rows(sub)
             _, rd, rs = highlights_and_albedo(
                 scanner,
                 ent[..., :3] / pixel_scale,

@@ -1,8 +1,8 @@
-"""The scan folder format (DESIGN.md), read and written here: ``scan.toml`` naming the mesh, the photos folder, the device file and,
-optionally, a poses file (camera-from-world 4x4 per photo name; SfM is skipped with it) and
-``support_plane = false`` when the object does not stand on a flat support at the mesh's lowest z
-(default true: SfM alignment uses the support, and photos whose LEDs the support shadows are
-skipped).
+"""The scan folder format (DESIGN.md), read and written here: ``scan.toml`` naming the mesh, the
+photos folder, the device file and, optionally, a poses file (camera-from-world 4x4 per photo name;
+SfM is skipped with it) and ``support_plane = false`` when the object does not stand on a flat
+support at the mesh's lowest z (default true: SfM alignment uses the support, and photos whose
+LEDs the support shadows are skipped).
 
 Every problem is a one-line ``NtpInputError`` naming the file; photos that cannot be read are not
 errors but are listed (``Scan.unreadable``). The pipeline never writes into a scan folder; a
@@ -41,11 +41,17 @@ class Scan:
     support_plane: bool = True  # the object stands on a flat support at the mesh's lowest z
 
 
-def _path(folder: Path, table: dict, key: str, toml: Path, required: bool = True) -> Path | None:
+def _required_path(folder: Path, table: dict, key: str, toml: Path) -> Path:
+    path = _path(folder, table, key, toml)
+    if path is None:
+        raise NtpInputError(toml, f"key '{key}' missing")
+    return path
+
+
+def _path(folder: Path, table: dict, key: str, toml: Path) -> Path | None:
+    """``key``'s path, relative to the scan folder, which must exist; None when the key is absent."""
     value = table.get(key)
     if value is None:
-        if required:
-            raise NtpInputError(toml, f"key '{key}' missing")
         return None
     if not isinstance(value, str) or not value:
         raise NtpInputError(toml, f"key '{key}': expected a path string, got {value!r}")
@@ -84,12 +90,12 @@ def load_scan(folder: str | Path, poses_file: str | Path | None = None, device_f
     folder = Path(folder)
     toml = folder / "scan.toml"
     table = read_toml(toml, "no scan.toml in the scan folder")
-    mesh = _path(folder, table, "mesh", toml)
-    photos = _path(folder, table, "photos", toml)
+    mesh = _required_path(folder, table, "mesh", toml)
+    photos = _required_path(folder, table, "photos", toml)
     if not photos.is_dir():
         raise NtpInputError(toml, f"key 'photos': {table['photos']} is not a folder")
-    scanner = load_scanner(device_file or _path(folder, table, "device", toml))
-    pose_path = Path(poses_file) if poses_file else _path(folder, table, "poses", toml, required=False)
+    scanner = load_scanner(device_file or _required_path(folder, table, "device", toml))
+    pose_path = Path(poses_file) if poses_file else _path(folder, table, "poses", toml)
     paths = sorted(p for p in photos.iterdir() if p.suffix.lower() in PHOTO_SUFFIXES)
     if not paths:
         raise NtpInputError(photos, "no PNG/JPEG photos")

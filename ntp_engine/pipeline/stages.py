@@ -239,6 +239,14 @@ def _atlas_stage(scan: Scan, cache: StageCache, resolution: int) -> tuple[Mesh, 
     return load_mesh(folder / "mesh.obj"), h_atlas
 
 
+def _photo_codes(scan: Scan, name: str) -> np.ndarray:
+    """A kept photo's 8-bit codes; it was readable when the photos were selected."""
+    codes = read_photo(scan.photos_dir / name, scan.scanner)
+    if codes is None:
+        raise NtpInputError(scan.photos_dir / name, "photo became unreadable since it was selected")
+    return codes.astype(np.uint8)
+
+
 def _traces_stage(
     scan: Scan,
     cache: StageCache,
@@ -254,7 +262,7 @@ def _traces_stage(
     support_z = float(mesh.vertices[:, 2].min()) if scan.support_plane else None
 
     def compute(d: Path) -> None:
-        photos = (read_photo(scan.photos_dir / n, scan.scanner).astype(np.uint8) for n in names)
+        photos = (_photo_codes(scan, n) for n in names)
         tr, st = trace_assembly.assemble(
             texels,
             photos,

@@ -42,10 +42,10 @@ class Texels:
         return self.row * self.shape[1] + self.col
 
 
-def _uv_tangents(mesh: Mesh) -> np.ndarray:
+def _uv_tangents(mesh: Mesh, mesh_uv: np.ndarray) -> np.ndarray:
     """Per-face dP/du ``(F, 3)`` (unnormalised; zero for degenerate UV triangles)."""
     p = mesh.vertices[mesh.faces]
-    uv = mesh.uv[mesh.faces]
+    uv = mesh_uv[mesh.faces]
     e1, e2 = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]
     d1, d2 = uv[:, 1] - uv[:, 0], uv[:, 2] - uv[:, 0]
     det = d1[:, 0] * d2[:, 1] - d2[:, 0] * d1[:, 1]
@@ -106,7 +106,7 @@ def rasterize(mesh: Mesh, shape: tuple[int, int], batch: int = 1 << 22) -> Texel
     pos = np.einsum("tk,tkj->tj", bary, mesh.vertices[tri])
     nrm = np.einsum("tk,tkj->tj", bary, mesh.normals[tri])
     nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-30)
-    tan = _uv_tangents(mesh)[face]
+    tan = _uv_tangents(mesh, mesh.uv)[face]
     tan = tan - (tan * nrm).sum(1, keepdims=True) * nrm
     bad = np.linalg.norm(tan, axis=1) < 1e-12
     if bad.any():  # degenerate UVs: any direction orthogonal to the normal

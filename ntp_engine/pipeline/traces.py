@@ -67,10 +67,10 @@ def assemble(
     }
     views_used = 0
     if support_z is not None:
-        pts, w = scanner.emitter_samples(torch.float64)
-        drive = w.numpy() * np.asarray(scanner.effective_pattern()).sum(1)[:, None]  # (L, Q)
+        pts_t, w = scanner.emitter_samples(torch.float64)
+        drive = w.numpy() * scanner.effective_pattern().sum(1)[:, None]  # (L, Q)
         drive = drive / max(drive.sum(), 1e-300)
-        pts = pts.numpy()
+        pts = pts_t.numpy()
     for img, pose in progress.track(zip(photos, poses), "traces", total=len(poses), unit="photo"):
         R, t = pose[:3, :3], pose[:3, 3]
         if support_z is not None:

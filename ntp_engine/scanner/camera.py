@@ -10,6 +10,7 @@ Linear pixel values are 1 at code 255. Functions take the ``Scanner`` whose came
 from __future__ import annotations
 
 import dataclasses
+from typing import overload
 
 import numpy as np
 import torch
@@ -21,6 +22,10 @@ VALID_CODE = (32.0, 224.0)  # an 8-bit code in this range is neither noise-domin
 UNDISTORT_ITERATIONS = 20
 
 
+@overload
+def code_is_valid(code: Tensor) -> Tensor: ...
+@overload
+def code_is_valid(code: np.ndarray) -> np.ndarray: ...
 def code_is_valid(code: np.ndarray | Tensor) -> np.ndarray | Tensor:
     """Boolean ``(...)``: every channel of the 8-bit codes ``(..., C)`` lies in ``VALID_CODE``
     (the paper's measurement filter). Works on numpy arrays and torch tensors alike."""

@@ -356,7 +356,7 @@ def _parse_angular(data: dict, r: _Reader) -> dict[str, Any]:
     return {"angular_kind": kind, "angular_exponent": exponent, "angular_table": table}
 
 
-def _parse_valid_volume(data: dict, r: _Reader) -> dict[str, np.ndarray]:
+def _parse_valid_volume(data: dict, r: _Reader) -> dict[str, Any]:
     r.table(data, "valid_volume")  # must exist; its keys are read by dotted name below
     valid_size = r.array(data, "valid_volume.size", (3,))
     if (valid_size <= 0).any():

@@ -18,12 +18,19 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import overload
 
 import numpy as np
 import torch
 from torch import Tensor
 
 
+@overload
+def auto_exposure(
+    mean_drive: Tensor, gain: float | Tensor, full_on_drive: float | Tensor, max_exposure: float | Tensor
+) -> Tensor: ...
+@overload
+def auto_exposure(mean_drive: float, gain: float, full_on_drive: float, max_exposure: float) -> float: ...
 def auto_exposure(
     mean_drive: float | Tensor, gain: float | Tensor, full_on_drive: float | Tensor, max_exposure: float | Tensor
 ) -> float | Tensor:
@@ -39,7 +46,7 @@ def auto_exposure(
         return gain / torch.maximum(
             mean_drive, torch.as_tensor(floor, dtype=mean_drive.dtype, device=mean_drive.device)
         ).clamp_min(1e-12)
-    return gain / max(float(mean_drive), float(floor), 1e-12)
+    return float(gain) / max(float(mean_drive), float(floor), 1e-12)
 
 
 @dataclass
@@ -87,6 +94,10 @@ class Scanner:
         """Focal length along x, pixels."""
         return float(self.K[0, 0])
 
+    @overload
+    def effective_pattern(self, pattern: Tensor) -> Tensor: ...
+    @overload
+    def effective_pattern(self, pattern: np.ndarray | None = None) -> np.ndarray: ...
     def effective_pattern(self, pattern: np.ndarray | Tensor | None = None) -> np.ndarray | Tensor:
         """Per-emitter, per-camera-channel drive ``(L, 3)``: pattern @ color_matrix^T."""
         p = self.pattern if pattern is None else pattern
@@ -94,10 +105,16 @@ class Scanner:
             return p @ torch.as_tensor(self.color_matrix, dtype=p.dtype, device=p.device).T
         return p @ self.color_matrix.T
 
+    @overload
+    def exposure(self, pattern: Tensor) -> Tensor: ...
+    @overload
+    def exposure(self, pattern: np.ndarray | None = None) -> float: ...
     def exposure(self, pattern: np.ndarray | Tensor | None = None) -> float | Tensor:
         """Linear pixel value per unit of B under ``pattern`` (see ``auto_exposure``)."""
-        p_eff = self.effective_pattern(pattern)
-        return auto_exposure(p_eff.mean(), self.gain, float(self.color_matrix.sum(1).mean()), self.max_exposure)
+        full_on = float(self.color_matrix.sum(1).mean())
+        if isinstance(pattern, Tensor):
+            return auto_exposure(self.effective_pattern(pattern).mean(), self.gain, full_on, self.max_exposure)
+        return auto_exposure(float(self.effective_pattern(pattern).mean()), self.gain, full_on, self.max_exposure)
 
     def emitter_samples(
         self, dtype: torch.dtype = torch.float32, device: torch.device | str | None = None

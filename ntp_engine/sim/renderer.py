@@ -73,7 +73,7 @@ class Scene:
     def __init__(self, mesh: Mesh, maps: SVBRDFMaps, scanner: Scanner, clusters: int = 64, exposure: float = 1.0):
         if mesh.uv is None:
             raise ValueError("mesh has no UVs")
-        self.mesh, self.maps, self.scanner = mesh, maps, scanner
+        self.mesh, self.maps, self.scanner, self.uv = mesh, maps, scanner, mesh.uv
         self.caster = RayCaster([mesh.triangles, backdrop_triangles()])
         self.cluster_centres, self.cluster_of = emitter_clusters(scanner, clusters)
         self.pattern = torch.as_tensor(scanner.pattern, dtype=torch.float64)
@@ -122,15 +122,22 @@ class Scene:
     def _shade_object(self, hits, idx, origin, dirs_w, R, tr, exact_shadows) -> np.ndarray:
         faces = self.mesh.faces[hits.prim[idx]]
         u, v = hits.u[idx, None], hits.v[idx, None]
-        bary = (1 - u - v, u, v)
-        uv = sum(b * self.mesh.uv[faces[:, k]] for k, b in enumerate(bary))
-        n_geo = sum(b * self.mesh.normals[faces[:, k]] for k, b in enumerate(bary))
+        w = 1 - u - v
+
+        def blend(per_vertex: np.ndarray) -> np.ndarray:  # barycentric interpolation over each hit's face
+            return w * per_vertex[faces[:, 0]] + u * per_vertex[faces[:, 1]] + v * per_vertex[faces[:, 2]]
+
+        uv = blend(self.uv)
+        n_geo = blend(self.mesh.normals)
         n_geo /= np.linalg.norm(n_geo, axis=1, keepdims=True)
         x_w = origin + hits.t[idx, None] * dirs_w[idx]
         m = self.maps.sample(uv)
         x_c = x_w @ R.T + tr
         vis = self._visibility(x_w + 2e-5 * n_geo, R, tr, exact_shadows)
-        T = lambda a: torch.as_tensor(np.ascontiguousarray(a), dtype=torch.float32)
+
+        def T(a):
+            return torch.as_tensor(np.ascontiguousarray(a), dtype=torch.float32)
+
         B = measurement_rgb(
             self.scanner,
             T(x_c),

@@ -11,8 +11,8 @@ from pathlib import Path
 
 import bpy  # noqa: F401  (locates the bundled packager)
 
-ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT / "tools"))
+ROOT = Path(__file__).resolve().parents[2]
+
 import build_extension  # noqa: E402
 
 

@@ -1,7 +1,5 @@
 import pytest
 
-from ntp_engine.scanner.device_file import load_scanner
-
 
 def test_network_benchmark_reads_shipped_models_and_reports_the_keys(tmp_path):
     import json
@@ -26,7 +24,7 @@ def test_bench_network_trains_the_pattern_comparison_from_shared_halfway_network
     full-on network; only the optimised one's pattern moves."""
     from ntp_engine.bench import network as bench_network
 
-    nets = bench_network._comparison_models(False, 2, load_scanner())
+    nets = bench_network._comparison_models(False, 2)
     assert set(nets) == {"optimized", "full_on", "point"}
     opt, full, point = (nets[k].pattern().detach() for k in ("optimized", "full_on", "point"))
     assert (full > 0.99).all() and (point > 0.99).all(1).sum() == 1

@@ -53,7 +53,6 @@ def test_albedo_fit_recovers_rgb_from_the_trace():
 def test_one_pass_highlight_check_and_albedo_equal_the_two_steps():
     import copy
 
-
     dev = load_scanner()
     cfg = SyntheticConfig(views_min=12, views_max=12)
     b = sample_batch(dev, 24, torch.Generator().manual_seed(11), cfg, dtype=torch.float64)

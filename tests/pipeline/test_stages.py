@@ -89,7 +89,5 @@ def test_mesh_without_uvs_gets_an_xatlas_atlas(scan24, tmp_path):
     scan = tmp_path / "scan"
     shutil.copytree(scan24, scan)
     save_obj(scan / "mesh.obj", bare)
-    rep = reconstruct(
-        load_scan(scan, scan / "ground_truth" / "poses.json"), tmp_path / "rec", resolution=32, progress=False
-    )
+    rep = reconstruct(load_scan(scan, scan / "ground_truth" / "poses.json"), tmp_path / "rec", resolution=32)
     assert rep["texels"]["coverage"] > 0.8 and load_mesh(tmp_path / "rec" / "mesh.obj").uv is not None

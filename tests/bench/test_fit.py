@@ -1,0 +1,8 @@
+from ntp_engine.bench import fit
+
+
+def test_batched_fitter_against_the_baseline_on_a_few_texels():
+    r = fit.run(texels=64, baseline_texels=2)
+    for kind in ("exact", "noisy"):
+        assert r[kind]["batched"]["texels_per_s"] > 0 and r[kind]["baseline"]["texels_per_s"] > 0
+    assert r["exact"]["batched"]["lumitexel_log_rmse"] < 1e-3  # exact lumitexels are fitted exactly

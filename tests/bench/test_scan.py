@@ -1,0 +1,8 @@
+from ntp_engine.bench import scan
+
+
+def test_one_small_size_end_to_end_with_a_plot(tmp_path):
+    r = scan.run([(6, 16)], plot=tmp_path / "p.png", work=tmp_path / "w", known_poses=True)
+    (row,) = r["sizes"]
+    assert row["photos"] == 6 and row["resolution"] == 16 and 0 < row["relit_ssim"] <= 1
+    assert (tmp_path / "p.png").is_file()

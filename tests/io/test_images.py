@@ -1,0 +1,22 @@
+import numpy as np
+import pytest
+
+from ntp_engine.io.errors import NtpInputError
+from ntp_engine.io.images import read_image, write_exr, write_png
+
+
+def test_exr_keeps_floats_and_png_is_8_bit(tmp_path):
+    data = np.random.default_rng(0).normal(size=(5, 7, 3)).astype(np.float32) * 3
+    write_exr(tmp_path / "a.exr", data)
+    np.testing.assert_array_equal(read_image(tmp_path / "a.exr"), data)
+    write_png(tmp_path / "b.png", np.array([[0.0, 0.5, 2.0, np.nan]]))
+    back = read_image(tmp_path / "b.png")
+    assert back.shape == (1, 4, 1)
+    np.testing.assert_allclose(back[0, :, 0] * 255, [0, 128, 255, 0])
+
+
+def test_unreadable_images_are_one_line_errors(tmp_path):
+    bad = tmp_path / "x.png"
+    bad.write_bytes(b"not a png")
+    with pytest.raises(NtpInputError, match="x.png"):
+        read_image(bad)
