@@ -30,7 +30,15 @@ from pathlib import Path
 import tomli_w
 
 ROOT = Path(__file__).resolve().parent.parent
-EXCLUDE = {"numpy", "bpy", "matplotlib", "pytest", "hypothesis"}  # Blender ships numpy; the rest is dev-only
+EXCLUDE = {
+    "numpy",
+    "bpy",
+    "matplotlib",
+    "pytest",
+    "hypothesis",
+    "ruff",
+    "mypy",
+}  # Blender ships numpy; the rest is dev-only
 PLATFORMS = ["manylinux_2_28_x86_64", "manylinux2014_x86_64"]  # torch's CPU wheel is 2_28
 
 

@@ -48,3 +48,27 @@ def test_loaded_model_keeps_its_training_exposure_whatever_the_device(tmp_path):
     assert float(net.gain) == pytest.approx(meta["device_gain"]) == pytest.approx(dev.gain)
     assert float(net.max_exposure) == pytest.approx(meta["device_max_exposure"]) == pytest.approx(dev.max_exposure)
     assert net.exposure() == pytest.approx(dev.exposure(net.pattern().detach().double().numpy()), rel=1e-5)
+
+
+def test_a_scanner_lit_by_another_pattern_is_refused_naming_both_files(tmp_path):
+    import dataclasses
+
+    src = load_scanner()
+    ours = models.pattern_of(None)
+    for name, pattern, ok in (("same", ours, True), ("off", ours * 0.5, False)):
+        dev_file = tmp_path / f"{name}.toml"
+        dev_file.write_text(src.source.read_text())
+        write_pattern(dev_file, pattern)  # quantised to 8 bits, as the driver projects it
+        if ok:
+            models.load(None, load_scanner(dev_file))
+            continue
+        with pytest.raises(NtpInputError) as err:
+            models.load(None, load_scanner(dev_file))
+        msg = str(err.value)
+        assert "compact/pattern.csv" in msg and "off.toml" in msg and "\n" not in msg
+    # the tolerance is half an 8-bit step
+    models.load(None, dataclasses.replace(src, pattern=np.clip(ours + 0.45 / 255, 0, 1)))
+    with pytest.raises(NtpInputError, match="another lighting pattern"):
+        models.load(None, dataclasses.replace(src, pattern=np.clip(ours + 0.6 / 255, 0, 1)))
+    net, _ = models.load("compare_point")  # no capture's scanner: the network's own pattern, no check
+    assert float(net.pattern().sum()) == pytest.approx(3, abs=0.01)  # one LED on (frozen at 1 - 1e-6)
