@@ -2,6 +2,7 @@ import math
 
 import pytest
 import torch
+from lobes import angle_deg, exact_lobes
 
 from ntp_engine.fit.geometry import (
     FALLBACK_ALPHA,
@@ -10,32 +11,15 @@ from ntp_engine.fit.geometry import (
     diffuse_normal,
     fit_geometry,
 )
-from ntp_engine.learn.synthetic import _random_orthogonal, sample_brdfs
 from ntp_engine.physics.frame import safe_normalize
 from ntp_engine.physics.lumitexel import diffuse_lumitexel, specular_lumitexel
 
 
-def _lobes(n_tex=256, seed=0, tilt=0.15):
-    g = torch.Generator().manual_seed(seed)
-    p = sample_brdfs(n_tex, g)
-    z = torch.zeros(n_tex, 3)
-    z[:, 2] = 1
-    n = safe_normalize(z + _random_orthogonal(z, g) * (tilt * torch.randn(n_tex, 1, generator=g)))
-    t = _random_orthogonal(n, g)
-    rho = p["rho_s"].mean(-1)
-    m = specular_lumitexel(n, t, rho[:, None], p["alpha_x"], p["alpha_y"])[..., 0]
-    return m, n, t, p["alpha_x"], p["alpha_y"], rho
-
-
-def _angle(a, b):
-    return torch.rad2deg(torch.acos((a * b).sum(-1).clamp(-1, 1)))
-
-
 def test_exact_lumitexels_are_recovered():
-    m, n, t, ax, ay, rho = _lobes()
+    m, n, t, ax, ay, rho = exact_lobes()
     f = fit_geometry(m, with_error=True)
     assert (f.flags == 0).all()
-    assert _angle(f.normal, n).quantile(0.99) < 0.1
+    assert angle_deg(f.normal, n).quantile(0.99) < 0.1
     hi, lo = torch.maximum(ax, ay), torch.minimum(ax, ay)
     assert (f.alpha_x.log() - hi.log()).abs().median() < 1e-3
     assert (f.alpha_y.log() - lo.log()).abs().median() < 1e-3
@@ -47,7 +31,7 @@ def test_exact_lumitexels_are_recovered():
 
 
 def test_canonical_output_under_the_models_symmetries():
-    m, n, t, ax, ay, rho = _lobes(32, seed=1)
+    m, n, t, ax, ay, rho = exact_lobes(32, seed=1)
     b = torch.linalg.cross(n, t, dim=-1)
     m2 = specular_lumitexel(n, b, rho[:, None], ay, ax)[..., 0]  # the same BRDF, other labelling
     f1, f2 = fit_geometry(m), fit_geometry(m2)
@@ -67,7 +51,7 @@ def test_alphas_at_the_bounds(alpha):
     m = specular_lumitexel(n, t, torch.full((4, 1), 2.0), a, a)[..., 0]
     f = fit_geometry(m, with_error=True)
     assert torch.isfinite(f.normal).all() and (f.flags == 0).all()
-    assert _angle(f.normal, n).max() < 0.5
+    assert angle_deg(f.normal, n).max() < 0.5
     assert ((f.alpha_x >= 0.006) & (f.alpha_x <= 0.5)).all()
     assert f.log_rmse.max() < 0.02
 
@@ -78,11 +62,11 @@ def test_grazing_normals_stay_finite_and_close():
     t = torch.tensor([[math.cos(tilt), 0.0, -math.sin(tilt)], [1.0, 0.0, 0.0]])
     m = specular_lumitexel(n, t, torch.ones(2, 1), torch.tensor([0.05, 0.2]), torch.tensor([0.05, 0.1]))[..., 0]
     f = fit_geometry(m)
-    assert torch.isfinite(f.normal).all() and _angle(f.normal, n).max() < 1.0
+    assert torch.isfinite(f.normal).all() and angle_deg(f.normal, n).max() < 1.0
 
 
 def test_zero_saturated_nan_inf_inputs_are_flagged_and_finite():
-    m, n, *_ = _lobes(6, seed=2)
+    m, n, *_ = exact_lobes(6, seed=2)
     m = m.clone()
     m[0] = 0.0
     m[1, 100] = float("nan")
@@ -95,7 +79,7 @@ def test_zero_saturated_nan_inf_inputs_are_flagged_and_finite():
         assert torch.isfinite(getattr(f, field)).all(), field
     assert f.flags[0] & FLAG_ZERO and f.flags[1] & FLAG_NONFINITE and f.flags[2] & FLAG_NONFINITE
     assert float(f.alpha_x[0]) == pytest.approx(FALLBACK_ALPHA) and float(f.rho_s[0]) == 0.0
-    assert _angle(f.normal[:3], n[:3]).max() < 1.0  # the fallback normal is the diffuse one
+    assert angle_deg(f.normal[:3], n[:3]).max() < 1.0  # the fallback normal is the diffuse one
     assert ((f.alpha_x >= 0.006) & (f.alpha_x <= 0.5)).all()
 
 
@@ -103,5 +87,5 @@ def test_diffuse_normal_is_exact():
     n = safe_normalize(torch.tensor([[0.3, 0.1, 1.0], [0.0, 0.0, 1.0], [-0.5, 0.4, 0.6]]))
     d = diffuse_lumitexel(n, torch.tensor([[0.2], [0.7], [1.0]]))[..., 0]
     nd, rho = diffuse_normal(d)
-    assert _angle(nd, n).max() < 1e-2
+    assert angle_deg(nd, n).max() < 1e-2
     torch.testing.assert_close(rho, torch.tensor([0.2, 0.7, 1.0]), rtol=1e-3, atol=0)

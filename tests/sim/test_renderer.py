@@ -2,9 +2,8 @@
 
 import numpy as np
 import torch
+from scans import flat_patch, uniform_maps
 
-from ntp_engine.io.maps import SVBRDFMaps
-from ntp_engine.io.mesh import Mesh, smooth_normals
 from ntp_engine.physics.measurement import measure, physical_lumitexel
 from ntp_engine.scanner.camera import resampled
 from ntp_engine.scanner.device_file import load_scanner
@@ -12,26 +11,10 @@ from ntp_engine.sim.renderer import Scene
 from ntp_engine.sim.virtual_scan import ScanConfig, trajectory
 
 
-def _patch(size=0.08, res=8):
-    g = np.linspace(-size / 2, size / 2, res + 1)
-    X, Y = np.meshgrid(g, g)
-    v = np.stack([X.ravel(), Y.ravel(), np.full(X.size, 0.002)], -1)
-    idx = np.arange(v.shape[0]).reshape(res + 1, res + 1)
-    a, b, c, d = idx[:-1, :-1], idx[:-1, 1:], idx[1:, 1:], idx[1:, :-1]
-    f = np.concatenate([np.stack([a, b, c], -1).reshape(-1, 3), np.stack([a, c, d], -1).reshape(-1, 3)])
-    uv = (v[:, :2] + size / 2) / size
-    return Mesh(v, f, uv, smooth_normals(v, f))
-
-
-def _uniform_maps(rd, rs, ax, ay, res=4):
-    full = lambda val: np.broadcast_to(np.asarray(val, float), (res, res, len(val))).copy()
-    return SVBRDFMaps(full(rd), full(rs), full([0, 0, 1.0]), full([1.0, 0, 0]), full([ax, ay]))
-
-
 def test_rendered_flat_patch_matches_the_physics_core():
     dev = load_scanner()
-    maps = _uniform_maps([0.5, 0.3, 0.2], [2.0, 1.5, 1.0], 0.2, 0.05)
-    scene = Scene(_patch(), maps, dev, exposure=1.0)
+    maps = uniform_maps([0.5, 0.3, 0.2], [2.0, 1.5, 1.0], 0.2, 0.05)
+    scene = Scene(flat_patch(), maps, dev, exposure=1.0)
     cam = resampled(dev, 0.08)
     pose = trajectory(scene.center, dev, ScanConfig(views=5), np.random.default_rng(1))[2]
     lin, info = scene.render_linear(pose, cam)

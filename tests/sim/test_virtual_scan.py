@@ -2,48 +2,17 @@
 
 import hashlib
 import json
-import subprocess
-import sys
 
 import numpy as np
+from scans import flat_patch, run_virtual_scan, uniform_maps
 
 from ntp_engine.io.images import read_image
-from ntp_engine.io.maps import SVBRDFMaps
-from ntp_engine.io.mesh import Mesh, save_obj, smooth_normals
+from ntp_engine.io.mesh import Mesh, save_obj
 from ntp_engine.scanner.device_file import load_scanner
 
 
-def _patch(size=0.08, res=8):
-    g = np.linspace(-size / 2, size / 2, res + 1)
-    X, Y = np.meshgrid(g, g)
-    v = np.stack([X.ravel(), Y.ravel(), np.full(X.size, 0.002)], -1)
-    idx = np.arange(v.shape[0]).reshape(res + 1, res + 1)
-    a, b, c, d = idx[:-1, :-1], idx[:-1, 1:], idx[1:, 1:], idx[1:, :-1]
-    f = np.concatenate([np.stack([a, b, c], -1).reshape(-1, 3), np.stack([a, c, d], -1).reshape(-1, 3)])
-    uv = (v[:, :2] + size / 2) / size
-    return Mesh(v, f, uv, smooth_normals(v, f))
-
-
-def _uniform_maps(rd, rs, ax, ay, res=4):
-    full = lambda val: np.broadcast_to(np.asarray(val, float), (res, res, len(val))).copy()
-    return SVBRDFMaps(full(rd), full(rs), full([0, 0, 1.0]), full([1.0, 0, 0]), full([ax, ay]))
-
-
 def _scan(out, *extra):
-    cmd = [
-        sys.executable,
-        "-m",
-        "ntp_engine.cli",
-        "virtual-scan",
-        "--out",
-        str(out),
-        "--views",
-        "3",
-        "--scale",
-        "0.05",
-        *extra,
-    ]
-    return subprocess.run(cmd, capture_output=True, text=True)
+    return run_virtual_scan(out, "--views", "3", "--scale", "0.05", *extra)
 
 
 def test_scan_folder_is_complete_and_seeded(tmp_path):
@@ -84,17 +53,17 @@ def test_bad_inputs_name_the_file(tmp_path):
     assert r.returncode == 2 and "broken.obj" in r.stderr and len(r.stderr.strip().splitlines()) == 1
 
     no_uv = tmp_path / "no_uv.obj"
-    m = _patch()
+    m = flat_patch()
     save_obj(no_uv, Mesh(m.vertices, m.faces, None, m.normals))
     r = _scan(tmp_path / "o2", "--mesh", str(no_uv), "--maps", "assets/demo/ground_truth")
     assert r.returncode == 2 and "no_uv.obj" in r.stderr and "UV" in r.stderr
 
     maps = tmp_path / "maps"
-    _uniform_maps([0.5] * 3, [1.0] * 3, 0.1, 0.1, res=4).save(maps)
-    _uniform_maps([0.5] * 3, [1.0] * 3, 0.1, 0.1, res=8).save(tmp_path / "big")
+    uniform_maps([0.5] * 3, [1.0] * 3, 0.1, 0.1, res=4).save(maps)
+    uniform_maps([0.5] * 3, [1.0] * 3, 0.1, 0.1, res=8).save(tmp_path / "big")
     (tmp_path / "big" / "roughness.exr").replace(maps / "roughness.exr")
     good_mesh = tmp_path / "patch.obj"
-    save_obj(good_mesh, _patch())
+    save_obj(good_mesh, flat_patch())
     r = _scan(tmp_path / "o3", "--mesh", str(good_mesh), "--maps", str(maps))
     assert r.returncode == 2 and "roughness.exr" in r.stderr and "differs" in r.stderr
     assert not (tmp_path / "o3" / "photos").exists() or not list((tmp_path / "o3" / "photos").iterdir())
