@@ -32,7 +32,6 @@ from ..io.mesh import Mesh, load_mesh, save_obj
 from ..io.progress import QUIET, Progress
 from ..pipeline.scan_folder import write_scan_toml
 from ..scanner import camera
-from ..scanner.camera import look_at, resampled
 from ..scanner.device_file import load_scanner, save_scanner
 from ..scanner.scanner import Scanner
 from .renderer import Scene
@@ -70,7 +69,7 @@ def trajectory(center: np.ndarray, scanner: Scanner, cfg: ScanConfig, rng: np.ra
         el = float(np.clip(el, e0, e1))
         d = np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)])
         centre = center + (working + rng.normal(0, cfg.distance_jitter)) * d
-        pose = look_at(centre, center + rng.normal(0, cfg.aim_jitter, 3))
+        pose = camera.look_at(centre, center + rng.normal(0, cfg.aim_jitter, 3))
         x, y = pose[0, :3].copy(), pose[1, :3].copy()
         roll = math.radians(rng.normal(0, cfg.roll_deg))
         pose[0, :3], pose[1, :3] = math.cos(roll) * x + math.sin(roll) * y, -math.sin(roll) * x + math.cos(roll) * y
@@ -132,7 +131,7 @@ def virtual_scan(
         raise NtpInputError(None, "need 0 < --scale <= 1, --views >= 1, 0 <= --blur-fraction <= 1")
     mesh, maps, src_mesh = load_asset(asset, mesh_path, maps_dir)
     scanner = load_scanner(device_path)
-    cam = resampled(scanner, cfg.scale)
+    cam = camera.resampled(scanner, cfg.scale)
     cam.gain = scanner.gain * cfg.exposure  # what this capture used: B = pixel / cam.exposure(pattern)
     rng = np.random.default_rng(cfg.seed)
     scene = Scene(mesh, maps, scanner, cfg.clusters, cfg.exposure)
