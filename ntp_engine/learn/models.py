@@ -48,7 +48,8 @@ def resolve(name_or_path: str | Path | None) -> Path:
 def load(
     name_or_path: str | Path | None = None, scanner: Scanner | None = None, map_location: str | torch.device = "cpu"
 ) -> tuple[TraceNet, dict]:
-    """(network in eval mode, float32, metadata dict) for measurements taken by ``scanner``.
+    """(network in eval mode, float32, metadata dict with the model's ``folder``) for measurements
+    taken by ``scanner``.
 
     With a ``scanner`` (a capture's device), its pattern must be the network's, to 8-bit
     quantisation (else ``NtpInputError`` naming the model's ``pattern.csv`` and the device file).
@@ -72,6 +73,7 @@ def load(
         check_pattern(net, folder, scanner)
     summary = folder / "summary.json"
     meta["summary"] = json.loads(summary.read_text()) if summary.exists() else {}
+    meta["folder"] = str(folder)
     return net.to(map_location).eval(), meta
 
 
@@ -80,7 +82,7 @@ def check_pattern(net: TraceNet, folder: Path, scanner: Scanner) -> None:
     ours = net.pattern().detach().double().cpu().numpy()
     if patterns_agree(ours, scanner.pattern):
         return
-    worst = float(np.abs(ours - scanner.pattern).max()) if ours.shape == scanner.pattern.shape else float("nan")
+    worst = float(np.abs(ours - scanner.pattern).max())  # same shape: the net was built for this scanner
     raise NtpInputError(
         folder / "pattern.csv",
         f"the network was trained with another lighting pattern than "

@@ -193,7 +193,7 @@ def reconstruct(
     report.timed("traces", t0)
 
     t0 = time.perf_counter()
-    model_key = {"model": str(models.resolve(model)), "summary": meta.get("summary", {})}
+    model_key = {"model": meta["folder"], "summary": meta.get("summary", {})}
 
     def fit_stage(d: Path) -> None:
         np.savez(d / "fit.npz", **fit_traces(net, scan.scanner, traces, scale, progress=progress))
