@@ -38,4 +38,4 @@ extension: $(STAMP)
 	$(BIN)/python tools/build_extension.py --out dist
 
 clean:
-	rm -rf $(VENV) ntp_demo_out .pytest_cache .hypothesis build dist
+	rm -rf $(VENV) ntp_demo_out ntp_gallery .pytest_cache .hypothesis build dist

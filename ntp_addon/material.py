@@ -68,7 +68,7 @@ def _file_image(path: Path, colorspace: str) -> bpy.types.Image:
     return img
 
 
-def _packed_image(name: str, data: np.ndarray) -> bpy.types.Image:
+def packed_image(name: str, data: np.ndarray) -> bpy.types.Image:
     """A float image held in the .blend (packed), ``data (H, W, C)`` row 0 = top."""
     h, w, c = data.shape
     rgba = np.ones((h, w, 4), np.float32)
@@ -124,25 +124,25 @@ def _principled(ri: ResultInputs, name: str) -> bpy.types.Material:
         "Base Color",
     )
     T.link(
-        T.image(_packed_image(f"{name} specular level", p["specular_level"]), -3, 3, "specular IOR level"),
+        T.image(packed_image(f"{name} specular level", p["specular_level"]), -3, 3, "specular IOR level"),
         "Color",
         bsdf,
         "Specular IOR Level",
     )
     T.link(
-        T.image(_packed_image(f"{name} specular tint", p["specular_tint"]), -3, 2, "specular tint"),
+        T.image(packed_image(f"{name} specular tint", p["specular_tint"]), -3, 2, "specular tint"),
         "Color",
         bsdf,
         "Specular Tint",
     )
     T.link(
-        T.image(_packed_image(f"{name} roughness", p["roughness"]), -3, 1, "roughness (ax ay)^1/4"),
+        T.image(packed_image(f"{name} roughness", p["roughness"]), -3, 1, "roughness (ax ay)^1/4"),
         "Color",
         bsdf,
         "Roughness",
     )
     # anisotropy: the glTF importer's arrangement, so the exporter recognises it
-    tex = T.image(_packed_image(f"{name} anisotropy", p["anisotropy"]), -7, -1, "anisotropy (dir RG, strength B)")
+    tex = T.image(packed_image(f"{name} anisotropy", p["anisotropy"]), -7, -1, "anisotropy (dir RG, strength B)")
     mad = T.node("ShaderNodeVectorMath", -6, -1, operation="MULTIPLY_ADD")
     mad.inputs[1].default_value, mad.inputs[2].default_value = (2, 2, 1), (-1, -1, 0)
     sep = T.node("ShaderNodeSeparateXYZ", -5, -1)
@@ -167,7 +167,7 @@ def _principled(ri: ResultInputs, name: str) -> bpy.types.Material:
     nmap = T.node("ShaderNodeNormalMap", -2, -3, space="TANGENT")
     T.link(
         T.image(
-            _packed_image(f"{name} normal (tangent space)", p["normal_tangent_space"]), -3, -3, "normal, tangent space"
+            packed_image(f"{name} normal (tangent space)", p["normal_tangent_space"]), -3, -3, "normal, tangent space"
         ),
         "Color",
         nmap,
@@ -210,13 +210,13 @@ def _accurate(ri: ResultInputs, name: str) -> bpy.types.Material:
     T.link(n_unit, "Vector", glossy, "Normal")
     T.link(t_unit, "Vector", glossy, "Tangent")
     T.link(
-        T.image(_packed_image(f"{name} roughness", g["roughness"]), -1, -2, "roughness (ax ay)^1/4"),
+        T.image(packed_image(f"{name} roughness", g["roughness"]), -1, -2, "roughness (ax ay)^1/4"),
         "Color",
         glossy,
         "Roughness",
     )
     T.link(
-        T.image(_packed_image(f"{name} anisotropy", g["anisotropy"]), -1, -3, "anisotropy (signed)"),
+        T.image(packed_image(f"{name} anisotropy", g["anisotropy"]), -1, -3, "anisotropy (signed)"),
         "Color",
         glossy,
         "Anisotropy",

@@ -9,6 +9,7 @@ import sys
 from pathlib import Path
 
 from .bench import fit as bench_fit
+from .bench import gallery as bench_gallery
 from .bench import network as bench_network
 from .bench import physics as bench_physics
 from .bench import scan as bench_scan
@@ -24,6 +25,8 @@ from .pipeline.scan_folder import Scan, load_scan
 from .pipeline.stages import DEFAULT_RESOLUTION, reconstruct, register_photos, write_registration
 from .scanner.device_file import DEFAULT_DEVICE, list_devices, load_scanner, write_pattern
 from .sim import demo
+from .sim.cycles_scan import CyclesConfig, cycles_scan
+from .sim.gallery import GALLERY
 from .sim.virtual_scan import ScanConfig, virtual_scan
 
 
@@ -103,8 +106,12 @@ def _virtual_scan(args: argparse.Namespace) -> int:
     cfg = ScanConfig(
         views=args.views, scale=args.scale, seed=args.seed, exposure=args.exposure, blur_fraction=args.blur_fraction
     )
-    info = virtual_scan(args.out, args.asset, args.mesh, args.maps, args.device, cfg, progress=_progress(args))
-    print(f"wrote {args.out}: {args.views} photos, {info['seconds_per_photo']:.2f} s per photo")
+    if args.renderer == "cycles":
+        cycles = CyclesConfig(samples=args.samples, bounces=args.bounces)
+        info = cycles_scan(args.out, args.asset, args.mesh, args.maps, args.device, cfg, cycles, _progress(args))
+    else:
+        info = virtual_scan(args.out, args.asset, args.mesh, args.maps, args.device, cfg, progress=_progress(args))
+    print(f"wrote {args.out}: {args.views} photos ({args.renderer}), {info['seconds_per_photo']:.2f} s per photo")
     return 0
 
 
@@ -143,6 +150,21 @@ def _bench_stability(args: argparse.Namespace) -> int:
 
 def _bench_virtual_scan(args: argparse.Namespace) -> int:
     bench_virtual_scan.run(photos=args.photos, json_path=args.json)
+    return 0
+
+
+def _bench_gallery(args: argparse.Namespace) -> int:
+    settings = bench_gallery.settings_for(
+        args.quick,
+        objects=tuple(args.objects) if args.objects else None,
+        scanners=tuple(args.scanners) if args.scanners else None,
+        poses=tuple(args.poses) if args.poses else None,
+        views=args.views,
+        scale=args.scale,
+        resolution=args.resolution,
+        samples=args.samples,
+    )
+    bench_gallery.run(args.out, settings, json_path=args.json, progress=_progress(args))
     return 0
 
 
@@ -249,6 +271,11 @@ def _parser() -> argparse.ArgumentParser:
     vs.add_argument("--seed", type=int, default=0)
     vs.add_argument("--exposure", type=float, default=1.5, help="x the device's auto-exposure")
     vs.add_argument("--blur-fraction", type=float, default=0.0, help="fraction of photos with motion blur")
+    vs.add_argument(
+        "--renderer", choices=["engine", "cycles"], default="engine", help="cycles: Blender Cycles through bpy"
+    )
+    vs.add_argument("--samples", type=int, default=CyclesConfig.samples, help="Cycles samples per pixel")
+    vs.add_argument("--bounces", type=int, default=CyclesConfig.bounces, help="Cycles light bounces")
     _quiet_and_progress(vs)
     vs.set_defaults(func=_virtual_scan)
 
@@ -315,6 +342,19 @@ def _parser() -> argparse.ArgumentParser:
     bv.add_argument("--photos", type=int, default=3)
     bv.add_argument("--json", type=Path, default=None)
     bv.set_defaults(func=_bench_virtual_scan)
+    bg = bsub.add_parser("gallery", help="accuracy per object x material: both scanners, true and SfM poses")
+    bg.add_argument("--out", type=Path, default=Path("ntp_gallery"), help="folder for assets, scans, results")
+    bg.add_argument("--quick", action="store_true", help="2 objects, true poses, 16 views, 64^2 maps (<= 5 min)")
+    bg.add_argument("--objects", nargs="+", choices=list(GALLERY), default=None)
+    bg.add_argument("--scanners", nargs="+", choices=list(bench_gallery.SCANNERS), default=None)
+    bg.add_argument("--poses", nargs="+", choices=list(bench_gallery.POSES), default=None)
+    bg.add_argument("--views", type=int, default=None)
+    bg.add_argument("--scale", type=float, default=None)
+    bg.add_argument("--resolution", type=int, default=None)
+    bg.add_argument("--samples", type=int, default=None, help="Cycles samples per pixel")
+    bg.add_argument("--json", type=Path, default=None)
+    _quiet_and_progress(bg)
+    bg.set_defaults(func=_bench_gallery)
     bf = bsub.add_parser("fit", help="batched GGX fitter vs per-texel scipy L-BFGS-B (speed and error)")
     bf.add_argument("--quick", action="store_true", help="2048 texels (baseline on 32) instead of 16384 (192)")
     bf.add_argument("--texels", type=int, default=None)

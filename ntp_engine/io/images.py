@@ -24,6 +24,7 @@ def _write(path: Path, pixels: np.ndarray, fmt) -> None:
         if out is None:
             raise NtpInputError(path, f"OpenImageIO cannot write this format ({oiio.geterror()})")
         spec = oiio.ImageSpec(w, h, c, fmt)
+        spec.attribute("DateTime", "")  # no write time: the same pixels give the same bytes (content-keyed caches)
         if path.suffix.lower() == ".exr":
             spec.attribute("compression", "zip")
         if not out.open(str(tmp), spec) or not out.write_image(np.ascontiguousarray(pixels)):

@@ -26,6 +26,15 @@ def digest(obj) -> str:
     return hashlib.sha256(json.dumps(obj, sort_keys=True, default=_plain).encode()).hexdigest()[:20]
 
 
+def content_digest(paths: list[Path]) -> str:
+    """Stable hash of files' names and bytes, in the order given."""
+    h = hashlib.sha256()
+    for p in paths:
+        h.update(p.name.encode())
+        h.update(p.read_bytes())
+    return h.hexdigest()[:20]
+
+
 def file_key(path: Path) -> dict:
     """What identifies an input file in a stage key: name, size and modification time."""
     st = path.stat()

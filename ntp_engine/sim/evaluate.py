@@ -7,6 +7,13 @@
   with exact shadows; one display transform for both (the truth's 99th percentile to 1, clip,
   gamma 2.2); SSIM averaged over the object's pixels only (the backdrop would inflate it).
 
+- per material (``material_errors``, gallery assets with ``labels.png``): coverage, normal angle,
+  tangent angle mod 180 deg between the axes of the larger alpha (texels whose true anisotropy is
+  >= 2:1), |log alpha ratio| of the sorted alphas (larger with larger), rho_d RMSE and ratio (mean
+  reconstructed / mean true), |log rho_s ratio| (channel means), and on matte materials the
+  spurious-lobe rate: the fraction of texels given rho_s > ``SPURIOUS_RHO_S``. Medians over the
+  material's observed texels; NaN where a metric does not apply or nothing was observed.
+
 Both assets must share the UV layout (true for scans of a mesh with UVs, whose UVs the pipeline
 keeps).
 """
@@ -19,13 +26,16 @@ import numpy as np
 from skimage.metrics import structural_similarity
 
 from ..io.images import read_image, write_png
-from ..io.maps import SVBRDFMaps, texel_uv
+from ..io.maps import MAP_FILES, SVBRDFMaps, texel_uv
 from ..io.mesh import load_mesh
 from ..scanner.camera import resampled
 from ..scanner.device_file import shipped_device
+from .materials import load_labels
 from .renderer import Scene
 from .virtual_scan import ScanConfig, trajectory
 
+SPURIOUS_RHO_S = 0.1  # a matte texel given more specular albedo than this has a spurious lobe
+MIN_ANISOTROPY = 2.0  # tangents are scored where the true alphas differ by at least this ratio
 NOVEL_LIGHT_DEVICE = "point_light.toml"  # relit under a single point light, unlike the scan's LED array
 
 
@@ -36,8 +46,7 @@ def map_errors(result: Path, truth: Path) -> dict:
     H, W = rec.normal.shape[:2]
     observed = read_image(result / "confidence.exr")[..., 1].reshape(-1) > 0
     g = SVBRDFMaps.load(truth).sample(texel_uv((H, W)).reshape(-1, 2))
-    n = rec.normal.reshape(-1, 3)[observed]
-    ang = np.degrees(np.arccos(np.clip((n * g["normal"][observed]).sum(1), -1, 1)))
+    ang = _angle_deg(rec.normal.reshape(-1, 3)[observed], g["normal"][observed])
     d = rec.diffuse_albedo.reshape(-1, 3)[observed] - g["diffuse_albedo"][observed]
     return {
         "normal_median_deg": float(np.median(ang)),
@@ -45,6 +54,72 @@ def map_errors(result: Path, truth: Path) -> dict:
         "diffuse_rmse": float(np.sqrt((d**2).mean())),
         "observed_fraction": float(observed.mean()),
     }
+
+
+def _angle_deg(a: np.ndarray, b: np.ndarray, axial: bool = False) -> np.ndarray:
+    c = (a * b).sum(-1)
+    return np.degrees(np.arccos(np.clip(np.abs(c) if axial else c, -1, 1)))
+
+
+def _major_axis(maps: dict[str, np.ndarray]) -> np.ndarray:
+    """Unit direction of the larger alpha ``(N, 3)`` (the tangent, or n x t when alpha_y is larger)."""
+    t, n, a = maps["tangent"], maps["normal"], maps["roughness"]
+    return np.where((a[:, 0] >= a[:, 1])[:, None], t, np.cross(n, t))
+
+
+def material_errors(result: Path, truth: Path) -> list[dict]:
+    """Errors per labelled material of a result against a gallery ground truth (module docstring):
+    one dict per material in label order."""
+    rec_maps = SVBRDFMaps.load(result)
+    shape = rec_maps.shape
+    uv = texel_uv(shape).reshape(-1, 2)
+    observed = read_image(result / "confidence.exr")[..., 1].reshape(-1) > 0
+    true = SVBRDFMaps.load(truth).sample(uv)
+    rec = {k: getattr(rec_maps, k).reshape(-1, getattr(rec_maps, k).shape[-1]) for k in MAP_FILES}
+    labels, table = load_labels(truth)
+    lh, lw = labels.shape
+    label = labels[
+        np.clip(((1 - uv[:, 1]) * lh).astype(int), 0, lh - 1), np.clip((uv[:, 0] * lw).astype(int), 0, lw - 1)
+    ]
+    rows = []
+    for k, mat in enumerate(table):
+        member = label == k
+        sel = member & observed
+        row: dict = {
+            "material": mat["name"],
+            "texels": int(member.sum()),
+            "coverage": float(sel.sum() / max(member.sum(), 1)),
+        }
+        nan = float("nan")
+        row.update(
+            dict.fromkeys(
+                ("normal_deg", "tangent_deg", "log_alpha", "rho_d_rmse", "rho_d_ratio", "log_rho_s", "spurious_lobe"),
+                nan,
+            )
+        )
+        if sel.any():
+            t = {key: v[sel] for key, v in true.items()}
+            r = {key: v[sel] for key, v in rec.items()}
+            row["normal_deg"] = float(np.median(_angle_deg(r["normal"], t["normal"])))
+            d = r["diffuse_albedo"] - t["diffuse_albedo"]
+            row["rho_d_rmse"] = float(np.sqrt((d**2).mean()))
+            row["rho_d_ratio"] = float(r["diffuse_albedo"].mean() / max(t["diffuse_albedo"].mean(), 1e-12))
+            rs_rec = r["specular_albedo"].mean(1)
+            if mat["matte"]:
+                row["spurious_lobe"] = float((rs_rec > SPURIOUS_RHO_S).mean())
+            else:
+                ra, ta = np.sort(r["roughness"], 1), np.sort(t["roughness"], 1)
+                row["log_alpha"] = float(np.median(np.abs(np.log(np.maximum(ra, 1e-6) / ta))))
+                row["log_rho_s"] = float(
+                    np.median(np.abs(np.log(np.maximum(rs_rec, 1e-3) / t["specular_albedo"].mean(1))))
+                )
+                aniso = ta[:, 1] >= MIN_ANISOTROPY * ta[:, 0]
+                if aniso.any():
+                    rec_axis = _major_axis({key: v[aniso] for key, v in r.items()})
+                    true_axis = _major_axis({key: v[aniso] for key, v in t.items()})
+                    row["tangent_deg"] = float(np.median(_angle_deg(rec_axis, true_axis, axial=True)))
+        rows.append(row)
+    return rows
 
 
 def compare_images(reference: np.ndarray, test: np.ndarray, mask: np.ndarray) -> dict:

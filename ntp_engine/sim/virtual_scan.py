@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import json
 import math
+import shutil
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -34,6 +35,7 @@ from ..pipeline.scan_folder import write_scan_toml
 from ..scanner import camera
 from ..scanner.device_file import load_scanner, save_scanner
 from ..scanner.scanner import Scanner
+from .materials import LABELS_FILE, MATERIALS_FILE
 from .renderer import Scene
 
 
@@ -81,10 +83,16 @@ def trajectory(center: np.ndarray, scanner: Scanner, cfg: ScanConfig, rng: np.ra
 def take_photo(
     scene: Scene, pose: np.ndarray, cam: Scanner, cfg: ScanConfig, rng: np.random.Generator, blur: bool = False
 ) -> np.ndarray:
-    """An 8-bit photo ``(H, W, 3)`` uint8 of ``scene`` by the camera ``cam`` at ``pose``: the linear
-    render, optional motion blur, multiplicative noise N(1, sigma), the 8-bit response, read noise,
-    clipping at 255 and rounding."""
+    """An 8-bit photo ``(H, W, 3)`` uint8 of ``scene`` by the camera ``cam`` at ``pose`` (the linear
+    render through ``sensor``)."""
     lin, _ = scene.render_linear(pose, cam, cfg.chunk)
+    return sensor(lin, cam, cfg, rng, blur)
+
+
+def sensor(lin: np.ndarray, cam: Scanner, cfg: ScanConfig, rng: np.random.Generator, blur: bool = False) -> np.ndarray:
+    """The device's sensor on a linear image ``(H, W, 3)`` (exposure applied): optional motion
+    blur, multiplicative noise N(1, sigma), the 8-bit response, read noise, clipping at 255 and
+    rounding; ``(H, W, 3)`` uint8."""
     if blur:
         length = max(3, int(round(cfg.blur_px * cfg.scale / 0.25)))
         angle = rng.uniform(0, 180)
@@ -138,35 +146,53 @@ def virtual_scan(
     poses = trajectory(scene.center, scanner, cfg, rng)
     n_blur = int(round(cfg.blur_fraction * cfg.views))
     blurred = set(rng.choice(cfg.views, size=n_blur, replace=False).tolist()) if n_blur else set()
-
     (out / "photos").mkdir(parents=True, exist_ok=True)
-    gt = out / "ground_truth"
-    gt.mkdir(exist_ok=True)
-    names, t0 = [], time.perf_counter()
+
+    names = [f"{i:04d}.png" for i in range(cfg.views)]
+    t0 = time.perf_counter()
     for i in progress.track(range(cfg.views), "virtual scan", unit="photo"):
-        name = f"{i:04d}.png"
         img = take_photo(scene, poses[i], cam, cfg, rng, blur=i in blurred)
-        write_png(out / "photos" / name, img.astype(np.float64) / 255.0)
-        names.append(name)
+        write_png(out / "photos" / names[i], img.astype(np.float64) / 255.0)
     seconds = time.perf_counter() - t0
-    save_obj(out / "mesh.obj", mesh)
-    save_scanner(cam, out / "device.toml")
-    maps.save(gt)
-    write_text_atomic(gt / "poses.json", json.dumps({n: p.tolist() for n, p in zip(names, poses)}, indent=1))
     capture = {
         "config": asdict(cfg),
+        "renderer": "engine",
         "source_mesh": str(src_mesh),
         "device": scanner.name,
         "blurred_photos": sorted(names[i] for i in blurred),
         "seconds": seconds,
         "seconds_per_photo": seconds / max(cfg.views, 1),
     }
+    write_scan(out, mesh, maps, cam, dict(zip(names, poses)), capture, src_mesh.parent / "ground_truth")
+    return capture
+
+
+def write_scan(
+    out: Path,
+    mesh: Mesh,
+    maps: SVBRDFMaps,
+    cam: Scanner,
+    poses: dict[str, np.ndarray],
+    capture: dict,
+    labels_from: Path,
+) -> None:
+    """Everything of a scan folder but its photos (``out/photos/`` holds them already): the mesh,
+    the device file at the photos' resolution, ``ground_truth/`` (maps, material labels when
+    ``labels_from`` has them, poses, ``capture.json``) and ``scan.toml``."""
+    gt = out / "ground_truth"
+    gt.mkdir(parents=True, exist_ok=True)
+    save_obj(out / "mesh.obj", mesh)
+    save_scanner(cam, out / "device.toml")
+    maps.save(gt)
+    for f in (LABELS_FILE, MATERIALS_FILE):
+        if (labels_from / f).is_file():
+            shutil.copyfile(labels_from / f, gt / f)
+    write_text_atomic(gt / "poses.json", json.dumps({n: p.tolist() for n, p in poses.items()}, indent=1))
     write_text_atomic(gt / "capture.json", json.dumps(capture, indent=2))
     write_scan_toml(
         out,
         comments=(
-            "written by ntp virtual-scan",
+            f"written by ntp virtual-scan (renderer: {capture['renderer']})",
             "ground truth for evaluation: ground_truth/ (maps, poses.json, capture.json)",
         ),
     )
-    return capture

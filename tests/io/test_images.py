@@ -1,3 +1,5 @@
+import time
+
 import numpy as np
 import pytest
 
@@ -20,3 +22,11 @@ def test_unreadable_images_are_one_line_errors(tmp_path):
     bad.write_bytes(b"not a png")
     with pytest.raises(NtpInputError, match="x.png"):
         read_image(bad)
+
+
+def test_same_pixels_give_the_same_bytes(tmp_path):
+    px = np.random.default_rng(0).random((8, 8, 3))
+    write_exr(tmp_path / "a.exr", px)
+    time.sleep(1.1)  # a later second: a write time stamped in the file would differ
+    write_exr(tmp_path / "b.exr", px)
+    assert (tmp_path / "a.exr").read_bytes() == (tmp_path / "b.exr").read_bytes()

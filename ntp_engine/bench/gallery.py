@@ -1,0 +1,261 @@
+"""``ntp bench gallery``: ntp measured on the gallery — every object x scanner (the engine's virtual
+scanner and Cycles) x poses (true, structure from motion) — reported per material.
+
+Per run: pose error (SfM), relit SSIM under novel point lights (object pixels), seconds per stage;
+per material (``sim.evaluate.material_errors``): coverage, normal angle, tangent angle mod 180 on
+anisotropic texels, |log alpha ratio|, rho_d RMSE and ratio, |log rho_s ratio|, spurious-lobe
+rate on matte. Writes ``OUT/gallery.json``, ``OUT/gallery.md`` (the tables) and
+``OUT/gallery.png`` (error per material, a bar per scanner x poses), and prints the tables.
+
+Everything is cached under ``OUT`` (assets, scans keyed by their settings and asset content,
+Cycles renders, pipeline stages), so a re-run after an interruption resumes.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+from ..io.atomic import write_text_atomic
+from ..io.errors import NtpInputError
+from ..io.progress import QUIET, Progress
+from ..pipeline.cache import content_digest, digest
+from ..pipeline.scan_folder import load_poses, load_scan
+from ..pipeline.stages import reconstruct, register_photos
+from ..sim.cycles_scan import CyclesConfig, cycles_scan
+from ..sim.evaluate import material_errors, pose_error, relit_ssim
+from ..sim.gallery import GALLERY, build_asset
+from ..sim.virtual_scan import ScanConfig, virtual_scan
+from . import print_table
+
+SCANNERS = ("engine", "cycles")
+POSES = ("true", "sfm")
+METRICS = (
+    "coverage",
+    "normal_deg",
+    "tangent_deg",
+    "log_alpha",
+    "rho_d_rmse",
+    "rho_d_ratio",
+    "log_rho_s",
+    "spurious_lobe",
+)
+
+
+@dataclass(frozen=True)
+class GallerySettings:
+    """What one gallery run covers and at what size."""
+
+    objects: tuple[str, ...] = tuple(GALLERY)
+    scanners: tuple[str, ...] = SCANNERS
+    poses: tuple[str, ...] = POSES
+    views: int = 40
+    scale: float = 0.125
+    resolution: int = 128
+    samples: int = 16  # Cycles samples per pixel
+    bounces: int = 2
+    relit_lights: int = 3
+    relit_scale: float = 0.125
+    seed: int = 0
+
+
+DEFAULT = GallerySettings()
+QUICK = GallerySettings(objects=("vase", "knot"), poses=("true",), views=16, resolution=64, samples=8, relit_lights=2)
+
+
+def _scan(settings: GallerySettings, name: str, scanner: str, out: Path, asset: Path, progress: Progress) -> dict:
+    """The scan of one object by one scanner (kept when its settings and asset are unchanged)."""
+    cfg = ScanConfig(views=settings.views, scale=settings.scale, seed=settings.seed)
+    cycles = CyclesConfig(samples=settings.samples, bounces=settings.bounces)
+    key = digest(
+        {
+            "scanner": scanner,
+            "config": asdict(cfg),
+            "cycles": asdict(cycles) if scanner == "cycles" else None,
+            "asset": content_digest(sorted(p for p in asset.rglob("*") if p.is_file())),
+        }
+    )
+    stamp = out / "ground_truth" / "bench_key.json"
+    if stamp.is_file() and json.loads(stamp.read_text()).get("key") == key:
+        return json.loads((out / "ground_truth" / "capture.json").read_text())
+    if scanner == "cycles":
+        capture = cycles_scan(out, str(asset), cfg=cfg, cycles=cycles, progress=progress)
+    else:
+        capture = virtual_scan(out, str(asset), cfg=cfg, progress=progress)
+    write_text_atomic(stamp, json.dumps({"key": key}))
+    return capture
+
+
+def _evaluate(settings: GallerySettings, scan_dir: Path, poses: str, out: Path, progress: Progress) -> dict:
+    """Reconstruct one scan with true or SfM poses and measure it."""
+    gt = scan_dir / "ground_truth"
+    scan = load_scan(scan_dir, gt / "poses.json" if poses == "true" else None)
+    t0 = time.perf_counter()
+    try:
+        rep = reconstruct(scan, out, resolution=settings.resolution, progress=progress)
+    except NtpInputError as err:  # registration can fail on a hard object: that is a result too
+        return {"failed": str(err), "seconds_reconstruct": time.perf_counter() - t0}
+    seconds = time.perf_counter() - t0
+    run: dict = {"stages": rep["stages"], "seconds_reconstruct": seconds}
+    if poses == "sfm":
+        used, _, _ = register_photos(scan, out)
+        run["pose_error"] = pose_error(used, load_poses(gt / "poses.json"))
+        run["registered"] = f"{len(used)}/{settings.views}"
+    run["relit_ssim"] = relit_ssim(
+        out, scan_dir / "mesh.obj", gt, lights=settings.relit_lights, scale=settings.relit_scale
+    )["relit_ssim"]
+    run["materials"] = material_errors(out, gt)
+    return run
+
+
+def run(
+    out: Path,
+    settings: GallerySettings = DEFAULT,
+    json_path: Path | None = None,
+    progress: Progress = QUIET,
+) -> dict:
+    """The gallery benchmark into ``out`` (module docstring); returns the record (also JSON)."""
+    unknown = [o for o in settings.objects if o not in GALLERY]
+    if unknown or not set(settings.scanners) <= set(SCANNERS) or not set(settings.poses) <= set(POSES):
+        raise NtpInputError(
+            None,
+            f"objects from {', '.join(GALLERY)}; scanners from {', '.join(SCANNERS)}; poses from {', '.join(POSES)}",
+        )
+    out = Path(out)
+    t_all = time.perf_counter()
+    runs = []
+    for name in settings.objects:
+        asset = build_asset(name, out / "assets" / name)
+        for scanner in settings.scanners:
+            scan_dir = out / "scans" / f"{name}-{scanner}"
+            t0 = time.perf_counter()
+            capture = _scan(settings, name, scanner, scan_dir, asset, progress)
+            t_scan = time.perf_counter() - t0
+            for poses in settings.poses:
+                result = _evaluate(settings, scan_dir, poses, out / "results" / f"{name}-{scanner}-{poses}", progress)
+                runs.append(
+                    {
+                        "object": name,
+                        "scanner": scanner,
+                        "poses": poses,
+                        "seconds_scan": t_scan,
+                        "seconds_per_photo": capture["seconds_per_photo"],
+                        **result,
+                    }
+                )
+                t_scan = 0.0  # counted once per scan
+    record = {"settings": asdict(settings), "runs": runs, "seconds": time.perf_counter() - t_all}
+    tables = markdown(record)
+    write_text_atomic(out / "gallery.json", json.dumps(record, indent=1, default=float))
+    write_text_atomic(out / "gallery.md", tables)
+    figure(record, out / "gallery.png")
+    if json_path:
+        write_text_atomic(json_path, json.dumps(record, indent=1, default=float))
+    _print(record)
+    print(f"wrote {out / 'gallery.md'}, {out / 'gallery.json'}, {out / 'gallery.png'}")
+    return record
+
+
+def _f(x: float | None, digits: int = 3) -> str:
+    return "-" if x is None or (isinstance(x, float) and math.isnan(x)) else f"{x:.{digits}g}"
+
+
+def _run_rows(record: dict) -> tuple[tuple, list[tuple]]:
+    header = ("object", "scanner", "poses", "registered", "pose err mm / deg", "relit SSIM", "s scan", "s reconstruct")
+    rows = []
+    for r in record["runs"]:
+        pe = r.get("pose_error") or {}
+        pose = f"{pe['centre_median_m'] * 1e3:.2f} / {pe['rotation_median_deg']:.2f}" if pe else "-"
+        rows.append(
+            (
+                r["object"],
+                r["scanner"],
+                r["poses"],
+                r.get("registered", "-") if "failed" not in r else "FAILED",
+                pose,
+                _f(r.get("relit_ssim")),
+                f"{r['seconds_scan']:.0f}",
+                f"{r['seconds_reconstruct']:.0f}",
+            )
+        )
+    return header, rows
+
+
+def _material_rows(record: dict) -> tuple[tuple, list[tuple]]:
+    header = ("object", "material", "scanner", "poses", *METRICS)
+    rows = []
+    for r in record["runs"]:
+        for m in r.get("materials", []):
+            rows.append((r["object"], m["material"], r["scanner"], r["poses"], *(_f(m[k]) for k in METRICS)))
+    return header, rows
+
+
+def markdown(record: dict) -> str:
+    """The two tables (runs, materials) as Markdown."""
+
+    def table(header: tuple, rows: list[tuple]) -> list[str]:
+        return ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)] + [
+            "| " + " | ".join(str(c) for c in row) + " |" for row in rows
+        ]
+
+    s = record["settings"]
+    lines = [
+        f"Gallery: {s['views']} views at scale {s['scale']}, {s['resolution']}^2 maps, Cycles {s['samples']} spp "
+        f"({s['bounces']} bounces); total {record['seconds'] / 60:.1f} min.",
+        "",
+        *table(*_run_rows(record)),
+        "",
+        *table(*_material_rows(record)),
+        "",
+    ]
+    return "\n".join(lines)
+
+
+def _print(record: dict) -> None:
+    header, rows = _run_rows(record)
+    print_table(rows, header)
+    print()
+    header, rows = _material_rows(record)
+    print_table(rows, header)
+
+
+def figure(record: dict, path: Path) -> None:
+    """Error per material (x: object / material), one bar per scanner x poses, one panel per metric."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    cells = sorted({(r["object"], m["material"]) for r in record["runs"] for m in r.get("materials", [])})
+    combos = sorted({(r["scanner"], r["poses"]) for r in record["runs"]})
+    panels = ("coverage", "normal_deg", "tangent_deg", "log_alpha", "rho_d_rmse", "log_rho_s")
+    fig, axes = plt.subplots(len(panels), 1, figsize=(max(8.0, 0.55 * len(cells)), 2.3 * len(panels)), sharex=True)
+    width = 0.8 / max(len(combos), 1)
+    x = np.arange(len(cells))
+    for ax, metric in zip(axes, panels):
+        for j, combo in enumerate(combos):
+            values = np.full(len(cells), np.nan)
+            for r in record["runs"]:
+                if (r["scanner"], r["poses"]) == combo:
+                    for m in r.get("materials", []):
+                        values[cells.index((r["object"], m["material"]))] = m[metric]
+            ax.bar(x + (j - (len(combos) - 1) / 2) * width, values, width, label=f"{combo[0]}, {combo[1]} poses")
+        ax.set_ylabel(metric.replace("_", " "))
+        ax.grid(axis="y", alpha=0.3)
+    axes[0].legend(fontsize=7, ncol=len(combos))
+    axes[-1].set_xticks(x, [f"{o} / {m}" for o, m in cells], rotation=60, ha="right", fontsize=7)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def settings_for(quick: bool, **overrides) -> GallerySettings:
+    """The default or quick settings with the given fields replaced (None leaves a field)."""
+    base = QUICK if quick else DEFAULT
+    return replace(base, **{k: v for k, v in overrides.items() if v is not None})

@@ -1,0 +1,236 @@
+"""The Cycles scanner: the virtual scanner's capture of the same scene, rendered by Blender Cycles
+instead of the engine — an independent renderer, so errors of the engine's own forward model cannot
+cancel in the evaluation.
+
+Same trajectory (same seed, same poses), same sensor (``virtual_scan.sensor``) and the same scan
+folder and ``ground_truth/`` as ``virtual_scan``; only the linear images differ. Cycles renders them
+in its own process (``python -m ntp_addon.scan_render``; the engine never imports bpy) with a
+Diffuse + Glossy GGX material (Cycles' height-correlated Smith G, Fresnel on n.v — deliberately
+not the engine's BRDF), interreflections (``bounces``), exact shadows and Monte Carlo noise
+(``samples`` per pixel). Each emitter is a small Lambertian area light (so only cos^1 emitters can
+be modelled) driven by the pattern through the colour matrix.
+
+Radiometric calibration, as on a real device: Cycles also renders a white Lambertian patch at the
+valid volume's centre facing the panel; the engine predicts that patch's measurement (Eq. 1) for
+the same pixels, and the per-channel ratio scales every render. Then exposure and the sensor.
+
+Renders are cached in ``ground_truth/cycles/`` under a key of everything they depend on (asset
+content, camera, emitters, pattern, poses, samples, bounces, seed): a re-run with only sensor
+settings changed re-uses them, an interrupted one resumes.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import shutil
+import subprocess
+import sys
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ..io.assets import DEVICES_DIR
+from ..io.errors import NtpInputError
+from ..io.images import read_image, write_png
+from ..io.maps import MAP_FILES
+from ..io.mesh import save_obj
+from ..io.progress import QUIET, Progress
+from ..physics.measurement import measurement_rgb
+from ..pipeline.cache import content_digest, digest
+from ..scanner import camera
+from ..scanner.device_file import load_scanner, save_scanner
+from ..scanner.scanner import Scanner
+from .virtual_scan import ScanConfig, load_asset, sensor, trajectory, write_scan
+
+RENDER_DIR = "cycles"
+POINT_LED_SIZE = 0.002  # m: side of the square area light standing in for a point LED
+LINEAR_LED_WIDTH = 0.001  # m: width of the rectangle standing in for a linear light
+CALIBRATION_PATCH = 0.03  # m: side of the white calibration patch
+
+
+@dataclass
+class CyclesConfig:
+    """Cycles settings of a scan (the sensor's are ``ScanConfig``)."""
+
+    samples: int = 16
+    bounces: int = 2
+    calibration_samples: int = 256
+
+
+def emitter_lights(scanner: Scanner) -> list[dict]:
+    """Area lights standing in for the lit emitters: camera-space centre, normal, axis, size (m) and
+    RGB drive (the pattern through the colour matrix). Raises for emitters Cycles cannot model."""
+    if scanner.angular_kind != "cosine" or scanner.angular_exponent != 1.0:
+        raise NtpInputError(
+            scanner.source or scanner.name,
+            "the Cycles scanner models Lambertian emitters only (angular cosine exponent 1)",
+        )
+    if scanner.emitter_kind == "area":
+        size = tuple(float(s) for s in scanner.emitter_size)
+    elif scanner.emitter_kind == "linear":
+        size = (float(scanner.emitter_size[0]), LINEAR_LED_WIDTH)
+    else:
+        size = (POINT_LED_SIZE, POINT_LED_SIZE)
+    drive = scanner.effective_pattern(scanner.pattern)
+    return [
+        {
+            "centre": scanner.emitter_positions[k].tolist(),
+            "normal": scanner.emitter_normals[k].tolist(),
+            "axis": scanner.emitter_axes[k].tolist(),
+            "size": list(size),
+            "rgb": drive[k].tolist(),
+        }
+        for k in range(scanner.num_emitters)
+        if drive[k].max() > 0
+    ]
+
+
+def _render(job: dict, folder: Path, progress: Progress) -> None:
+    """Run the renderer process on ``job`` (photos into ``folder``), advancing ``progress``."""
+    if importlib.util.find_spec("bpy") is None:
+        raise NtpInputError(None, "the Cycles scanner needs bpy (Blender as a module; `make setup` installs it)")
+    job_path = folder / "job.json"
+    job_path.write_text(json.dumps(job, indent=1))
+    cmd = [sys.executable, "-m", "ntp_addon.scan_render", str(job_path)]
+    log = folder / "render.log"  # Blender's own messages (a file: a full pipe would stall it)
+    with log.open("w") as err, subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=err, text=True) as proc:
+        assert proc.stdout is not None
+        lines = (line for line in proc.stdout if line.startswith("rendered "))
+        for _ in progress.track(lines, "cycles scan", total=len(job["poses"]), unit="photo"):
+            pass
+    if proc.returncode != 0:
+        tail = [line for line in log.read_text().strip().splitlines() if line.strip()] or ["no message"]
+        raise RuntimeError(f"the Cycles renderer failed (exit {proc.returncode}, log {log}): {tail[-1]}")
+
+
+def calibration_gain(scanner: Scanner, cam: Scanner, render: np.ndarray) -> np.ndarray:
+    """Per-channel factor ``(3,)`` taking Cycles' render of the white patch (identity pose) to the
+    engine's measurement B of it: means over the pixels of the patch's central half."""
+    centre = np.asarray(scanner.valid_center, float)
+    normal = -scanner.emitter_normals.mean(0)
+    normal /= np.linalg.norm(normal)
+    rays = camera.pixel_rays(cam).reshape(-1, 3)
+    t = (centre @ normal) / (rays @ normal)
+    x = rays * t[:, None]
+    x_axis = np.cross([0.0, 1.0, 0.0], normal)
+    x_axis /= np.linalg.norm(x_axis)
+    y_axis = np.cross(normal, x_axis)
+    d = x - centre
+    inside = (np.abs(d @ x_axis) < CALIBRATION_PATCH / 4) & (np.abs(d @ y_axis) < CALIBRATION_PATCH / 4)
+    if inside.sum() < 4:
+        raise RuntimeError("calibration patch covers fewer than 4 pixels; raise the scale")
+    n = int(inside.sum())
+
+    def T(a):
+        return torch.as_tensor(np.ascontiguousarray(a), dtype=torch.float64)
+
+    B = measurement_rgb(
+        scanner,
+        T(x[inside]),
+        T(np.broadcast_to(normal, (n, 3))),
+        T(np.broadcast_to(x_axis, (n, 3))),
+        T(np.ones((n, 3))),
+        T(np.zeros((n, 3))),
+        T(np.full(n, 0.3)),
+        T(np.full(n, 0.3)),
+        torch.as_tensor(scanner.pattern, dtype=torch.float64),
+    ).numpy()
+    seen = render.reshape(-1, 3)[inside]
+    return B.mean(0) / np.maximum(seen.mean(0), 1e-20)
+
+
+def cycles_scan(
+    out: Path,
+    asset: str | None = None,
+    mesh_path: Path | None = None,
+    maps_dir: Path | None = None,
+    device_path: Path | None = None,
+    cfg: ScanConfig | None = None,
+    cycles: CyclesConfig | None = None,
+    progress: Progress = QUIET,
+) -> dict:
+    """Capture the asset into the scan folder ``out`` with Cycles (module docstring); returns the
+    capture record (also ``ground_truth/capture.json``)."""
+    cfg, cycles = cfg or ScanConfig(), cycles or CyclesConfig()
+    if not 0 < cfg.scale <= 1 or cfg.views < 1 or not 0 <= cfg.blur_fraction <= 1:
+        raise NtpInputError(None, "need 0 < --scale <= 1, --views >= 1, 0 <= --blur-fraction <= 1")
+    if cycles.samples < 1 or cycles.bounces < 0:
+        raise NtpInputError(None, "need --samples >= 1 and --bounces >= 0")
+    mesh, maps, src_mesh = load_asset(asset, mesh_path, maps_dir)
+    maps_dir = maps_dir or src_mesh.parent / "ground_truth"
+    scanner = load_scanner(device_path)
+    lights = emitter_lights(scanner)
+    cam = camera.resampled(scanner, cfg.scale)
+    if np.any(np.asarray(cam.distortion) != 0):
+        raise NtpInputError(device_path or DEVICES_DIR, "the Cycles scanner models a pinhole camera (distortion 0)")
+    cam.gain = scanner.gain * cfg.exposure
+    rng = np.random.default_rng(cfg.seed)
+    centre = 0.5 * (mesh.vertices.min(0) + mesh.vertices.max(0))  # as renderer.Scene.center
+    poses = trajectory(centre, scanner, cfg, rng)
+    n_blur = int(round(cfg.blur_fraction * cfg.views))
+    blurred = set(rng.choice(cfg.views, size=n_blur, replace=False).tolist()) if n_blur else set()
+    names = [f"{i:04d}.png" for i in range(cfg.views)]
+
+    folder = out / "ground_truth" / RENDER_DIR
+    key = {
+        "asset": content_digest([src_mesh, *(maps_dir / f for f in MAP_FILES.values())]),
+        "camera": [cam.width, cam.height, cam.K.tolist()],
+        "emitters": lights,
+        "poses": [p.tolist() for p in poses],
+        "cycles": asdict(cycles),
+        "seed": cfg.seed,
+    }
+    key_digest = digest(key)
+    stamp = folder / "key.json"
+    if not (stamp.is_file() and json.loads(stamp.read_text()).get("digest") == key_digest):
+        if folder.exists():
+            shutil.rmtree(folder)
+        (folder / "asset").mkdir(parents=True)
+        save_obj(folder / "asset" / "mesh.obj", mesh)
+        maps.save(folder / "asset")
+        stamp.write_text(json.dumps({"digest": key_digest}))
+    save_scanner(cam, folder / "device.toml")
+    job = {
+        "asset": str(folder / "asset"),
+        "device": str(folder / "device.toml"),
+        "emitters": lights,
+        "watts_per_unit_drive": 1.0,  # any constant: the calibration absorbs it
+        "poses": {n: p.tolist() for n, p in zip(names, poses)},
+        "samples": cycles.samples,
+        "bounces": cycles.bounces,
+        "seed": cfg.seed,
+        "calibration": {
+            "centre": np.asarray(scanner.valid_center, float).tolist(),
+            "normal": (-scanner.emitter_normals.mean(0) / np.linalg.norm(scanner.emitter_normals.mean(0))).tolist(),
+            "size": CALIBRATION_PATCH,
+            "samples": cycles.calibration_samples,
+        },
+        "out": str(folder),
+    }
+    t0 = time.perf_counter()
+    _render(job, folder, progress)
+    seconds = time.perf_counter() - t0
+    gain = calibration_gain(scanner, cam, read_image(folder / "calibration.exr")[..., :3].astype(np.float64))
+    exposure = cfg.exposure * float(scanner.exposure(scanner.pattern))
+    (out / "photos").mkdir(parents=True, exist_ok=True)
+    for i, name in enumerate(names):
+        lin = exposure * gain * read_image(folder / f"{Path(name).stem}.exr")[..., :3].astype(np.float64)
+        img = sensor(lin, cam, cfg, rng, blur=i in blurred)
+        write_png(out / "photos" / name, img.astype(np.float64) / 255.0)
+    capture = {
+        "config": asdict(cfg),
+        "renderer": "cycles",
+        "cycles": asdict(cycles),
+        "calibration_gain": gain.tolist(),
+        "source_mesh": str(src_mesh),
+        "device": scanner.name,
+        "blurred_photos": sorted(names[i] for i in blurred),
+        "seconds": seconds,
+        "seconds_per_photo": seconds / max(cfg.views, 1),
+    }
+    write_scan(out, mesh, maps, cam, dict(zip(names, poses)), capture, maps_dir)
+    return capture

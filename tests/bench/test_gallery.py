@@ -1,0 +1,42 @@
+"""The gallery benchmark's machinery on one tiny object (not its accuracy): runs, tables, figure,
+failed registrations reported as such, re-runs resume from the cache, bad settings refused."""
+
+import json
+
+import pytest
+
+from ntp_engine.bench import gallery
+from ntp_engine.io.errors import NtpInputError
+
+TINY = gallery.GallerySettings(
+    objects=("box",), scanners=("engine",), views=5, scale=0.05, resolution=16, relit_lights=1, relit_scale=0.05
+)
+
+
+def test_tiny_gallery_writes_tables_json_and_figure(tmp_path):
+    r = gallery.run(tmp_path, TINY)
+    assert [(x["object"], x["scanner"], x["poses"]) for x in r["runs"]] == [
+        ("box", "engine", "true"),
+        ("box", "engine", "sfm"),
+    ]
+    true_run = r["runs"][0]
+    names = [m["material"] for m in true_run["materials"]]
+    assert names == ["lacquer_mirror", "metal_brushed_line", "matte_white", "metal_rough"]
+    assert 0 < true_run["relit_ssim"] <= 1 and {"atlas", "traces"} <= set(true_run["stages"])
+    md = (tmp_path / "gallery.md").read_text()
+    assert md.count("| box | metal_rough |") == sum("materials" in x for x in r["runs"])
+    sfm = r["runs"][1]
+    assert ("failed" in sfm) == ("FAILED" in md)  # 5 tiny photos: SfM may fail, and then says so
+    assert json.loads((tmp_path / "gallery.json").read_text())["settings"]["views"] == 5
+    assert (tmp_path / "gallery.png").stat().st_size > 10_000
+
+    capture = tmp_path / "scans" / "box-engine" / "ground_truth" / "capture.json"
+    stamp = capture.stat().st_mtime_ns
+    gallery.run(tmp_path, TINY)
+    assert capture.stat().st_mtime_ns == stamp  # the scan was kept
+
+
+def test_bad_settings_are_refused(tmp_path):
+    with pytest.raises(NtpInputError, match="objects from"):
+        gallery.run(tmp_path, gallery.settings_for(True, objects=("teapot",)))
+    assert gallery.settings_for(True, views=7).views == 7 and gallery.settings_for(False).views == 40

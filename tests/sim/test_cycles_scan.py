@@ -1,0 +1,71 @@
+"""The Cycles scanner (real bpy, in its own process): calibrated photos agree with the engine's scan
+of the same scene, renders are cached by settings, scans are seeded, bad devices are refused."""
+
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+
+from ntp_engine.io.errors import NtpInputError
+from ntp_engine.io.images import read_image
+from ntp_engine.scanner.device_file import load_scanner, save_scanner
+from ntp_engine.sim.cycles_scan import CyclesConfig, cycles_scan, emitter_lights
+from ntp_engine.sim.gallery import build_asset
+from ntp_engine.sim.virtual_scan import ScanConfig, virtual_scan
+
+CFG = ScanConfig(views=2, scale=0.05, seed=3)
+CYCLES = CyclesConfig(samples=4, bounces=1, calibration_samples=64)
+
+
+@pytest.fixture(scope="module")
+def scans(tmp_path_factory):
+    root = tmp_path_factory.mktemp("cycles")
+    asset = build_asset("vase", root / "asset", 32)
+    cycles_scan(root / "cycles", str(asset), cfg=CFG, cycles=CYCLES)
+    virtual_scan(root / "engine", str(asset), cfg=CFG)
+    return root
+
+
+def test_scan_folder_matches_the_engines(scans):
+    c, e = scans / "cycles", scans / "engine"
+    for f in ("scan.toml", "mesh.obj", "device.toml", "ground_truth/poses.json", "ground_truth/labels.png"):
+        assert (c / f).is_file(), f
+    assert (c / "ground_truth/poses.json").read_text() == (e / "ground_truth/poses.json").read_text()
+    capture = json.loads((c / "ground_truth/capture.json").read_text())
+    assert capture["renderer"] == "cycles"
+    # Blender: an area light of P W has on-axis radiant intensity P / pi W/sr, the same per channel
+    np.testing.assert_allclose(capture["calibration_gain"], np.pi, rtol=0.01)
+    for name in ("0000.png", "0001.png"):
+        a, b = read_image(e / "photos" / name), read_image(c / "photos" / name)
+        assert a.shape == b.shape
+        assert b.mean() / a.mean() == pytest.approx(1.0, abs=0.05)
+
+
+def test_renders_are_cached_by_settings_and_scans_seeded(scans, tmp_path):
+    c = scans / "cycles"
+    renders = sorted((c / "ground_truth/cycles").glob("*.exr"))
+    stamps = [p.stat().st_mtime_ns for p in renders]
+    before = [read_image(p) for p in sorted((c / "photos").glob("*.png"))]
+    cycles_scan(c, str(scans / "asset"), cfg=dataclasses.replace(CFG, noise_sigma=0.05), cycles=CYCLES)
+    assert [p.stat().st_mtime_ns for p in renders] == stamps  # sensor settings only: renders reused
+    noisier = [read_image(p) for p in sorted((c / "photos").glob("*.png"))]
+    assert any(not np.array_equal(x, y) for x, y in zip(before, noisier))
+    cycles_scan(c, str(scans / "asset"), cfg=CFG, cycles=CYCLES)
+    again = [read_image(p) for p in sorted((c / "photos").glob("*.png"))]
+    assert all(np.array_equal(x, y) for x, y in zip(before, again))
+
+
+def test_devices_cycles_cannot_model_are_refused(tmp_path):
+    scanner = load_scanner()
+    assert len(emitter_lights(scanner)) == int((scanner.effective_pattern(scanner.pattern).max(1) > 0).sum())
+    narrow = tmp_path / "narrow.toml"
+    save_scanner(dataclasses.replace(scanner, angular_exponent=2.0), narrow)
+    asset = build_asset("box", tmp_path / "asset", 16)
+    with pytest.raises(NtpInputError, match="narrow.toml.*Lambertian"):
+        cycles_scan(tmp_path / "o1", str(asset), device_path=narrow, cfg=CFG)
+    bent = tmp_path / "bent.toml"
+    save_scanner(dataclasses.replace(scanner, distortion=np.array([0.1, 0, 0, 0, 0])), bent)
+    with pytest.raises(NtpInputError, match="bent.toml.*pinhole"):
+        cycles_scan(tmp_path / "o2", str(asset), device_path=bent, cfg=CFG)
+    assert not (tmp_path / "o1").exists() and not (tmp_path / "o2").exists()
