@@ -57,7 +57,7 @@ class GallerySettings:
     views: int = 40
     scale: float = 0.125
     resolution: int = 128
-    samples: int = 16  # Cycles samples per pixel
+    samples: int = 12  # Cycles samples per pixel (the default set's 30-minute budget)
     bounces: int = 2
     relit_lights: int = 3
     relit_scale: float = 0.125

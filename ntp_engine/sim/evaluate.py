@@ -12,7 +12,8 @@
   >= 2:1), |log alpha ratio| of the sorted alphas (larger with larger), rho_d RMSE and ratio (mean
   reconstructed / mean true), |log rho_s ratio| (channel means), and on matte materials the
   spurious-lobe rate: the fraction of texels given rho_s > ``SPURIOUS_RHO_S``. Medians over the
-  material's observed texels; NaN where a metric does not apply or nothing was observed.
+  material's observed texels (the truth taken at its nearest texel, so materials do not blend at
+  borders); NaN where a metric does not apply or nothing was observed.
 
 Both assets must share the UV layout (true for scans of a mesh with UVs, whose UVs the pipeline
 keeps).
@@ -61,6 +62,12 @@ def _angle_deg(a: np.ndarray, b: np.ndarray, axial: bool = False) -> np.ndarray:
     return np.degrees(np.arccos(np.clip(np.abs(c) if axial else c, -1, 1)))
 
 
+def _nearest(img: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """The texel of ``img (H, W, C)`` containing each ``uv (N, 2)``: ``(N, C)``."""
+    h, w = img.shape[:2]
+    return img[np.clip(((1 - uv[:, 1]) * h).astype(int), 0, h - 1), np.clip((uv[:, 0] * w).astype(int), 0, w - 1)]
+
+
 def _major_axis(maps: dict[str, np.ndarray]) -> np.ndarray:
     """Unit direction of the larger alpha ``(N, 3)`` (the tangent, or n x t when alpha_y is larger)."""
     t, n, a = maps["tangent"], maps["normal"], maps["roughness"]
@@ -74,13 +81,12 @@ def material_errors(result: Path, truth: Path) -> list[dict]:
     shape = rec_maps.shape
     uv = texel_uv(shape).reshape(-1, 2)
     observed = read_image(result / "confidence.exr")[..., 1].reshape(-1) > 0
-    true = SVBRDFMaps.load(truth).sample(uv)
+    truth_maps = SVBRDFMaps.load(truth)
+    # the truth's nearest texel: bilinear samples would blend materials (and atlas charts) at borders
+    true = {k: _nearest(getattr(truth_maps, k), uv) for k in MAP_FILES}
     rec = {k: getattr(rec_maps, k).reshape(-1, getattr(rec_maps, k).shape[-1]) for k in MAP_FILES}
     labels, table = load_labels(truth)
-    lh, lw = labels.shape
-    label = labels[
-        np.clip(((1 - uv[:, 1]) * lh).astype(int), 0, lh - 1), np.clip((uv[:, 0] * lw).astype(int), 0, lw - 1)
-    ]
+    label = _nearest(labels[..., None], uv)[:, 0]
     rows = []
     for k, mat in enumerate(table):
         member = label == k

@@ -84,7 +84,7 @@ def _dome(tex: Texels) -> np.ndarray:  # the demo's bands by v (demo_asset)
 # the demo's bands as labels (descriptive: the dome keeps demo_asset's own maps)
 DEMO_MATERIALS = (
     Material("tiles", (0.85, 0.62, 0.40), (0.08, 0.08, 0.08), (0.35, 0.35), texture="checker"),
-    Material("lacquer", (0.62, 0.40, 0.36), (1.2, 1.2, 1.2), (0.01, 0.25), tangents="uv", texture="blocks"),
+    Material("lacquer", (0.62, 0.40, 0.36), (1.2, 1.2, 1.2), (0.05, 0.05), texture="blocks"),  # alpha 0.01..0.25
     Material("gold", (0.26, 0.25, 0.28), (4.0, 3.0, 1.6), (0.30, 0.025), tangents="swirl"),
 )
 
