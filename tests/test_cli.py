@@ -6,7 +6,9 @@ import sys
 
 import numpy as np
 
+from ntp_engine.io.assets import DEVICES_DIR
 from ntp_engine.io.images import read_image
+from ntp_engine.scanner.device_file import DEFAULT_DEVICE
 
 
 def ntp(*args, cwd=None):
@@ -94,3 +96,15 @@ def test_progress_file_gets_json_lines_for_each_stage(tmp_path):
     records = [json.loads(line) for line in prog.read_text().splitlines()]
     assert records[0]["stage"] == "virtual scan" and records[-1]["done"] == records[-1]["total"] == 2
     assert out.stderr == ""  # --quiet: no bars
+
+
+def test_cycles_scan_and_gallery_refuse_bad_input(tmp_path):
+    narrow = tmp_path / "narrow.toml"
+    text = DEFAULT_DEVICE.read_text().replace("exponent = 1.0", "exponent = 3.0")
+    narrow.write_text(text.replace('pattern = "', f'pattern = "{DEVICES_DIR}/'))
+    out = ntp("virtual-scan", "--out", str(tmp_path / "s"), "--renderer", "cycles", "--device", str(narrow))
+    lines = out.stderr.strip().splitlines()
+    assert out.returncode == 2 and len(lines) == 1 and "narrow.toml" in lines[0] and "Lambertian" in lines[0]
+    assert not (tmp_path / "s").exists()
+    out = ntp("bench", "gallery", "--out", str(tmp_path / "g"), "--objects", "teapot")
+    assert out.returncode == 2 and "teapot" in out.stderr and not (tmp_path / "g").exists()

@@ -233,7 +233,7 @@ def figure(record: dict, path: Path) -> None:
 
     cells = sorted({(r["object"], m["material"]) for r in record["runs"] for m in r.get("materials", [])})
     combos = sorted({(r["scanner"], r["poses"]) for r in record["runs"]})
-    panels = ("coverage", "normal_deg", "tangent_deg", "log_alpha", "rho_d_rmse", "log_rho_s")
+    panels = ("coverage", "normal_deg", "tangent_deg", "log_alpha", "rho_d_rmse", "log_rho_s", "spurious_lobe")
     fig, axes = plt.subplots(len(panels), 1, figsize=(max(8.0, 0.55 * len(cells)), 2.3 * len(panels)), sharex=True)
     width = 0.8 / max(len(combos), 1)
     x = np.arange(len(cells))
