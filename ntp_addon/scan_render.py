@@ -33,6 +33,20 @@ from . import scene as bscene
 MARKER_CELL = 0.005  # m: the backdrop's small cells (renderer.marker_albedo); its big cells are 3 of them
 
 
+def _diffuse_material(name: str) -> tuple[bpy.types.Material, bpy.types.Node]:
+    """A material of one Diffuse BSDF (roughness 0: Lambertian) and that node."""
+    mat = bpy.data.materials.new(name)
+    if mat.node_tree is None:  # Blender < 5 creates materials without nodes
+        mat.use_nodes = True
+    nt = mat.node_tree
+    nt.nodes.clear()
+    diffuse = nt.nodes.new("ShaderNodeBsdfDiffuse")
+    diffuse.inputs["Roughness"].default_value = 0.0
+    out = nt.nodes.new("ShaderNodeOutputMaterial")
+    nt.links.new(diffuse.outputs[0], out.inputs["Surface"])
+    return mat, diffuse
+
+
 def _backdrop(collection: bpy.types.Collection) -> bpy.types.Object:
     """The marker backdrop square at z = BACKDROP_Z, its albedo one texel per cell."""
     h = BACKDROP_HALF
@@ -48,17 +62,10 @@ def _backdrop(collection: bpy.types.Collection) -> bpy.types.Object:
     yy, xx = np.meshgrid(centres[::-1], centres, indexing="ij")  # row 0 = top = +y
     albedo = marker_albedo(np.stack([xx, yy], -1).reshape(-1, 2)).reshape(n, n, 1)
     img = material.packed_image("backdrop albedo", np.repeat(albedo, 3, -1))
-    mat = bpy.data.materials.new("backdrop")
-    if mat.node_tree is None:
-        mat.use_nodes = True
-    nt = mat.node_tree
-    nt.nodes.clear()
-    tex = nt.nodes.new("ShaderNodeTexImage")
+    mat, diffuse = _diffuse_material("backdrop")
+    tex = mat.node_tree.nodes.new("ShaderNodeTexImage")
     tex.image, tex.interpolation = img, "Closest"
-    diffuse = nt.nodes.new("ShaderNodeBsdfDiffuse")
-    out = nt.nodes.new("ShaderNodeOutputMaterial")
-    nt.links.new(tex.outputs["Color"], diffuse.inputs["Color"])
-    nt.links.new(diffuse.outputs[0], out.inputs["Surface"])
+    mat.node_tree.links.new(tex.outputs["Color"], diffuse.inputs["Color"])
     mesh.materials.append(mat)
     obj = bpy.data.objects.new("backdrop", mesh)
     collection.objects.link(obj)
@@ -114,15 +121,8 @@ def _calibration(job: dict, out: Path) -> None:
     corners = [np.array(c["centre"]) + half * (sx * x + sy * y) for sx, sy in ((-1, -1), (1, -1), (1, 1), (-1, 1))]
     mesh = bpy.data.meshes.new("calibration patch")
     mesh.from_pydata([tuple(v) for v in corners], [], [(0, 1, 2, 3)])
-    mat = bpy.data.materials.new("white lambertian")
-    if mat.node_tree is None:
-        mat.use_nodes = True
-    nt = mat.node_tree
-    nt.nodes.clear()
-    diffuse = nt.nodes.new("ShaderNodeBsdfDiffuse")
+    mat, diffuse = _diffuse_material("white lambertian")
     diffuse.inputs["Color"].default_value = (1.0, 1.0, 1.0, 1.0)
-    out_node = nt.nodes.new("ShaderNodeOutputMaterial")
-    nt.links.new(diffuse.outputs[0], out_node.inputs["Surface"])
     mesh.materials.append(mat)
     patch = bpy.data.objects.new("calibration patch", mesh)
     scene.collection.objects.link(patch)

@@ -166,7 +166,17 @@ def _f(x: float | None, digits: int = 3) -> str:
 
 
 def _run_rows(record: dict) -> tuple[tuple, list[tuple]]:
-    header = ("object", "scanner", "poses", "registered", "pose err mm / deg", "relit SSIM", "s scan", "s reconstruct")
+    header = (
+        "object",
+        "scanner",
+        "poses",
+        "registered",
+        "pose err mm / deg",
+        "relit SSIM",
+        "s scan",
+        "s reconstruct",
+        "s register / traces / net+fit",
+    )
     rows = []
     for r in record["runs"]:
         pe = r.get("pose_error") or {}
@@ -181,6 +191,9 @@ def _run_rows(record: dict) -> tuple[tuple, list[tuple]]:
                 _f(r.get("relit_ssim")),
                 f"{r['seconds_scan']:.0f}",
                 f"{r['seconds_reconstruct']:.0f}",
+                " / ".join(
+                    f"{r.get('stages', {}).get(k, float('nan')):.1f}" for k in ("register", "traces", "network_and_fit")
+                ),
             )
         )
     return header, rows

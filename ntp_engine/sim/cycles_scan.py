@@ -44,7 +44,7 @@ from ..pipeline.cache import content_digest, digest
 from ..scanner import camera
 from ..scanner.device_file import load_scanner, save_scanner
 from ..scanner.scanner import Scanner
-from .virtual_scan import ScanConfig, load_asset, sensor, trajectory, write_scan
+from .virtual_scan import ScanConfig, load_asset, plan_capture, sensor, write_scan
 
 RENDER_DIR = "cycles"
 POINT_LED_SIZE = 0.002  # m: side of the square area light standing in for a point LED
@@ -156,31 +156,23 @@ def cycles_scan(
     """Capture the asset into the scan folder ``out`` with Cycles (module docstring); returns the
     capture record (also ``ground_truth/capture.json``)."""
     cfg, cycles = cfg or ScanConfig(), cycles or CyclesConfig()
-    if not 0 < cfg.scale <= 1 or cfg.views < 1 or not 0 <= cfg.blur_fraction <= 1:
-        raise NtpInputError(None, "need 0 < --scale <= 1, --views >= 1, 0 <= --blur-fraction <= 1")
     if cycles.samples < 1 or cycles.bounces < 0:
         raise NtpInputError(None, "need --samples >= 1 and --bounces >= 0")
     mesh, maps, src_mesh = load_asset(asset, mesh_path, maps_dir)
     maps_dir = maps_dir or src_mesh.parent / "ground_truth"
     scanner = load_scanner(device_path)
     lights = emitter_lights(scanner)
-    cam = camera.resampled(scanner, cfg.scale)
+    plan = plan_capture(mesh, scanner, cfg)
+    cam = plan.cam
     if np.any(np.asarray(cam.distortion) != 0):
         raise NtpInputError(device_path or DEVICES_DIR, "the Cycles scanner models a pinhole camera (distortion 0)")
-    cam.gain = scanner.gain * cfg.exposure
-    rng = np.random.default_rng(cfg.seed)
-    centre = 0.5 * (mesh.vertices.min(0) + mesh.vertices.max(0))  # as renderer.Scene.center
-    poses = trajectory(centre, scanner, cfg, rng)
-    n_blur = int(round(cfg.blur_fraction * cfg.views))
-    blurred = set(rng.choice(cfg.views, size=n_blur, replace=False).tolist()) if n_blur else set()
-    names = [f"{i:04d}.png" for i in range(cfg.views)]
 
     folder = out / "ground_truth" / RENDER_DIR
     key = {
         "asset": content_digest([src_mesh, *(maps_dir / f for f in MAP_FILES.values())]),
         "camera": [cam.width, cam.height, cam.K.tolist()],
         "emitters": lights,
-        "poses": [p.tolist() for p in poses],
+        "poses": [p.tolist() for p in plan.poses],
         "cycles": asdict(cycles),
         "seed": cfg.seed,
     }
@@ -199,7 +191,7 @@ def cycles_scan(
         "device": str(folder / "device.toml"),
         "emitters": lights,
         "watts_per_unit_drive": 1.0,  # any constant: the calibration absorbs it
-        "poses": {n: p.tolist() for n, p in zip(names, poses)},
+        "poses": {n: p.tolist() for n, p in plan.named_poses.items()},
         "samples": cycles.samples,
         "bounces": cycles.bounces,
         "seed": cfg.seed,
@@ -217,20 +209,10 @@ def cycles_scan(
     gain = calibration_gain(scanner, cam, read_image(folder / "calibration.exr")[..., :3].astype(np.float64))
     exposure = cfg.exposure * float(scanner.exposure(scanner.pattern))
     (out / "photos").mkdir(parents=True, exist_ok=True)
-    for i, name in enumerate(names):
+    for i, name in enumerate(plan.names):
         lin = exposure * gain * read_image(folder / f"{Path(name).stem}.exr")[..., :3].astype(np.float64)
-        img = sensor(lin, cam, cfg, rng, blur=i in blurred)
+        img = sensor(lin, cam, cfg, plan.rng, blur=i in plan.blurred)
         write_png(out / "photos" / name, img.astype(np.float64) / 255.0)
-    capture = {
-        "config": asdict(cfg),
-        "renderer": "cycles",
-        "cycles": asdict(cycles),
-        "calibration_gain": gain.tolist(),
-        "source_mesh": str(src_mesh),
-        "device": scanner.name,
-        "blurred_photos": sorted(names[i] for i in blurred),
-        "seconds": seconds,
-        "seconds_per_photo": seconds / max(cfg.views, 1),
-    }
-    write_scan(out, mesh, maps, cam, dict(zip(names, poses)), capture, maps_dir)
+    capture = plan.record("cycles", src_mesh, scanner, seconds, cycles=asdict(cycles), calibration_gain=gain.tolist())
+    write_scan(out, mesh, maps, cam, plan.named_poses, capture, maps_dir)
     return capture

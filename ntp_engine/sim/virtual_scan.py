@@ -135,36 +135,64 @@ def virtual_scan(
     """Capture the asset into the scan folder ``out`` (see the module docstring); returns the
     capture record (also ``ground_truth/capture.json``)."""
     cfg = cfg or ScanConfig()
-    if not 0 < cfg.scale <= 1 or cfg.views < 1 or not 0 <= cfg.blur_fraction <= 1:
-        raise NtpInputError(None, "need 0 < --scale <= 1, --views >= 1, 0 <= --blur-fraction <= 1")
     mesh, maps, src_mesh = load_asset(asset, mesh_path, maps_dir)
     scanner = load_scanner(device_path)
+    plan = plan_capture(mesh, scanner, cfg)
+    scene = Scene(mesh, maps, scanner, cfg.clusters, cfg.exposure)
+    (out / "photos").mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    for i in progress.track(range(cfg.views), "virtual scan", unit="photo"):
+        img = take_photo(scene, plan.poses[i], plan.cam, cfg, plan.rng, blur=i in plan.blurred)
+        write_png(out / "photos" / plan.names[i], img.astype(np.float64) / 255.0)
+    capture = plan.record("engine", src_mesh, scanner, time.perf_counter() - t0)
+    write_scan(out, mesh, maps, plan.cam, plan.named_poses, capture, maps_dir or src_mesh.parent / "ground_truth")
+    return capture
+
+
+@dataclass
+class CapturePlan:
+    """What a capture takes before any pixel: the camera at the photos' resolution (its gain the
+    capture's exposure), the seeded generator (the sensor draws from it next), the poses, the
+    photos to blur and the photo names."""
+
+    cfg: ScanConfig
+    cam: Scanner
+    rng: np.random.Generator
+    poses: list[np.ndarray]
+    blurred: set[int]
+    names: list[str]
+
+    @property
+    def named_poses(self) -> dict[str, np.ndarray]:
+        """Camera-from-world pose per photo name."""
+        return dict(zip(self.names, self.poses))
+
+    def record(self, renderer: str, src_mesh: Path, scanner: Scanner, seconds: float, **extra) -> dict:
+        """The capture record (``ground_truth/capture.json``)."""
+        return {
+            "config": asdict(self.cfg),
+            "renderer": renderer,
+            **extra,
+            "source_mesh": str(src_mesh),
+            "device": scanner.name,
+            "blurred_photos": sorted(self.names[i] for i in self.blurred),
+            "seconds": seconds,
+            "seconds_per_photo": seconds / max(self.cfg.views, 1),
+        }
+
+
+def plan_capture(mesh: Mesh, scanner: Scanner, cfg: ScanConfig) -> CapturePlan:
+    """The plan of a seeded capture of ``mesh`` (the same for every renderer); checks ``cfg``."""
+    if not 0 < cfg.scale <= 1 or cfg.views < 1 or not 0 <= cfg.blur_fraction <= 1:
+        raise NtpInputError(None, "need 0 < --scale <= 1, --views >= 1, 0 <= --blur-fraction <= 1")
     cam = camera.resampled(scanner, cfg.scale)
     cam.gain = scanner.gain * cfg.exposure  # what this capture used: B = pixel / cam.exposure(pattern)
     rng = np.random.default_rng(cfg.seed)
-    scene = Scene(mesh, maps, scanner, cfg.clusters, cfg.exposure)
-    poses = trajectory(scene.center, scanner, cfg, rng)
+    centre = 0.5 * (mesh.vertices.min(0) + mesh.vertices.max(0))  # = renderer.Scene.center
+    poses = trajectory(centre, scanner, cfg, rng)
     n_blur = int(round(cfg.blur_fraction * cfg.views))
     blurred = set(rng.choice(cfg.views, size=n_blur, replace=False).tolist()) if n_blur else set()
-    (out / "photos").mkdir(parents=True, exist_ok=True)
-
-    names = [f"{i:04d}.png" for i in range(cfg.views)]
-    t0 = time.perf_counter()
-    for i in progress.track(range(cfg.views), "virtual scan", unit="photo"):
-        img = take_photo(scene, poses[i], cam, cfg, rng, blur=i in blurred)
-        write_png(out / "photos" / names[i], img.astype(np.float64) / 255.0)
-    seconds = time.perf_counter() - t0
-    capture = {
-        "config": asdict(cfg),
-        "renderer": "engine",
-        "source_mesh": str(src_mesh),
-        "device": scanner.name,
-        "blurred_photos": sorted(names[i] for i in blurred),
-        "seconds": seconds,
-        "seconds_per_photo": seconds / max(cfg.views, 1),
-    }
-    write_scan(out, mesh, maps, cam, dict(zip(names, poses)), capture, src_mesh.parent / "ground_truth")
-    return capture
+    return CapturePlan(cfg, cam, rng, poses, blurred, [f"{i:04d}.png" for i in range(cfg.views)])
 
 
 def write_scan(
