@@ -3,14 +3,15 @@ EXR photos of an asset through a scanner's emitters, for ``ntp_engine.sim.cycles
 
 The job (written by the engine; see there) names the asset folder (``mesh.obj`` + the five maps),
 the camera's device file, the emitters in camera space (centre, normal, axis, size, RGB drive), the
-camera-from-world poses, samples, bounces and seed, and the calibration patch. The scene: the asset
-with the ``NTP Accurate`` material (Diffuse + Glossy GGX, ``material``), the marker backdrop
-(``ntp_engine.sim.renderer.marker_albedo``, one texel per 5 mm cell, closest-texel lookup), and one
-rectangular area light per lit emitter (Lambertian, as the device's cos^1 LEDs), moved with the
-camera for every pose. Direct and indirect light (``bounces``), exact shadows. Each photo is
-written as ``OUT/NAME.exr`` through a temporary name, so an interrupted job resumes where it stopped;
-existing photos are kept. ``calibration.exr`` is the white Lambertian patch alone, seen from the
-identity pose. One line ``rendered NAME`` per photo on stdout (the engine's progress).
+camera-from-world poses, samples, bounces and seed, and the calibration patch (centre, normal,
+in-plane axis, size). The scene: the asset with the ``NTP Accurate`` material (Diffuse + Glossy GGX,
+``material``), the marker backdrop (``ntp_engine.sim.renderer.marker_albedo``, one texel per 5 mm
+cell, closest-texel lookup), and one rectangular area light per lit emitter (Lambertian, as the
+device's cos^1 LEDs), moved with the camera for every pose. Direct and indirect light (``bounces``),
+exact shadows. Each photo is written as ``OUT/NAME.exr`` through a temporary name, so an interrupted
+job resumes where it stopped; existing photos are kept. ``calibration.exr`` is the white Lambertian
+patch alone, seen from the identity pose. One line ``rendered NAME`` per photo on stdout (the
+engine's progress).
 """
 
 from __future__ import annotations
@@ -114,9 +115,7 @@ def _calibration(job: dict, out: Path) -> None:
             obj.hide_render = True
     c = job["calibration"]
     half = c["size"] / 2
-    z = np.array(c["normal"], float)
-    x = np.cross([0.0, 1.0, 0.0], z)
-    x /= np.linalg.norm(x)
+    z, x = np.array(c["normal"], float), np.array(c["axis"], float)
     y = np.cross(z, x)
     corners = [np.array(c["centre"]) + half * (sx * x + sy * y) for sx, sy in ((-1, -1), (1, -1), (1, 1), (-1, 1))]
     mesh = bpy.data.meshes.new("calibration patch")

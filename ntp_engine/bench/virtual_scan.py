@@ -30,7 +30,7 @@ def _with_wall(mesh: Mesh) -> Mesh:
 def run(photos: int = 3, json_path=None, scales: tuple[float, ...] = (0.25, 1.0), shadow_scale: float = 0.25) -> dict:
     """Seconds per photo at each of ``scales`` (the first with ``photos`` photos, later ones half as
     many) and the shadow clusters' error at ``shadow_scale``; printed and returned."""
-    mesh, maps, _ = load_asset(None, None, None)
+    mesh, maps, _, _ = load_asset(None, None, None)
     scanner = load_scanner()
     cfg = ScanConfig(views=24)
     rng = np.random.default_rng(0)

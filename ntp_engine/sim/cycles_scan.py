@@ -107,17 +107,23 @@ def _render(job: dict, folder: Path, progress: Progress) -> None:
         raise RuntimeError(f"the Cycles renderer failed (exit {proc.returncode}, log {log}): {tail[-1]}")
 
 
-def calibration_gain(scanner: Scanner, cam: Scanner, render: np.ndarray) -> np.ndarray:
-    """Per-channel factor ``(3,)`` taking Cycles' render of the white patch (identity pose) to the
-    engine's measurement B of it: means over the pixels of the patch's central half."""
+def calibration_patch(scanner: Scanner) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The white patch's centre (the valid volume's), unit normal (facing the panel) and in-plane x
+    axis, camera space ``(3,)`` each."""
     centre = np.asarray(scanner.valid_center, float)
     normal = -scanner.emitter_normals.mean(0)
     normal /= np.linalg.norm(normal)
+    x_axis = np.cross([0.0, 1.0, 0.0], normal)
+    return centre, normal, x_axis / np.linalg.norm(x_axis)
+
+
+def calibration_gain(scanner: Scanner, cam: Scanner, render: np.ndarray) -> np.ndarray:
+    """Per-channel factor ``(3,)`` taking Cycles' render of the white patch (identity pose) to the
+    engine's measurement B of it: means over the pixels of the patch's central half."""
+    centre, normal, x_axis = calibration_patch(scanner)
     rays = camera.pixel_rays(cam).reshape(-1, 3)
     t = (centre @ normal) / (rays @ normal)
     x = rays * t[:, None]
-    x_axis = np.cross([0.0, 1.0, 0.0], normal)
-    x_axis /= np.linalg.norm(x_axis)
     y_axis = np.cross(normal, x_axis)
     d = x - centre
     inside = (np.abs(d @ x_axis) < CALIBRATION_PATCH / 4) & (np.abs(d @ y_axis) < CALIBRATION_PATCH / 4)
@@ -158,8 +164,7 @@ def cycles_scan(
     cfg, cycles = cfg or ScanConfig(), cycles or CyclesConfig()
     if cycles.samples < 1 or cycles.bounces < 0:
         raise NtpInputError(None, "need --samples >= 1 and --bounces >= 0")
-    mesh, maps, src_mesh = load_asset(asset, mesh_path, maps_dir)
-    maps_dir = maps_dir or src_mesh.parent / "ground_truth"
+    mesh, maps, src_mesh, maps_dir = load_asset(asset, mesh_path, maps_dir)
     scanner = load_scanner(device_path)
     lights = emitter_lights(scanner)
     plan = plan_capture(mesh, scanner, cfg)
@@ -195,12 +200,11 @@ def cycles_scan(
         "samples": cycles.samples,
         "bounces": cycles.bounces,
         "seed": cfg.seed,
-        "calibration": {
-            "centre": np.asarray(scanner.valid_center, float).tolist(),
-            "normal": (-scanner.emitter_normals.mean(0) / np.linalg.norm(scanner.emitter_normals.mean(0))).tolist(),
-            "size": CALIBRATION_PATCH,
-            "samples": cycles.calibration_samples,
-        },
+        "calibration": dict(
+            zip(("centre", "normal", "axis"), (v.tolist() for v in calibration_patch(scanner))),
+            size=CALIBRATION_PATCH,
+            samples=cycles.calibration_samples,
+        ),
         "out": str(folder),
     }
     t0 = time.perf_counter()

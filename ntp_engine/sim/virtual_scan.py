@@ -106,9 +106,9 @@ def sensor(lin: np.ndarray, cam: Scanner, cfg: ScanConfig, rng: np.random.Genera
     return np.clip(np.round(code), 0, 255).astype(np.uint8)
 
 
-def load_asset(asset: str | None, mesh_path: Path | None, maps_dir: Path | None) -> tuple[Mesh, SVBRDFMaps, Path]:
+def load_asset(asset: str | None, mesh_path: Path | None, maps_dir: Path | None) -> tuple[Mesh, SVBRDFMaps, Path, Path]:
     """The mesh and maps of an asset folder (``mesh.obj`` + ``ground_truth/``; default the demo), or
-    of ``mesh_path`` with ``maps_dir``; and the mesh's path."""
+    of ``mesh_path`` with ``maps_dir``; and the mesh's path and the maps' folder."""
     if mesh_path is None:
         folder = DEMO_DIR if asset in (None, "demo") else Path(asset)
         if not (folder / "mesh.obj").is_file():
@@ -120,7 +120,7 @@ def load_asset(asset: str | None, mesh_path: Path | None, maps_dir: Path | None)
     if mesh.uv is None:
         raise NtpInputError(mesh_path, "mesh has no UVs, but maps were given (maps need a UV layout)")
     maps = SVBRDFMaps.load(maps_dir)
-    return mesh, maps, mesh_path
+    return mesh, maps, mesh_path, maps_dir
 
 
 def virtual_scan(
@@ -135,7 +135,7 @@ def virtual_scan(
     """Capture the asset into the scan folder ``out`` (see the module docstring); returns the
     capture record (also ``ground_truth/capture.json``)."""
     cfg = cfg or ScanConfig()
-    mesh, maps, src_mesh = load_asset(asset, mesh_path, maps_dir)
+    mesh, maps, src_mesh, maps_dir = load_asset(asset, mesh_path, maps_dir)
     scanner = load_scanner(device_path)
     plan = plan_capture(mesh, scanner, cfg)
     scene = Scene(mesh, maps, scanner, cfg.clusters, cfg.exposure)
@@ -145,7 +145,7 @@ def virtual_scan(
         img = take_photo(scene, plan.poses[i], plan.cam, cfg, plan.rng, blur=i in plan.blurred)
         write_png(out / "photos" / plan.names[i], img.astype(np.float64) / 255.0)
     capture = plan.record("engine", src_mesh, scanner, time.perf_counter() - t0)
-    write_scan(out, mesh, maps, plan.cam, plan.named_poses, capture, maps_dir or src_mesh.parent / "ground_truth")
+    write_scan(out, mesh, maps, plan.cam, plan.named_poses, capture, maps_dir)
     return capture
 
 

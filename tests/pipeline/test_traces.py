@@ -12,7 +12,7 @@ from ntp_engine.sim.virtual_scan import ScanConfig, load_asset, take_photo, traj
 
 
 def test_traces_from_a_virtual_scan_match_the_renderer_and_respect_the_filters():
-    mesh, maps, _ = load_asset(None, None, None)
+    mesh, maps, _, _ = load_asset(None, None, None)
     dev = load_scanner()
     cfg = ScanConfig(views=8, scale=0.15, noise_sigma=0.0, read_noise=0.0)
     scene = Scene(mesh, maps, dev, exposure=cfg.exposure)
@@ -55,7 +55,7 @@ def test_traces_from_a_virtual_scan_match_the_renderer_and_respect_the_filters()
 
 
 def test_photos_whose_leds_the_support_shadows_are_skipped():
-    mesh, _, _ = load_asset(None, None, None)
+    mesh, _, _, _ = load_asset(None, None, None)
     cam = resampled(load_scanner(), 0.05)
     tx = rasterize(mesh, (16, 16))
 
