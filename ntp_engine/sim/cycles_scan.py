@@ -208,7 +208,9 @@ def cycles_scan(
         "out": str(folder),
     }
     t0 = time.perf_counter()
-    _render(job, folder, progress)
+    renders = [folder / f"{Path(n).stem}.exr" for n in plan.names] + [folder / "calibration.exr"]
+    if not all(r.is_file() for r in renders):  # all cached: no Blender process to start
+        _render(job, folder, progress)
     seconds = time.perf_counter() - t0
     gain = calibration_gain(scanner, cam, read_image(folder / "calibration.exr")[..., :3].astype(np.float64))
     exposure = cfg.exposure * float(scanner.exposure(scanner.pattern))

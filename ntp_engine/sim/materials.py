@@ -145,14 +145,18 @@ Painter = Callable[[Texels], np.ndarray]  # texels -> label per texel (index int
 def label_image(mesh: Mesh, labeller: Painter, resolution: int) -> tuple[Texels, np.ndarray, np.ndarray]:
     """The texels of a ``resolution``^2 map, their labels ``(T,)`` and the label image ``(H, W)``
     uint8 (uncovered texels take the nearest label)."""
-    shape = (resolution, resolution)
-    tex = rasterize(mesh, shape)
+    tex = rasterize(mesh, (resolution, resolution))
     label = labeller(tex)
-    known = np.zeros(shape, bool)
+    return tex, label, np.rint(_texel_image(tex, label[:, None].astype(np.float64))[..., 0]).astype(np.uint8)
+
+
+def _texel_image(tex: Texels, values: np.ndarray) -> np.ndarray:
+    """``values (T, C)`` of the covered texels as an image ``(H, W, C)``, gaps filled by the nearest."""
+    known = np.zeros(tex.shape, bool)
     known[tex.row, tex.col] = True
-    img = np.zeros(shape + (1,))
-    img[tex.row, tex.col, 0] = label
-    return tex, label, np.rint(fill_missing(img, known)[..., 0]).astype(np.uint8)
+    img = np.zeros(tex.shape + (values.shape[1],))
+    img[tex.row, tex.col] = values
+    return fill_missing(img, known)
 
 
 def paint(mesh: Mesh, materials: list[Material], labeller: Painter, resolution: int) -> tuple[SVBRDFMaps, np.ndarray]:
@@ -175,15 +179,13 @@ def paint(mesh: Mesh, materials: list[Material], labeller: Painter, resolution: 
             a = a * 2.0 ** (value_noise(p, 0.015, 13) - 0.5)[:, None]
         alpha[sel] = np.clip(a, 0.006, 0.5)
         tangent[sel] = _tangent_field(m.tangents, tex, sel, centre)
-    known = np.zeros(tex.shape, bool)
-    known[tex.row, tex.col] = True
-
-    def image(values: np.ndarray) -> np.ndarray:
-        img = np.zeros(tex.shape + (values.shape[1],))
-        img[tex.row, tex.col] = values
-        return fill_missing(img, known)
-
-    maps = SVBRDFMaps(image(rho_d), image(rho_s), _unit(image(tex.normal)), _unit(image(tangent)), image(alpha))
+    maps = SVBRDFMaps(
+        _texel_image(tex, rho_d),
+        _texel_image(tex, rho_s),
+        _unit(_texel_image(tex, tex.normal)),
+        _unit(_texel_image(tex, tangent)),
+        _texel_image(tex, alpha),
+    )
     return maps, labels
 
 
