@@ -12,24 +12,16 @@ stderr for bad input.
 from __future__ import annotations
 
 import argparse
-import os
 import sys
-import tempfile
 from pathlib import Path
 
 import bpy  # noqa: F401  (before torch, which the engine imports)
 
-from ntp_engine.io.errors import NtpInputError
+from ntp_engine.io.atomic import atomic_path
+from ntp_engine.io.errors import NtpInputError, error_line
 
 from . import material
 from . import scene as bscene
-
-
-def _tmp_beside(target: Path) -> Path:
-    target.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{target.stem}.", suffix=target.suffix, dir=target.parent)
-    os.close(fd)
-    return Path(tmp)
 
 
 def export(
@@ -51,46 +43,38 @@ def export(
     bscene.relight_rig(obj, *size, samples=samples, turntable_frames=turntable)
     written = {}
     if gltf is not None:
-        tmp = _tmp_beside(gltf)
         chosen = obj.data.materials[0]
         obj.data.materials[0] = principled  # glTF carries the Principled material
         try:
             bpy.ops.object.select_all(action="DESELECT")
             obj.select_set(True)
             bpy.context.view_layer.objects.active = obj
-            bpy.ops.export_scene.gltf(
-                filepath=str(tmp),
-                export_format="GLB",
-                use_selection=True,
-                export_tangents=True,
-                export_cameras=False,
-                export_lights=False,
-            )
-            os.replace(tmp, gltf)
+            with atomic_path(gltf) as tmp:
+                bpy.ops.export_scene.gltf(
+                    filepath=str(tmp),
+                    export_format="GLB",
+                    use_selection=True,
+                    export_tangents=True,
+                    export_cameras=False,
+                    export_lights=False,
+                )
         finally:
             obj.data.materials[0] = chosen
-            tmp.unlink(missing_ok=True)
         written["gltf"] = str(gltf)
     if preview is not None:
-        tmp = _tmp_beside(preview)
         scene = bpy.context.scene
         scene.view_settings.view_transform = "AgX"
         scene.render.image_settings.file_format = "PNG"
-        scene.render.filepath = str(tmp)
-        try:
+        with atomic_path(preview) as tmp:
+            scene.render.filepath = str(tmp)
             bpy.ops.render.render(write_still=True)
-            os.replace(tmp, preview)
-        finally:
-            tmp.unlink(missing_ok=True)
         written["preview"] = str(preview)
     if blend is not None:
-        tmp = _tmp_beside(blend)
-        try:
-            bpy.ops.wm.save_as_mainfile(filepath=str(tmp), copy=True, compress=True)
-            os.replace(tmp, blend)
-        finally:
-            tmp.unlink(missing_ok=True)
-            Path(str(tmp) + "1").unlink(missing_ok=True)
+        with atomic_path(blend) as tmp:
+            try:
+                bpy.ops.wm.save_as_mainfile(filepath=str(tmp), copy=True, compress=True)
+            finally:
+                Path(str(tmp) + "1").unlink(missing_ok=True)  # Blender's backup of the file it replaced
         written["blend"] = str(blend)
     return {"object": obj.name, "materials": [principled.name, accurate.name], "variant": variant, **written}
 
@@ -108,9 +92,12 @@ def main(argv: list[str] | None = None) -> int:
     a = p.parse_args(argv)
     try:
         info = export(a.result, a.blend, a.gltf, a.preview, a.variant, a.samples, turntable=a.turntable)
-    except NtpInputError as err:
-        print(f"ntp_addon.batch: error: {err}", file=sys.stderr)
+    except (NtpInputError, OSError) as err:
+        print(f"ntp_addon.batch: error: {error_line(err)}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:
+        print("ntp_addon.batch: interrupted — nothing half-written was left", file=sys.stderr)
+        return 130
     for k in ("blend", "gltf", "preview"):
         if k in info:
             print(f"wrote {info[k]}")

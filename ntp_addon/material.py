@@ -29,6 +29,7 @@ from ntp_engine.io.errors import NtpInputError
 from ntp_engine.io.maps import MAP_FILES, SVBRDFMaps
 from ntp_engine.io.mesh import load_mesh
 from ntp_engine.physics.brdf import F0_DIELECTRIC
+from ntp_engine.pipeline.output_folder import REPORT, is_complete
 
 from . import derive
 
@@ -52,6 +53,10 @@ def read_result(folder: str | Path) -> ResultInputs:
     folder = Path(folder)
     if not folder.is_dir():
         raise NtpInputError(folder, "result folder does not exist")
+    if not is_complete(folder):  # report.json is written last: without it the maps may be mixed
+        raise NtpInputError(
+            folder / REPORT, "missing: the result is incomplete (interrupted?) — run ntp reconstruct again"
+        )
     for f in (*MAP_FILES.values(), "mesh.obj"):
         if not (folder / f).is_file():
             raise NtpInputError(folder / f, "map file missing" if f.endswith(".exr") else "mesh missing")

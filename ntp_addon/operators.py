@@ -11,6 +11,7 @@ event loop) it waits for the process instead.
 from __future__ import annotations
 
 import os
+import signal
 import subprocess
 import sys
 import tempfile
@@ -19,7 +20,7 @@ from pathlib import Path
 
 import bpy
 
-from ntp_engine.io.errors import NtpInputError
+from ntp_engine.io.errors import NtpInputError, error_line
 from ntp_engine.io.progress import read_progress
 from ntp_engine.pipeline.scan_folder import load_poses, load_scan
 
@@ -97,7 +98,7 @@ def progress_status(record: dict) -> tuple[str, float]:
 
 class _EngineProcess:
     """An ``ntp`` command in a child process: modal with a timer in the UI (progress from its JSON
-    lines, ESC terminates it), waited for in background mode. Subclasses give ``_command`` (the
+    lines, ESC interrupts it), waited for in background mode. Subclasses give ``_command`` (the
     arguments after ``ntp``) and ``_succeeded``."""
 
     _proc = None
@@ -166,8 +167,8 @@ class _EngineProcess:
             return {"CANCELLED"}
         try:
             s.status, s.progress = self._succeeded(context, out), 100.0
-        except NtpInputError as err:
-            s.status = str(err)
+        except (NtpInputError, OSError) as err:
+            s.status = error_line(err)
             self.report({"ERROR"}, s.status)
             return {"CANCELLED"}
         self.report({"INFO"}, s.status)
@@ -192,7 +193,15 @@ class _EngineProcess:
     def modal(self, context, event):
         wm = context.window_manager
         if event.type == "ESC":
-            self._proc.terminate()
+            # SIGINT: the engine removes its temporary files and exits 130 (Windows: terminate)
+            if sys.platform == "win32":
+                self._proc.terminate()
+            else:
+                self._proc.send_signal(signal.SIGINT)
+            try:
+                self._proc.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                self._proc.kill()  # the next run removes what it left
             self._cleanup(context)
             _settings(context).status = "cancelled (a re-run resumes from the last finished stage)"
             self.report({"WARNING"}, _settings(context).status)
@@ -289,8 +298,8 @@ class NTP_OT_build_material(bpy.types.Operator):
             material.read_result(folder)  # everything checked before anything is created
             obj = _target_object(context) or material.import_result_mesh(folder)
             p, a = material.build_materials(folder, obj, s.variant)
-        except NtpInputError as err:
-            self.report({"ERROR"}, str(err))
+        except (NtpInputError, OSError) as err:
+            self.report({"ERROR"}, error_line(err))
             return {"CANCELLED"}
         context.view_layer.objects.active = obj
         self.report({"INFO"}, f"built {p.name} and {a.name} on {obj.name}")

@@ -15,7 +15,7 @@ from .bench import physics as bench_physics
 from .bench import scan as bench_scan
 from .bench import stability as bench_stability
 from .bench import virtual_scan as bench_virtual_scan
-from .io.errors import NtpInputError
+from .io.errors import NtpInputError, error_line
 from .io.progress import Progress
 from .learn import models
 from .learn.network import NetworkConfig
@@ -29,15 +29,25 @@ from .sim.cycles_scan import CyclesConfig, cycles_scan
 from .sim.gallery import GALLERY
 from .sim.virtual_scan import ScanConfig, virtual_scan
 
+INTERRUPTED = "interrupted — finished stages are kept, re-run to resume"
+
 
 def main(argv: list[str] | None = None) -> int:
-    """Run ``ntp`` with ``argv`` (default: the process's); returns the exit code."""
+    """Run ``ntp`` with ``argv`` (default: the process's); returns the exit code: 2 and one line on
+    stderr for bad input or a file that cannot be read or written (read-only, disk full), 130 for
+    Ctrl-C."""
     args = _parser().parse_args(argv)
     try:
         return args.func(args)
-    except NtpInputError as err:
-        print(f"ntp: error: {err}", file=sys.stderr)
-        return 2
+    except (NtpInputError, OSError) as err:
+        return _fail(error_line(err), 2)
+    except KeyboardInterrupt:
+        return _fail(INTERRUPTED, 130)
+
+
+def _fail(line: str, code: int) -> int:
+    print(f"ntp: {line}" if code == 130 else f"ntp: error: {line}", file=sys.stderr)
+    return code
 
 
 def _progress(args: argparse.Namespace) -> Progress:

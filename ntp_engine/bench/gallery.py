@@ -25,6 +25,7 @@ from ..io.atomic import write_text_atomic
 from ..io.errors import NtpInputError
 from ..io.progress import QUIET, Progress
 from ..pipeline.cache import content_digest, digest
+from ..pipeline.output_folder import claim
 from ..pipeline.scan_folder import load_poses, load_scan
 from ..pipeline.stages import reconstruct, register_photos
 from ..sim.cycles_scan import CyclesConfig, cycles_scan
@@ -127,28 +128,30 @@ def run(
             f"objects from {', '.join(GALLERY)}; scanners from {', '.join(SCANNERS)}; poses from {', '.join(POSES)}",
         )
     out = Path(out)
-    t_all = time.perf_counter()
-    runs = []
-    for name in settings.objects:
-        asset = build_asset(name, out / "assets" / name)
-        for scanner in settings.scanners:
-            scan_dir = out / "scans" / f"{name}-{scanner}"
-            t0 = time.perf_counter()
-            capture = _scan(settings, name, scanner, scan_dir, asset, progress)
-            t_scan = time.perf_counter() - t0
-            for poses in settings.poses:
-                result = _evaluate(settings, scan_dir, poses, out / "results" / f"{name}-{scanner}-{poses}", progress)
-                runs.append(
-                    {
-                        "object": name,
-                        "scanner": scanner,
-                        "poses": poses,
-                        "seconds_scan": t_scan,
-                        "seconds_per_photo": capture["seconds_per_photo"],
-                        **result,
-                    }
-                )
-                t_scan = 0.0  # counted once per scan
+    with claim(out, "gallery"):
+        t_all = time.perf_counter()
+        runs = []
+        for name in settings.objects:
+            asset = build_asset(name, out / "assets" / name)
+            for scanner in settings.scanners:
+                scan_dir = out / "scans" / f"{name}-{scanner}"
+                t0 = time.perf_counter()
+                capture = _scan(settings, name, scanner, scan_dir, asset, progress)
+                t_scan = time.perf_counter() - t0
+                for poses in settings.poses:
+                    result_dir = out / "results" / f"{name}-{scanner}-{poses}"
+                    result = _evaluate(settings, scan_dir, poses, result_dir, progress)
+                    runs.append(
+                        {
+                            "object": name,
+                            "scanner": scanner,
+                            "poses": poses,
+                            "seconds_scan": t_scan,
+                            "seconds_per_photo": capture["seconds_per_photo"],
+                            **result,
+                        }
+                    )
+                    t_scan = 0.0  # counted once per scan
     record = {"settings": asdict(settings), "runs": runs, "seconds": time.perf_counter() - t_all}
     tables = markdown(record)
     write_text_atomic(out / "gallery.json", json.dumps(record, indent=1, default=float))

@@ -1,4 +1,8 @@
-"""Atomic file output: write to a temporary file beside the target, then rename over it."""
+"""Atomic file output: write to a temporary file beside the target, then rename over it.
+
+Every temporary file or folder ntp makes is named ``TEMP_PREFIX + ...`` (``temp_dir``,
+``atomic_path``), so what a killed run leaves can be recognised and removed, and nothing else.
+"""
 
 from __future__ import annotations
 
@@ -8,6 +12,21 @@ import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
+TEMP_PREFIX = ".ntp-tmp."
+
+
+def temp_dir(parent: Path, stem: str) -> Path:
+    """A new empty folder ``parent/.ntp-tmp.<stem>.XXXXXXXX`` (mode 0700 until renamed)."""
+    parent.mkdir(parents=True, exist_ok=True)
+    return Path(tempfile.mkdtemp(prefix=f"{TEMP_PREFIX}{stem}.", dir=parent))
+
+
+def umask_mode(mode: int) -> int:
+    """``mode`` less the process's umask: what ``open``/``mkdir`` would give a new file/folder."""
+    umask = os.umask(0)
+    os.umask(umask)
+    return mode & ~umask
+
 
 @contextlib.contextmanager
 def atomic_path(target: str | Path) -> Iterator[Path]:
@@ -15,11 +34,9 @@ def atomic_path(target: str | Path) -> Iterator[Path]:
     success, delete it on failure. A reader never sees a half-written file."""
     target = Path(target)
     target.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{target.stem}.", suffix=target.suffix, dir=target.parent)
+    fd, tmp = tempfile.mkstemp(prefix=f"{TEMP_PREFIX}{target.stem}.", suffix=target.suffix, dir=target.parent)
     os.close(fd)
-    umask = os.umask(0)
-    os.umask(umask)
-    os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes 0600; a finished file gets the usual mode
+    os.chmod(tmp, umask_mode(0o666))  # mkstemp makes 0600; a finished file gets the usual mode
     tmp_path = Path(tmp)
     try:
         yield tmp_path

@@ -12,3 +12,11 @@ class NtpInputError(ValueError):
         self.path = None if path is None else Path(path)
         self.problem = " ".join(str(problem).split())  # always one line
         super().__init__(f"{self.path}: {self.problem}" if self.path else self.problem)
+
+
+def error_line(err: NtpInputError | OSError) -> str:
+    """What a person reads, one line naming the file: the input error, or an operating-system
+    error as ``path: No space left on device``."""
+    if isinstance(err, NtpInputError) or not err.filename:
+        return " ".join(str(err).split())
+    return f"{err.filename}: {' '.join((err.strerror or str(err)).split())}"

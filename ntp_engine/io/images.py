@@ -6,6 +6,10 @@ holds 8-bit values of ``clip(x, 0, 1) * 255`` (no colour transform: callers choo
 
 from __future__ import annotations
 
+import contextlib
+import os
+import sys
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -45,17 +49,37 @@ def write_png(path: str | Path, pixels: np.ndarray) -> None:
     _write(Path(path), q, oiio.UINT8)
 
 
-def read_image(path: str | Path) -> np.ndarray:
-    """Read any image OpenImageIO knows as float32 ``(H, W, C)``; 8-bit files come back in [0, 1]."""
-    path = Path(path)
-    inp = oiio.ImageInput.open(str(path))
-    if inp is None:
-        raise NtpInputError(path, f"cannot read image ({oiio.geterror().strip() or 'unknown format'})")
+@contextlib.contextmanager
+def _quiet_stderr() -> Iterator[None]:
+    """Silence C libraries writing to file descriptor 2 (libpng prints its errors there; ours are
+    raised as one line instead)."""
+    sys.stderr.flush()
+    saved = os.dup(2)
+    devnull = os.open(os.devnull, os.O_WRONLY)
     try:
-        pixels = inp.read_image(oiio.FLOAT)
-        if pixels is None:
-            raise NtpInputError(path, f"cannot decode image ({inp.geterror().strip()})")
+        os.dup2(devnull, 2)
+        yield
     finally:
-        inp.close()
+        os.dup2(saved, 2)
+        os.close(saved)
+        os.close(devnull)
+
+
+def read_image(path: str | Path) -> np.ndarray:
+    """Read any image OpenImageIO knows as float32 ``(H, W, C)``; 8-bit files come back in [0, 1].
+    Strict: a file the decoder reports any problem with raises ``NtpInputError`` (a truncated JPEG
+    would otherwise decode, its missing rows grey)."""
+    path = Path(path)
+    with _quiet_stderr():
+        inp = oiio.ImageInput.open(str(path))
+        if inp is None:
+            raise NtpInputError(path, f"cannot read image ({oiio.geterror().strip() or 'unknown format'})")
+        try:
+            pixels = inp.read_image(oiio.FLOAT)
+            problem = inp.geterror().strip().splitlines() if pixels is None or inp.has_error else None
+        finally:
+            inp.close()
+    if problem is not None:
+        raise NtpInputError(path, f"truncated or corrupt image ({problem[0] if problem else 'decode failed'})")
     pixels = np.asarray(pixels, dtype=np.float32)
     return pixels if pixels.ndim == 3 else pixels[..., None]

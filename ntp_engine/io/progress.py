@@ -10,6 +10,7 @@ it starts, at most every ``min_interval_s`` while it runs, and when it ends, so 
 from __future__ import annotations
 
 import json
+import sys
 import time
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
@@ -45,6 +46,12 @@ class Progress:
 
 
 QUIET = Progress()  # no bars, no file
+
+
+def warn(message: str) -> None:
+    """One line on stderr for a person: something was skipped or redone, and the run goes on
+    (printed through tqdm so a running bar is not broken)."""
+    tqdm.write(f"ntp: warning: {' '.join(message.split())}", file=sys.stderr)
 
 
 class StageCounter:

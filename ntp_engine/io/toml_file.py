@@ -15,6 +15,8 @@ def read_toml(path: Path, missing: str, error: type[NtpInputError] = NtpInputErr
             return tomllib.load(fh)
     except FileNotFoundError:
         raise error(path, missing) from None
+    except UnicodeDecodeError as err:
+        raise error(path, f"not UTF-8 text (byte 0x{err.object[err.start]:02x} at offset {err.start})") from None
     except tomllib.TOMLDecodeError as err:
         raise error(path, f"not valid TOML ({err})") from None
     except OSError as err:

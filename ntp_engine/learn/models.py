@@ -56,10 +56,18 @@ def load(
     Without one, the default device's geometry is used with the network's own pattern — for
     synthetic evaluation, where the network's pattern is the truth."""
     folder = resolve(name_or_path)
-    meta = json.loads((folder / "config.json").read_text())
-    cfg = NetworkConfig(**meta["network"])
+    try:
+        meta = json.loads((folder / "config.json").read_text(encoding="utf-8"))
+        cfg = NetworkConfig(**meta["network"])
+    except (OSError, ValueError, KeyError, TypeError) as err:
+        raise NtpInputError(
+            folder / "config.json", f"not a model configuration ({type(err).__name__}: {err})"
+        ) from None
     net = TraceNet(cfg, scanner or load_scanner())
-    state = torch.load(folder / "model.pt", map_location=map_location, weights_only=True)
+    try:
+        state = torch.load(folder / "model.pt", map_location=map_location, weights_only=True)
+    except Exception as err:  # noqa: BLE001 - torch raises many types for a damaged file
+        raise NtpInputError(folder / "model.pt", f"cannot read the weights ({type(err).__name__}: {err})") from None
     missing, unexpected = net.load_state_dict({k: v.float() for k, v in state.items()}, strict=False)
     if unexpected or set(missing) - set(DEVICE_BUFFERS):
         raise NtpInputError(

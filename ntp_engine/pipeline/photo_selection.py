@@ -13,7 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..io.progress import QUIET, Progress
+from ..io.errors import NtpInputError
+from ..io.progress import QUIET, Progress, warn
 from ..scanner.scanner import Scanner
 from .scan_folder import read_photo
 
@@ -49,11 +50,14 @@ def blur_score(codes: np.ndarray) -> float:
 def select_photos(
     paths: list[Path], scanner: Scanner, margin: float = BLUR_MARGIN, progress: Progress = QUIET
 ) -> Selection:
-    """Keep the readable photos of the camera's size whose blur is at most the median + ``margin``."""
+    """Keep the readable photos of the camera's size whose blur is at most the median + ``margin``;
+    each photo left out as unreadable (truncated, corrupt, wrong size) is named on stderr."""
     scores, unreadable = {}, []
     for p in progress.track(paths, "blur check", unit="photo"):
-        img = read_photo(p, scanner)
-        if img is None:
+        try:
+            img = read_photo(p, scanner)
+        except NtpInputError as err:
+            warn(f"{err} — skipped")
             unreadable.append(p.name)
             continue
         scores[p.name] = blur_score(img)

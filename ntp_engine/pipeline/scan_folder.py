@@ -5,14 +5,15 @@ support at the mesh's lowest z (default true: SfM alignment uses the support, an
 LEDs the support shadows are skipped).
 
 Every problem is a one-line ``NtpInputError`` naming the file; photos that cannot be read are not
-errors but are listed (``Scan.unreadable``). The pipeline never writes into a scan folder; a
-virtual scanner creates one with ``write_scan_toml``.
+errors but are left out by photo selection, each named on stderr. A mesh whose size is implausible
+for the scanner (``check_mesh_size``: a mesh in millimetres reads 1000x too large) is refused. The
+pipeline never writes into a scan folder; a virtual scanner creates one with ``write_scan_toml``.
 """
 
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -20,11 +21,16 @@ import numpy as np
 from ..io.atomic import write_text_atomic
 from ..io.errors import NtpInputError
 from ..io.images import read_image
+from ..io.mesh import Mesh
 from ..io.toml_file import read_toml
 from ..scanner.device_file import load_scanner
 from ..scanner.scanner import Scanner
 
 PHOTO_SUFFIXES = (".png", ".jpg", ".jpeg")
+# a plausible object is this many times the valid volume's largest edge across (1.5 mm to 3 m for
+# the paper's 15 cm volume); outside it the mesh is almost surely in another unit than metres
+MESH_SIZE_RANGE = (0.01, 20.0)
+_UNITS = (("millimetres", 1e-3), ("centimetres", 1e-2), ("inches", 0.0254), ("kilometres", 1e3))
 
 
 @dataclass
@@ -37,7 +43,6 @@ class Scan:
     scanner: Scanner
     photo_paths: list[Path]
     poses: dict[str, np.ndarray] | None = None
-    unreadable: list[str] = field(default_factory=list)
     support_plane: bool = True  # the object stands on a flat support at the mesh's lowest z
 
 
@@ -64,8 +69,8 @@ def _path(folder: Path, table: dict, key: str, toml: Path) -> Path | None:
 def load_poses(path: Path) -> dict[str, np.ndarray]:
     """``{"photo name": 4x4 camera-from-world}``; each must be a finite rigid transform."""
     try:
-        data = json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError) as err:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as err:  # unreadable, not UTF-8, not JSON
         raise NtpInputError(path, f"cannot read poses ({err})") from None
     if not isinstance(data, dict) or not data:
         raise NtpInputError(path, "expected an object mapping photo names to 4x4 matrices")
@@ -107,14 +112,38 @@ def load_scan(folder: str | Path, poses_file: str | Path | None = None, device_f
     )
 
 
-def read_photo(path: Path, scanner: Scanner) -> np.ndarray | None:
-    """8-bit codes ``(H, W, 3)`` float, or None if unreadable or not the scanner camera's size."""
-    try:
-        img = read_image(path)
-    except NtpInputError:
-        return None
+def check_mesh_size(mesh: Mesh, scanner: Scanner, path: Path) -> None:
+    """``NtpInputError`` naming the mesh file and the likely unit if the mesh's largest extent is
+    implausible for ``scanner``'s valid volume (``MESH_SIZE_RANGE``)."""
+    extent = float((mesh.vertices.max(0) - mesh.vertices.min(0)).max())
+    edge = float(np.max(scanner.valid_size))
+    if MESH_SIZE_RANGE[0] * edge <= extent <= MESH_SIZE_RANGE[1] * edge:
+        return
+    # the unit that makes the object about the size of the valid volume
+    unit = min(_UNITS, key=lambda u: abs(np.log(max(extent * u[1], 1e-30) / edge)))[0]
+    raise NtpInputError(
+        path,
+        f"the mesh is {_length(extent)} across — is it in {unit}? (ntp reads meshes in metres; the "
+        f"scanner's valid volume is {_length(edge)})",
+    )
+
+
+def _length(metres: float) -> str:
+    """A length for a person: ``90 m``, ``4.2 cm``, ``0.09 mm``."""
+    for unit, size in (("km", 1e3), ("m", 1.0), ("cm", 1e-2), ("mm", 1e-3)):
+        if metres >= size or unit == "mm":
+            return f"{metres / size:.3g} {unit}"
+    raise AssertionError
+
+
+def read_photo(path: Path, scanner: Scanner) -> np.ndarray:
+    """8-bit codes ``(H, W, 3)`` float; ``NtpInputError`` naming the photo if it is unreadable,
+    truncated or corrupt, or not the scanner camera's size."""
+    img = read_image(path)
     if img.shape[:2] != (scanner.height, scanner.width) or img.shape[2] < 3:
-        return None
+        raise NtpInputError(
+            path, f"{img.shape[1]}x{img.shape[0]} photo, the camera takes {scanner.width}x{scanner.height} RGB"
+        )
     return np.round(img[..., :3] * 255.0)
 
 

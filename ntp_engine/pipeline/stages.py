@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..io.atomic import write_text_atomic
+from ..io.atomic import temp_dir, write_text_atomic
 from ..io.errors import NtpInputError
 from ..io.mesh import Mesh, load_mesh, save_obj
 from ..io.progress import QUIET, Progress
@@ -30,16 +30,20 @@ from ..learn.ragged import RaggedTraces
 from ..scanner.device_file import scanner_to_dict
 from . import traces as trace_assembly
 from .align import align_to_mesh
-from .cache import StageCache, digest, file_key
+from .cache import StageCache, content_digest, content_key, digest
 from .fit_traces import ALBEDO_VIEWS, RHO_S_PRIOR_WEIGHT, fit_traces
+from .output_folder import claim, publish
 from .photo_selection import BLUR_MARGIN, Selection, select_photos
 from .result import write_result
-from .scan_folder import Scan, read_photo
+from .scan_folder import Scan, check_mesh_size, read_photo
 from .sfm import MIN_REGISTERED, structure_from_motion
 from .texels import Texels, rasterize, uv_atlas
 
 DEFAULT_RESOLUTION = 1024  # texture maps are DEFAULT_RESOLUTION^2 unless asked otherwise
 MIN_RESOLUTION = 8
+# below these a run has measured too little to be a result: refused (exit 2), not written
+MIN_PHOTOS_USED = 3
+MIN_COVERAGE = 0.05  # fraction of texels with a trace
 
 
 class _Report:
@@ -54,11 +58,19 @@ class _Report:
 
 
 def register_photos(
-    scan: Scan, out: Path, blur_margin: float = BLUR_MARGIN, progress: Progress = QUIET, cache: StageCache | None = None
+    scan: Scan, out: Path, blur_margin: float = BLUR_MARGIN, progress: Progress = QUIET
 ) -> tuple[dict[str, np.ndarray], dict, str]:
     """Stages 1-2 (photo selection, then the poses file or SfM + alignment), cached under
-    ``out/cache``. Returns (camera-from-world poses by photo name, report entries, poses key)."""
-    cache = cache or StageCache(Path(out) / "cache")
+    ``out/cache`` (``out`` is claimed as an ntp result folder). Returns (camera-from-world poses by
+    photo name, report entries, poses key)."""
+    check_mesh_size(load_mesh(scan.mesh_path), scan.scanner, scan.mesh_path)
+    with claim(out, "result", inputs=(scan.folder,)):
+        return _registration(scan, StageCache(Path(out) / "cache"), blur_margin, progress)
+
+
+def _registration(
+    scan: Scan, cache: StageCache, blur_margin: float, progress: Progress
+) -> tuple[dict[str, np.ndarray], dict, str]:
     report = _Report()
     t0 = time.perf_counter()
     sel, h_sel = _select_stage(scan, cache, blur_margin, progress)
@@ -75,7 +87,8 @@ def register_photos(
     if scan.poses is not None:
         poses = {n: scan.poses[n] for n in sel.kept if n in scan.poses}
         reg_info = {"source": "poses file", "unregistered": [n for n in sel.kept if n not in scan.poses]}
-        h_pose = digest({n: m.round(9).tolist() for n, m in poses.items()})
+        # the selection's key holds the photos' content: new photos with old poses are new traces
+        h_pose = digest({"select": h_sel, "poses": {n: m.round(9).tolist() for n, m in poses.items()}})
     else:
         poses, reg_info, h_pose = _register_stage(scan, cache, sel, h_sel, progress)
     report.timed("register", t0)
@@ -93,7 +106,7 @@ def write_registration(out: Path, poses: dict[str, np.ndarray], report: dict) ->
 
 def _select_stage(scan: Scan, cache: StageCache, blur_margin: float, progress: Progress) -> tuple[Selection, str]:
     key = {
-        "photos": [file_key(p) for p in scan.photo_paths],
+        "photos": content_key(scan.photo_paths),
         "margin": blur_margin,
         "camera": [scan.scanner.width, scan.scanner.height],
     }
@@ -147,7 +160,7 @@ def _register_stage(
 
     key = {
         "select": h_sel,
-        "mesh": file_key(scan.mesh_path),
+        "mesh": content_key([scan.mesh_path]),
         "support": scan.support_plane,
         "camera": {
             "K": scan.scanner.K,
@@ -168,14 +181,23 @@ def reconstruct(
     blur_margin: float = BLUR_MARGIN,
     progress: Progress = QUIET,
 ) -> dict:
-    """Run the pipeline on ``scan`` into ``out``; returns the report (also in ``out/report.json``)."""
+    """Run the pipeline on ``scan`` into ``out``; returns the report (also in ``out/report.json``,
+    written last). ``out`` must be absent, empty or an ntp result, outside the scan folder
+    (``output_folder.claim``); a run that measured too little is refused, the old result kept."""
     if resolution < MIN_RESOLUTION:
         raise NtpInputError(None, f"--resolution {resolution}: need at least {MIN_RESOLUTION}")
-    out = Path(out)
+    check_mesh_size(load_mesh(scan.mesh_path), scan.scanner, scan.mesh_path)
+    with claim(out, "result", inputs=(scan.folder,)):
+        return _reconstruct(scan, Path(out), resolution, model, blur_margin, progress)
+
+
+def _reconstruct(
+    scan: Scan, out: Path, resolution: int, model: str | None, blur_margin: float, progress: Progress
+) -> dict:
     cache = StageCache(out / "cache")
     t_all = time.perf_counter()
     report = _Report(scan=str(scan.folder))
-    poses, reg_report, h_pose = register_photos(scan, out, blur_margin, progress, cache)
+    poses, reg_report, h_pose = _registration(scan, cache, blur_margin, progress)
     report.data["stages"].update(reg_report.pop("stages"))
     report.data.update(reg_report)
     net, meta = models.load(model, scan.scanner)  # before any work: the model must fit the scanner
@@ -187,13 +209,20 @@ def reconstruct(
 
     t0 = time.perf_counter()
     traces, stats, h_tr = _traces_stage(scan, cache, texels, mesh, h_atlas, poses, h_pose, progress)
+    lengths = traces.lengths.numpy()
+    _check_measured(scan, stats, lengths, len(poses))
     scale = net.exposure() / float(scan.scanner.exposure(scan.scanner.pattern))
     traces.entries[:, :3] *= scale  # linear pixels as captured -> the model's exposure
     report.data["traces"] = stats
     report.timed("traces", t0)
 
     t0 = time.perf_counter()
-    model_key = {"model": meta["folder"], "summary": meta.get("summary", {})}
+    model_folder = Path(meta["folder"])
+    # the model by name and content, never by path: a moved install or copied result keeps its cache
+    model_key = {
+        "model": model_folder.name,
+        "weights": content_digest([model_folder / "config.json", model_folder / "model.pt"]),
+    }
 
     def fit_stage(d: Path) -> None:
         np.savez(d / "fit.npz", **fit_traces(net, scan.scanner, traces, scale, progress=progress))
@@ -205,27 +234,48 @@ def reconstruct(
     report.timed("network_and_fit", t0)
 
     t0 = time.perf_counter()
-    lengths = traces.lengths.numpy()
-    write_result(out, mesh, texels, fitted, lengths)
-    report.timed("maps", t0)
-    observed = lengths > 0
-    report.data.update(
-        {
-            "texels": {
-                "total": len(texels),
-                "observed": int(observed.sum()),
-                "coverage": float(observed.mean()) if len(texels) else 0.0,
-                "flagged": int((fitted["flags"] != 0).sum()),
-                "resolution": resolution,
-            },
-            "model": {"name": model_key["model"], **meta.get("summary", {})},
-            "cached_stages": cache.hits,
-            "seconds": round(time.perf_counter() - t_all, 3),
-        }
-    )
-    report.data["photos"]["used"] = stats["views_used"]
-    write_text_atomic(out / "report.json", json.dumps(report.data, indent=2))
+    staging = temp_dir(out, "result")  # every output here first, then moved into place
+    try:
+        write_result(staging, mesh, texels, fitted, lengths)
+        report.timed("maps", t0)
+        observed = lengths > 0
+        report.data.update(
+            {
+                "texels": {
+                    "total": len(texels),
+                    "observed": int(observed.sum()),
+                    "coverage": float(observed.mean()) if len(texels) else 0.0,
+                    "flagged": int((fitted["flags"] != 0).sum()),
+                    "resolution": resolution,
+                },
+                "model": {"name": str(model_folder), **meta.get("summary", {})},
+                "cached_stages": cache.hits,
+                "recomputed_damaged_stages": cache.recomputed,
+                "seconds": round(time.perf_counter() - t_all, 3),
+            }
+        )
+        report.data["photos"]["used"] = stats["views_used"]
+        publish(staging, out, json.dumps(report.data, indent=2))
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
     return report.data
+
+
+def _check_measured(scan: Scan, stats: dict, lengths: np.ndarray, posed: int) -> None:
+    """Refuse a run that measured too little to be a result (``MIN_PHOTOS_USED``, ``MIN_COVERAGE``),
+    naming the likely cause: a mesh not where the photos look, or poses of other photos."""
+    cause = "are the mesh and the poses in the same frame and units (metres)?"
+    if stats["views_used"] < MIN_PHOTOS_USED:
+        raise NtpInputError(
+            scan.mesh_path,
+            f"only {stats['views_used']} of {posed} posed photos see this mesh (need {MIN_PHOTOS_USED}) — {cause}",
+        )
+    coverage = float((lengths > 0).mean()) if len(lengths) else 0.0
+    if coverage < MIN_COVERAGE:
+        raise NtpInputError(
+            scan.mesh_path,
+            f"only {coverage:.1%} of the mesh's texels are seen in any photo (need {MIN_COVERAGE:.0%}) — {cause}",
+        )
 
 
 def _atlas_stage(scan: Scan, cache: StageCache, resolution: int) -> tuple[Mesh, str]:
@@ -235,16 +285,13 @@ def _atlas_stage(scan: Scan, cache: StageCache, resolution: int) -> tuple[Mesh, 
         mesh = load_mesh(scan.mesh_path)
         save_obj(d / "mesh.obj", mesh if mesh.uv is not None else uv_atlas(mesh, resolution))
 
-    folder, h_atlas = cache.get("atlas", {"mesh": file_key(scan.mesh_path), "resolution": resolution}, compute)
+    folder, h_atlas = cache.get("atlas", {"mesh": content_key([scan.mesh_path]), "resolution": resolution}, compute)
     return load_mesh(folder / "mesh.obj"), h_atlas
 
 
 def _photo_codes(scan: Scan, name: str) -> np.ndarray:
-    """A kept photo's 8-bit codes; it was readable when the photos were selected."""
-    codes = read_photo(scan.photos_dir / name, scan.scanner)
-    if codes is None:
-        raise NtpInputError(scan.photos_dir / name, "photo became unreadable since it was selected")
-    return codes.astype(np.uint8)
+    """A kept photo's 8-bit codes (its content is in the stage key, so it is the photo selected)."""
+    return read_photo(scan.photos_dir / name, scan.scanner).astype(np.uint8)
 
 
 def _traces_stage(

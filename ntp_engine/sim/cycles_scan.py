@@ -41,10 +41,11 @@ from ..io.mesh import save_obj
 from ..io.progress import QUIET, Progress
 from ..physics.measurement import measurement_rgb
 from ..pipeline.cache import content_digest, digest
+from ..pipeline.output_folder import claim
 from ..scanner import camera
 from ..scanner.device_file import load_scanner, save_scanner
 from ..scanner.scanner import Scanner
-from .virtual_scan import ScanConfig, load_asset, plan_capture, sensor, write_scan
+from .virtual_scan import ScanConfig, load_asset, plan_capture, remove_old_photos, sensor, write_scan
 
 RENDER_DIR = "cycles"
 POINT_LED_SIZE = 0.002  # m: side of the square area light standing in for a point LED
@@ -172,53 +173,55 @@ def cycles_scan(
     if np.any(np.asarray(cam.distortion) != 0):
         raise NtpInputError(device_path or DEVICES_DIR, "the Cycles scanner models a pinhole camera (distortion 0)")
 
-    folder = out / "ground_truth" / RENDER_DIR
-    key = {
-        "asset": content_digest([src_mesh, *(maps_dir / f for f in MAP_FILES.values())]),
-        "camera": [cam.width, cam.height, cam.K.tolist()],
-        "emitters": lights,
-        "poses": [p.tolist() for p in plan.poses],
-        "cycles": asdict(cycles),
-        "seed": cfg.seed,
-    }
-    key_digest = digest(key)
-    stamp = folder / "key.json"
-    if not (stamp.is_file() and json.loads(stamp.read_text()).get("digest") == key_digest):
-        if folder.exists():
-            shutil.rmtree(folder)
-        (folder / "asset").mkdir(parents=True)
-        save_obj(folder / "asset" / "mesh.obj", mesh)
-        maps.save(folder / "asset")
-        stamp.write_text(json.dumps({"digest": key_digest}))
-    save_scanner(cam, folder / "device.toml")
-    job = {
-        "asset": str(folder / "asset"),
-        "device": str(folder / "device.toml"),
-        "emitters": lights,
-        "watts_per_unit_drive": 1.0,  # any constant: the calibration absorbs it
-        "poses": {n: p.tolist() for n, p in plan.named_poses.items()},
-        "samples": cycles.samples,
-        "bounces": cycles.bounces,
-        "seed": cfg.seed,
-        "calibration": dict(
-            zip(("centre", "normal", "axis"), (v.tolist() for v in calibration_patch(scanner))),
-            size=CALIBRATION_PATCH,
-            samples=cycles.calibration_samples,
-        ),
-        "out": str(folder),
-    }
-    t0 = time.perf_counter()
-    renders = [folder / f"{Path(n).stem}.exr" for n in plan.names] + [folder / "calibration.exr"]
-    if not all(r.is_file() for r in renders):  # all cached: no Blender process to start
-        _render(job, folder, progress)
-    seconds = time.perf_counter() - t0
-    gain = calibration_gain(scanner, cam, read_image(folder / "calibration.exr")[..., :3].astype(np.float64))
-    exposure = cfg.exposure * float(scanner.exposure(scanner.pattern))
-    (out / "photos").mkdir(parents=True, exist_ok=True)
-    for i, name in enumerate(plan.names):
-        lin = exposure * gain * read_image(folder / f"{Path(name).stem}.exr")[..., :3].astype(np.float64)
-        img = sensor(lin, cam, cfg, plan.rng, blur=i in plan.blurred)
-        write_png(out / "photos" / name, img.astype(np.float64) / 255.0)
-    capture = plan.record("cycles", src_mesh, scanner, seconds, cycles=asdict(cycles), calibration_gain=gain.tolist())
-    write_scan(out, mesh, maps, cam, plan.named_poses, capture, maps_dir)
+    with claim(out, "scan", inputs=(src_mesh.parent, maps_dir)):
+        remove_old_photos(out, plan.names)
+        folder = out / "ground_truth" / RENDER_DIR
+        key = {
+            "asset": content_digest([src_mesh, *(maps_dir / f for f in MAP_FILES.values())]),
+            "camera": [cam.width, cam.height, cam.K.tolist()],
+            "emitters": lights,
+            "poses": [p.tolist() for p in plan.poses],
+            "cycles": asdict(cycles),
+            "seed": cfg.seed,
+        }
+        key_digest = digest(key)
+        stamp = folder / "key.json"
+        if not (stamp.is_file() and json.loads(stamp.read_text()).get("digest") == key_digest):
+            if folder.exists():
+                shutil.rmtree(folder)
+            (folder / "asset").mkdir(parents=True)
+            save_obj(folder / "asset" / "mesh.obj", mesh)
+            maps.save(folder / "asset")
+            stamp.write_text(json.dumps({"digest": key_digest}))
+        save_scanner(cam, folder / "device.toml")
+        job = {
+            "asset": str(folder / "asset"),
+            "device": str(folder / "device.toml"),
+            "emitters": lights,
+            "watts_per_unit_drive": 1.0,  # any constant: the calibration absorbs it
+            "poses": {n: p.tolist() for n, p in plan.named_poses.items()},
+            "samples": cycles.samples,
+            "bounces": cycles.bounces,
+            "seed": cfg.seed,
+            "calibration": dict(
+                zip(("centre", "normal", "axis"), (v.tolist() for v in calibration_patch(scanner))),
+                size=CALIBRATION_PATCH,
+                samples=cycles.calibration_samples,
+            ),
+            "out": str(folder),
+        }
+        t0 = time.perf_counter()
+        renders = [folder / f"{Path(n).stem}.exr" for n in plan.names] + [folder / "calibration.exr"]
+        if not all(r.is_file() for r in renders):  # all cached: no Blender process to start
+            _render(job, folder, progress)
+        seconds = time.perf_counter() - t0
+        gain = calibration_gain(scanner, cam, read_image(folder / "calibration.exr")[..., :3].astype(np.float64))
+        exposure = cfg.exposure * float(scanner.exposure(scanner.pattern))
+        for i, name in enumerate(plan.names):
+            lin = exposure * gain * read_image(folder / f"{Path(name).stem}.exr")[..., :3].astype(np.float64)
+            img = sensor(lin, cam, cfg, plan.rng, blur=i in plan.blurred)
+            write_png(out / "photos" / name, img.astype(np.float64) / 255.0)
+        extra = {"cycles": asdict(cycles), "calibration_gain": gain.tolist()}
+        capture = plan.record("cycles", src_mesh, scanner, seconds, **extra)
+        write_scan(out, mesh, maps, cam, plan.named_poses, capture, maps_dir)
     return capture

@@ -21,6 +21,7 @@ from pathlib import Path
 from ..io.atomic import write_text_atomic
 from ..io.errors import NtpInputError
 from ..io.progress import QUIET, Progress
+from ..pipeline.output_folder import claim
 from ..pipeline.scan_folder import load_poses, load_scan
 from ..pipeline.stages import MIN_RESOLUTION, reconstruct, register_photos
 from .evaluate import map_errors, pose_error, relit_ssim
@@ -80,74 +81,77 @@ def run(
     if views < 3 or not 0 < scale <= 1 or resolution < MIN_RESOLUTION:
         raise NtpInputError(None, f"need --views >= 3, 0 < --scale <= 1, --resolution >= {MIN_RESOLUTION}")
     out = Path(out)
-    t_all = time.perf_counter()
-    scan_dir, result_dir = out / "scan", out / "result"
-    cfg = ScanConfig(views=views, scale=scale, seed=seed)
-    capture = scan_dir / "ground_truth" / "capture.json"
-    t0 = time.perf_counter()
-    if not (capture.is_file() and json.loads(capture.read_text())["config"] == json.loads(json.dumps(cfg.__dict__))):
-        virtual_scan(scan_dir, cfg=cfg, progress=progress)
-    t_scan = time.perf_counter() - t0
+    with claim(out, "demo"):
+        t_all = time.perf_counter()
+        scan_dir, result_dir = out / "scan", out / "result"
+        cfg = ScanConfig(views=views, scale=scale, seed=seed)
+        capture = scan_dir / "ground_truth" / "capture.json"
+        t0 = time.perf_counter()
+        wanted = json.loads(json.dumps(cfg.__dict__))
+        if not (capture.is_file() and json.loads(capture.read_text())["config"] == wanted):
+            virtual_scan(scan_dir, cfg=cfg, progress=progress)
+        t_scan = time.perf_counter() - t0
 
-    truth = load_poses(scan_dir / "ground_truth" / "poses.json")
-    scan = load_scan(scan_dir, scan_dir / "ground_truth" / "poses.json" if known_poses else None)
-    t0 = time.perf_counter()
-    rep = reconstruct(scan, result_dir, resolution=resolution, model=model, progress=progress)
-    t_rec = time.perf_counter() - t0
-    poses, _, _ = register_photos(scan, result_dir)  # the poses the run used (cached)
+        truth = load_poses(scan_dir / "ground_truth" / "poses.json")
+        scan = load_scan(scan_dir, scan_dir / "ground_truth" / "poses.json" if known_poses else None)
+        t0 = time.perf_counter()
+        rep = reconstruct(scan, result_dir, resolution=resolution, model=model, progress=progress)
+        t_rec = time.perf_counter() - t0
+        poses, _, _ = register_photos(scan, result_dir)  # the poses the run used (cached)
 
-    t0 = time.perf_counter()
-    gt = scan_dir / "ground_truth"
-    errors = {**map_errors(result_dir, gt), **relit_ssim(result_dir, scan_dir / "mesh.obj", gt, save_dir=out / "relit")}
-    t_eval = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        gt = scan_dir / "ground_truth"
+        relit = relit_ssim(result_dir, scan_dir / "mesh.obj", gt, save_dir=out / "relit")
+        errors = {**map_errors(result_dir, gt), **relit}
+        t_eval = time.perf_counter() - t0
 
-    t0 = time.perf_counter()
-    blender = _blender_export(result_dir, out) if blend else {"skipped": "--no-blend"}
-    t_blend = time.perf_counter() - t0
-    metrics = {
-        "relit_ssim": errors["relit_ssim"],
-        "normal_median_deg": errors["normal_median_deg"],
-        "diffuse_rmse": errors["diffuse_rmse"],
-        "coverage": rep["texels"]["coverage"],
-        "seconds": time.perf_counter() - t_all,
-    }
-    summary = {
-        "config": {
-            "views": views,
-            "scale": scale,
-            "resolution": resolution,
-            "seed": seed,
-            "poses": "ground truth" if known_poses else "structure from motion",
-        },
-        "metrics": metrics,
-        "errors": errors,
-        "pose_error": pose_error(poses, truth),
-        "alignment": rep["registration"].get("alignment"),
-        "seconds": {
-            "virtual_scan": round(t_scan, 2),
-            "reconstruct": round(t_rec, 2),
-            "evaluate": round(t_eval, 2),
-            "blender": round(t_blend, 2),
-            "stages": rep["stages"],
-        },
-        "blender": blender,
-    }
-    write_text_atomic(out / "demo.json", json.dumps(summary, indent=2))
+        t0 = time.perf_counter()
+        blender = _blender_export(result_dir, out) if blend else {"skipped": "--no-blend"}
+        t_blend = time.perf_counter() - t0
+        metrics = {
+            "relit_ssim": errors["relit_ssim"],
+            "normal_median_deg": errors["normal_median_deg"],
+            "diffuse_rmse": errors["diffuse_rmse"],
+            "coverage": rep["texels"]["coverage"],
+            "seconds": time.perf_counter() - t_all,
+        }
+        summary = {
+            "config": {
+                "views": views,
+                "scale": scale,
+                "resolution": resolution,
+                "seed": seed,
+                "poses": "ground truth" if known_poses else "structure from motion",
+            },
+            "metrics": metrics,
+            "errors": errors,
+            "pose_error": pose_error(poses, truth),
+            "alignment": rep["registration"].get("alignment"),
+            "seconds": {
+                "virtual_scan": round(t_scan, 2),
+                "reconstruct": round(t_rec, 2),
+                "evaluate": round(t_eval, 2),
+                "blender": round(t_blend, 2),
+                "stages": rep["stages"],
+            },
+            "blender": blender,
+        }
+        write_text_atomic(out / "demo.json", json.dumps(summary, indent=2))
 
-    print(f"\nntp demo: {views} photos at {scale:g} scale, {resolution}^2 maps -> {result_dir}")
-    for k, (op, goal) in GOALS.items():
-        v = metrics[k]
-        ok = v >= goal if op == ">=" else v <= goal
-        print(f"  {k:18s} {v:10.4f}   goal {op} {goal:<6g} {'met' if ok else 'MISSED'}")
-    pe = summary["pose_error"]
-    if pe:
-        print(
-            f"  pose error: centre median {pe['centre_median_m'] * 1e3:.2f} mm, "
-            f"rotation median {pe['rotation_median_deg']:.3f} deg"
-        )
-    print(f"  wrote {out / 'demo.json'}, relit comparisons in {out / 'relit'}")
-    if "blend" in blender:
-        print(f"  Blender: {blender['blend']}, {blender['gltf']}, {blender['preview']}")
-    else:
-        print(f"  Blender: {blender.get('skipped') or blender.get('error')}")
-    return summary
+        print(f"\nntp demo: {views} photos at {scale:g} scale, {resolution}^2 maps -> {result_dir}")
+        for k, (op, goal) in GOALS.items():
+            v = metrics[k]
+            ok = v >= goal if op == ">=" else v <= goal
+            print(f"  {k:18s} {v:10.4f}   goal {op} {goal:<6g} {'met' if ok else 'MISSED'}")
+        pe = summary["pose_error"]
+        if pe:
+            print(
+                f"  pose error: centre median {pe['centre_median_m'] * 1e3:.2f} mm, "
+                f"rotation median {pe['rotation_median_deg']:.3f} deg"
+            )
+        print(f"  wrote {out / 'demo.json'}, relit comparisons in {out / 'relit'}")
+        if "blend" in blender:
+            print(f"  Blender: {blender['blend']}, {blender['gltf']}, {blender['preview']}")
+        else:
+            print(f"  Blender: {blender.get('skipped') or blender.get('error')}")
+        return summary

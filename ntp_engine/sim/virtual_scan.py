@@ -31,6 +31,7 @@ from ..io.images import write_png
 from ..io.maps import SVBRDFMaps
 from ..io.mesh import Mesh, load_mesh, save_obj
 from ..io.progress import QUIET, Progress
+from ..pipeline.output_folder import claim
 from ..pipeline.scan_folder import write_scan_toml
 from ..scanner import camera
 from ..scanner.device_file import load_scanner, save_scanner
@@ -139,14 +140,27 @@ def virtual_scan(
     scanner = load_scanner(device_path)
     plan = plan_capture(mesh, scanner, cfg)
     scene = Scene(mesh, maps, scanner, cfg.clusters, cfg.exposure)
-    (out / "photos").mkdir(parents=True, exist_ok=True)
-    t0 = time.perf_counter()
-    for i in progress.track(range(cfg.views), "virtual scan", unit="photo"):
-        img = take_photo(scene, plan.poses[i], plan.cam, cfg, plan.rng, blur=i in plan.blurred)
-        write_png(out / "photos" / plan.names[i], img.astype(np.float64) / 255.0)
-    capture = plan.record("engine", src_mesh, scanner, time.perf_counter() - t0)
-    write_scan(out, mesh, maps, plan.cam, plan.named_poses, capture, maps_dir)
+    with claim(out, "scan", inputs=(src_mesh.parent, maps_dir)):
+        remove_old_photos(out, plan.names)
+        t0 = time.perf_counter()
+        for i in progress.track(range(cfg.views), "virtual scan", unit="photo"):
+            img = take_photo(scene, plan.poses[i], plan.cam, cfg, plan.rng, blur=i in plan.blurred)
+            write_png(out / "photos" / plan.names[i], img.astype(np.float64) / 255.0)
+        capture = plan.record("engine", src_mesh, scanner, time.perf_counter() - t0)
+        write_scan(out, mesh, maps, plan.cam, plan.named_poses, capture, maps_dir)
     return capture
+
+
+def remove_old_photos(out: Path, names: list[str]) -> None:
+    """Before a capture into the scan folder ``out`` (claimed): delete the photos an earlier capture
+    wrote there (its ``capture.json`` lists them) that this one will not overwrite, so a re-scan with
+    fewer photos leaves no stale ones; then make ``out/photos``."""
+    record = out / "ground_truth" / "capture.json"
+    old = json.loads(record.read_text()).get("photos", []) if record.is_file() else []
+    record.unlink(missing_ok=True)  # the scan is incomplete until the new record is written
+    for name in set(old) - set(names):
+        (out / "photos" / Path(name).name).unlink(missing_ok=True)
+    (out / "photos").mkdir(parents=True, exist_ok=True)
 
 
 @dataclass
@@ -175,6 +189,7 @@ class CapturePlan:
             **extra,
             "source_mesh": str(src_mesh),
             "device": scanner.name,
+            "photos": self.names,
             "blurred_photos": sorted(self.names[i] for i in self.blurred),
             "seconds": seconds,
             "seconds_per_photo": seconds / max(self.cfg.views, 1),

@@ -2,6 +2,7 @@
 material's node links, .blend / .glb output, and Cycles against the engine's own render."""
 
 import json
+import os
 import shutil
 import struct
 import subprocess
@@ -26,6 +27,7 @@ def demo_result(tmp_path_factory):
     for f in (DEMO / "ground_truth").glob("*.exr"):
         shutil.copy(f, d / f.name)
     shutil.copy(DEMO / "mesh.obj", d / "mesh.obj")
+    (d / "report.json").write_text("{}")  # complete
     return d
 
 
@@ -89,6 +91,13 @@ def test_bad_result_folder_is_reported_and_builds_nothing(addon, demo_result, tm
     addon.result_folder = str(broken)
     n_mat, n_img = len(bpy.data.materials), len(bpy.data.images)
     with pytest.raises(RuntimeError, match="roughness.exr.*missing"):  # bpy turns an ERROR report into this
+        bpy.ops.ntp.build_material()
+    assert len(bpy.data.materials) == n_mat and len(bpy.data.images) == n_img
+    incomplete = tmp_path / "incomplete"
+    shutil.copytree(demo_result, incomplete)
+    (incomplete / "report.json").unlink()
+    addon.result_folder = str(incomplete)
+    with pytest.raises(RuntimeError, match="report.json: missing: the result is incomplete"):
         bpy.ops.ntp.build_material()
     assert len(bpy.data.materials) == n_mat and len(bpy.data.images) == n_img
     addon.scan_folder = str(tmp_path / "nowhere")
@@ -192,6 +201,28 @@ def test_batch_writes_blend_glb_preview_that_reopen(demo_result, tmp_path):
         text=True,
     )
     assert bad.returncode == 2 and "missing" in bad.stderr and "Traceback" not in bad.stderr
+    umask = os.umask(0)
+    os.umask(umask)
+    for f in ("a.blend", "a.glb", "a.png"):  # modes follow the umask (temporary files are 0600)
+        assert (out / f).stat().st_mode & 0o777 == 0o666 & ~umask, f
+    (tmp_path / "a_file").write_text("x")
+    for target, what in ((tmp_path / "a_file" / "x.glb", "Not a directory"), (demo_result, "Is a directory")):
+        bad = subprocess.run(
+            [sys.executable, "-m", "ntp_addon.batch", str(demo_result), "--gltf", str(target)],
+            capture_output=True,
+            text=True,
+        )
+        lines = bad.stderr.strip().splitlines()
+        assert bad.returncode == 2 and len(lines) == 1 and what in lines[0] and str(target) in lines[0], bad.stderr
+    incomplete = tmp_path / "incomplete"
+    shutil.copytree(demo_result, incomplete)
+    (incomplete / "report.json").unlink()
+    bad = subprocess.run(
+        [sys.executable, "-m", "ntp_addon.batch", str(incomplete), "--blend", str(out / "c.blend")],
+        capture_output=True,
+        text=True,
+    )
+    assert bad.returncode == 2 and "report.json: missing" in bad.stderr and not (out / "c.blend").exists()
 
 
 def test_cycles_render_agrees_with_the_engine(demo_result):

@@ -29,7 +29,7 @@ def test_stage_cache_keys_and_failures(tmp_path):
 
     with pytest.raises(RuntimeError):
         cache.get("s", {"k": 3}, fail)
-    assert (tmp_path / "s" / "x.txt").is_file() and not list(tmp_path.glob(".s.*"))  # old result intact
+    assert (tmp_path / "s" / "x.txt").is_file() and not list(tmp_path.glob(".ntp-tmp.*"))  # old result intact
     assert json.loads((tmp_path / "s" / "key.json").read_text())["key"] == {"k": 2}
 
 

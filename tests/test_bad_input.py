@@ -1,0 +1,407 @@
+"""The bad-input corpus: every way a user's input, output folder or run can go wrong, run through the
+``ntp`` command line as a user runs it. Each case asserts the exit code, a one-line message naming
+the file, inputs unchanged (checksums before/after) and a previous good result surviving (or, for
+damage ntp repairs, the same result as before). docs/pipeline.md lists the messages."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import resource
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from ntp_engine import cli
+from ntp_engine.io.images import read_image, write_png
+from ntp_engine.io.mesh import Mesh, load_mesh, save_obj
+from ntp_engine.learn import models
+from ntp_engine.pipeline.output_folder import claim, is_complete
+
+RES = "16"
+
+
+def checksums(folder: Path, skip: tuple[str, ...] = ()) -> dict[str, str]:
+    """SHA-256 of every file under ``folder`` (paths relative), leaving out top-level ``skip``."""
+    return {
+        str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest()
+        for p in sorted(folder.rglob("*"))
+        if p.is_file() and p.relative_to(folder).parts[0] not in skip
+    }
+
+
+def outputs(out: Path) -> dict[str, str]:
+    """The result's outputs (not the cache, not the report with its timings)."""
+    return checksums(out, skip=("cache", "report.json"))
+
+
+def reconstruct_argv(scan: Path, out: Path, *extra: str) -> list[str]:
+    poses = scan / "ground_truth" / "poses.json"
+    return ["reconstruct", str(scan), "--out", str(out), "--resolution", RES, "--poses", str(poses), "--quiet", *extra]
+
+
+@pytest.fixture(scope="module")
+def good(scan24, tmp_path_factory):
+    """A copy of the 24-photo scan (fresh file times) and a good result of it."""
+    root = tmp_path_factory.mktemp("corpus")
+    scan, out = root / "scan", root / "good"
+    shutil.copytree(scan24, scan, copy_function=shutil.copyfile)
+    assert cli.main(reconstruct_argv(scan, out)) == 0
+    return scan, out
+
+
+@pytest.fixture
+def copies(good, tmp_path):
+    """Private copies of the scan and of the good result for one case."""
+    scan, out = tmp_path / "scan", tmp_path / "out"
+    shutil.copytree(good[0], scan, copy_function=shutil.copyfile)
+    shutil.copytree(good[1], out, copy_function=shutil.copyfile)
+    return scan, out
+
+
+# ------------------------------------------------------------------------------ the refusals
+@dataclass(frozen=True)
+class Case:
+    """Break something (``setup(scan, out, tmp) -> argv``); expect exit ``code``, a last stderr line
+    containing ``message`` and the name ``names`` (a file or option)."""
+
+    setup: Callable[[Path, Path, Path], list[str]]
+    message: str
+    names: str
+    code: int = 2
+
+
+def _write(name: str, data: bytes | None) -> Callable[[Path, Path, Path], list[str]]:
+    """Replace (or with None delete) the scan's file ``name``."""
+
+    def setup(scan, out, tmp):
+        if data is None:
+            (scan / name).unlink()
+        else:
+            (scan / name).write_bytes(data)
+        return reconstruct_argv(scan, out)
+
+    return setup
+
+
+def _toml(text: bytes) -> Callable[[Path, Path, Path], list[str]]:
+    return _write("scan.toml", text)
+
+
+def _mesh(change: Callable[[Mesh], Mesh]) -> Callable[[Path, Path, Path], list[str]]:
+    def setup(scan, out, tmp):
+        save_obj(scan / "mesh.obj", change(load_mesh(scan / "mesh.obj")))
+        return reconstruct_argv(scan, out)
+
+    return setup
+
+
+def _moved(m: Mesh, scale: float = 1.0, shift: float = 0.0) -> Mesh:
+    return Mesh(m.vertices * scale + np.array([shift, 0, 0]), m.faces, m.uv, m.normals)
+
+
+def _photos(keep: int | None = None, truncate: bool = False) -> Callable[[Path, Path, Path], list[str]]:
+    def setup(scan, out, tmp):
+        for i, p in enumerate(sorted((scan / "photos").iterdir())):
+            if keep is not None and i >= keep:
+                p.unlink()
+            elif truncate:
+                p.write_bytes(p.read_bytes()[: p.stat().st_size // 2])
+        return reconstruct_argv(scan, out)
+
+    return setup
+
+
+def _poses(text: Callable[[dict], bytes]) -> Callable[[Path, Path, Path], list[str]]:
+    def setup(scan, out, tmp):
+        poses = json.loads((scan / "ground_truth" / "poses.json").read_text())
+        (tmp / "poses.json").write_bytes(text(poses))
+        return reconstruct_argv(scan, out)[:-3] + ["--poses", str(tmp / "poses.json"), "--quiet"]
+
+    return setup
+
+
+def _not_rigid(poses: dict) -> bytes:
+    first = next(iter(poses))
+    poses[first] = (np.array(poses[first]) * np.diag([2, 1, 1, 1])).tolist()
+    return json.dumps(poses).encode()
+
+
+def _device_file(text: bytes) -> Callable[[Path, Path, Path], list[str]]:
+    def setup(scan, out, tmp):
+        (tmp / "broken.toml").write_bytes(text)
+        return reconstruct_argv(scan, out, "--device", str(tmp / "broken.toml"))
+
+    return setup
+
+
+def _damaged_model(scan, out, tmp):
+    folder = tmp / "model"
+    shutil.copytree(models.resolve(None), folder)
+    (folder / "model.pt").write_bytes((folder / "model.pt").read_bytes()[:1000])
+    return reconstruct_argv(scan, out, "--model", str(folder))
+
+
+def _out(make: Callable[[Path, Path], Path], command: str = "reconstruct") -> Callable[[Path, Path, Path], list[str]]:
+    def setup(scan, out, tmp):
+        target = make(scan, tmp)
+        if command == "reconstruct":
+            return reconstruct_argv(scan, target)
+        if command == "register":
+            return ["register", str(scan), "--out", str(target), "--quiet"]
+        if command == "virtual-scan":
+            return ["virtual-scan", "--out", str(target), "--views", "2", "--scale", "0.05", "--quiet"]
+        return ["demo", "--out", str(target), "--views", "3", "--scale", "0.05", "--resolution", "8", "--quiet"]
+
+    return setup
+
+
+def _a_file(scan: Path, tmp: Path) -> Path:
+    (tmp / "result.txt").write_text("my notes")
+    return tmp / "result.txt"
+
+
+def _user_folder(scan: Path, tmp: Path) -> Path:
+    (tmp / "mine").mkdir()
+    (tmp / "mine" / "mesh.obj").write_text("my mesh")
+    (tmp / "mine" / "report.json").write_text("{}")
+    return tmp / "mine"
+
+
+CASES = {
+    "no_scan_toml": Case(_write("scan.toml", None), "no scan.toml", "scan.toml"),
+    "scan_toml_not_toml": Case(_toml(b'mesh = "mesh.obj\n'), "not valid TOML", "scan.toml"),
+    "scan_toml_not_utf8": Case(_toml(b'mesh = "m\xe9sh.obj"\n'), "not UTF-8 text", "scan.toml"),
+    "scan_toml_without_mesh": Case(
+        _toml(b'photos = "photos"\ndevice = "device.toml"\n'), "key 'mesh' missing", "scan.toml"
+    ),
+    "mesh_missing": Case(_write("mesh.obj", None), "does not exist", "mesh.obj"),
+    "mesh_garbage": Case(_write("mesh.obj", b"\x00\xffnot a mesh"), "mesh", "mesh.obj"),
+    "mesh_in_millimetres": Case(_mesh(lambda m: _moved(m, scale=1000)), "is it in millimetres?", "mesh.obj"),
+    "mesh_in_centimetres": Case(_mesh(lambda m: _moved(m, scale=100)), "is it in centimetres?", "mesh.obj"),
+    "mesh_one_metre_away": Case(_mesh(lambda m: _moved(m, shift=1.0)), "posed photos see this mesh", "mesh.obj"),
+    "device_not_utf8": Case(_device_file(b'name = "caf\xe9"\n'), "not UTF-8 text", "broken.toml"),
+    "device_bad_value": Case(_device_file(b'name = "x"\n[camera]\nwidth = "wide"\n'), "camera.width", "broken.toml"),
+    "photos_all_truncated": Case(_photos(truncate=True), "only 0 sharp, readable photos", "photos"),
+    "photos_two": Case(_photos(keep=2), "only 2 sharp, readable photos (need 3)", "photos"),
+    "photos_none": Case(_photos(keep=0), "no PNG/JPEG photos", "photos"),
+    "poses_not_utf8": Case(_poses(lambda p: b'{"0000.png": "\xe9"}'), "cannot read poses", "poses.json"),
+    "poses_truncated": Case(_poses(lambda p: json.dumps(p).encode()[:100]), "cannot read poses", "poses.json"),
+    "poses_not_rigid": Case(_poses(_not_rigid), "not a rotation plus translation", "poses.json"),
+    "poses_of_other_photos": Case(
+        _poses(lambda p: json.dumps({f"x{k}": v for k, v in p.items()}).encode()),
+        "no selected photo has a pose",
+        "photos",
+    ),
+    "model_missing": Case(
+        lambda s, o, t: reconstruct_argv(s, o, "--model", str(t / "nomodel")), "not a model folder", "nomodel"
+    ),
+    "model_weights_damaged": Case(_damaged_model, "cannot read the weights", "model.pt"),
+    "resolution_too_small": Case(lambda s, o, t: reconstruct_argv(s, o)[:5] + ["4"], "need at least 8", "--resolution"),
+    "out_is_a_file": Case(_out(_a_file), "is a file, not a folder", "result.txt"),
+    "out_is_users_folder": Case(_out(_user_folder), "not empty and not an ntp result folder", "mine"),
+    "out_is_the_scan": Case(_out(lambda s, t: s), "is inside the input folder", "scan"),
+    "out_inside_the_scan": Case(_out(lambda s, t: s / "result"), "is inside the input folder", "result"),
+    "register_out_is_a_file": Case(_out(_a_file, "register"), "is a file, not a folder", "result.txt"),
+    "virtual_scan_into_users_folder": Case(_out(_user_folder, "virtual-scan"), "not an ntp scan folder", "mine"),
+    "demo_into_users_folder": Case(_out(_user_folder, "demo"), "not an ntp demo folder", "mine"),
+}
+
+
+@pytest.mark.parametrize("name", list(CASES))
+def test_refused_in_one_line_inputs_and_result_kept(name, copies, tmp_path, capsys):
+    case, (scan, out) = CASES[name], copies
+    argv = case.setup(scan, out, tmp_path)
+    before = _state(tmp_path, out)
+    capsys.readouterr()
+    code = cli.main(argv)
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert code == case.code, lines
+    assert all(ln.startswith("ntp: ") for ln in lines) and "Traceback" not in "".join(lines)
+    assert case.message in lines[-1] and case.names in lines[-1], lines[-1]
+    assert _state(tmp_path, out) == before  # inputs, the user's files and the previous result, byte for byte
+    assert is_complete(out)
+    assert not (scan / "result").exists()
+
+
+def _state(tmp: Path, out: Path) -> dict:
+    """Checksums of everything in ``tmp`` but ``out``'s cache (finished stages are kept by design)."""
+    return {
+        p.name: checksums(p, skip=("cache",) if p == out else ()) if p.is_dir() else p.read_bytes()
+        for p in tmp.iterdir()
+    }
+
+
+def test_a_folder_in_use_is_refused(copies, capsys):
+    scan, out = copies
+    before = checksums(out)
+    with claim(out, "result"):
+        assert cli.main(reconstruct_argv(scan, out)) == 2
+    assert "another ntp run is writing to this folder" in capsys.readouterr().err
+    assert checksums(out) == before
+
+
+def test_a_read_only_out_is_refused(good, tmp_path, capsys):
+    # as root (CI) permissions do not bind: the run drops to nobody's effective uid
+    root = Path(tempfile_dir(tmp_path))
+    scan, out = root / "scan", root / "out"
+    shutil.copytree(good[0], scan, copy_function=shutil.copyfile)
+    out.mkdir()
+    os.chmod(out, 0o555)
+    try:
+        with _unprivileged():
+            code = cli.main(reconstruct_argv(scan, out))
+        lines = capsys.readouterr().err.strip().splitlines()
+        assert code == 2 and len(lines) == 1 and "cannot write here (Permission denied)" in lines[0]
+        assert str(out) in lines[0] and list(out.iterdir()) == []
+    finally:
+        os.chmod(out, 0o755)
+        shutil.rmtree(root)
+
+
+def tempfile_dir(tmp_path: Path) -> str:
+    """A folder anyone can enter (pytest's base folder is private to its user)."""
+    import tempfile
+
+    d = tempfile.mkdtemp(prefix="ntp-ro-")
+    os.chmod(d, 0o755)
+    return d
+
+
+class _unprivileged:
+    """Run as ``nobody`` (effective ids) when the tests run as root; otherwise nothing to do."""
+
+    def __enter__(self):
+        self.root = os.geteuid() == 0
+        if self.root:
+            os.setegid(65534)
+            os.seteuid(65534)
+
+    def __exit__(self, *exc):
+        if self.root:
+            os.seteuid(0)
+            os.setegid(0)
+
+
+# ------------------------------------------------------------------------------ damage repaired
+def _run_ok(argv: list[str], capsys) -> tuple[list[str], dict]:
+    capsys.readouterr()
+    assert cli.main(argv) == 0
+    lines = capsys.readouterr().err.strip().splitlines()
+    return lines, json.loads(Path(argv[argv.index("--out") + 1], "report.json").read_text())
+
+
+@pytest.mark.parametrize("damage", ["truncated_npz", "truncated_key", "edited_npz"])
+def test_a_damaged_cache_entry_is_recomputed(damage, good, copies, capsys):
+    scan, out = copies
+    target = {"truncated_npz": "traces/traces.npz", "truncated_key": "fit/key.json", "edited_npz": "fit/fit.npz"}
+    f = out / "cache" / target[damage]
+    data = f.read_bytes()
+    f.write_bytes(data[: len(data) // 2] if damage != "edited_npz" else data[:-5] + b"xxxxx")
+    lines, rep = _run_ok(reconstruct_argv(scan, out), capsys)
+    assert len(lines) == 1 and "cache entry damaged" in lines[0] and f.parent.name in lines[0]
+    assert rep["recomputed_damaged_stages"] == [f.parent.name]
+    assert outputs(out) == outputs(good[1])  # the same result, byte for byte
+
+
+def test_leftovers_of_a_killed_run_are_removed(copies, capsys):
+    scan, out = copies
+    (out / "cache" / ".ntp-tmp.traces.k1ll3d00").mkdir()
+    (out / ".ntp-tmp.result.k1ll3d00").mkdir()
+    (out / ".ntp-tmp.normal.k1ll3d00.exr").write_bytes(b"half")
+    _, rep = _run_ok(reconstruct_argv(scan, out), capsys)
+    assert rep["cached_stages"] == ["select", "atlas", "traces", "fit"]
+    assert not [p for p in out.rglob(".ntp-tmp.*")]
+
+
+def test_changed_photos_with_a_poses_file_recompute(good, copies, capsys):
+    scan, out = copies
+    for p in sorted((scan / "photos").iterdir()):
+        write_png(p, read_image(p) * 0.7)  # same names, same poses, other pixels
+    _, rep = _run_ok(reconstruct_argv(scan, out), capsys)
+    assert rep["cached_stages"] == ["atlas"]  # the photos' content is in the select stage's key, chained on
+    assert outputs(out)["diffuse_albedo.exr"] != outputs(good[1])["diffuse_albedo.exr"]
+
+
+def test_a_copied_scan_and_result_reuse_the_cache(good, copies, capsys):
+    scan, out = copies  # copied with fresh file times, to other absolute paths
+    time.sleep(0.01)
+    _, rep = _run_ok(reconstruct_argv(scan, out), capsys)
+    assert rep["cached_stages"] == ["select", "atlas", "traces", "fit"]
+    assert outputs(out) == outputs(good[1])
+
+
+def test_a_truncated_photo_is_named_and_left_out(copies, capsys):
+    scan, out = copies
+    bad = sorted((scan / "photos").iterdir())[3]
+    bad.write_bytes(bad.read_bytes()[: bad.stat().st_size // 2])
+    lines, rep = _run_ok(reconstruct_argv(scan, out), capsys)
+    assert len(lines) == 1 and bad.name in lines[0] and "truncated or corrupt" in lines[0]
+    assert rep["photos"]["unreadable"] == [bad.name] and rep["photos"]["kept"] == 23
+
+
+# ------------------------------------------------------------------------------ signals and full disks
+def _ntp(*args: str, preexec=None, **kw) -> subprocess.Popen:
+    cmd = [sys.executable, "-m", "ntp_engine.cli", *args]
+    return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, preexec_fn=preexec, **kw)
+
+
+def _wait_for_stage(progress: Path, stage: str, proc: subprocess.Popen, timeout: float = 120) -> None:
+    t0 = time.time()
+    while time.time() - t0 < timeout and proc.poll() is None:
+        if progress.is_file() and f'"stage": "{stage}"' in progress.read_text():
+            return
+        time.sleep(0.05)
+    raise AssertionError(f"stage {stage} never started")
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGKILL])
+def test_interrupted_runs_resume_to_the_same_result(sig, good, copies, tmp_path):
+    scan, out = copies
+    for stage in ("traces", "fit"):  # the run has the traces (seconds) and the fit to do
+        shutil.rmtree(out / "cache" / stage)
+    progress = tmp_path / "progress.jsonl"
+    proc = _ntp(*reconstruct_argv(scan, out), "--progress", str(progress))
+    _wait_for_stage(progress, "traces", proc)
+    proc.send_signal(sig)
+    _, err = proc.communicate(timeout=120)
+    if sig == signal.SIGINT:
+        assert proc.returncode == 130
+        assert err.strip() == "ntp: interrupted — finished stages are kept, re-run to resume"
+        assert not [p for p in out.rglob(".ntp-tmp.*")]  # an interrupt cleans up after itself
+    else:
+        assert proc.returncode == -signal.SIGKILL
+    assert is_complete(out)  # the previous result is untouched
+    rerun = _ntp(*reconstruct_argv(scan, out))
+    _, err = rerun.communicate(timeout=300)
+    assert rerun.returncode == 0, err
+    rep = json.loads((out / "report.json").read_text())
+    assert rep["cached_stages"] == ["select", "atlas"]
+    assert outputs(out) == outputs(good[1]) and not [p for p in out.rglob(".ntp-tmp.*")]
+
+
+def test_a_full_disk_is_one_line_and_the_result_survives(copies):
+    scan, out = copies
+    before = outputs(out)
+
+    def small_files():  # writes past 64 KiB fail as on a full disk (EFBIG here; ENOSPC reads the same)
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+        resource.setrlimit(resource.RLIMIT_FSIZE, (64 * 1024, 64 * 1024))
+
+    argv = reconstruct_argv(scan, out)
+    argv[argv.index("--resolution") + 1] = "32"  # a new atlas: the traces are written again
+    proc = _ntp(*argv, preexec=small_files)
+    _, err = proc.communicate(timeout=300)
+    lines = err.strip().splitlines()
+    assert proc.returncode == 2 and len(lines) == 1, err
+    assert "File too large" in lines[0] and str(out / "cache") in lines[0]
+    assert outputs(out) == before and is_complete(out) and not [p for p in out.rglob(".ntp-tmp.*")]
