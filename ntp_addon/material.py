@@ -48,12 +48,14 @@ class ResultInputs:
     glossy: dict[str, np.ndarray]
 
 
-def read_result(folder: str | Path) -> ResultInputs:
-    """Validate a result folder and derive every node input (no bpy datablock touched)."""
+def read_result(folder: str | Path, require_report: bool = True) -> ResultInputs:
+    """Validate a result folder (complete: its report exists; ``require_report=False`` for a folder
+    of maps that is not a pipeline result, e.g. a virtual-scan asset) and derive every node input
+    (no bpy datablock touched)."""
     folder = Path(folder)
     if not folder.is_dir():
         raise NtpInputError(folder, "result folder does not exist")
-    if not is_complete(folder):  # report.json is written last: without it the maps may be mixed
+    if require_report and not is_complete(folder):  # report.json is written last: without it the maps may be mixed
         raise NtpInputError(
             folder / REPORT, "missing: the result is incomplete (interrupted?) — run ntp reconstruct again"
         )
@@ -245,13 +247,16 @@ def _accurate(ri: ResultInputs, name: str) -> bpy.types.Material:
 
 
 def build_materials(
-    result: str | Path, obj: bpy.types.Object | None = None, variant: str = DEFAULT_VARIANT
+    result: str | Path,
+    obj: bpy.types.Object | None = None,
+    variant: str = DEFAULT_VARIANT,
+    require_report: bool = True,
 ) -> tuple[bpy.types.Material, bpy.types.Material]:
-    """Both materials for a result folder; ``obj`` (if given) gets ``variant`` in its first slot.
-    The other material is kept with a fake user so a saved .blend holds both."""
+    """Both materials for a result folder (``read_result``); ``obj`` (if given) gets ``variant`` in
+    its first slot. The other material is kept with a fake user so a saved .blend holds both."""
     if variant not in ("principled", "accurate"):
         raise ValueError(f"variant must be 'principled' or 'accurate', not {variant!r}")
-    ri = read_result(result)  # may raise: nothing created yet
+    ri = read_result(result, require_report)  # may raise: nothing created yet
     stem = Path(result).resolve().name
     principled = _principled(ri, f"{PRINCIPLED} ({stem})")
     accurate = _accurate(ri, f"{ACCURATE} ({stem})")

@@ -8,6 +8,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+from .bench import cache as bench_cache
 from .bench import fit as bench_fit
 from .bench import gallery as bench_gallery
 from .bench import network as bench_network
@@ -175,6 +176,11 @@ def _bench_gallery(args: argparse.Namespace) -> int:
         samples=args.samples,
     )
     bench_gallery.run(args.out, settings, json_path=args.json, progress=_progress(args))
+    return 0
+
+
+def _bench_cache(args: argparse.Namespace) -> int:
+    bench_cache.run(photos=args.photos, scale=args.scale, json_path=args.json)
     return 0
 
 
@@ -365,6 +371,11 @@ def _parser() -> argparse.ArgumentParser:
     bg.add_argument("--json", type=Path, default=None)
     _quiet_and_progress(bg)
     bg.set_defaults(func=_bench_gallery)
+    bc = bsub.add_parser("cache", help="content keys: hashing photos (vs one thread, vs stat) and cache checksums")
+    bc.add_argument("--photos", type=int, default=40, help="photos hashed (projected to 1000)")
+    bc.add_argument("--scale", type=float, default=1.0, help="photo size (1.0 = 2448x2048)")
+    bc.add_argument("--json", type=Path, default=None)
+    bc.set_defaults(func=_bench_cache)
     bf = bsub.add_parser("fit", help="batched GGX fitter vs per-texel scipy L-BFGS-B (speed and error)")
     bf.add_argument("--quick", action="store_true", help="2048 texels (baseline on 32) instead of 16384 (192)")
     bf.add_argument("--texels", type=int, default=None)

@@ -209,7 +209,7 @@ CASES = {
     "resolution_too_small": Case(lambda s, o, t: reconstruct_argv(s, o)[:5] + ["4"], "need at least 8", "--resolution"),
     "out_is_a_file": Case(_out(_a_file), "is a file, not a folder", "result.txt"),
     "out_is_users_folder": Case(_out(_user_folder), "not empty and not an ntp result folder", "mine"),
-    "out_is_the_scan": Case(_out(lambda s, t: s), "is inside the input folder", "scan"),
+    "out_is_the_scan": Case(_out(lambda s, t: s), "is the input folder", "scan"),
     "out_inside_the_scan": Case(_out(lambda s, t: s / "result"), "is inside the input folder", "result"),
     "register_out_is_a_file": Case(_out(_a_file, "register"), "is a file, not a folder", "result.txt"),
     "virtual_scan_into_users_folder": Case(_out(_user_folder, "virtual-scan"), "not an ntp scan folder", "mine"),

@@ -41,6 +41,10 @@ def atomic_path(target: str | Path) -> Iterator[Path]:
     try:
         yield tmp_path
         os.replace(tmp_path, target)
+    except OSError as err:
+        if err.filename in (None, tmp, str(tmp_path)):  # the user knows the target, not our temporary
+            raise OSError(err.errno, err.strerror, str(target)) from err
+        raise
     finally:
         if tmp_path.exists():
             tmp_path.unlink()

@@ -67,7 +67,8 @@ def load(
     try:
         state = torch.load(folder / "model.pt", map_location=map_location, weights_only=True)
     except Exception as err:  # noqa: BLE001 - torch raises many types for a damaged file
-        raise NtpInputError(folder / "model.pt", f"cannot read the weights ({type(err).__name__}: {err})") from None
+        first = str(err).split(". ")[0]  # torch explains at length
+        raise NtpInputError(folder / "model.pt", f"cannot read the weights ({type(err).__name__}: {first})") from None
     missing, unexpected = net.load_state_dict({k: v.float() for k, v in state.items()}, strict=False)
     if unexpected or set(missing) - set(DEVICE_BUFFERS):
         raise NtpInputError(

@@ -41,7 +41,8 @@ def check_not_inside(out: Path, inputs: tuple[Path, ...]) -> None:
     for folder in inputs:
         f = folder.resolve()
         if target == f or f in target.parents:
-            raise NtpInputError(out, f"is inside the input folder {folder}; ntp never writes there — choose another")
+            where = "the input folder" if target == f else f"inside the input folder {folder}"
+            raise NtpInputError(out, f"is {where}; ntp never writes there — choose another")
 
 
 def check_claimable(out: Path, kind: str) -> None:

@@ -206,14 +206,17 @@ def test_batch_writes_blend_glb_preview_that_reopen(demo_result, tmp_path):
     for f in ("a.blend", "a.glb", "a.png"):  # modes follow the umask (temporary files are 0600)
         assert (out / f).stat().st_mode & 0o777 == 0o666 & ~umask, f
     (tmp_path / "a_file").write_text("x")
-    for target, what in ((tmp_path / "a_file" / "x.glb", "Not a directory"), (demo_result, "Is a directory")):
+    for target, named, what in (
+        (tmp_path / "a_file" / "x.glb", tmp_path / "a_file", "File exists"),  # its folder is a file
+        (demo_result, demo_result, "Is a directory"),
+    ):
         bad = subprocess.run(
             [sys.executable, "-m", "ntp_addon.batch", str(demo_result), "--gltf", str(target)],
             capture_output=True,
             text=True,
         )
         lines = bad.stderr.strip().splitlines()
-        assert bad.returncode == 2 and len(lines) == 1 and what in lines[0] and str(target) in lines[0], bad.stderr
+        assert bad.returncode == 2 and len(lines) == 1 and what in lines[0] and str(named) in lines[0], bad.stderr
     incomplete = tmp_path / "incomplete"
     shutil.copytree(demo_result, incomplete)
     (incomplete / "report.json").unlink()

@@ -22,8 +22,10 @@ from ntp_engine.pipeline.output_folder import (
 def test_check_not_inside(tmp_path):
     scan = tmp_path / "scan"
     scan.mkdir()
-    for bad in (scan, scan / "result", scan / "a" / ".." / "result"):
-        with pytest.raises(NtpInputError, match="inside the input folder"):
+    with pytest.raises(NtpInputError, match="is the input folder"):
+        check_not_inside(scan / "a" / "..", (scan,))
+    for bad in (scan / "result", scan / "a" / ".." / "result"):
+        with pytest.raises(NtpInputError, match="is inside the input folder"):
             check_not_inside(bad, (scan,))
     check_not_inside(tmp_path / "scan_result", (scan,))  # a sibling with a common prefix is fine
 
