@@ -5,6 +5,8 @@ reads JSON lines from it, one object per update: ``{"stage": str, "done": int, "
 "unit": str, "elapsed_s": float, "eta_s": float | null}`` — the stage's name, units done of
 ``total``, seconds since the stage began and the estimated seconds left. A stage writes a line when
 it starts, at most every ``min_interval_s`` while it runs, and when it ends, so the file stays small.
+``warn`` is the third channel: one line on stderr when something is skipped or redone and the run
+goes on (an unreadable photo, a damaged cache entry).
 """
 
 from __future__ import annotations

@@ -81,9 +81,11 @@ class StageCache:
         try:
             try:
                 compute(tmp)
-            except OSError as err:
-                if err.filename is None:  # e.g. a write on a full disk: say where
-                    raise OSError(err.errno, err.strerror, str(final)) from err
+            except OSError as err:  # e.g. a write on a full disk: name the stage's place, not our temporary
+                name = Path(err.filename) if isinstance(err.filename, str) else None
+                if name is None or name == tmp or tmp in name.parents:
+                    where = final / name.relative_to(tmp) if name is not None and name != tmp else final
+                    raise OSError(err.errno, err.strerror, str(where)) from err
                 raise
             files = {f.relative_to(tmp).as_posix(): file_digest(f) for f in sorted(tmp.rglob("*")) if f.is_file()}
             stamp = {"digest": h, "key": key, "files": files}

@@ -119,8 +119,8 @@ def check_mesh_size(mesh: Mesh, scanner: Scanner, path: Path) -> None:
     edge = float(np.max(scanner.valid_size))
     if MESH_SIZE_RANGE[0] * edge <= extent <= MESH_SIZE_RANGE[1] * edge:
         return
-    # the unit that makes the object about the size of the valid volume
-    unit = min(_UNITS, key=lambda u: abs(np.log(max(extent * u[1], 1e-30) / edge)))[0]
+    # the unit that makes the object the typical size, half the valid volume's edge
+    unit = min(_UNITS, key=lambda u: abs(np.log(max(extent * u[1], 1e-30) / (0.5 * edge))))[0]
     raise NtpInputError(
         path,
         f"the mesh is {_length(extent)} across — is it in {unit}? (ntp reads meshes in metres; the "

@@ -24,3 +24,22 @@ def test_a_finished_file_follows_the_umask(tmp_path):
         os.umask(old)
     path = tmp_path / "sub" / "a.txt"
     assert path.read_text() == "done" and stat.S_IMODE(path.stat().st_mode) == 0o644
+
+
+def test_temp_dir_and_umask_mode(tmp_path):
+    from ntp_engine.io.atomic import TEMP_PREFIX, temp_dir, umask_mode
+
+    d = temp_dir(tmp_path / "new", "traces")
+    assert d.is_dir() and d.parent == tmp_path / "new" and d.name.startswith(TEMP_PREFIX + "traces.")
+    mask = os.umask(0o027)
+    try:
+        assert umask_mode(0o666) == 0o640 and umask_mode(0o777) == 0o750
+    finally:
+        os.umask(mask)
+
+
+def test_a_failed_rename_names_the_target_not_the_temporary(tmp_path):
+    (tmp_path / "taken").mkdir()
+    with pytest.raises(IsADirectoryError) as err, atomic_path(tmp_path / "taken") as tmp:
+        tmp.write_text("x")
+    assert err.value.filename == str(tmp_path / "taken") and list(tmp_path.iterdir()) == [tmp_path / "taken"]

@@ -8,3 +8,15 @@ def test_message_is_one_line_naming_the_file():
     assert str(err) == "scan/scan.toml: key 'mesh' missing entirely" and err.path == Path("scan/scan.toml")
     assert str(NtpInputError(None, "need --views >= 3")) == "need --views >= 3"
     assert isinstance(err, ValueError)
+
+
+def test_error_line_names_the_file_of_an_os_error():
+    import errno
+
+    from ntp_engine.io.errors import error_line
+
+    assert error_line(OSError(errno.ENOSPC, "No space left on device", "out/x.exr")) == (
+        "out/x.exr: No space left on device"
+    )
+    assert error_line(OSError(errno.EIO, "I/O\nerror")) == "[Errno 5] I/O error"
+    assert error_line(NtpInputError("a.toml", "bad")) == "a.toml: bad"

@@ -30,3 +30,24 @@ def test_same_pixels_give_the_same_bytes(tmp_path):
     time.sleep(1.1)  # a later second: a write time stamped in the file would differ
     write_exr(tmp_path / "b.exr", px)
     assert (tmp_path / "a.exr").read_bytes() == (tmp_path / "b.exr").read_bytes()
+
+
+@pytest.mark.parametrize("suffix", [".jpg", ".png"])
+def test_truncated_images_are_errors_without_library_chatter(tmp_path, capfd, suffix):
+    img = np.random.default_rng(1).random((64, 80, 3))
+    write_png(tmp_path / "ok.png", img) if suffix == ".png" else _write_jpeg(tmp_path / "ok.jpg", img)
+    data = (tmp_path / f"ok{suffix}").read_bytes()
+    (tmp_path / f"half{suffix}").write_bytes(data[: len(data) // 2])
+    assert read_image(tmp_path / f"ok{suffix}").shape == (64, 80, 3)
+    with pytest.raises(NtpInputError, match=f"half{suffix}: truncated or corrupt image"):
+        read_image(tmp_path / f"half{suffix}")  # a JPEG would decode, grey rows filled in
+    assert capfd.readouterr().err == ""  # libpng's own message is not printed
+
+
+def _write_jpeg(path, img):
+    import OpenImageIO as oiio
+
+    out = oiio.ImageOutput.create(str(path))
+    out.open(str(path), oiio.ImageSpec(img.shape[1], img.shape[0], 3, oiio.UINT8))
+    out.write_image((img * 255).astype(np.uint8))
+    out.close()

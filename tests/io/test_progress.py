@@ -29,3 +29,10 @@ def test_throttled_lines_and_partial_lines_wait(tmp_path):
 def test_quiet_writes_nothing(tmp_path, capsys):
     assert list(QUIET.track([1, 2], "x")) == [1, 2]
     assert capsys.readouterr().err == "" and not list(tmp_path.iterdir())
+
+
+def test_warn_is_one_line_on_stderr(capsys):
+    from ntp_engine.io.progress import warn
+
+    warn("photos/0003.png: truncated\n  — skipped")
+    assert capsys.readouterr().err == "ntp: warning: photos/0003.png: truncated — skipped\n"

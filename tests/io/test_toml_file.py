@@ -16,3 +16,10 @@ def test_reads_tables_and_names_the_file_on_every_failure(tmp_path):
         read_toml(bad, "missing")
     with pytest.raises(NtpInputError, match=r"cannot read"):
         read_toml(tmp_path, "missing")  # a folder
+
+
+def test_non_utf8_text_is_named(tmp_path):
+    bad = tmp_path / "device.toml"
+    bad.write_bytes(b'name = "caf\xe9"\n')
+    with pytest.raises(NtpInputError, match=r"device.toml: not UTF-8 text \(byte 0xe9 at offset 11\)"):
+        read_toml(bad, "missing")

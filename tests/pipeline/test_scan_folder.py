@@ -55,3 +55,37 @@ def test_scan_folder_errors_name_the_file(scan24, tmp_path):
     bad.write_text(json.dumps({"0000.png": [[1, 0], [0, 1]]}))
     with pytest.raises(NtpInputError, match="poses.json.*4x4"):
         load_scan(scan24, bad)
+
+
+def test_mesh_size_must_suit_the_scanner(tmp_path):
+    import numpy as np
+
+    from ntp_engine.io.mesh import Mesh
+    from ntp_engine.pipeline.scan_folder import check_mesh_size
+    from ntp_engine.scanner.device_file import load_scanner
+
+    scanner = load_scanner()  # 15 cm valid volume
+    v = np.array([[0, 0, 0], [0.09, 0, 0], [0, 0.05, 0.03]], float)
+    f = np.array([[0, 1, 2]])
+
+    def mesh(scale):
+        return Mesh(v * scale, f, None, np.tile([0.0, 0, 1], (3, 1)))
+
+    check_mesh_size(mesh(1), scanner, tmp_path / "m.obj")
+    for scale, unit, size in ((1000, "millimetres", "90 m"), (100, "centimetres", "9 m"), (39.37, "inches", "3.54 m")):
+        with pytest.raises(NtpInputError, match=f"m.obj: the mesh is {size}.*is it in {unit}"):
+            check_mesh_size(mesh(scale), scanner, tmp_path / "m.obj")
+    with pytest.raises(NtpInputError, match="is 0.09 mm across"):
+        check_mesh_size(mesh(1e-3), scanner, tmp_path / "m.obj")
+
+
+def test_read_photo_names_a_wrong_size(scan24, tmp_path):
+    from ntp_engine.io.images import read_image, write_png
+    from ntp_engine.pipeline.scan_folder import read_photo
+
+    scan = load_scan(scan24)
+    photo = scan.photo_paths[0]
+    assert read_photo(photo, scan.scanner).shape == (scan.scanner.height, scan.scanner.width, 3)
+    write_png(tmp_path / "small.png", read_image(photo)[::2, ::2])
+    with pytest.raises(NtpInputError, match=r"small.png: \d+x\d+ photo, the camera takes"):
+        read_photo(tmp_path / "small.png", scan.scanner)

@@ -67,3 +67,13 @@ def test_bad_inputs_name_the_file(tmp_path):
     r = _scan(tmp_path / "o3", "--mesh", str(good_mesh), "--maps", str(maps))
     assert r.returncode == 2 and "roughness.exr" in r.stderr and "differs" in r.stderr
     assert not (tmp_path / "o3" / "photos").exists() or not list((tmp_path / "o3" / "photos").iterdir())
+
+
+def test_a_rescan_with_fewer_photos_leaves_no_stale_ones(tmp_path):
+    from ntp_engine.sim.virtual_scan import ScanConfig, virtual_scan
+
+    out = tmp_path / "scan"
+    virtual_scan(out, cfg=ScanConfig(views=3, scale=0.05))
+    (out / "photos" / "mine.txt").write_text("a note")  # not ntp's: kept
+    virtual_scan(out, cfg=ScanConfig(views=2, scale=0.05))
+    assert sorted(p.name for p in (out / "photos").iterdir()) == ["0000.png", "0001.png", "mine.txt"]
