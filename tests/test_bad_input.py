@@ -342,11 +342,23 @@ def test_a_copied_scan_and_result_reuse_the_cache(good, copies, capsys):
 
 def test_a_truncated_photo_is_named_and_left_out(copies, capsys):
     scan, out = copies
-    bad = sorted((scan / "photos").iterdir())[3]
+    png = sorted((scan / "photos").iterdir())[3]
+    bad = png.with_suffix(".jpg")  # a JPEG cut in half decodes, its missing rows grey: must be refused
+    _write_jpeg(bad, read_image(png))
+    png.unlink()
     bad.write_bytes(bad.read_bytes()[: bad.stat().st_size // 2])
     lines, rep = _run_ok(reconstruct_argv(scan, out), capsys)
     assert len(lines) == 1 and bad.name in lines[0] and "truncated or corrupt" in lines[0]
     assert rep["photos"]["unreadable"] == [bad.name] and rep["photos"]["kept"] == 23
+
+
+def _write_jpeg(path: Path, img: np.ndarray) -> None:
+    import OpenImageIO as oiio
+
+    out = oiio.ImageOutput.create(str(path))
+    out.open(str(path), oiio.ImageSpec(img.shape[1], img.shape[0], 3, oiio.UINT8))
+    out.write_image(np.round(img[..., :3] * 255).astype(np.uint8))
+    out.close()
 
 
 # ------------------------------------------------------------------------------ signals and full disks
