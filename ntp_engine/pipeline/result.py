@@ -25,7 +25,8 @@ PREVIEW_GAMMA = 2.2
 
 
 def write_result(out: Path, mesh: Mesh, texels: Texels, fitted: dict[str, np.ndarray], lengths: np.ndarray) -> None:
-    """Maps (EXR), confidence, previews, mesh, material.json into ``out`` (each file atomically).
+    """Maps (EXR), confidence, previews, mesh, material.json into ``out`` (each file atomically;
+    ``reconstruct`` passes a staging folder and publishes it, ``output_folder.publish``).
     Texels without a trace keep the geometric frame and get their values from the nearest observed
     texel (seams and holes dilated)."""
     observed = lengths > 0

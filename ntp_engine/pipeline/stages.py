@@ -7,7 +7,10 @@ select (blur, unreadable) -> register (pycolmap SfM + similarity to the mesh; sk
 
 Each stage's key holds its inputs and the previous stage's key, so a changed option recomputes
 from the first stage it affects; an interrupted run resumes from the last finished stage. The
-report (``report.json``) gives each stage's wall seconds, what was kept and why, and the counts.
+report (``report.json``) gives each stage's wall seconds, what was kept and why, and the counts;
+it is written last and marks a complete result. ``OUT`` is claimed first (``output_folder``: absent,
+empty or an ntp result, outside the scan folder), and a run that measured too little is refused
+before the fit (``MIN_PHOTOS_USED``, ``MIN_COVERAGE``; a mesh of implausible size before any work).
 """
 
 from __future__ import annotations
