@@ -30,6 +30,7 @@ from .sim.cycles_scan import CyclesConfig, cycles_scan
 from .sim.gallery import GALLERY
 from .sim.virtual_scan import ScanConfig, virtual_scan
 
+COLMAP_HELP = "a COLMAP model folder (cameras/images/points3D, .bin or .txt) instead of running SfM"
 INTERRUPTED = "interrupted — finished stages are kept, re-run to resume"
 
 
@@ -56,7 +57,7 @@ def _progress(args: argparse.Namespace) -> Progress:
 
 
 def _scan(args: argparse.Namespace, poses: Path | None = None) -> Scan:
-    return load_scan(args.scan, poses, device_file=args.device)
+    return load_scan(args.scan, poses, device_file=args.device, colmap=args.colmap)
 
 
 def _alignment_note(reg: dict) -> str:
@@ -254,6 +255,7 @@ def _parser() -> argparse.ArgumentParser:
     rc.add_argument("--model", default=None, help="shipped model name or a model folder (default: compact)")
     rc.add_argument("--poses", type=Path, default=None, help="poses JSON (camera-from-world per photo); skips SfM")
     rc.add_argument("--device", type=Path, default=None, help="device TOML instead of the one scan.toml names")
+    rc.add_argument("--colmap", type=Path, default=None, help=COLMAP_HELP)
     rc.add_argument(
         "--blur-margin",
         type=float,
@@ -267,6 +269,7 @@ def _parser() -> argparse.ArgumentParser:
     rg.add_argument("scan", type=Path, help="scan folder (scan.toml, mesh, photos/)")
     rg.add_argument("--out", type=Path, required=True, help="result folder (its cache is shared with reconstruct)")
     rg.add_argument("--device", type=Path, default=None, help="device TOML instead of the one scan.toml names")
+    rg.add_argument("--colmap", type=Path, default=None, help=COLMAP_HELP)
     rg.add_argument("--blur-margin", type=float, default=BLUR_MARGIN)
     _quiet_and_progress(rg)
     rg.set_defaults(func=_register)

@@ -1,6 +1,7 @@
 """The scan folder format (DESIGN.md), read and written here: ``scan.toml`` naming the mesh, the
 photos folder, the device file and, optionally, a poses file (camera-from-world 4x4 per photo name;
-SfM is skipped with it) and ``support_plane = false`` when the object does not stand on a flat
+SfM is skipped with it) or a COLMAP model folder (``colmap = "sparse/0"``: SfM is skipped, the
+model is aligned to the mesh) and ``support_plane = false`` when the object does not stand on a flat
 support at the mesh's lowest z (default true: SfM alignment uses the support, and photos whose
 LEDs the support shadows are skipped).
 
@@ -43,7 +44,13 @@ class Scan:
     scanner: Scanner
     photo_paths: list[Path]
     poses: dict[str, np.ndarray] | None = None
+    colmap: Path | None = None  # a COLMAP model folder to use instead of running SfM
     support_plane: bool = True  # the object stands on a flat support at the mesh's lowest z
+
+    @property
+    def input_folders(self) -> tuple[Path, ...]:
+        """The folders this scan reads from (ntp never writes into them)."""
+        return (self.folder,) if self.colmap is None else (self.folder, self.colmap)
 
 
 def _required_path(folder: Path, table: dict, key: str, toml: Path) -> Path:
@@ -89,9 +96,14 @@ def load_poses(path: Path) -> dict[str, np.ndarray]:
     return poses
 
 
-def load_scan(folder: str | Path, poses_file: str | Path | None = None, device_file: str | Path | None = None) -> Scan:
+def load_scan(
+    folder: str | Path,
+    poses_file: str | Path | None = None,
+    device_file: str | Path | None = None,
+    colmap: str | Path | None = None,
+) -> Scan:
     """Read ``folder/scan.toml`` and what it names. ``poses_file`` overrides its poses file,
-    ``device_file`` the device file it names (e.g. a recalibration)."""
+    ``device_file`` the device file it names (e.g. a recalibration), ``colmap`` its COLMAP model."""
     folder = Path(folder)
     toml = folder / "scan.toml"
     table = read_toml(toml, "no scan.toml in the scan folder")
@@ -101,15 +113,19 @@ def load_scan(folder: str | Path, poses_file: str | Path | None = None, device_f
         raise NtpInputError(toml, f"key 'photos': {table['photos']} is not a folder")
     scanner = load_scanner(device_file or _required_path(folder, table, "device", toml))
     pose_path = Path(poses_file) if poses_file else _path(folder, table, "poses", toml)
+    model = Path(colmap) if colmap else _path(folder, table, "colmap", toml)
+    if pose_path and model:
+        raise NtpInputError(model, "give either a poses file or a COLMAP model, not both")
+    if model and not model.is_dir():
+        raise NtpInputError(model, "a COLMAP model is a folder (cameras, images, points3D)")
     paths = sorted(p for p in photos.iterdir() if p.suffix.lower() in PHOTO_SUFFIXES)
     if not paths:
         raise NtpInputError(photos, "no PNG/JPEG photos")
     support = table.get("support_plane", True)
     if not isinstance(support, bool):
         raise NtpInputError(toml, f"key 'support_plane': expected true or false, got {support!r}")
-    return Scan(
-        folder, mesh, photos, scanner, paths, load_poses(pose_path) if pose_path else None, support_plane=support
-    )
+    poses = load_poses(pose_path) if pose_path else None
+    return Scan(folder, mesh, photos, scanner, paths, poses, model, support_plane=support)
 
 
 def check_mesh_size(mesh: Mesh, scanner: Scanner, path: Path) -> None:

@@ -1,7 +1,8 @@
 """``ntp reconstruct``: a scan folder to texture maps, stage by stage, each stage cached under
 ``OUT/cache`` (DESIGN.md data flow):
 
-select (blur, unreadable) -> register (pycolmap SfM + similarity to the mesh; skipped with poses)
+select (blur, unreadable) -> register (pycolmap SfM, or a COLMAP model, + similarity to the mesh;
+skipped with a poses file)
 -> atlas (mesh UVs, else xatlas) -> traces (Embree visibility, projection, validity)
 -> fit (network in bounded batches + fitter) -> maps, report.json.
 
@@ -34,6 +35,7 @@ from ..scanner.device_file import scanner_to_dict
 from . import traces as trace_assembly
 from .align import align_to_mesh
 from .cache import StageCache, content_digest, content_key, digest
+from .colmap_model import model_files, read_colmap_model
 from .fit_traces import ALBEDO_VIEWS, RHO_S_PRIOR_WEIGHT, fit_traces
 from .output_folder import claim, publish
 from .photo_selection import BLUR_MARGIN, Selection, select_photos
@@ -67,7 +69,7 @@ def register_photos(
     ``out/cache`` (``out`` is claimed as an ntp result folder). Returns (camera-from-world poses by
     photo name, report entries, poses key)."""
     check_mesh_size(load_mesh(scan.mesh_path), scan.scanner, scan.mesh_path)
-    with claim(out, "result", inputs=(scan.folder,)):
+    with claim(out, "result", inputs=scan.input_folders):
         return _registration(scan, StageCache(Path(out) / "cache"), blur_margin, progress)
 
 
@@ -128,7 +130,10 @@ def _register_stage(
     """SfM on the kept photos, then the similarity that puts its cameras on the mesh."""
 
     def compute(d: Path) -> None:
-        reg = structure_from_motion(scan.photos_dir, sel.kept, scan.scanner, d / "sfm", progress=progress)
+        if scan.colmap is not None:
+            reg = read_colmap_model(scan.colmap, scan.scanner, sel.kept)
+        else:
+            reg = structure_from_motion(scan.photos_dir, sel.kept, scan.scanner, d / "sfm", progress=progress)
         names = sorted(reg.poses)
         try:
             al = align_to_mesh(
@@ -144,7 +149,7 @@ def _register_stage(
         (d / "registration.json").write_text(
             json.dumps(
                 {
-                    "source": "structure from motion",
+                    "source": f"COLMAP model {scan.colmap}" if scan.colmap else "structure from motion",
                     "registered": len(names),
                     "unregistered": reg.unregistered,
                     "sfm_points": len(reg.points),
@@ -163,6 +168,7 @@ def _register_stage(
 
     key = {
         "select": h_sel,
+        "colmap": content_key(model_files(scan.colmap)) if scan.colmap else None,
         "mesh": content_key([scan.mesh_path]),
         "support": scan.support_plane,
         "camera": {
@@ -190,7 +196,7 @@ def reconstruct(
     if resolution < MIN_RESOLUTION:
         raise NtpInputError(None, f"--resolution {resolution}: need at least {MIN_RESOLUTION}")
     check_mesh_size(load_mesh(scan.mesh_path), scan.scanner, scan.mesh_path)
-    with claim(out, "result", inputs=(scan.folder,)):
+    with claim(out, "result", inputs=scan.input_folders):
         return _reconstruct(scan, Path(out), resolution, model, blur_margin, progress)
 
 

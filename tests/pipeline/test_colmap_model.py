@@ -1,0 +1,87 @@
+"""A COLMAP model as the scan's camera solution: a model written by pycolmap from a virtual scan is
+read back (binary and text) to the same poses, drives ``ntp reconstruct --colmap`` without SfM, and
+bad models are one-line errors."""
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+
+from ntp_engine import cli
+from ntp_engine.io.errors import NtpInputError
+from ntp_engine.pipeline.colmap_model import model_files, read_colmap_model
+from ntp_engine.pipeline.scan_folder import load_poses, load_scan
+from ntp_engine.pipeline.sfm import structure_from_motion
+from ntp_engine.sim.evaluate import pose_error
+
+
+@pytest.fixture(scope="module")
+def model(scan24, tmp_path_factory):
+    """pycolmap's SfM of the 24-photo scan, as pycolmap wrote it (binary), and the result in memory."""
+    import pycolmap
+
+    scan = load_scan(scan24)
+    names = [p.name for p in scan.photo_paths]
+    work = tmp_path_factory.mktemp("colmap") / "sfm"
+    sfm = structure_from_motion(scan.photos_dir, names, scan.scanner, work)
+    folder = max((work / "sparse").iterdir(), key=lambda d: pycolmap.Reconstruction(str(d)).num_reg_images())
+    return folder, sfm, scan
+
+
+def test_binary_and_text_models_read_back_to_the_sfm_poses(model, tmp_path):
+    import pycolmap
+
+    folder, sfm, scan = model
+    names = [p.name for p in scan.photo_paths]
+    text = tmp_path / "text"
+    text.mkdir()
+    pycolmap.Reconstruction(str(folder)).write_text(str(text))
+    assert [f.suffix for f in model_files(text)] == [".txt"] * 3
+    for f in (folder, text):
+        got = read_colmap_model(f, scan.scanner, names)
+        assert sorted(got.poses) == sorted(sfm.poses) and got.unregistered == sfm.unregistered
+        assert max(np.abs(got.poses[n] - sfm.poses[n]).max() for n in got.poses) < 1e-6
+        assert got.points.shape == sfm.points.shape
+
+
+def test_reconstruct_with_a_colmap_model_skips_sfm(model, scan24, tmp_path, capsys):
+    folder, _, _ = model
+    scan = tmp_path / "scan"
+    shutil.copytree(scan24, scan)
+    out = tmp_path / "out"
+    argv = ["reconstruct", str(scan), "--out", str(out), "--resolution", "16", "--colmap", str(folder), "--quiet"]
+    assert cli.main(argv) == 0, capsys.readouterr().err
+    rep = json.loads((out / "report.json").read_text())
+    reg = rep["registration"]
+    assert reg["source"] == f"COLMAP model {folder}" and reg["registered"] >= 20 and "alignment" in reg
+    assert rep["stages"]["register"] < 30  # no SfM: an alignment only
+    poses = load_poses(out / "cache" / "register" / "poses.json")
+    err = pose_error(poses, load_poses(scan / "ground_truth" / "poses.json"))
+    assert err["centre_median_m"] < 0.02  # 24 photos: the alignment's own accuracy (docs/pipeline.md)
+    assert cli.main(argv[:-1] + ["--colmap", str(folder), "--poses", str(scan / "ground_truth" / "poses.json")]) == 2
+    assert "either a poses file or a COLMAP model" in capsys.readouterr().err
+
+
+def test_bad_models_are_one_line_errors(model, tmp_path):
+    import pycolmap
+
+    folder, _, scan = model
+    names = [p.name for p in scan.photo_paths]
+    with pytest.raises(NtpInputError, match="not a COLMAP model folder"):
+        read_colmap_model(tmp_path, scan.scanner, names)
+    damaged = tmp_path / "damaged"
+    shutil.copytree(folder, damaged)
+    (damaged / "images.bin").write_bytes((damaged / "images.bin").read_bytes()[:50])
+    with pytest.raises(NtpInputError, match="damaged: cannot read the COLMAP model"):
+        read_colmap_model(damaged, scan.scanner, names)
+    with pytest.raises(NtpInputError, match=r"images.bin: only 0 of its images are this scan's photos"):
+        read_colmap_model(folder, scan.scanner, ["other.png"])
+    rec = pycolmap.Reconstruction(str(folder))
+    cam = next(iter(rec.cameras.values()))
+    cam.width = cam.width * 2
+    wrong = tmp_path / "wrong"
+    wrong.mkdir()
+    rec.write(str(wrong))
+    with pytest.raises(NtpInputError, match=r"cameras.bin: camera \d+ is \d+x\d+, the photos are"):
+        read_colmap_model(wrong, scan.scanner, names)
