@@ -13,6 +13,7 @@ from .bench import fit as bench_fit
 from .bench import gallery as bench_gallery
 from .bench import network as bench_network
 from .bench import physics as bench_physics
+from .bench import registration as bench_registration
 from .bench import scan as bench_scan
 from .bench import stability as bench_stability
 from .bench import virtual_scan as bench_virtual_scan
@@ -177,6 +178,21 @@ def _bench_gallery(args: argparse.Namespace) -> int:
         samples=args.samples,
     )
     bench_gallery.run(args.out, settings, json_path=args.json, progress=_progress(args))
+    return 0
+
+
+def _bench_registration(args: argparse.Namespace) -> int:
+    settings = bench_gallery.settings_for(
+        args.quick,
+        objects=tuple(args.objects) if args.objects else None,
+        scanners=tuple(args.scanners) if args.scanners else None,
+        poses=None,
+        views=args.views,
+        scale=args.scale,
+        resolution=None,
+        samples=args.samples,
+    )
+    bench_registration.run(args.out, settings, tuple(args.seeds), json_path=args.json, progress=_progress(args))
     return 0
 
 
@@ -374,6 +390,18 @@ def _parser() -> argparse.ArgumentParser:
     bg.add_argument("--json", type=Path, default=None)
     _quiet_and_progress(bg)
     bg.set_defaults(func=_bench_gallery)
+    br = bsub.add_parser("registration", help="SfM + alignment alone on the gallery: pose error per object x seed")
+    br.add_argument("--out", type=Path, default=Path("ntp_gallery"), help="the gallery's folder (scans shared)")
+    br.add_argument("--quick", action="store_true", help="the quick gallery's objects and sizes")
+    br.add_argument("--objects", nargs="+", choices=list(GALLERY), default=None)
+    br.add_argument("--scanners", nargs="+", choices=list(bench_gallery.SCANNERS), default=None)
+    br.add_argument("--seeds", nargs="+", type=int, default=list(bench_registration.SEEDS))
+    br.add_argument("--views", type=int, default=None)
+    br.add_argument("--scale", type=float, default=None)
+    br.add_argument("--samples", type=int, default=None, help="Cycles samples per pixel")
+    br.add_argument("--json", type=Path, default=None)
+    _quiet_and_progress(br)
+    br.set_defaults(func=_bench_registration)
     bc = bsub.add_parser("cache", help="content keys: hashing photos (vs one thread, vs stat) and cache checksums")
     bc.add_argument("--photos", type=int, default=40, help="photos hashed (projected to 1000)")
     bc.add_argument("--scale", type=float, default=1.0, help="photo size (1.0 = 2448x2048)")

@@ -373,19 +373,24 @@ def _wait_for_stage(progress: Path, stage: str, proc: subprocess.Popen, timeout:
         if progress.is_file() and f'"stage": "{stage}"' in progress.read_text():
             return
         time.sleep(0.05)
-    raise AssertionError(f"stage {stage} never started")
+    if proc.poll() is None:
+        raise AssertionError(f"stage {stage} never started")
 
 
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGKILL])
 def test_interrupted_runs_resume_to_the_same_result(sig, good, copies, tmp_path):
     scan, out = copies
-    for stage in ("traces", "fit"):  # the run has the traces (seconds) and the fit to do
-        shutil.rmtree(out / "cache" / stage)
     progress = tmp_path / "progress.jsonl"
-    proc = _ntp(*reconstruct_argv(scan, out), "--progress", str(progress))
-    _wait_for_stage(progress, "traces", proc)
-    proc.send_signal(sig)
-    _, err = proc.communicate(timeout=120)
+    for _ in range(5):  # a busy machine may let the small run finish before the signal lands: again
+        for stage in ("traces", "fit"):  # the run has the traces (seconds) and the fit to do
+            shutil.rmtree(out / "cache" / stage, ignore_errors=True)
+        progress.unlink(missing_ok=True)
+        proc = _ntp(*reconstruct_argv(scan, out), "--progress", str(progress))
+        _wait_for_stage(progress, "traces", proc)
+        proc.send_signal(sig)
+        _, err = proc.communicate(timeout=120)
+        if proc.returncode != 0:
+            break
     if sig == signal.SIGINT:
         assert proc.returncode == 130
         assert err.strip() == "ntp: interrupted — finished stages are kept, re-run to resume"

@@ -69,7 +69,7 @@ DEFAULT = GallerySettings()
 QUICK = GallerySettings(objects=("vase", "knot"), poses=("true",), views=16, resolution=64, samples=8, relit_lights=2)
 
 
-def _scan(settings: GallerySettings, name: str, scanner: str, out: Path, asset: Path, progress: Progress) -> dict:
+def scan_object(settings: GallerySettings, name: str, scanner: str, out: Path, asset: Path, progress: Progress) -> dict:
     """The scan of one object by one scanner (kept when its settings and asset are unchanged)."""
     cfg = ScanConfig(views=settings.views, scale=settings.scale, seed=settings.seed)
     cycles = CyclesConfig(samples=settings.samples, bounces=settings.bounces)
@@ -136,7 +136,7 @@ def run(
             for scanner in settings.scanners:
                 scan_dir = out / "scans" / f"{name}-{scanner}"
                 t0 = time.perf_counter()
-                capture = _scan(settings, name, scanner, scan_dir, asset, progress)
+                capture = scan_object(settings, name, scanner, scan_dir, asset, progress)
                 t_scan = time.perf_counter() - t0
                 for poses in settings.poses:
                     result_dir = out / "results" / f"{name}-{scanner}-{poses}"

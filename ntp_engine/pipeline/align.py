@@ -19,7 +19,7 @@ ends it.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -39,6 +39,10 @@ class Alignment:
     object_points: int  # SfM points above the support used by the ICP
     kept_points: int  # of which are inliers (closer to the mesh than 0.6% of its size)
     support_points: int
+    # the azimuth search's candidates (one per coarse start, converged): (azimuth deg, score), best
+    # first, and how much worse the best alternative more than AMBIGUOUS_DEG away scores (relative)
+    candidates: list[tuple[float, float]] = field(default_factory=list)
+    azimuth_margin: float = float("inf")
 
     def apply(self, x: np.ndarray) -> np.ndarray:
         """SfM points ``(..., 3)`` in the mesh frame (metres)."""
@@ -104,6 +108,7 @@ INLIER_FRACTION = 0.006  # of the object's size: an SfM point this close to the 
 SURFACE_SAMPLES = 200_000
 COARSE_AZIMUTHS_DEG = np.arange(0, 360, 10)
 FINE_AZIMUTHS_DEG = np.arange(-8, 8.01, 0.25)
+AMBIGUOUS_DEG = 15.0  # candidates further than this from the best are alternatives to it
 
 
 @dataclass
@@ -227,8 +232,11 @@ class _AzimuthSearch:
         on a fine grid around the winner (point-to-point ICP barely turns a nearly round object; the
         score still tells)."""
         best: tuple[float, float, float, np.ndarray] | None = None
+        self.candidates: list[tuple[float, float]] = []
         for yaw0 in np.radians(COARSE_AZIMUTHS_DEG):
-            best = self._keep_better(best, *self.icp(s0, float(yaw0), self.target[:2].copy(), True))
+            s, yaw, txy = self.icp(s0, float(yaw0), self.target[:2].copy(), True)
+            self.candidates.append((float(np.degrees(yaw)) % 360.0, self.score(s, yaw, txy)[0]))
+            best = self._keep_better(best, s, yaw, txy)
         assert best is not None
         for yaw0 in best[2] + np.radians(FINE_AZIMUTHS_DEG):
             best = self._keep_better(best, *self.icp(best[1], float(yaw0), best[3].copy(), False))
@@ -307,4 +315,8 @@ def align_to_mesh(
     t = np.array([txy[0], txy[1], frame.target[2]]) - s * R @ frame.anchor
     kept = dist < search.tau
     rms = float(np.sqrt((dist[kept] ** 2).mean())) if kept.any() else float("inf")
-    return Alignment(s, R, t, rms, len(P), int(kept.sum()), len(S))
+    final, _ = search.score(s, yaw, txy)
+    candidates = sorted(search.candidates, key=lambda c: c[1])
+    away = [v for a, v in candidates if abs((a - np.degrees(yaw) + 180.0) % 360.0 - 180.0) > AMBIGUOUS_DEG]
+    margin = (min(away) - final) / max(final, 1e-30) if away else float("inf")
+    return Alignment(s, R, t, rms, len(P), int(kept.sum()), len(S), candidates, float(margin))

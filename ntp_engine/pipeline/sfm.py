@@ -28,6 +28,7 @@ class SfmResult:
     poses: dict[str, np.ndarray]  # photo name -> 4x4 camera-from-world (SfM frame)
     points: np.ndarray  # (P, 3) sparse points, SfM frame
     unregistered: list[str]
+    model: Path | None = None  # the chosen model's COLMAP folder (under ``work``), if written
 
 
 def structure_from_motion(
@@ -38,13 +39,16 @@ def structure_from_motion(
     overlap: int = 10,
     progress: Progress = QUIET,
     peak_threshold: float = 0.0067,
+    seed: int | None = None,
 ) -> SfmResult:
     """SfM poses of ``names`` (camera-from-world in SfM's frame) with the scanner's intrinsics held
     fixed; ``work`` is emptied and holds COLMAP's database. ``peak_threshold`` is SIFT's (lowering it
-    adds backdrop points, not object points, on virtual scans)."""
+    adds backdrop points, not object points, on virtual scans). ``seed`` seeds COLMAP's random choices."""
     import pycolmap
 
     pycolmap.logging.minloglevel = 2  # COLMAP logs every image at INFO; errors still surface
+    if seed is not None:  # RANSAC and mapping choices (threads still vary the result slightly)
+        pycolmap.set_random_seed(seed)
     bar = progress.counter("SfM (features, matching, mapping)", 3, "stage")
     if work.exists():
         shutil.rmtree(work)
@@ -81,7 +85,8 @@ def structure_from_motion(
         raise NtpInputError(
             photos_dir, "structure-from-motion found no initial image pair (too few features or overlap between photos)"
         )
-    rec = max(models.values(), key=lambda r: r.num_reg_images())
+    index, rec = max(models.items(), key=lambda kv: kv[1].num_reg_images())
+    model_dir = work / "sparse" / str(index)
     poses = {}
     for image in rec.images.values():
         m = np.eye(4)
@@ -90,4 +95,4 @@ def structure_from_motion(
     if len(poses) < MIN_REGISTERED:
         raise NtpInputError(photos_dir, f"only {len(poses)} photos registered (need {MIN_REGISTERED})")
     points = np.array([p.xyz for p in rec.points3D.values()]) if rec.num_points3D() else np.zeros((0, 3))
-    return SfmResult(poses, points, sorted(set(names) - set(poses)))
+    return SfmResult(poses, points, sorted(set(names) - set(poses)), model_dir if model_dir.is_dir() else None)

@@ -159,6 +159,8 @@ def _register_stage(
                         "object_points": al.object_points,
                         "inlier_points": al.kept_points,
                         "support_points": al.support_points,
+                        "azimuth_margin": al.azimuth_margin if np.isfinite(al.azimuth_margin) else None,
+                        "candidates": [{"azimuth_deg": a, "score": v} for a, v in al.candidates],
                     },
                 },
                 indent=1,

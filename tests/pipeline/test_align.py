@@ -70,6 +70,9 @@ def test_align_recovers_a_similarity_from_support_and_few_object_points():
         sfm_poses.append(p)
     al = align_to_mesh(sfm_pts, sfm_poses, mesh, working_distance=0.31)
     assert np.abs(al.apply(sfm_pts[:40]) - obj).max() < 2e-3
+    scores = [v for _, v in al.candidates]
+    assert len(al.candidates) == 36 and scores == sorted(scores)  # one converged candidate per start
+    assert al.azimuth_margin > 1  # the footprint and the 40 points single out the true azimuth
     assert abs(al.scale * s - 1) < 5e-3 and al.residual_m < 5e-4 and al.kept_points >= 30
     for m_s, m_w in zip(sfm_poses, poses_w):
         back = al.camera_from_mesh(m_s)
