@@ -367,6 +367,10 @@ def _ntp(*args: str, preexec=None, **kw) -> subprocess.Popen:
     return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, preexec_fn=preexec, **kw)
 
 
+def _default_sigint() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _wait_for_stage(progress: Path, stage: str, proc: subprocess.Popen, timeout: float = 120) -> None:
     t0 = time.time()
     while time.time() - t0 < timeout and proc.poll() is None:
@@ -385,7 +389,9 @@ def test_interrupted_runs_resume_to_the_same_result(sig, good, copies, tmp_path)
         for stage in ("traces", "fit"):  # the run has the traces (seconds) and the fit to do
             shutil.rmtree(out / "cache" / stage, ignore_errors=True)
         progress.unlink(missing_ok=True)
-        proc = _ntp(*reconstruct_argv(scan, out), "--progress", str(progress))
+        # a shell's background job (CI may be one) ignores SIGINT, and a child inherits that: a user's
+        # terminal does not
+        proc = _ntp(*reconstruct_argv(scan, out), "--progress", str(progress), preexec=_default_sigint)
         _wait_for_stage(progress, "traces", proc)
         proc.send_signal(sig)
         _, err = proc.communicate(timeout=120)
