@@ -31,6 +31,7 @@ from .sim.cycles_scan import CyclesConfig, cycles_scan
 from .sim.gallery import GALLERY
 from .sim.virtual_scan import ScanConfig, virtual_scan
 
+FORCE_HELP = "go on with a registration the photos do not confirm (see OUT/registration.png)"
 COLMAP_HELP = "a COLMAP model folder (cameras/images/points3D, .bin or .txt) instead of running SfM"
 INTERRUPTED = "interrupted — finished stages are kept, re-run to resume"
 
@@ -62,7 +63,13 @@ def _scan(args: argparse.Namespace, poses: Path | None = None) -> Scan:
 
 
 def _alignment_note(reg: dict) -> str:
-    return f", alignment residual {reg['alignment']['residual_m'] * 1e3:.2f} mm" if "alignment" in reg else ""
+    """The registration's confidence in a few words (a low residual alone proves nothing)."""
+    if "photometric" not in reg:
+        return ""
+    ph, conf = reg["photometric"], reg["confidence"]
+    margin = "no rival azimuth" if ph["margin"] is None else f"azimuth margin {ph['margin']:.2f}"
+    forced = " (FORCED: the photos did not confirm it)" if conf.get("forced") else ""
+    return f", registration confirmed by the photos: sharpness {ph['sharpness']:.2f}, {margin}{forced}"
 
 
 # ------------------------------------------------------------------------------------ handlers
@@ -82,7 +89,9 @@ def _demo(args: argparse.Namespace) -> int:
 
 
 def _register(args: argparse.Namespace) -> int:
-    poses, rep, _ = register_photos(_scan(args), args.out, args.blur_margin, progress=_progress(args))
+    poses, rep, _ = register_photos(
+        _scan(args), args.out, args.blur_margin, progress=_progress(args), force_registration=args.force_registration
+    )
     write_registration(args.out, poses, rep)
     reg = rep["registration"]
     print(f"{len(poses)} photos registered ({reg['source']}){_alignment_note(reg)}; wrote {args.out / 'poses.json'}")
@@ -97,6 +106,7 @@ def _reconstruct(args: argparse.Namespace) -> int:
         model=args.model,
         blur_margin=args.blur_margin,
         progress=_progress(args),
+        force_registration=args.force_registration,
     )
     print(
         f"wrote {args.out}: {rep['texels']['coverage']:.1%} of {rep['texels']['total']} texels observed, "
@@ -278,6 +288,7 @@ def _parser() -> argparse.ArgumentParser:
         default=BLUR_MARGIN,
         help="drop photos whose blur score exceeds the scan's median by this much",
     )
+    rc.add_argument("--force-registration", action="store_true", help=FORCE_HELP)
     _quiet_and_progress(rc)
     rc.set_defaults(func=_reconstruct)
 
@@ -287,6 +298,7 @@ def _parser() -> argparse.ArgumentParser:
     rg.add_argument("--device", type=Path, default=None, help="device TOML instead of the one scan.toml names")
     rg.add_argument("--colmap", type=Path, default=None, help=COLMAP_HELP)
     rg.add_argument("--blur-margin", type=float, default=BLUR_MARGIN)
+    rg.add_argument("--force-registration", action="store_true", help=FORCE_HELP)
     _quiet_and_progress(rg)
     rg.set_defaults(func=_register)
 

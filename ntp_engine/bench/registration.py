@@ -27,7 +27,8 @@ from ..io.progress import QUIET, Progress
 from ..pipeline.align import align_to_mesh
 from ..pipeline.colmap_model import model_files, read_colmap_model
 from ..pipeline.output_folder import claim
-from ..pipeline.scan_folder import load_poses, load_scan
+from ..pipeline.photo_registration import PhotoStack, check_registration, refusal, spread
+from ..pipeline.scan_folder import load_poses, load_scan, read_photo
 from ..pipeline.sfm import SfmResult, structure_from_motion
 from ..sim.evaluate import pose_error
 from ..sim.gallery import build_asset
@@ -85,27 +86,45 @@ def run(
                         )
                         names = sorted(reg.poses)
                         t0 = time.perf_counter()
+                        mesh = load_mesh(scan.mesh_path)
                         al = align_to_mesh(
                             reg.points,
                             [reg.poses[n] for n in names],
-                            load_mesh(scan.mesh_path),
+                            mesh,
                             float(np.linalg.norm(scan.scanner.valid_center)),
                             support_plane=scan.support_plane,
                         )
                         row["seconds_align"] = time.perf_counter() - t0
+                        t0 = time.perf_counter()
+                        judged = spread(names)
+                        photos = PhotoStack(
+                            [read_photo(scan.photos_dir / n, scan.scanner) for n in judged], scan.scanner
+                        )
+                        support_z = float(mesh.vertices[:, 2].min()) if scan.support_plane else None
+                        check = check_registration(al, reg.poses, photos, judged, mesh, support_z)
+                        row["seconds_photometric"] = time.perf_counter() - t0
                     except (NtpInputError, ValueError) as failure:
                         row["failed"] = str(failure)
                         rows.append(row)
                         continue
-                    err = pose_error({n: al.camera_from_mesh(reg.poses[n]) for n in names}, truth)
+                    icp = pose_error({n: al.camera_from_mesh(reg.poses[n]) for n in names}, truth)
+                    err = pose_error({n: check.alignment.camera_from_mesh(reg.poses[n]) for n in names}, truth)
+                    why = refusal(check)
                     row.update(
                         registered=len(names),
+                        icp_centre_mm=icp["centre_median_m"] * 1e3,
+                        icp_rotation_deg=icp["rotation_median_deg"],
                         centre_mm=err["centre_median_m"] * 1e3,
                         rotation_deg=err["rotation_median_deg"],
                         residual_mm=al.residual_m * 1e3,
                         inliers=f"{al.kept_points}/{al.object_points}",
                         inlier_fraction=al.kept_points / max(al.object_points, 1),
                         azimuth_margin=al.azimuth_margin if np.isfinite(al.azimuth_margin) else None,
+                        sharpness=check.sharpness,
+                        photometric_margin=check.margin if np.isfinite(check.margin) else None,
+                        agreement=check.fit.agreement,
+                        accepted=why is None,
+                        refusal=why,
                     )
                     row["right"] = row["centre_mm"] <= RIGHT_MM and row["rotation_deg"] <= RIGHT_DEG
                     rows.append(row)
@@ -125,33 +144,48 @@ def _table(rows: list[dict]) -> str:
         "scanner",
         "seed",
         "registered",
-        "centre mm",
-        "rot deg",
+        "point-cloud fit mm / deg",
         "residual mm",
         "inliers",
-        "margin",
-        "ok",
+        "cloud margin",
+        "refined mm / deg",
+        "sharpness",
+        "photo margin",
+        "right",
+        "accepted",
     )
     cells = []
     for r in rows:
         if "failed" in r:
-            cells.append((r["object"], r["scanner"], r["seed"], "FAILED", r["failed"][:60], "", "", "", "", "no"))
+            cells.append((r["object"], r["scanner"], r["seed"], "FAILED", r["failed"][:60], *[""] * 7, "no"))
             continue
         margin = "-" if r["azimuth_margin"] is None else f"{r['azimuth_margin']:.3g}"
+        photo_margin = "-" if r["photometric_margin"] is None else f"{r['photometric_margin']:.3g}"
         cells.append(
             (
                 r["object"],
                 r["scanner"],
                 r["seed"],
                 r["registered"],
-                f"{r['centre_mm']:.2f}",
-                f"{r['rotation_deg']:.2f}",
+                f"{r['icp_centre_mm']:.2f} / {r['icp_rotation_deg']:.2f}",
                 f"{r['residual_mm']:.2f}",
                 r["inliers"],
                 margin,
+                f"{r['centre_mm']:.2f} / {r['rotation_deg']:.2f}",
+                f"{r['sharpness']:.2f}",
+                photo_margin,
                 "yes" if r["right"] else "NO",
+                "yes" if r["accepted"] else "refused",
             )
         )
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     lines += ["| " + " | ".join(str(c) for c in row) + " |" for row in cells]
+    done = [r for r in rows if "failed" not in r]
+    wrong_accepted = sum(1 for r in done if r["accepted"] and not r["right"])
+    right_refused = sum(1 for r in done if r["right"] and not r["accepted"])
+    lines += [
+        "",
+        f"{sum(r['right'] for r in done)} of {len(rows)} right (<= {RIGHT_MM:g} mm and {RIGHT_DEG:g} deg); "
+        f"wrong accepted: {wrong_accepted}; right refused: {right_refused}; SfM failed: {len(rows) - len(done)}",
+    ]
     return "\n".join(lines) + "\n"

@@ -43,6 +43,9 @@ class Alignment:
     # first, and how much worse the best alternative more than AMBIGUOUS_DEG away scores (relative)
     candidates: list[tuple[float, float]] = field(default_factory=list)
     azimuth_margin: float = float("inf")
+    # the best alignment of each other azimuth cluster (more than AMBIGUOUS_DEG apart), best first:
+    # what the photos are asked to rule out (``photo_registration``)
+    alternatives: list[Alignment] = field(default_factory=list)
 
     def apply(self, x: np.ndarray) -> np.ndarray:
         """SfM points ``(..., 3)`` in the mesh frame (metres)."""
@@ -109,6 +112,7 @@ SURFACE_SAMPLES = 200_000
 COARSE_AZIMUTHS_DEG = np.arange(0, 360, 10)
 FINE_AZIMUTHS_DEG = np.arange(-8, 8.01, 0.25)
 AMBIGUOUS_DEG = 15.0  # candidates further than this from the best are alternatives to it
+MAX_ALTERNATIVES = 3
 
 
 @dataclass
@@ -233,9 +237,12 @@ class _AzimuthSearch:
         score still tells)."""
         best: tuple[float, float, float, np.ndarray] | None = None
         self.candidates: list[tuple[float, float]] = []
+        self.converged: list[tuple[float, float, float, np.ndarray]] = []
         for yaw0 in np.radians(COARSE_AZIMUTHS_DEG):
             s, yaw, txy = self.icp(s0, float(yaw0), self.target[:2].copy(), True)
-            self.candidates.append((float(np.degrees(yaw)) % 360.0, self.score(s, yaw, txy)[0]))
+            value = self.score(s, yaw, txy)[0]
+            self.candidates.append((float(np.degrees(yaw)) % 360.0, value))
+            self.converged.append((value, s, yaw, txy))
             best = self._keep_better(best, s, yaw, txy)
         assert best is not None
         for yaw0 in best[2] + np.radians(FINE_AZIMUTHS_DEG):
@@ -309,14 +316,32 @@ def align_to_mesh(
         iterations,
     )
     s, yaw, txy = search.polish(*search.search(s0))
+    best = _alignment(search, frame, s, yaw, txy)
+    final, _ = search.score(s, yaw, txy)
+    best.candidates = sorted(search.candidates, key=lambda c: c[1])
+    away = [v for a, v in best.candidates if azimuth_apart(a, np.degrees(yaw)) > AMBIGUOUS_DEG]
+    best.azimuth_margin = float((min(away) - final) / max(final, 1e-30)) if away else float("inf")
+    clusters = [np.degrees(yaw)]  # the best start of each azimuth cluster, polished
+    for _, s_c, yaw_c, txy_c in sorted(search.converged, key=lambda c: c[0]):
+        if len(best.alternatives) == MAX_ALTERNATIVES:
+            break
+        if all(azimuth_apart(np.degrees(yaw_c), a) > AMBIGUOUS_DEG for a in clusters):
+            clusters.append(np.degrees(yaw_c))
+            best.alternatives.append(_alignment(search, frame, *search.polish(s_c, yaw_c, txy_c.copy())))
+    return best
+
+
+def azimuth_apart(a_deg: float, b_deg: float) -> float:
+    """The angle between two azimuths, degrees in [0, 180]."""
+    return abs((a_deg - b_deg + 180.0) % 360.0 - 180.0)
+
+
+def _alignment(search: _AzimuthSearch, frame: _SupportFrame, s: float, yaw: float, txy: np.ndarray) -> Alignment:
+    """The similarity of the search's (scale, azimuth, shift) and its fit to the mesh."""
     _, dist = search.score(s, yaw, txy)
     c, sn = np.cos(yaw), np.sin(yaw)
     R = np.array([[c, -sn, 0], [sn, c, 0], [0, 0, 1]]) @ frame.R_tilt
     t = np.array([txy[0], txy[1], frame.target[2]]) - s * R @ frame.anchor
     kept = dist < search.tau
     rms = float(np.sqrt((dist[kept] ** 2).mean())) if kept.any() else float("inf")
-    final, _ = search.score(s, yaw, txy)
-    candidates = sorted(search.candidates, key=lambda c: c[1])
-    away = [v for a, v in candidates if abs((a - np.degrees(yaw) + 180.0) % 360.0 - 180.0) > AMBIGUOUS_DEG]
-    margin = (min(away) - final) / max(final, 1e-30) if away else float("inf")
-    return Alignment(s, R, t, rms, len(P), int(kept.sum()), len(S), candidates, float(margin))
+    return Alignment(s, R, t, rms, len(search.A), int(kept.sum()), len(search.B))

@@ -24,8 +24,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..io.atomic import temp_dir, write_text_atomic
+from ..io.atomic import atomic_path, temp_dir, write_text_atomic
 from ..io.errors import NtpInputError
+from ..io.images import write_png
 from ..io.mesh import Mesh, load_mesh, save_obj
 from ..io.progress import QUIET, Progress
 from ..io.raycast import RayCaster
@@ -38,6 +39,15 @@ from .cache import StageCache, content_digest, content_key, digest
 from .colmap_model import model_files, read_colmap_model
 from .fit_traces import ALBEDO_VIEWS, RHO_S_PRIOR_WEIGHT, fit_traces
 from .output_folder import claim, publish
+from .photo_registration import (
+    MIN_MARGIN,
+    MIN_SHARPNESS,
+    PhotoStack,
+    check_registration,
+    outline_picture,
+    refusal,
+    spread,
+)
 from .photo_selection import BLUR_MARGIN, Selection, select_photos
 from .result import write_result
 from .scan_folder import Scan, check_mesh_size, read_photo
@@ -63,19 +73,29 @@ class _Report:
 
 
 def register_photos(
-    scan: Scan, out: Path, blur_margin: float = BLUR_MARGIN, progress: Progress = QUIET
+    scan: Scan,
+    out: Path,
+    blur_margin: float = BLUR_MARGIN,
+    progress: Progress = QUIET,
+    force_registration: bool = False,
 ) -> tuple[dict[str, np.ndarray], dict, str]:
     """Stages 1-2 (photo selection, then the poses file or SfM + alignment), cached under
     ``out/cache`` (``out`` is claimed as an ntp result folder). Returns (camera-from-world poses by
-    photo name, report entries, poses key)."""
+    photo name, report entries, poses key). A registration the photos do not confirm raises
+    ``RegistrationRefused`` unless ``force_registration``."""
     check_mesh_size(load_mesh(scan.mesh_path), scan.scanner, scan.mesh_path)
     with claim(out, "result", inputs=scan.input_folders):
-        return _registration(scan, StageCache(Path(out) / "cache"), blur_margin, progress)
+        return _registration(scan, Path(out), blur_margin, progress, force_registration)
+
+
+class RegistrationRefused(NtpInputError):
+    """The photos do not confirm the registration (``photo_registration.refusal``)."""
 
 
 def _registration(
-    scan: Scan, cache: StageCache, blur_margin: float, progress: Progress
+    scan: Scan, out: Path, blur_margin: float, progress: Progress, force: bool
 ) -> tuple[dict[str, np.ndarray], dict, str]:
+    cache = StageCache(out / "cache")
     report = _Report()
     t0 = time.perf_counter()
     sel, h_sel = _select_stage(scan, cache, blur_margin, progress)
@@ -96,6 +116,7 @@ def _registration(
         h_pose = digest({"select": h_sel, "poses": {n: m.round(9).tolist() for n, m in poses.items()}})
     else:
         poses, reg_info, h_pose = _register_stage(scan, cache, sel, h_sel, progress)
+        _diagnostics(out, cache, reg_info, force)
     report.timed("register", t0)
     report.data["registration"] = reg_info
     if not poses:
@@ -107,6 +128,22 @@ def write_registration(out: Path, poses: dict[str, np.ndarray], report: dict) ->
     """``out/poses.json`` (camera-from-world per photo) and ``out/registration.json`` (the report)."""
     write_text_atomic(out / "poses.json", json.dumps({n: m.tolist() for n, m in poses.items()}, indent=1))
     write_text_atomic(out / "registration.json", json.dumps(report, indent=2))
+
+
+def _diagnostics(out: Path, cache: StageCache, reg_info: dict, force: bool) -> None:
+    """``out/registration.json`` and ``out/registration.png`` (the mesh's outline over photos);
+    the refusal when the photos do not confirm the registration and it is not forced."""
+    write_text_atomic(out / "registration.json", json.dumps(reg_info, indent=2))
+    with atomic_path(out / "registration.png") as tmp:
+        shutil.copyfile(cache.folder / "register" / "registration.png", tmp)
+    why = reg_info["confidence"]["refusal"]
+    if why is not None and not force:
+        raise RegistrationRefused(
+            out / "registration.json",
+            f"registration refused: {why} — look at registration.png; more photos, markers on the support "
+            "or a poses file help (--force-registration goes on anyway)",
+        )
+    reg_info["confidence"]["forced"] = why is not None
 
 
 def _select_stage(scan: Scan, cache: StageCache, blur_margin: float, progress: Progress) -> tuple[Selection, str]:
@@ -135,16 +172,28 @@ def _register_stage(
         else:
             reg = structure_from_motion(scan.photos_dir, sel.kept, scan.scanner, d / "sfm", progress=progress)
         names = sorted(reg.poses)
+        mesh = load_mesh(scan.mesh_path)
         try:
             al = align_to_mesh(
                 reg.points,
                 [reg.poses[n] for n in names],
-                load_mesh(scan.mesh_path),
+                mesh,
                 float(np.linalg.norm(scan.scanner.valid_center)),
                 support_plane=scan.support_plane,
             )
         except ValueError as err:
             raise NtpInputError(scan.mesh_path, f"cannot align the SfM points to this mesh: {err}") from None
+        icp = al
+        judged = spread(names)  # the photos judge (and refine) the alignment
+        photos = PhotoStack([read_photo(scan.photos_dir / n, scan.scanner) for n in judged], scan.scanner)
+        support_z = float(mesh.vertices[:, 2].min()) if scan.support_plane else None
+        check = check_registration(al, reg.poses, photos, judged, mesh, support_z)
+        al = check.alignment
+        why = refusal(check)
+        write_png(
+            d / "registration.png",
+            outline_picture(photos, np.stack([al.camera_from_mesh(reg.poses[n]) for n in judged]), mesh),
+        )
         (d / "poses.json").write_text(json.dumps({n: al.camera_from_mesh(reg.poses[n]).tolist() for n in names}))
         (d / "registration.json").write_text(
             json.dumps(
@@ -155,12 +204,19 @@ def _register_stage(
                     "sfm_points": len(reg.points),
                     "alignment": {
                         "scale": al.scale,
-                        "residual_m": al.residual_m,
-                        "object_points": al.object_points,
-                        "inlier_points": al.kept_points,
-                        "support_points": al.support_points,
-                        "azimuth_margin": al.azimuth_margin if np.isfinite(al.azimuth_margin) else None,
-                        "candidates": [{"azimuth_deg": a, "score": v} for a, v in al.candidates],
+                        "residual_m": icp.residual_m,
+                        "object_points": icp.object_points,
+                        "inlier_points": icp.kept_points,
+                        "support_points": icp.support_points,
+                        "azimuth_margin": icp.azimuth_margin if np.isfinite(icp.azimuth_margin) else None,
+                        "candidates": [{"azimuth_deg": a, "score": v} for a, v in icp.candidates],
+                    },
+                    "photometric": {**check.to_json(), "photos": len(judged)},
+                    "confidence": {
+                        "accepted": why is None,
+                        "refusal": why,
+                        "min_sharpness": MIN_SHARPNESS,
+                        "min_margin": MIN_MARGIN,
                     },
                 },
                 indent=1,
@@ -191,24 +247,32 @@ def reconstruct(
     model: str | None = None,
     blur_margin: float = BLUR_MARGIN,
     progress: Progress = QUIET,
+    force_registration: bool = False,
 ) -> dict:
     """Run the pipeline on ``scan`` into ``out``; returns the report (also in ``out/report.json``,
     written last). ``out`` must be absent, empty or an ntp result, outside the scan folder
-    (``output_folder.claim``); a run that measured too little is refused, the old result kept."""
+    (``output_folder.claim``); a run that measured too little, or whose registration the photos do
+    not confirm (unless ``force_registration``), is refused, the old result kept."""
     if resolution < MIN_RESOLUTION:
         raise NtpInputError(None, f"--resolution {resolution}: need at least {MIN_RESOLUTION}")
     check_mesh_size(load_mesh(scan.mesh_path), scan.scanner, scan.mesh_path)
     with claim(out, "result", inputs=scan.input_folders):
-        return _reconstruct(scan, Path(out), resolution, model, blur_margin, progress)
+        return _reconstruct(scan, Path(out), resolution, model, blur_margin, progress, force_registration)
 
 
 def _reconstruct(
-    scan: Scan, out: Path, resolution: int, model: str | None, blur_margin: float, progress: Progress
+    scan: Scan,
+    out: Path,
+    resolution: int,
+    model: str | None,
+    blur_margin: float,
+    progress: Progress,
+    force_registration: bool,
 ) -> dict:
     cache = StageCache(out / "cache")
     t_all = time.perf_counter()
     report = _Report(scan=str(scan.folder))
-    poses, reg_report, h_pose = _registration(scan, cache, blur_margin, progress)
+    poses, reg_report, h_pose = _registration(scan, out, blur_margin, progress, force_registration)
     report.data["stages"].update(reg_report.pop("stages"))
     report.data.update(reg_report)
     net, meta = models.load(model, scan.scanner)  # before any work: the model must fit the scanner

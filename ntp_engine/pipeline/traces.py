@@ -39,6 +39,24 @@ class TraceStats:
     rejected: dict[str, int]
 
 
+class SupportShadow:
+    """Whether the support (the plane z = ``support_z`` under the object) blocks emitters carrying
+    more than ``MAX_SHADOWED_DRIVE`` of the pattern's drive in a photo — for every point of the
+    object at once, which Eq. 1 (and the network) do not model."""
+
+    def __init__(self, scanner: Scanner, support_z: float):
+        pts, w = scanner.emitter_samples(torch.float64)
+        drive = w.numpy() * scanner.effective_pattern().sum(1)[:, None]  # (L, Q)
+        self.drive = drive / max(drive.sum(), 1e-300)
+        self.points, self.support_z = pts.numpy(), support_z
+
+    def __call__(self, camera_from_world: np.ndarray) -> bool:
+        """True when the support shadows the photo taken from ``camera_from_world`` (4x4)."""
+        R, t = camera_from_world[:3, :3], camera_from_world[:3, 3]
+        below = ((self.points - t) @ R)[..., 2] < self.support_z  # emitter samples in world: R^T (p - t)
+        return bool(self.drive[below].sum() > MAX_SHADOWED_DRIVE)
+
+
 def assemble(
     texels: Texels,
     photos: Iterable[np.ndarray],
@@ -66,18 +84,12 @@ def assemble(
         "support_shadow_views": 0,
     }
     views_used = 0
-    if support_z is not None:
-        pts_t, w = scanner.emitter_samples(torch.float64)
-        drive = w.numpy() * scanner.effective_pattern().sum(1)[:, None]  # (L, Q)
-        drive = drive / max(drive.sum(), 1e-300)
-        pts = pts_t.numpy()
+    shadowed = SupportShadow(scanner, support_z) if support_z is not None else None
     for img, pose in progress.track(zip(photos, poses), "traces", total=len(poses), unit="photo"):
         R, t = pose[:3, :3], pose[:3, 3]
-        if support_z is not None:
-            below = ((pts - t) @ R)[..., 2] < support_z  # emitter samples in world, R^T (p - t)
-            if drive[below].sum() > MAX_SHADOWED_DRIVE:
-                rejected["support_shadow_views"] += 1
-                continue
+        if shadowed is not None and shadowed(pose):
+            rejected["support_shadow_views"] += 1
+            continue
         x = texels.position @ R.T + t
         n_hat = texels.normal @ R.T
         cam_w = -R.T @ t

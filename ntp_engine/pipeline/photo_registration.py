@@ -1,0 +1,566 @@
+"""A registration refined and judged against the photos: photometric consistency of the mesh's
+surface under the scanner's own moving light.
+
+Convention: the mesh frame is metres; ``camera_from_mesh`` poses are rigid 4x4 (OpenCV axes). A
+surface point p (normal n) seen unoccluded by photo j has a linear pixel m_jp (RGB) that Eq. 1's
+diffuse term predicts as rho_p * D_jp, with D_jp = sum_l A_l(x, n) P_eff[l] / pi in camera j's space
+(the LED array moves with the camera, so D changes from photo to photo). Under the right
+registration r_jp = log m_jp - log D_jp is the same for every photo (log rho_p) but where a highlight
+adds to it; under a wrong one p samples other surface points, or the support, shaded for another
+normal. The cost is a Cauchy loss of each r_jp about its point's median over the photos, averaged;
+it is smooth in the pose because photos are sampled bilinearly after a Gaussian blur (coarse to fine).
+
+``refine`` moves a similarity correction G (rotation about the object's centre, shift, scale) that
+acts on every camera at once — the SfM model's own relative poses are kept, so the photos of the
+whole sweep vote on the 7 degrees of freedom SfM cannot know — then scores the result:
+``agreement`` is the fraction of observations within ``AGREE_LOG`` of their point's median.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from scipy.ndimage import distance_transform_edt
+
+from ..io.mesh import Mesh
+from ..io.raycast import RayCaster
+from ..physics.frame import any_tangent
+from ..physics.measurement import local_emitter_geometry, terms_from_lobe
+from ..scanner import camera
+from ..scanner.scanner import Scanner
+from .align import AMBIGUOUS_DEG, Alignment, azimuth_apart, surface_samples
+from .traces import MIN_COS_VIEW, SupportShadow
+
+SURFACE_POINTS = 4000
+BLUR_LEVELS_PX = (2.0, 1.0)  # Gaussian sigma of the photos per level, pixels of the working size
+CAUCHY_LOG = 0.1  # scale of the robust loss on log residuals (10%)
+AGREE_LOG = 0.1  # an observation within 10% of its point's median agrees
+EDGE_CLEARANCE = 2.0  # points used lie this many blur sigmas (+ 1 px) from every edge of the mesh's image
+MIN_VIEWS = 3  # a point enters the cost once this many photos see it
+MAX_ROUNDS = 8  # re-linearisations per blur level
+SETTLED_RAD, SETTLED_M = 2e-4, 5e-5  # a round that moves the pose less than this ends the level
+AZIMUTH_GRID_DEG = np.arange(-4.0, 4.01, 0.25)  # searched before the first level's descent
+CODE_RANGE = (6.0, 249.0)  # 8-bit codes used: above the noise floor, below clipping
+MAX_WORKING_WIDTH = 640  # photos are averaged down to at most this width (a registration needs no more)
+
+
+@dataclass
+class PhotometricFit:
+    """How the photos agree with a registration: the mean robust cost, the fraction of observations
+    within ``AGREE_LOG`` of their point's median, and how many observations and points entered."""
+
+    cost: float
+    agreement: float
+    observations: int
+    points: int
+
+    def to_json(self) -> dict:
+        """The fit as JSON values."""
+        return {
+            "cost": self.cost,
+            "agreement": self.agreement,
+            "observations": self.observations,
+            "points": self.points,
+        }
+
+
+@dataclass
+class Correction:
+    """G(x) = c0 + e^lambda R_omega (x - c0) + tau on mesh-frame points (metres): applied after an
+    alignment it moves every camera together."""
+
+    omega: np.ndarray  # (3,) rotation vector, radians
+    tau: np.ndarray  # (3,) metres
+    log_scale: float
+    centre: np.ndarray  # (3,) c0, metres
+
+    def camera_from_mesh(self, pose: np.ndarray) -> np.ndarray:
+        """A camera's corrected metric pose (4x4): x_cam = R_j R_w^T (x - c0 - tau) + e^l (R_j c0 + t_j)."""
+        Rw = _rotation(self.omega)
+        R, t = pose[:3, :3], pose[:3, 3]
+        out = np.eye(4)
+        out[:3, :3] = R @ Rw.T
+        out[:3, 3] = -out[:3, :3] @ (self.centre + self.tau) + np.exp(self.log_scale) * (R @ self.centre + t)
+        return out
+
+
+def _rotation(omega: np.ndarray) -> np.ndarray:
+    theta = float(np.linalg.norm(omega))
+    if theta < 1e-15:
+        return np.eye(3)
+    k = omega / theta
+    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + np.sin(theta) * K + (1 - np.cos(theta)) * K @ K
+
+
+def _rotation_t(omega: torch.Tensor) -> torch.Tensor:
+    """Rodrigues' formula, differentiable at 0 (the first-order form below 1e-8 rad)."""
+    theta2 = (omega * omega).sum()
+    zero = torch.zeros((), dtype=omega.dtype)
+    K = torch.stack(
+        [
+            torch.stack([zero, -omega[2], omega[1]]),
+            torch.stack([omega[2], zero, -omega[0]]),
+            torch.stack([-omega[1], omega[0], zero]),
+        ]
+    )
+    theta = torch.sqrt(theta2.clamp_min(1e-16))
+    a = torch.where(theta2 > 1e-16, torch.sin(theta) / theta, 1 - theta2 / 6)
+    b = torch.where(theta2 > 1e-16, (1 - torch.cos(theta)) / theta2.clamp_min(1e-16), 0.5 - theta2 / 24)
+    return torch.eye(3, dtype=omega.dtype) + a * K + b * K @ K
+
+
+class PhotoStack:
+    """Linear photos ``(V, 3, h, w)`` at a working size, the matching scanner, and their blurs."""
+
+    def __init__(self, codes: list[np.ndarray], scanner: Scanner):
+        """``codes``: 8-bit ``(H, W, 3)`` photos of ``scanner``'s camera."""
+        factor = max(1, int(np.ceil(scanner.width / MAX_WORKING_WIDTH)))
+        self.scanner = camera.resampled(scanner, 1.0 / factor) if factor > 1 else scanner
+        stack = torch.as_tensor(np.stack(codes), dtype=torch.float32).permute(0, 3, 1, 2)
+        linear = camera.decode(scanner, stack)
+        usable = ((stack >= CODE_RANGE[0]) & (stack <= CODE_RANGE[1])).all(1, keepdim=True).float()
+        if factor > 1:  # area average; a pixel with any clipped source pixel is unusable
+            linear = F.avg_pool2d(linear, factor)
+            usable = (F.avg_pool2d(usable, factor) > 0.999).float()
+        self.linear, self.usable = linear, usable
+        self._blurred: dict[float, torch.Tensor] = {}
+        self._gradients: dict[float, torch.Tensor] = {}
+
+    def blurred(self, sigma: float) -> torch.Tensor:
+        """The photos blurred by a Gaussian of ``sigma`` pixels (cached)."""
+        if sigma not in self._blurred:
+            r = int(np.ceil(3 * sigma))
+            g = torch.exp(-0.5 * (torch.arange(-r, r + 1, dtype=torch.float32) / sigma) ** 2)
+            g = (g / g.sum()).repeat(3, 1, 1)  # (3, 1, 2r + 1)
+            x = F.conv2d(F.pad(self.linear, (r, r, 0, 0), mode="replicate"), g[:, :, None, :], groups=3)
+            self._blurred[sigma] = F.conv2d(F.pad(x, (0, 0, r, r), mode="replicate"), g[:, :, :, None], groups=3)
+        return self._blurred[sigma]
+
+    def gradients(self, sigma: float) -> torch.Tensor:
+        """Central-difference gradients of the blurred photos ``(V, 6, h, w)``: per channel d/dcol, d/drow."""
+        if sigma not in self._gradients:
+            x = F.pad(self.blurred(sigma), (1, 1, 1, 1), mode="replicate")
+            gx = (x[:, :, 1:-1, 2:] - x[:, :, 1:-1, :-2]) / 2
+            gy = (x[:, :, 2:, 1:-1] - x[:, :, :-2, 1:-1]) / 2
+            self._gradients[sigma] = torch.stack([gx, gy], 2).flatten(1, 2)
+        return self._gradients[sigma]
+
+
+def _diffuse_shading(scanner: Scanner, x: np.ndarray, n: np.ndarray, chunk: int = 4096) -> np.ndarray:
+    """D ``(M, 3)``: the rho_d = 1 measurement of camera-space points ``x`` with normals ``n``."""
+    p_eff = torch.as_tensor(scanner.effective_pattern(), dtype=torch.float64)
+    out = np.zeros((len(x), 3))
+    for a in range(0, len(x), chunk):
+        xt = torch.as_tensor(x[a : a + chunk], dtype=torch.float64)
+        nt = torch.as_tensor(n[a : a + chunk], dtype=torch.float64)
+        geo = local_emitter_geometry(scanner, xt, nt, any_tangent(nt))
+        a_l, _ = terms_from_lobe(geo, torch.zeros_like(geo.falloff))
+        out[a : a + chunk] = (a_l @ p_eff).numpy() / np.pi
+    return out * scanner.exposure()
+
+
+def _edges(hit: np.ndarray, depth: np.ndarray) -> np.ndarray:
+    """Pixels ``(h, w)`` beside a pixel that misses the mesh while they hit it (or the reverse), or
+    whose depth differs by more than 2%: the silhouette and the depth edges of the mesh's image."""
+    d = np.where(hit, depth, 0.0)
+    edge = np.zeros_like(hit)
+    for axis in (0, 1):
+        a, b = [slice(None)] * 2, [slice(None)] * 2
+        a[axis], b[axis] = slice(1, None), slice(None, -1)
+        jump = (hit[tuple(a)] != hit[tuple(b)]) | (np.abs(d[tuple(a)] - d[tuple(b)]) > 0.02 * d[tuple(a)])
+        edge[tuple(a)] |= jump
+        edge[tuple(b)] |= jump
+    return edge
+
+
+class PhotometricRegistration:
+    """The photometric cost of a registration and its refinement (see the module docstring).
+
+    ``poses``: camera-from-mesh (metric) of the photos in ``photos``, as the alignment gives them."""
+
+    def __init__(
+        self,
+        mesh: Mesh,
+        photos: PhotoStack,
+        support_z: float | None,
+        points: int = SURFACE_POINTS,
+        seed: int = 0,
+    ):
+        self.photos, self.scanner = photos, photos.scanner
+        self.points, self.normals = surface_samples(mesh, points, seed=seed, normals=True)
+        self.caster = RayCaster([mesh.triangles])
+        lo, hi = mesh.vertices.min(0), mesh.vertices.max(0)
+        self.centre, self.size = (lo + hi) / 2, float(np.linalg.norm(hi - lo))
+        self.shadow = SupportShadow(self.scanner, support_z) if support_z is not None else None
+        # on a support the tilt is the plane's (hundreds of SfM points): free are azimuth, shift, scale
+        self.free = np.array([support_z is None] * 2 + [True] * 5)
+
+    def _observations(self, poses: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Which (photo, point) pairs see each other ``(V, N)``, their shading D ``(V, N, 3)`` and each
+        point's distance in pixels to the nearest silhouette or depth edge of the mesh in that photo
+        ``(V, N)`` — a blurred photo mixes the two sides of an edge, so points nearer than the blur
+        would pull the registration (toward a smaller projection)."""
+        V, N = len(poses), len(self.points)
+        seen = np.zeros((V, N), bool)
+        shading = np.ones((V, N, 3))
+        edge_px = np.zeros((V, N))
+        s = self.scanner
+        rays = camera.pixel_rays(s).reshape(-1, 3)
+        for j, pose in enumerate(poses):
+            if self.shadow is not None and self.shadow(pose):
+                continue
+            R, t = pose[:3, :3], pose[:3, 3]
+            x, n = self.points @ R.T + t, self.normals @ R.T
+            ok = x[:, 2] > 1e-6
+            px = camera.project(s, torch.as_tensor(x)).numpy()
+            margin = 3.0
+            ok &= (px[:, 0] > margin) & (px[:, 1] > margin) & (px[:, 0] < s.width - 1 - margin)
+            ok &= px[:, 1] < s.height - 1 - margin
+            ok &= (-(x * n).sum(1) / np.linalg.norm(x, axis=1)) > MIN_COS_VIEW
+            idx = np.nonzero(ok)[0]
+            origin = self.points[idx] + 1e-4 * self.size * self.normals[idx]
+            to_cam = -R.T @ t - origin
+            dist = np.linalg.norm(to_cam, axis=1)
+            occluded = self.caster.occluded(origin, to_cam / dist[:, None], dist)
+            idx = idx[~occluded]
+            seen[j, idx] = True
+            shading[j, idx] = _diffuse_shading(s, x[idx], n[idx])
+            hits = self.caster.intersect(np.broadcast_to(-R.T @ t, rays.shape), rays @ R)
+            edge = _edges((hits.geom >= 0).reshape(s.height, s.width), hits.t.reshape(s.height, s.width))
+            far = distance_transform_edt(~edge)
+            col, row = np.round(px[idx, 0]).astype(int), np.round(px[idx, 1]).astype(int)
+            edge_px[j, idx] = far[row, col]
+        shading = np.maximum(shading, 1e-6 * max(shading[seen].max(initial=0.0), 1e-12))
+        return seen, shading, edge_px
+
+    def _held(self, poses: np.ndarray, params: np.ndarray, sigma: float) -> tuple[np.ndarray, np.ndarray]:
+        """The observations and log shading a round holds, taken at ``params``."""
+        current = self._correction(params).camera_from_mesh
+        seen = self._usable(poses, params, sigma, *self._observations(np.stack([current(p) for p in poses])))
+        return seen, np.log(self._shading)
+
+    def _residual_mask(self, poses, params, sigma, seen, log_d) -> tuple[torch.Tensor, torch.Tensor]:
+        r, _, ok = self._linearise(poses, params, sigma, seen, log_d, jacobian=False)
+        return r, ok
+
+    def _usable(self, poses, params, sigma, seen, shading, edge_px) -> np.ndarray:
+        """The observations a level uses: seen, clear of the mesh's edges by the blur, and on pixels
+        neither clipped nor in the noise (keeps ``shading`` for the level)."""
+        self._shading = shading
+        px = self._pixels(poses, params)
+        usable = (self._sample(self.photos.usable, px)[..., 0] > 0.999).numpy()
+        return seen & usable & (edge_px > EDGE_CLEARANCE * sigma + 1)
+
+    def _pixels(self, poses: np.ndarray, params: np.ndarray) -> torch.Tensor:
+        """Pixel coordinates ``(V, N, 2)`` of the mesh samples under the correction ``params``
+        (omega, tau / size, lambda): x_cam = R_j R_w^T (x - c0 - tau) + e^lambda (R_j c0 + t_j)."""
+        Rw = _rotation(params[:3])
+        local = (self.points - self.centre - params[3:6] * self.size) @ Rw  # R_w^T (x - c0 - tau), rows
+        R, t = poses[:, :3, :3], poses[:, :3, 3]
+        x = local @ R.transpose(0, 2, 1) + (np.exp(params[6]) * (R @ self.centre + t))[:, None, :]
+        return camera.project(self.scanner, torch.as_tensor(x))
+
+    def _sample(self, images: torch.Tensor, px: torch.Tensor) -> torch.Tensor:
+        """Bilinear samples ``(V, N, C)`` of ``images (V, C, h, w)`` at ``px (V, N, 2)``."""
+        s = self.scanner
+        grid = torch.stack([2 * px[..., 0] / (s.width - 1) - 1, 2 * px[..., 1] / (s.height - 1) - 1], -1)
+        grid = torch.nan_to_num(grid, nan=-2.0)[:, None].to(images.dtype)
+        return F.grid_sample(images, grid, align_corners=True)[:, :, 0].permute(0, 2, 1).to(torch.float64)
+
+    def _linearise(
+        self,
+        poses: np.ndarray,
+        params: np.ndarray,
+        sigma: float,
+        seen: np.ndarray,
+        log_d: np.ndarray,
+        jacobian: bool = True,
+    ):
+        """Log residuals r ``(V, N, 3)``, their Jacobian ``(V, N, 3, 7)`` in ``params`` and the usable
+        mask ``(V, N)``: image gradients of the blurred photos times the pixels' central differences."""
+        img = self.photos.blurred(sigma)
+        grads = self.photos.gradients(sigma)
+        px = self._pixels(poses, params)
+        m = self._sample(img, px)
+        g = self._sample(grads, px).reshape(*m.shape[:2], 3, 2)  # d m / d (col, row)
+        ok = torch.as_tensor(seen)  # fixed while the pose moves: a mask that changed would make the cost jump
+        m = m.clamp_min(1e-6)
+        if not jacobian:
+            return torch.log(m) - torch.as_tensor(log_d), None, ok
+        dpx = []  # forward differences: the projection is smooth at this step (0.0001 rad, 0.01% of the size)
+        for k in range(7):
+            e = np.zeros(7)
+            e[k] = 1e-4
+            dpx.append((self._pixels(poses, params + e) - px) / 1e-4)
+        J_px = torch.nan_to_num(torch.stack(dpx, -1))  # (V, N, 2, 7)
+        J = (g / m[..., None]) @ J_px  # (V, N, 3, 7)
+        r = torch.log(m) - torch.as_tensor(log_d)
+        return r, J, ok
+
+    def _cost(self, r: torch.Tensor, ok: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, PhotometricFit]:
+        """Residuals about each point's median ``(V, N, 3)`` (0 where unused), the mask of points seen
+        often enough, and the fit."""
+        enough = ok.sum(0) >= MIN_VIEWS
+        ok = ok & enough[None, :]
+        centre = torch.nanmedian(torch.where(ok[..., None], r, torch.nan), dim=0).values
+        for _ in range(3):  # from the median to the Cauchy M-estimate (IRLS): the cost's own minimiser
+            e = torch.where(ok[..., None], r - centre[None], 0.0)
+            w = ok[..., None] / (1 + (e / CAUCHY_LOG) ** 2)
+            centre = torch.where(ok.any(0)[:, None], (w * r).sum(0) / w.sum(0).clamp_min(1e-12), 0.0)
+        e = torch.where(ok[..., None], r - centre[None], 0.0)
+        count = int(ok.sum())
+        cost = float(torch.log1p((e / CAUCHY_LOG) ** 2).sum()) / max(count, 1)
+        agree = (e.abs().amax(-1) < AGREE_LOG) & ok
+        return e, ok, PhotometricFit(cost, float(agree.sum()) / max(count, 1), count, int(enough.sum()))
+
+    def evaluate(self, poses: np.ndarray, sigma: float = BLUR_LEVELS_PX[-1]) -> PhotometricFit:
+        """The cost and agreement of ``poses (V, 4, 4)`` as they are."""
+        seen = self._usable(np.asarray(poses), np.zeros(7), sigma, *self._observations(poses))
+        shading = self._shading
+        r, _, ok = self._linearise(np.asarray(poses), np.zeros(7), sigma, seen, np.log(shading), jacobian=False)
+        return self._cost(r, ok)[2]
+
+    def refine(
+        self,
+        poses: np.ndarray,
+        levels: tuple[float, ...] = BLUR_LEVELS_PX,
+        iterations: int = 15,
+        max_rounds: int = MAX_ROUNDS,
+    ) -> tuple[Correction, PhotometricFit]:
+        """The correction G that minimises the cost — Levenberg-Marquardt on iteratively reweighted
+        (Cauchy) least squares, each point's log albedo eliminated as its weighted mean — coarse to
+        fine (``levels``: blur sigmas in pixels); and the fit at the finest level.
+        ``poses (V, 4, 4)`` camera-from-mesh before G."""
+        poses = np.asarray(poses)
+        params = np.zeros(7)
+        fit = PhotometricFit(float("inf"), 0.0, 0, 0)
+        rounds = [(sigma, k) for sigma in levels for k in range(max_rounds)]
+        settled, previous = False, np.zeros(7)
+        for sigma, k in rounds:
+            if k == 0:
+                settled, previous = False, np.zeros(7)
+            if settled:
+                continue
+            start = params.copy()
+            seen, log_d = self._held(poses, params, sigma)
+            if sigma == levels[0] and k == 0:  # the azimuth first: nearly round objects make it the shallow direction
+                params = self._azimuth_search(poses, params, sigma, seen, log_d)
+            params, fit = self._descend(poses, params, sigma, seen, log_d, iterations)
+            # visibility, edges and shading were held for this round: again until the pose stops moving
+            step = params - start
+            settled = bool(
+                np.abs(step[[0, 1, 2, 6]]).max() < SETTLED_RAD and np.abs(step[3:6]).max() * self.size < SETTLED_M
+            )
+            # the robust cost anchors each round near its start, so rounds walk a shallow valley in
+            # shrinking steps along one direction: jump to the walk's limit when the photos agree
+            cos = float(step @ previous) / max(float(np.linalg.norm(step) * np.linalg.norm(previous)), 1e-30)
+            ratio = float(np.linalg.norm(step) / max(float(np.linalg.norm(previous)), 1e-30))
+            if not settled and cos > 0.9 and ratio < 0.95:
+                jump = params + step * min(ratio / (1 - ratio), 10.0)
+                seen_j, log_d_j = self._held(poses, jump, sigma)
+                here, there = (
+                    self._cost(*self._residual_mask(poses, q, sigma, seen_j, log_d_j))[2] for q in (params, jump)
+                )
+                if there.cost < here.cost:
+                    params, fit = jump, there
+            previous = step
+        return self._correction(params), fit
+
+    def _descend(self, poses, params, sigma, seen, log_d, iterations) -> tuple[np.ndarray, PhotometricFit]:
+        """Levenberg-Marquardt steps on the IRLS-weighted least squares with the observations held."""
+        damping = 1e-3
+        r, J, ok = self._linearise(poses, params, sigma, seen, log_d)
+        e, used, fit = self._cost(r, ok)
+        for _ in range(iterations):
+            w = used[..., None] / (1 + (e / CAUCHY_LOG) ** 2)  # IRLS weights (V, N, 3)
+            wsum = w.sum(0).clamp_min(1e-12)
+            Jc = J - ((w[..., None] * J).sum(0) / wsum[..., None])[None]  # minus the point's weighted mean
+            ec = r - ((w * r).sum(0) / wsum)[None]
+            wJ = (w[..., None] * Jc).reshape(-1, 7)
+            A = wJ.T @ Jc.reshape(-1, 7)
+            b = wJ.T @ ec.reshape(-1)
+            improved = False
+            while damping < 1e6:
+                step = np.zeros(7)
+                free = torch.as_tensor(self.free)
+                Af = A[free][:, free]
+                step[self.free] = -torch.linalg.solve(Af + damping * torch.diag(torch.diag(Af)), b[free]).numpy()
+                r2, J2, ok2 = self._linearise(poses, params + step, sigma, seen, log_d)
+                e2, used2, fit2 = self._cost(r2, ok2)
+                if fit2.cost < fit.cost:
+                    params, r, J, e, used, fit = params + step, r2, J2, e2, used2, fit2
+                    damping = max(damping / 10, 1e-7)
+                    improved = True
+                    break
+                damping *= 10
+            if not improved or np.abs(step).max() < 1e-7:
+                break
+        return params, fit
+
+    def _azimuth_search(self, poses, params, sigma, seen, log_d) -> np.ndarray:
+        """``params`` turned about the vertical through the object's centre to the best of
+        ``AZIMUTH_GRID_DEG`` (visibility held)."""
+        best, best_cost = params, float("inf")
+        for a in np.radians(AZIMUTH_GRID_DEG):
+            trial = params.copy()
+            trial[2] += a
+            r, _, ok = self._linearise(poses, trial, sigma, seen, log_d, jacobian=False)
+            cost = self._cost(r, ok)[2].cost
+            if cost < best_cost:
+                best, best_cost = trial, cost
+        return best
+
+    def sharpness(self, poses: np.ndarray, sigma: float) -> float:
+        """Mean relative rise of the cost when ``poses`` move ``SHARPNESS_SHIFT_PX`` (at the object's
+        distance) either way along each mesh axis, observations held."""
+        seen = self._usable(poses, np.zeros(7), sigma, *self._observations(poses))
+        log_d = np.log(self._shading)
+        distance = float(np.median(np.linalg.norm(poses[:, :3, :3] @ self.centre + poses[:, :3, 3], axis=1)))
+        shift = SHARPNESS_SHIFT_PX * distance / self.scanner.fx / self.size
+
+        def cost(params: np.ndarray) -> float:
+            r, _, ok = self._linearise(poses, params, sigma, seen, log_d, jacobian=False)
+            return self._cost(r, ok)[2].cost
+
+        base = cost(np.zeros(7))
+        moved = [cost(np.eye(7)[3 + axis] * sign * shift) for axis in range(3) for sign in (-1, 1)]
+        return float(np.mean(moved) / max(base, 1e-12) - 1)
+
+    def _correction(self, params: np.ndarray) -> Correction:
+        return Correction(params[:3].copy(), params[3:6] * self.size, float(params[6]), self.centre.copy())
+
+
+SHARPNESS_SHIFT_PX = 4.0  # the registration moved this far along each mesh axis: beyond the edge clearance
+CANDIDATE_ROUNDS = 3  # re-linearisations a candidate gets before the candidates are compared
+MAX_PHOTOS = 40  # photos (evenly spread over the sweep) that judge and refine a registration
+
+
+@dataclass
+class PhotoCheck:
+    """A registration chosen, refined and judged by the photos.
+
+    ``fit``: the refined registration's photometric fit; ``sharpness``: how much the cost rises
+    (relative) when it is moved ``SHARPNESS_SHIFT_PX`` along each mesh axis — a right registration
+    is a sharp minimum, a wrong one sits on a plateau of random matches; ``margin``: how much worse
+    (relative cost) the best other azimuth fits the photos after the same refinement (inf: none);
+    ``candidates``: per candidate its azimuth change from the chosen one and coarse cost."""
+
+    alignment: Alignment
+    fit: PhotometricFit
+    sharpness: float
+    margin: float
+    candidates: list[dict]
+    chosen: int  # index of the chosen candidate (0: the point cloud's own best)
+
+    def to_json(self) -> dict:
+        """The check as JSON values (``registration.json`` -> ``photometric``)."""
+        return {
+            "fit": self.fit.to_json(),
+            "sharpness": self.sharpness,
+            "margin": self.margin if np.isfinite(self.margin) else None,
+            "chosen_candidate": self.chosen,
+            "candidates": self.candidates,
+        }
+
+
+def corrected(alignment: Alignment, g: Correction) -> Alignment:
+    """G o A: the alignment that puts the cameras where the correction moved them."""
+    Rw, e = _rotation(g.omega), np.exp(g.log_scale)
+    t = g.centre + e * Rw @ (alignment.translation - g.centre) + g.tau
+    return replace(alignment, scale=e * alignment.scale, rotation=Rw @ alignment.rotation, translation=t)
+
+
+def spread(names: list[str], count: int = MAX_PHOTOS) -> list[str]:
+    """At most ``count`` of ``names`` (sorted: the sweep's order), evenly spread."""
+    names = sorted(names)
+    if len(names) <= count:
+        return names
+    return [names[i] for i in np.linspace(0, len(names) - 1, count).round().astype(int)]
+
+
+def check_registration(
+    alignment: Alignment,
+    camera_from_sfm: dict[str, np.ndarray],
+    photos: PhotoStack,
+    names: list[str],
+    mesh: Mesh,
+    support_z: float | None,
+) -> PhotoCheck:
+    """The best of ``alignment`` and its ``alternatives`` by the photos ``photos`` (of ``names``),
+    refined (similarity only: SfM's relative poses are kept) and judged (see ``PhotoCheck``)."""
+    judge = PhotometricRegistration(mesh, photos, support_z)
+    sfm = np.stack([camera_from_sfm[n] for n in names])
+    coarse = BLUR_LEVELS_PX[:1]
+    trials = []
+    for cand in [alignment, *alignment.alternatives]:
+        poses = np.stack([cand.camera_from_mesh(m) for m in sfm])
+        g, fit = judge.refine(poses, levels=coarse, max_rounds=CANDIDATE_ROUNDS)
+        trials.append((corrected(cand, g), fit))
+    chosen = int(np.argmin([fit.cost for _, fit in trials]))
+    best = trials[chosen][0]
+    yaw = [float(np.degrees(np.arctan2(a.rotation[1, 0], a.rotation[0, 0]))) for a, _ in trials]
+    # candidates the refinement brought into the chosen one's azimuth are the same answer, not rivals
+    others = [
+        fit.cost for y, (_, fit) in zip(yaw, trials, strict=True) if azimuth_apart(y, yaw[chosen]) > AMBIGUOUS_DEG
+    ]
+    margin = (min(others) - trials[chosen][1].cost) / trials[chosen][1].cost if others else float("inf")
+    poses = np.stack([best.camera_from_mesh(m) for m in sfm])
+    g, fit = judge.refine(poses, levels=BLUR_LEVELS_PX[1:])
+    best = corrected(best, g)
+    poses = np.stack([best.camera_from_mesh(m) for m in sfm])
+    sharpness = judge.sharpness(poses, BLUR_LEVELS_PX[-1])
+    candidates = [
+        {"azimuth_change_deg": (y - yaw[chosen] + 180.0) % 360.0 - 180.0, "coarse_cost": fit.cost}
+        for y, (_, fit) in zip(yaw, trials, strict=True)
+    ]
+    best.alternatives = []
+    return PhotoCheck(best, fit, sharpness, float(margin), candidates, chosen)
+
+
+MIN_SHARPNESS = 0.3  # set from the gallery (docs/pipeline.md): right registrations >= 0.6, wrong <= 0.1
+MIN_MARGIN = 0.1  # the best other azimuth must fit the photos at least 10% worse
+
+
+def refusal(check: PhotoCheck) -> str | None:
+    """Why the photos do not confirm a registration (one line), or None when they do."""
+    if check.margin < MIN_MARGIN:
+        turns = [c["azimuth_change_deg"] for c in check.candidates if abs(c["azimuth_change_deg"]) > AMBIGUOUS_DEG]
+        return (
+            f"the object's azimuth is ambiguous: turned by {turns[0] if turns else 0.0:.0f} deg it fits the photos "
+            f"nearly as well (margin {check.margin:.2f} < {MIN_MARGIN})"
+        )
+    if check.fit.points < MIN_VIEWS or check.sharpness < MIN_SHARPNESS:
+        return (
+            f"the photos cannot confirm where the mesh is (moved {SHARPNESS_SHIFT_PX:g} px it fits them "
+            f"{100 * max(check.sharpness, 0.0):.0f}% worse, a confirmed registration >= {100 * MIN_SHARPNESS:.0f}%): "
+            "the mesh is not where the photos show it, or the object is too plain to tell"
+        )
+    return None
+
+
+OUTLINE = np.array([1.0, 0.1, 0.9])  # magenta: rare in photos
+
+
+def outline_picture(photos: PhotoStack, poses: np.ndarray, mesh: Mesh, count: int = 4) -> np.ndarray:
+    """``count`` photos (evenly spread) with the mesh's silhouette and depth edges drawn over them
+    under ``poses (V, 4, 4)``, tiled 2 wide: sRGB-ish display values ``(H, W, 3)`` in [0, 1]."""
+    s = photos.scanner
+    caster = RayCaster([mesh.triangles])
+    rays = camera.pixel_rays(s).reshape(-1, 3)
+    picks = np.linspace(0, len(poses) - 1, min(count, len(poses))).round().astype(int)
+    tiles = []
+    for j in picks:
+        R, t = poses[j][:3, :3], poses[j][:3, 3]
+        hits = caster.intersect(np.broadcast_to(-R.T @ t, rays.shape), rays @ R)
+        edge = _edges((hits.geom >= 0).reshape(s.height, s.width), hits.t.reshape(s.height, s.width))
+        img = photos.linear[j].permute(1, 2, 0).numpy().clip(0, 1) ** (1 / 2.2)
+        img[edge] = OUTLINE
+        tiles.append(img)
+    while len(tiles) % 2:
+        tiles.append(np.zeros_like(tiles[0]))
+    rows = [np.concatenate(tiles[i : i + 2], 1) for i in range(0, len(tiles), 2)]
+    return np.concatenate(rows, 0)
