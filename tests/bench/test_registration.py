@@ -8,7 +8,10 @@ def test_registration_runs_per_seed_and_reuses_the_kept_sfm_model(tmp_path):
     assert row["object"] == "dome" and row["seed"] == 0 and "failed" not in row, row
     assert row["seconds_sfm"] > 0 and row["registered"] >= 12 and row["centre_mm"] >= 0
     assert (tmp_path / "g" / "sfm" / "dome-engine-s0" / "cameras.bin").is_file()
-    assert (tmp_path / "g" / "registration.md").read_text().count("\n") == 3
+    assert row["sharpness"] == row["sharpness"] and row["accepted"] in (True, False) and row["seconds_photometric"] > 0
+    assert row["accepted"] == (row["refusal"] is None)
+    table = (tmp_path / "g" / "registration.md").read_text()
+    assert table.count("\n") == 5 and "wrong accepted:" in table and "right refused:" in table
     (again,) = registration.run(tmp_path / "g", settings, seeds=(0,))["runs"]
     # the kept model, re-aligned (its points come back in another order: RANSAC samples others)
     assert again["seconds_sfm"] == 0.0 and abs(again["centre_mm"] - row["centre_mm"]) < 0.05 * row["centre_mm"] + 0.5

@@ -6,9 +6,9 @@ import subprocess
 import sys
 
 import numpy as np
+from scans import run_virtual_scan, uniform_maps
 
 from ntp_engine.io.mesh import Mesh, save_obj, smooth_normals
-from scans import run_virtual_scan, uniform_maps
 
 
 def _cap(radius: float = 0.05, n_phi: int = 96, n_theta: int = 24) -> Mesh:
