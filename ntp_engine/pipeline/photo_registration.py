@@ -199,14 +199,13 @@ class PhotometricRegistration:
         # on a support the tilt is the plane's (hundreds of SfM points): free are azimuth, shift, scale
         self.free = np.array([support_z is None] * 2 + [True] * 5)
 
-    def _observations(self, poses: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Which (photo, point) pairs see each other ``(V, N)``, their shading D ``(V, N, 3)`` and each
+    def _observations(self, poses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Which (photo, point) pairs see each other ``(V, N)`` and each
         point's distance in pixels to the nearest silhouette or depth edge of the mesh in that photo
         ``(V, N)`` — a blurred photo mixes the two sides of an edge, so points nearer than the blur
         would pull the registration (toward a smaller projection)."""
         V, N = len(poses), len(self.points)
         seen = np.zeros((V, N), bool)
-        shading = np.ones((V, N, 3))
         edge_px = np.zeros((V, N))
         s = self.scanner
         rays = camera.pixel_rays(s).reshape(-1, 3)
@@ -228,41 +227,67 @@ class PhotometricRegistration:
             occluded = self.caster.occluded(origin, to_cam / dist[:, None], dist)
             idx = idx[~occluded]
             seen[j, idx] = True
-            shading[j, idx] = _diffuse_shading(s, x[idx], n[idx])
             hits = self.caster.intersect(np.broadcast_to(-R.T @ t, rays.shape), rays @ R)
             edge = _edges((hits.geom >= 0).reshape(s.height, s.width), hits.t.reshape(s.height, s.width))
             far = distance_transform_edt(~edge)
             col, row = np.round(px[idx, 0]).astype(int), np.round(px[idx, 1]).astype(int)
             edge_px[j, idx] = far[row, col]
-        shading = np.maximum(shading, 1e-6 * max(shading[seen].max(initial=0.0), 1e-12))
-        return seen, shading, edge_px
+        return seen, edge_px
 
-    def _held(self, poses: np.ndarray, params: np.ndarray, sigma: float) -> tuple[np.ndarray, np.ndarray]:
-        """The observations and log shading a round holds, taken at ``params``."""
+    def _held(self, poses: np.ndarray, params: np.ndarray, sigma: float) -> np.ndarray:
+        """The observations a round holds, taken at ``params``."""
         current = self._correction(params).camera_from_mesh
         seen = self._usable(poses, params, sigma, *self._observations(np.stack([current(p) for p in poses])))
-        return seen, np.log(self._shading)
+        self._hold_shading(poses, params, seen)
+        return seen
 
-    def _residual_mask(self, poses, params, sigma, seen, log_d) -> tuple[torch.Tensor, torch.Tensor]:
-        r, _, ok = self._linearise(poses, params, sigma, seen, log_d, jacobian=False)
+    def _residual_mask(self, poses, params, sigma, seen) -> tuple[torch.Tensor, torch.Tensor]:
+        r, _, ok = self._linearise(poses, params, sigma, seen, jacobian=False)
         return r, ok
 
-    def _usable(self, poses, params, sigma, seen, shading, edge_px) -> np.ndarray:
+    def _usable(self, poses, params, sigma, seen, edge_px) -> np.ndarray:
         """The observations a level uses: seen, clear of the mesh's edges by the blur, and on pixels
-        neither clipped nor in the noise (keeps ``shading`` for the level)."""
-        self._shading = shading
+        neither clipped nor in the noise."""
         px = self._pixels(poses, params)
         usable = (self._sample(self.photos.usable, px)[..., 0] > 0.999).numpy()
         return seen & usable & (edge_px > EDGE_CLEARANCE * sigma + 1)
 
-    def _pixels(self, poses: np.ndarray, params: np.ndarray) -> torch.Tensor:
-        """Pixel coordinates ``(V, N, 2)`` of the mesh samples under the correction ``params``
-        (omega, tau / size, lambda): x_cam = R_j R_w^T (x - c0 - tau) + e^lambda (R_j c0 + t_j)."""
+    def _camera(self, poses: np.ndarray, params: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The mesh samples and their normals in every camera ``(V, N, 3)`` under the correction
+        ``params`` (omega, tau / size, lambda): x_cam = R_j R_w^T (x - c0 - tau) + e^lambda (R_j c0 + t_j)."""
         Rw = _rotation(params[:3])
         local = (self.points - self.centre - params[3:6] * self.size) @ Rw  # R_w^T (x - c0 - tau), rows
         R, t = poses[:, :3, :3], poses[:, :3, 3]
         x = local @ R.transpose(0, 2, 1) + (np.exp(params[6]) * (R @ self.centre + t))[:, None, :]
-        return camera.project(self.scanner, torch.as_tensor(x))
+        return x, (self.normals @ Rw) @ R.transpose(0, 2, 1)
+
+    def _pixels(self, poses: np.ndarray, params: np.ndarray) -> torch.Tensor:
+        """Pixel coordinates ``(V, N, 2)`` of the mesh samples under the correction ``params``."""
+        return camera.project(self.scanner, torch.as_tensor(self._camera(poses, params)[0]))
+
+    def _log_shading_at(self, poses: np.ndarray, params: np.ndarray, seen: np.ndarray) -> np.ndarray:
+        """log D ``(V, N, 3)`` of the seen pairs at ``params`` (0 elsewhere)."""
+        x, n = self._camera(poses, params)
+        out = np.zeros((*seen.shape, 3))
+        d = _diffuse_shading(self.scanner, x[seen], n[seen])
+        out[seen] = np.log(np.maximum(d, 1e-6 * max(float(d.max(initial=0.0)), 1e-12)))
+        return out
+
+    def _hold_shading(self, poses: np.ndarray, params: np.ndarray, seen: np.ndarray) -> None:
+        """log D at ``params`` and its forward differences in the 7 parameters, for a round: shading
+        held at one pose would pull the fit back toward it, so it follows the pose to first order."""
+        base = self._log_shading_at(poses, params, seen)
+        J = np.zeros((*base.shape, 7))
+        for k in np.nonzero(self.free)[0]:
+            e = np.zeros(7)
+            e[k] = 1e-3
+            J[..., k] = (self._log_shading_at(poses, params + e, seen) - base) / 1e-3
+        self._shade = (params.copy(), torch.as_tensor(base), torch.as_tensor(J))
+
+    def _log_shading(self, params: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
+        """log D at ``params`` from the round's linear model, and its Jacobian ``(V, N, 3, 7)``."""
+        p0, base, J = self._shade
+        return base + J @ torch.as_tensor(params - p0), J
 
     def _sample(self, images: torch.Tensor, px: torch.Tensor) -> torch.Tensor:
         """Bilinear samples ``(V, N, C)`` of ``images (V, C, h, w)`` at ``px (V, N, 2)``."""
@@ -277,7 +302,6 @@ class PhotometricRegistration:
         params: np.ndarray,
         sigma: float,
         seen: np.ndarray,
-        log_d: np.ndarray,
         jacobian: bool = True,
     ):
         """Log residuals r ``(V, N, 3)``, their Jacobian ``(V, N, 3, 7)`` in ``params`` and the usable
@@ -289,17 +313,17 @@ class PhotometricRegistration:
         g = self._sample(grads, px).reshape(*m.shape[:2], 3, 2)  # d m / d (col, row)
         ok = torch.as_tensor(seen)  # fixed while the pose moves: a mask that changed would make the cost jump
         m = m.clamp_min(1e-6)
+        log_d, J_d = self._log_shading(params)
         if not jacobian:
-            return torch.log(m) - torch.as_tensor(log_d), None, ok
+            return torch.log(m) - log_d, None, ok
         dpx = []  # forward differences: the projection is smooth at this step (0.0001 rad, 0.01% of the size)
         for k in range(7):
             e = np.zeros(7)
             e[k] = 1e-4
             dpx.append((self._pixels(poses, params + e) - px) / 1e-4)
         J_px = torch.nan_to_num(torch.stack(dpx, -1))  # (V, N, 2, 7)
-        J = (g / m[..., None]) @ J_px  # (V, N, 3, 7)
-        r = torch.log(m) - torch.as_tensor(log_d)
-        return r, J, ok
+        J = (g / m[..., None]) @ J_px - J_d  # (V, N, 3, 7)
+        return torch.log(m) - log_d, J, ok
 
     def _cost(self, r: torch.Tensor, ok: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, PhotometricFit]:
         """Residuals about each point's median ``(V, N, 3)`` (0 where unused), the mask of points seen
@@ -320,8 +344,8 @@ class PhotometricRegistration:
     def evaluate(self, poses: np.ndarray, sigma: float = BLUR_LEVELS_PX[-1]) -> PhotometricFit:
         """The cost and agreement of ``poses (V, 4, 4)`` as they are."""
         seen = self._usable(np.asarray(poses), np.zeros(7), sigma, *self._observations(poses))
-        shading = self._shading
-        r, _, ok = self._linearise(np.asarray(poses), np.zeros(7), sigma, seen, np.log(shading), jacobian=False)
+        self._hold_shading(np.asarray(poses), np.zeros(7), seen)
+        r, _, ok = self._linearise(np.asarray(poses), np.zeros(7), sigma, seen, jacobian=False)
         return self._cost(r, ok)[2]
 
     def refine(
@@ -346,10 +370,10 @@ class PhotometricRegistration:
             if settled:
                 continue
             start = params.copy()
-            seen, log_d = self._held(poses, params, sigma)
+            seen = self._held(poses, params, sigma)
             if sigma == levels[0] and k == 0:  # the azimuth first: nearly round objects make it the shallow direction
-                params = self._azimuth_search(poses, params, sigma, seen, log_d)
-            params, fit = self._descend(poses, params, sigma, seen, log_d, iterations)
+                params = self._azimuth_search(poses, params, sigma, seen)
+            params, fit = self._descend(poses, params, sigma, seen, iterations)
             # visibility, edges and shading were held for this round: again until the pose stops moving
             step = params - start
             settled = bool(
@@ -361,19 +385,19 @@ class PhotometricRegistration:
             ratio = float(np.linalg.norm(step) / max(float(np.linalg.norm(previous)), 1e-30))
             if not settled and cos > 0.9 and ratio < 0.95:
                 jump = params + step * min(ratio / (1 - ratio), 10.0)
-                seen_j, log_d_j = self._held(poses, jump, sigma)
+                seen_j = self._held(poses, jump, sigma)
                 here, there = (
-                    self._cost(*self._residual_mask(poses, q, sigma, seen_j, log_d_j))[2] for q in (params, jump)
+                    self._cost(*self._residual_mask(poses, q, sigma, seen_j))[2] for q in (params, jump)
                 )
                 if there.cost < here.cost:
                     params, fit = jump, there
             previous = step
         return self._correction(params), fit
 
-    def _descend(self, poses, params, sigma, seen, log_d, iterations) -> tuple[np.ndarray, PhotometricFit]:
+    def _descend(self, poses, params, sigma, seen, iterations) -> tuple[np.ndarray, PhotometricFit]:
         """Levenberg-Marquardt steps on the IRLS-weighted least squares with the observations held."""
         damping = 1e-3
-        r, J, ok = self._linearise(poses, params, sigma, seen, log_d)
+        r, J, ok = self._linearise(poses, params, sigma, seen)
         e, used, fit = self._cost(r, ok)
         for _ in range(iterations):
             w = used[..., None] / (1 + (e / CAUCHY_LOG) ** 2)  # IRLS weights (V, N, 3)
@@ -389,10 +413,11 @@ class PhotometricRegistration:
                 free = torch.as_tensor(self.free)
                 Af = A[free][:, free]
                 step[self.free] = -torch.linalg.solve(Af + damping * torch.diag(torch.diag(Af)), b[free]).numpy()
-                r2, J2, ok2 = self._linearise(poses, params + step, sigma, seen, log_d)
+                r2, _, ok2 = self._linearise(poses, params + step, sigma, seen, jacobian=False)
                 e2, used2, fit2 = self._cost(r2, ok2)
                 if fit2.cost < fit.cost:
-                    params, r, J, e, used, fit = params + step, r2, J2, e2, used2, fit2
+                    params, e, used, fit = params + step, e2, used2, fit2
+                    r, J, _ = self._linearise(poses, params, sigma, seen)
                     damping = max(damping / 10, 1e-7)
                     improved = True
                     break
@@ -401,14 +426,14 @@ class PhotometricRegistration:
                 break
         return params, fit
 
-    def _azimuth_search(self, poses, params, sigma, seen, log_d) -> np.ndarray:
+    def _azimuth_search(self, poses, params, sigma, seen) -> np.ndarray:
         """``params`` turned about the vertical through the object's centre to the best of
         ``AZIMUTH_GRID_DEG`` (visibility held)."""
         best, best_cost = params, float("inf")
         for a in np.radians(AZIMUTH_GRID_DEG):
             trial = params.copy()
             trial[2] += a
-            r, _, ok = self._linearise(poses, trial, sigma, seen, log_d, jacobian=False)
+            r, _, ok = self._linearise(poses, trial, sigma, seen, jacobian=False)
             cost = self._cost(r, ok)[2].cost
             if cost < best_cost:
                 best, best_cost = trial, cost
@@ -418,12 +443,12 @@ class PhotometricRegistration:
         """Mean relative rise of the cost when ``poses`` move ``SHARPNESS_SHIFT_PX`` (at the object's
         distance) either way along each mesh axis, observations held."""
         seen = self._usable(poses, np.zeros(7), sigma, *self._observations(poses))
-        log_d = np.log(self._shading)
+        self._hold_shading(poses, np.zeros(7), seen)
         distance = float(np.median(np.linalg.norm(poses[:, :3, :3] @ self.centre + poses[:, :3, 3], axis=1)))
         shift = SHARPNESS_SHIFT_PX * distance / self.scanner.fx / self.size
 
         def cost(params: np.ndarray) -> float:
-            r, _, ok = self._linearise(poses, params, sigma, seen, log_d, jacobian=False)
+            r, _, ok = self._linearise(poses, params, sigma, seen, jacobian=False)
             return self._cost(r, ok)[2].cost
 
         base = cost(np.zeros(7))
