@@ -424,9 +424,7 @@ class PhotometricRegistration:
             if not settled and cos > 0.9 and ratio < 0.95:
                 jump = params + step * min(ratio / (1 - ratio), 10.0)
                 seen_j = self._held(poses, jump, sigma)
-                here, there = (
-                    self._cost(*self._residual_mask(poses, q, sigma, seen_j))[2] for q in (params, jump)
-                )
+                here, there = (self._cost(*self._residual_mask(poses, q, sigma, seen_j))[2] for q in (params, jump))
                 if there.cost < here.cost:
                     params, fit = jump, there
             previous = step
