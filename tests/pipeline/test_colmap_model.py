@@ -45,8 +45,13 @@ def test_binary_and_text_models_read_back_to_the_sfm_poses(model, tmp_path):
         assert got.points.shape == sfm.points.shape
 
 
-def test_reconstruct_with_a_colmap_model_skips_sfm(model, scan24, tmp_path, capsys):
+def test_reconstruct_with_a_colmap_model_skips_sfm(model, scan24, tmp_path, capsys, monkeypatch):
     folder, _, _ = model
+
+    def no_sfm(*args, **kwargs):
+        raise AssertionError("SfM ran although a COLMAP model was given")
+
+    monkeypatch.setattr("ntp_engine.pipeline.stages.structure_from_motion", no_sfm)
     scan = tmp_path / "scan"
     shutil.copytree(scan24, scan)
     out = tmp_path / "out"
@@ -55,7 +60,7 @@ def test_reconstruct_with_a_colmap_model_skips_sfm(model, scan24, tmp_path, caps
     rep = json.loads((out / "report.json").read_text())
     reg = rep["registration"]
     assert reg["source"] == f"COLMAP model {folder}" and reg["registered"] >= 20 and "alignment" in reg
-    assert rep["stages"]["register"] < 30  # no SfM: an alignment only
+    assert reg["photometric"]["photos"] >= 20 and reg["confidence"]["accepted"]  # the photos judged the alignment
     poses = load_poses(out / "cache" / "register" / "poses.json")
     err = pose_error(poses, load_poses(scan / "ground_truth" / "poses.json"))
     assert err["centre_median_m"] < 0.02  # 24 photos: the alignment's own accuracy (docs/pipeline.md)
