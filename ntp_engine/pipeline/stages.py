@@ -85,7 +85,9 @@ def register_photos(
     ``RegistrationRefused`` unless ``force_registration``."""
     check_mesh_size(load_mesh(scan.mesh_path), scan.scanner, scan.mesh_path)
     with claim(out, "result", inputs=scan.input_folders):
-        return _registration(scan, Path(out), blur_margin, progress, force_registration)
+        return _registration(
+            scan, Path(out), StageCache(Path(out) / "cache"), blur_margin, progress, force_registration
+        )
 
 
 class RegistrationRefused(NtpInputError):
@@ -93,9 +95,8 @@ class RegistrationRefused(NtpInputError):
 
 
 def _registration(
-    scan: Scan, out: Path, blur_margin: float, progress: Progress, force: bool
+    scan: Scan, out: Path, cache: StageCache, blur_margin: float, progress: Progress, force: bool
 ) -> tuple[dict[str, np.ndarray], dict, str]:
-    cache = StageCache(out / "cache")
     report = _Report()
     t0 = time.perf_counter()
     sel, h_sel = _select_stage(scan, cache, blur_margin, progress)
@@ -272,7 +273,7 @@ def _reconstruct(
     cache = StageCache(out / "cache")
     t_all = time.perf_counter()
     report = _Report(scan=str(scan.folder))
-    poses, reg_report, h_pose = _registration(scan, out, blur_margin, progress, force_registration)
+    poses, reg_report, h_pose = _registration(scan, out, cache, blur_margin, progress, force_registration)
     report.data["stages"].update(reg_report.pop("stages"))
     report.data.update(reg_report)
     net, meta = models.load(model, scan.scanner)  # before any work: the model must fit the scanner
