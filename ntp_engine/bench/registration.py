@@ -22,14 +22,13 @@ import numpy as np
 
 from ..io.atomic import temp_dir, write_text_atomic
 from ..io.errors import NtpInputError
-from ..io.mesh import load_mesh
 from ..io.progress import QUIET, Progress
-from ..pipeline.align import align_to_mesh
 from ..pipeline.colmap_model import model_files, read_colmap_model
 from ..pipeline.output_folder import claim
-from ..pipeline.photo_registration import PhotoStack, check_registration, refusal, spread
-from ..pipeline.scan_folder import load_poses, load_scan, read_photo
+from ..pipeline.photo_registration import refusal
+from ..pipeline.scan_folder import load_poses, load_scan
 from ..pipeline.sfm import SfmResult, structure_from_motion
+from ..pipeline.stages import register_to_mesh
 from ..sim.evaluate import pose_error
 from ..sim.gallery import build_asset
 from .gallery import DEFAULT, GallerySettings, scan_object
@@ -85,25 +84,11 @@ def run(
                             scan_dir, out / "sfm" / f"{name}-{scanner}-s{seed}", seed, progress
                         )
                         names = sorted(reg.poses)
-                        t0 = time.perf_counter()
-                        mesh = load_mesh(scan.mesh_path)
-                        al = align_to_mesh(
-                            reg.points,
-                            [reg.poses[n] for n in names],
-                            mesh,
-                            float(np.linalg.norm(scan.scanner.valid_center)),
-                            support_plane=scan.support_plane,
-                        )
-                        row["seconds_align"] = time.perf_counter() - t0
-                        t0 = time.perf_counter()
-                        judged = spread(names)
-                        photos = PhotoStack(
-                            [read_photo(scan.photos_dir / n, scan.scanner) for n in judged], scan.scanner
-                        )
-                        support_z = float(mesh.vertices[:, 2].min()) if scan.support_plane else None
-                        check = check_registration(al, reg.poses, photos, judged, mesh, support_z)
-                        row["seconds_photometric"] = time.perf_counter() - t0
-                    except (NtpInputError, ValueError) as failure:
+                        placed = register_to_mesh(scan, reg)
+                        al, check = placed.icp, placed.check
+                        row["seconds_align"] = placed.seconds_align
+                        row["seconds_photometric"] = placed.seconds_photometric
+                    except NtpInputError as failure:
                         row["failed"] = str(failure)
                         rows.append(row)
                         continue

@@ -19,6 +19,7 @@ from __future__ import annotations
 import json
 import shutil
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -34,7 +35,7 @@ from ..learn import models
 from ..learn.ragged import RaggedTraces
 from ..scanner.device_file import scanner_to_dict
 from . import traces as trace_assembly
-from .align import align_to_mesh
+from .align import Alignment, align_to_mesh
 from .cache import StageCache, content_digest, content_key, digest
 from .colmap_model import model_files, read_colmap_model
 from .fit_traces import ALBEDO_VIEWS, RHO_S_PRIOR_WEIGHT, fit_traces
@@ -42,6 +43,7 @@ from .output_folder import claim, publish
 from .photo_registration import (
     MIN_MARGIN,
     MIN_SHARPNESS,
+    PhotoCheck,
     PhotoStack,
     check_registration,
     outline_picture,
@@ -51,7 +53,7 @@ from .photo_registration import (
 from .photo_selection import BLUR_MARGIN, Selection, select_photos
 from .result import write_result
 from .scan_folder import Scan, check_mesh_size, read_photo
-from .sfm import MIN_REGISTERED, structure_from_motion
+from .sfm import MIN_REGISTERED, SfmResult, structure_from_motion
 from .texels import Texels, rasterize, uv_atlas
 
 DEFAULT_RESOLUTION = 1024  # texture maps are DEFAULT_RESOLUTION^2 unless asked otherwise
@@ -162,6 +164,44 @@ def _select_stage(scan: Scan, cache: StageCache, blur_margin: float, progress: P
     return Selection.from_json(json.loads((folder / "selection.json").read_text())), h_sel
 
 
+@dataclass
+class MeshRegistration:
+    """An SfM (or COLMAP) model put on the mesh: the point cloud's alignment (``icp``), the photos'
+    check of it (``check.alignment`` is the one to use), the judged photos and the stage's seconds."""
+
+    icp: Alignment
+    check: PhotoCheck
+    photos: PhotoStack
+    judged: list[str]
+    mesh: Mesh
+    seconds_align: float
+    seconds_photometric: float
+
+
+def register_to_mesh(scan: Scan, reg: SfmResult) -> MeshRegistration:
+    """The similarity from ``reg``'s frame to the mesh: aligned by the point cloud, then refined and
+    judged by (at most ``MAX_PHOTOS`` of) the photos; ``NtpInputError`` when nothing can be aligned."""
+    names = sorted(reg.poses)
+    mesh = load_mesh(scan.mesh_path)
+    t0 = time.perf_counter()
+    try:
+        icp = align_to_mesh(
+            reg.points,
+            [reg.poses[n] for n in names],
+            mesh,
+            float(np.linalg.norm(scan.scanner.valid_center)),
+            support_plane=scan.support_plane,
+        )
+    except ValueError as err:
+        raise NtpInputError(scan.mesh_path, f"cannot align the SfM points to this mesh: {err}") from None
+    t1 = time.perf_counter()
+    judged = spread(names)  # the photos judge (and refine) the alignment
+    photos = PhotoStack([read_photo(scan.photos_dir / n, scan.scanner) for n in judged], scan.scanner)
+    support_z = float(mesh.vertices[:, 2].min()) if scan.support_plane else None
+    check = check_registration(icp, reg.poses, photos, judged, mesh, support_z)
+    return MeshRegistration(icp, check, photos, judged, mesh, t1 - t0, time.perf_counter() - t1)
+
+
 def _register_stage(
     scan: Scan, cache: StageCache, sel: Selection, h_sel: str, progress: Progress
 ) -> tuple[dict[str, np.ndarray], dict, str]:
@@ -173,22 +213,8 @@ def _register_stage(
         else:
             reg = structure_from_motion(scan.photos_dir, sel.kept, scan.scanner, d / "sfm", progress=progress)
         names = sorted(reg.poses)
-        mesh = load_mesh(scan.mesh_path)
-        try:
-            al = align_to_mesh(
-                reg.points,
-                [reg.poses[n] for n in names],
-                mesh,
-                float(np.linalg.norm(scan.scanner.valid_center)),
-                support_plane=scan.support_plane,
-            )
-        except ValueError as err:
-            raise NtpInputError(scan.mesh_path, f"cannot align the SfM points to this mesh: {err}") from None
-        icp = al
-        judged = spread(names)  # the photos judge (and refine) the alignment
-        photos = PhotoStack([read_photo(scan.photos_dir / n, scan.scanner) for n in judged], scan.scanner)
-        support_z = float(mesh.vertices[:, 2].min()) if scan.support_plane else None
-        check = check_registration(al, reg.poses, photos, judged, mesh, support_z)
+        placed = register_to_mesh(scan, reg)
+        icp, check, photos, judged, mesh = placed.icp, placed.check, placed.photos, placed.judged, placed.mesh
         al = check.alignment
         why = refusal(check)
         write_png(
