@@ -43,9 +43,6 @@ class Alignment:
     # first, and how much worse the best alternative more than AMBIGUOUS_DEG away scores (relative)
     candidates: list[tuple[float, float]] = field(default_factory=list)
     azimuth_margin: float = float("inf")
-    # the best alignment of each other azimuth cluster (more than AMBIGUOUS_DEG apart), best first:
-    # what the photos are asked to rule out (``photo_registration``)
-    alternatives: list[Alignment] = field(default_factory=list)
 
     def apply(self, x: np.ndarray) -> np.ndarray:
         """SfM points ``(..., 3)`` in the mesh frame (metres)."""
@@ -112,7 +109,6 @@ SURFACE_SAMPLES = 200_000
 COARSE_AZIMUTHS_DEG = np.arange(0, 360, 10)
 FINE_AZIMUTHS_DEG = np.arange(-8, 8.01, 0.25)
 AMBIGUOUS_DEG = 15.0  # candidates further than this from the best are alternatives to it
-MAX_ALTERNATIVES = 3
 
 
 @dataclass
@@ -237,12 +233,10 @@ class _AzimuthSearch:
         score still tells)."""
         best: tuple[float, float, float, np.ndarray] | None = None
         self.candidates: list[tuple[float, float]] = []
-        self.converged: list[tuple[float, float, float, np.ndarray]] = []
         for yaw0 in np.radians(COARSE_AZIMUTHS_DEG):
             s, yaw, txy = self.icp(s0, float(yaw0), self.target[:2].copy(), True)
             value = self.score(s, yaw, txy)[0]
             self.candidates.append((float(np.degrees(yaw)) % 360.0, value))
-            self.converged.append((value, s, yaw, txy))
             best = self._keep_better(best, s, yaw, txy)
         assert best is not None
         for yaw0 in best[2] + np.radians(FINE_AZIMUTHS_DEG):
@@ -321,14 +315,24 @@ def align_to_mesh(
     best.candidates = sorted(search.candidates, key=lambda c: c[1])
     away = [v for a, v in best.candidates if azimuth_apart(a, np.degrees(yaw)) > AMBIGUOUS_DEG]
     best.azimuth_margin = float((min(away) - final) / max(final, 1e-30)) if away else float("inf")
-    clusters = [np.degrees(yaw)]  # the best start of each azimuth cluster, polished
-    for _, s_c, yaw_c, txy_c in sorted(search.converged, key=lambda c: c[0]):
-        if len(best.alternatives) == MAX_ALTERNATIVES:
-            break
-        if all(azimuth_apart(np.degrees(yaw_c), a) > AMBIGUOUS_DEG for a in clusters):
-            clusters.append(np.degrees(yaw_c))
-            best.alternatives.append(_alignment(search, frame, *search.polish(s_c, yaw_c, txy_c.copy())))
     return best
+
+
+def turned_distance(mesh: Mesh, centre: np.ndarray, turns_deg: np.ndarray, count: int = 20_000) -> np.ndarray:
+    """How far the mesh turned about the vertical through ``centre`` lies from itself ``(K,)``:
+    the median point-to-plane distance (metres) of its surface samples, turned by each of
+    ``turns_deg``, to the nearest untouched sample. Near 0: the mesh is symmetric under that turn,
+    and no photo of the object can tell the two placements apart."""
+    pts, normals = surface_samples(mesh, count, seed=1, normals=True)
+    tree = cKDTree(pts)
+    out = []
+    for turn in np.radians(np.asarray(turns_deg, dtype=float)):
+        c, s = np.cos(turn), np.sin(turn)
+        R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+        q = (pts - centre) @ R.T + centre
+        _, near = tree.query(q)
+        out.append(float(np.median(np.abs(((q - pts[near]) * normals[near]).sum(1)))))
+    return np.array(out)
 
 
 def azimuth_apart(a_deg: float, b_deg: float) -> float:

@@ -31,11 +31,16 @@ from ..physics.frame import any_tangent
 from ..physics.measurement import local_emitter_geometry, terms_from_lobe
 from ..scanner import camera
 from ..scanner.scanner import Scanner
-from .align import AMBIGUOUS_DEG, Alignment, azimuth_apart, surface_samples
+from .align import AMBIGUOUS_DEG, Alignment, azimuth_apart, surface_samples, turned_distance
 from .traces import MIN_COS_VIEW, SupportShadow
 
-SURFACE_POINTS = 3000
-BLUR_LEVELS_PX = (2.0, 1.0)  # Gaussian sigma of the photos per level, pixels of the working size
+SURFACE_POINTS = 3000  # surface samples that judge the candidates
+FINE_POINTS = 8000  # ... and that refine the chosen one: its error is sampling noise (gallery dome, 40 photos:
+# 3000 points left 1.10 mm / 0.36 deg, 8000 points 0.54 mm / 0.14 deg)
+# Gaussian sigma of the photos per level, pixels of the working size: the coarse level widens the
+# basin, the finest takes out the blur's own bias (at the true poses of the gallery dome the cost's
+# minimum lies 0.20 deg off in azimuth at sigma 1 px, 0.04 deg at 0.5 px)
+BLUR_LEVELS_PX = (2.0, 1.0, 0.5)
 CAUCHY_LOG = 0.1  # scale of the robust loss on log residuals (10%)
 AGREE_LOG = 0.1  # an observation within 10% of its point's median agrees
 EDGE_CLEARANCE = 2.0  # points used lie this many blur sigmas (+ 1 px) from every edge of the mesh's image
@@ -130,6 +135,13 @@ class PhotoStack:
         self._blurred: dict[float, torch.Tensor] = {}
         self._gradients: dict[float, torch.Tensor] = {}
 
+    def subset(self, index: list[int]) -> PhotoStack:
+        """The photos at ``index`` (same working size), blurs not yet taken."""
+        out = object.__new__(PhotoStack)
+        out.scanner, out.linear, out.usable = self.scanner, self.linear[index], self.usable[index]
+        out._blurred, out._gradients = {}, {}
+        return out
+
     def blurred(self, sigma: float) -> torch.Tensor:
         """The photos blurred by a Gaussian of ``sigma`` pixels (cached)."""
         if sigma not in self._blurred:
@@ -187,9 +199,12 @@ def shading_lights(scanner: Scanner, cells: tuple[int, int] = SHADING_CELLS) -> 
     return lights, np.array(eff)
 
 
-def _diffuse_shading(scanner: Scanner, x: np.ndarray, n: np.ndarray, chunk: int = 16384) -> np.ndarray:
-    """D ``(M, 3)``: the rho_d = 1 measurement of camera-space points ``x`` with normals ``n``."""
-    lights, p_eff = shading_lights(scanner)
+def _diffuse_shading(
+    scanner: Scanner, x: np.ndarray, n: np.ndarray, groups: tuple[Scanner, np.ndarray] | None = None, chunk: int = 16384
+) -> np.ndarray:
+    """D ``(M, 3)``: the rho_d = 1 measurement of camera-space points ``x`` with normals ``n``
+    (``groups``: ``shading_lights(scanner)`` when already at hand)."""
+    lights, p_eff = groups if groups is not None else shading_lights(scanner)
     p_eff_t = torch.as_tensor(p_eff, dtype=torch.float64)
     out = np.zeros((len(x), 3))
     for a in range(0, len(x), chunk):
@@ -227,8 +242,12 @@ class PhotometricRegistration:
         support_z: float | None,
         points: int = SURFACE_POINTS,
         seed: int = 0,
+        edge_stride: int = 1,
     ):
+        """``edge_stride``: the mesh's image (for the edge distances) is cast every this many pixels."""
         self.photos, self.scanner = photos, photos.scanner
+        self.edge_stride = edge_stride
+        self.groups = shading_lights(self.scanner)
         self.points, self.normals = surface_samples(mesh, points, seed=seed, normals=True)
         self.caster = RayCaster([mesh.triangles])
         lo, hi = mesh.vertices.min(0), mesh.vertices.max(0)
@@ -245,8 +264,9 @@ class PhotometricRegistration:
         V, N = len(poses), len(self.points)
         seen = np.zeros((V, N), bool)
         edge_px = np.zeros((V, N))
-        s = self.scanner
-        rays = camera.pixel_rays(s).reshape(-1, 3)
+        s, k = self.scanner, self.edge_stride
+        grid = camera.pixel_rays(s)[::k, ::k]
+        rays = grid.reshape(-1, 3)
         for j, pose in enumerate(poses):
             if self.shadow is not None and self.shadow(pose):
                 continue
@@ -266,17 +286,17 @@ class PhotometricRegistration:
             idx = idx[~occluded]
             seen[j, idx] = True
             hits = self.caster.intersect(np.broadcast_to(-R.T @ t, rays.shape), rays @ R)
-            edge = _edges((hits.geom >= 0).reshape(s.height, s.width), hits.t.reshape(s.height, s.width))
-            far = distance_transform_edt(~edge)
-            col, row = np.round(px[idx, 0]).astype(int), np.round(px[idx, 1]).astype(int)
-            edge_px[j, idx] = far[row, col]
+            edge = _edges((hits.geom >= 0).reshape(grid.shape[:2]), hits.t.reshape(grid.shape[:2]))
+            far = distance_transform_edt(~edge) * k
+            col, row = np.round(px[idx, 0] / k).astype(int), np.round(px[idx, 1] / k).astype(int)
+            edge_px[j, idx] = far[row.clip(0, grid.shape[0] - 1), col.clip(0, grid.shape[1] - 1)]
         return seen, edge_px
 
-    def _held(self, poses: np.ndarray, params: np.ndarray, sigma: float) -> np.ndarray:
+    def _held(self, poses: np.ndarray, params: np.ndarray, sigma: float, jacobian: bool = True) -> np.ndarray:
         """The observations a round holds, taken at ``params``."""
         current = self._correction(params).camera_from_mesh
         seen = self._usable(poses, params, sigma, *self._observations(np.stack([current(p) for p in poses])))
-        self._hold_shading(poses, params, seen)
+        self._hold_shading(poses, params, seen, jacobian)
         return seen
 
     def _residual_mask(self, poses, params, sigma, seen) -> tuple[torch.Tensor, torch.Tensor]:
@@ -303,20 +323,43 @@ class PhotometricRegistration:
         """Pixel coordinates ``(V, N, 2)`` of the mesh samples under the correction ``params``."""
         return camera.project(self.scanner, torch.as_tensor(self._camera(poses, params)[0]))
 
+    def _pixel_jacobian(self, poses: np.ndarray, params: np.ndarray) -> torch.Tensor:
+        """d pixel / d params ``(V, N, 2, 7)``: the chain rule through ``_camera`` (the rotation's own
+        derivative by central differences of the ``(N, 3)`` local points, exact to ~1e-10)."""
+        x, _ = self._camera(poses, params)
+        Rw = _rotation(params[:3])
+        base = self.points - self.centre - params[3:6] * self.size
+        d_local = np.zeros((len(base), 3, 3))  # d (R_w^T (x - c0 - tau)) / d omega_k
+        for k in range(3):
+            e = np.zeros(3)
+            e[k] = 1e-5
+            d_local[..., k] = (base @ _rotation(params[:3] + e) - base @ _rotation(params[:3] - e)) / 2e-5
+        R, t = poses[:, :3, :3], poses[:, :3, 3]
+        V, N = len(poses), len(base)
+        d_x = np.concatenate(
+            [
+                np.einsum("vab,nbk->vnak", R, d_local),
+                np.broadcast_to((-self.size * R @ Rw.T)[:, None], (V, N, 3, 3)),
+                np.broadcast_to((np.exp(params[6]) * (R @ self.centre + t))[:, None, :, None], (V, N, 3, 1)),
+            ],
+            -1,
+        )  # (V, N, 3, 7)
+        return camera.project_jacobian(self.scanner, torch.as_tensor(x)) @ torch.as_tensor(d_x)
+
     def _log_shading_at(self, poses: np.ndarray, params: np.ndarray, seen: np.ndarray) -> np.ndarray:
         """log D ``(V, N, 3)`` of the seen pairs at ``params`` (0 elsewhere)."""
         x, n = self._camera(poses, params)
         out = np.zeros((*seen.shape, 3))
-        d = _diffuse_shading(self.scanner, x[seen], n[seen])
+        d = _diffuse_shading(self.scanner, x[seen], n[seen], self.groups)
         out[seen] = np.log(np.maximum(d, 1e-6 * max(float(d.max(initial=0.0)), 1e-12)))
         return out
 
-    def _hold_shading(self, poses: np.ndarray, params: np.ndarray, seen: np.ndarray) -> None:
+    def _hold_shading(self, poses: np.ndarray, params: np.ndarray, seen: np.ndarray, jacobian: bool = True) -> None:
         """log D at ``params`` and its forward differences in the 7 parameters, for a round: shading
         held at one pose would pull the fit back toward it, so it follows the pose to first order."""
         base = self._log_shading_at(poses, params, seen)
         J = np.zeros((*base.shape, 7))
-        for k in np.nonzero(self.free)[0]:
+        for k in np.nonzero(self.free)[0] if jacobian else []:
             e = np.zeros(7)
             e[k] = 1e-3
             J[..., k] = (self._log_shading_at(poses, params + e, seen) - base) / 1e-3
@@ -354,12 +397,7 @@ class PhotometricRegistration:
         log_d, J_d = self._log_shading(params)
         if not jacobian:
             return torch.log(m) - log_d, None, ok
-        dpx = []  # forward differences: the projection is smooth at this step (0.0001 rad, 0.01% of the size)
-        for k in range(7):
-            e = np.zeros(7)
-            e[k] = 1e-4
-            dpx.append((self._pixels(poses, params + e) - px) / 1e-4)
-        J_px = torch.nan_to_num(torch.stack(dpx, -1))  # (V, N, 2, 7)
+        J_px = torch.nan_to_num(self._pixel_jacobian(poses, params))  # (V, N, 2, 7)
         J = (g / m[..., None]) @ J_px - J_d  # (V, N, 3, 7)
         return torch.log(m) - log_d, J, ok
 
@@ -409,7 +447,8 @@ class PhotometricRegistration:
                 continue
             start = params.copy()
             seen = self._held(poses, params, sigma)
-            if sigma == levels[0] and k == 0:  # the azimuth first: nearly round objects make it the shallow direction
+            # the azimuth first (coarsest level): nearly round objects make it the shallow direction
+            if sigma == BLUR_LEVELS_PX[0] and k == 0:
                 params = self._azimuth_search(poses, params, sigma, seen)
             params, fit = self._descend(poses, params, sigma, seen, iterations)
             # visibility, edges and shading were held for this round: again until the pose stops moving
@@ -475,6 +514,22 @@ class PhotometricRegistration:
                 best, best_cost = trial, cost
         return best
 
+    def azimuth_profile(self, poses: np.ndarray, sigma: float, step_deg: float) -> tuple[np.ndarray, np.ndarray]:
+        """The cost of ``poses (V, 4, 4)`` turned about the vertical through the object's centre, every
+        ``step_deg`` over the whole circle: turns (degrees in [-180, 180)) and costs (inf where too few
+        observations). Observations and shading are taken afresh at every turn."""
+        turns = np.arange(-180.0, 180.0, step_deg)
+        costs = np.full(len(turns), np.inf)
+        for i, turn in enumerate(turns):
+            params = np.zeros(7)
+            params[2] = np.radians(turn)
+            seen = self._held(poses, params, sigma, jacobian=False)
+            r, _, ok = self._linearise(poses, params, sigma, seen, jacobian=False)
+            fit = self._cost(r, ok)[2]
+            if fit.points >= MIN_VIEWS:
+                costs[i] = fit.cost
+        return turns, costs
+
     def sharpness(self, poses: np.ndarray, sigma: float) -> float:
         """Mean relative rise of the cost when ``poses`` move ``SHARPNESS_SHIFT_PX`` (at the object's
         distance) either way along each mesh axis, observations held."""
@@ -496,8 +551,13 @@ class PhotometricRegistration:
 
 
 SHARPNESS_SHIFT_PX = 4.0  # the registration moved this far along each mesh axis: beyond the edge clearance
+SHARPNESS_SIGMA_PX = 1.0  # the blur the sharpness is measured at (its threshold was set at this blur)
 CANDIDATE_ROUNDS = 2  # re-linearisations a candidate gets before the candidates are compared
 MAX_PHOTOS = 40  # photos (evenly spread over the sweep) that judge and refine a registration
+# the whole-circle azimuth sweep: a scout of fewer photos and points, a coarser edge map; its step is
+# within the coarse refinement's own azimuth grid (+-4 deg), so a rival's basin is not stepped over
+SWEEP_STEP_DEG, SWEEP_PHOTOS, SWEEP_POINTS, SWEEP_EDGE_STRIDE = 3.0, 20, 1000, 3
+RIVALS = 3  # the sweep's best other azimuths (more than AMBIGUOUS_DEG apart) refined as rivals
 
 
 @dataclass
@@ -508,14 +568,17 @@ class PhotoCheck:
     (relative) when it is moved ``SHARPNESS_SHIFT_PX`` along each mesh axis — a right registration
     is a sharp minimum, a wrong one sits on a plateau of random matches; ``margin``: how much worse
     (relative cost) the best other azimuth fits the photos after the same refinement (inf: none);
-    ``candidates``: per candidate its azimuth change from the chosen one and coarse cost."""
+    ``candidates``: per candidate its azimuth change from the chosen one, coarse cost and how far
+    the mesh turned so lies from itself (mm: near 0 for a symmetry of the mesh); ``profile``: the
+    sweep's (turn from the point cloud's alignment in degrees, cost) over the whole circle."""
 
     alignment: Alignment
     fit: PhotometricFit
     sharpness: float
     margin: float
     candidates: list[dict]
-    chosen: int  # index of the chosen candidate (0: the point cloud's own best)
+    chosen: int  # index of the chosen candidate (0: the point cloud's own alignment)
+    profile: list[tuple[float, float]]
 
     def to_json(self) -> dict:
         """The check as JSON values (``registration.json`` -> ``photometric``)."""
@@ -525,6 +588,7 @@ class PhotoCheck:
             "margin": self.margin if np.isfinite(self.margin) else None,
             "chosen_candidate": self.chosen,
             "candidates": self.candidates,
+            "azimuth_profile": [[t, c if np.isfinite(c) else None] for t, c in self.profile],
         }
 
 
@@ -543,6 +607,20 @@ def spread(names: list[str], count: int = MAX_PHOTOS) -> list[str]:
     return [names[i] for i in np.linspace(0, len(names) - 1, count).round().astype(int)]
 
 
+def rival_turns(turns: np.ndarray, costs: np.ndarray, count: int = RIVALS) -> list[float]:
+    """The ``count`` lowest local minima of a circular azimuth profile (degrees) more than
+    ``AMBIGUOUS_DEG`` from 0 (the alignment swept) and from each other."""
+    lower = (costs <= np.roll(costs, 1)) & (costs <= np.roll(costs, -1)) & np.isfinite(costs)
+    taken: list[float] = []
+    for i in np.argsort(costs):
+        if len(taken) == count:
+            break
+        turn = float(turns[i])
+        if lower[i] and all(azimuth_apart(turn, t) > AMBIGUOUS_DEG for t in [0.0, *taken]):
+            taken.append(turn)
+    return taken
+
+
 def check_registration(
     alignment: Alignment,
     camera_from_sfm: dict[str, np.ndarray],
@@ -551,35 +629,47 @@ def check_registration(
     mesh: Mesh,
     support_z: float | None,
 ) -> PhotoCheck:
-    """The best of ``alignment`` and its ``alternatives`` by the photos ``photos`` (of ``names``),
-    refined (similarity only: SfM's relative poses are kept) and judged (see ``PhotoCheck``)."""
+    """``alignment`` refined by the photos ``photos`` (of ``names``; similarity only: SfM's relative
+    poses are kept), its rivals found by sweeping the azimuth over the whole circle and refined the
+    same way, the best chosen and judged (see ``PhotoCheck``)."""
     judge = PhotometricRegistration(mesh, photos, support_z)
     sfm = np.stack([camera_from_sfm[n] for n in names])
-    coarse = BLUR_LEVELS_PX[:1]
-    trials = []
-    for cand in [alignment, *alignment.alternatives]:
-        poses = np.stack([cand.camera_from_mesh(m) for m in sfm])
-        g, fit = judge.refine(poses, levels=coarse, max_rounds=CANDIDATE_ROUNDS)
-        trials.append((corrected(cand, g), fit))
+
+    def placed(al: Alignment) -> np.ndarray:
+        return np.stack([al.camera_from_mesh(m) for m in sfm])
+
+    def coarse(al: Alignment) -> tuple[Alignment, PhotometricFit]:
+        g, fit = judge.refine(placed(al), levels=BLUR_LEVELS_PX[:1], max_rounds=CANDIDATE_ROUNDS)
+        return corrected(al, g), fit
+
+    trials = [coarse(alignment)]
+    # a point cloud with few points on the object can land at any azimuth: the photos vote on all
+    pick = [names.index(n) for n in spread(names, SWEEP_PHOTOS)]
+    scout = PhotometricRegistration(
+        mesh, photos.subset(pick), support_z, points=SWEEP_POINTS, edge_stride=SWEEP_EDGE_STRIDE
+    )
+    turns, costs = scout.azimuth_profile(placed(trials[0][0])[pick], BLUR_LEVELS_PX[0], SWEEP_STEP_DEG)
+    for turn in rival_turns(turns, costs):
+        turned = Correction(np.array([0.0, 0.0, np.radians(turn)]), np.zeros(3), 0.0, judge.centre)
+        trials.append(coarse(corrected(trials[0][0], turned)))
     chosen = int(np.argmin([fit.cost for _, fit in trials]))
     best = trials[chosen][0]
     yaw = [float(np.degrees(np.arctan2(a.rotation[1, 0], a.rotation[0, 0]))) for a, _ in trials]
+    change = [(y - yaw[chosen] + 180.0) % 360.0 - 180.0 for y in yaw]
     # candidates the refinement brought into the chosen one's azimuth are the same answer, not rivals
-    others = [
-        fit.cost for y, (_, fit) in zip(yaw, trials, strict=True) if azimuth_apart(y, yaw[chosen]) > AMBIGUOUS_DEG
-    ]
+    others = [fit.cost for c, (_, fit) in zip(change, trials, strict=True) if abs(c) > AMBIGUOUS_DEG]
     margin = (min(others) - trials[chosen][1].cost) / trials[chosen][1].cost if others else float("inf")
-    poses = np.stack([best.camera_from_mesh(m) for m in sfm])
-    g, fit = judge.refine(poses, levels=BLUR_LEVELS_PX[1:])
+    finisher = PhotometricRegistration(mesh, photos, support_z, points=FINE_POINTS)
+    g, fit = finisher.refine(placed(best), levels=BLUR_LEVELS_PX[1:])
     best = corrected(best, g)
-    poses = np.stack([best.camera_from_mesh(m) for m in sfm])
-    sharpness = judge.sharpness(poses, BLUR_LEVELS_PX[-1])
+    sharpness = judge.sharpness(placed(best), SHARPNESS_SIGMA_PX)
+    apart = turned_distance(mesh, judge.centre, np.array(change))
     candidates = [
-        {"azimuth_change_deg": (y - yaw[chosen] + 180.0) % 360.0 - 180.0, "coarse_cost": fit.cost}
-        for y, (_, fit) in zip(yaw, trials, strict=True)
+        {"azimuth_change_deg": c, "coarse_cost": f.cost, "mesh_turned_mm": 1e3 * d}
+        for c, (_, f), d in zip(change, trials, apart, strict=True)
     ]
-    best.alternatives = []
-    return PhotoCheck(best, fit, sharpness, float(margin), candidates, chosen)
+    profile = [(float(t), float(c)) for t, c in zip(turns, costs, strict=True)]
+    return PhotoCheck(best, fit, sharpness, float(margin), candidates, chosen, profile)
 
 
 MIN_SHARPNESS = 0.3  # set from the gallery (docs/pipeline.md): right registrations >= 0.6, wrong <= 0.1
@@ -589,10 +679,12 @@ MIN_MARGIN = 0.1  # the best other azimuth must fit the photos at least 10% wors
 def refusal(check: PhotoCheck) -> str | None:
     """Why the photos do not confirm a registration (one line), or None when they do."""
     if check.margin < MIN_MARGIN:
-        turns = [c["azimuth_change_deg"] for c in check.candidates if abs(c["azimuth_change_deg"]) > AMBIGUOUS_DEG]
+        rivals = [c for c in check.candidates if abs(c["azimuth_change_deg"]) > AMBIGUOUS_DEG]
+        rival = min(rivals, key=lambda c: c["coarse_cost"])
         return (
-            f"the object's azimuth is ambiguous: turned by {turns[0] if turns else 0.0:.0f} deg it fits the photos "
-            f"nearly as well (margin {check.margin:.2f} < {MIN_MARGIN})"
+            f"the object's azimuth is ambiguous: turned by {rival['azimuth_change_deg']:.0f} deg it fits the photos "
+            f"nearly as well (margin {check.margin:.2f} < {MIN_MARGIN}; the mesh turned so lies "
+            f"{rival['mesh_turned_mm']:.1f} mm from itself)"
         )
     if check.fit.points < MIN_VIEWS or check.sharpness < MIN_SHARPNESS:
         return (

@@ -87,6 +87,29 @@ def project(scanner: Scanner, points: Tensor) -> Tensor:
     return torch.stack([K[0, 0] * xd + K[0, 1] * yd + K[0, 2], K[1, 1] * yd + K[1, 2]], -1)
 
 
+def project_jacobian(scanner: Scanner, points: Tensor) -> Tensor:
+    """d pixel / d point ``(..., 2, 3)`` of ``project`` at camera-space ``points (..., 3)``
+    (distortion included); NaN where z <= 0."""
+    k1, k2, p1, p2, k3 = (float(v) for v in scanner.distortion)
+    K = scanner.K
+    z = points[..., 2]
+    z = torch.where(z > 0, z, torch.full_like(z, float("nan")))
+    x, y = points[..., 0] / z, points[..., 1] / z
+    r2 = x * x + y * y
+    radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    d_radial = k1 + r2 * (2 * k2 + 3 * k3 * r2)  # d radial / d r2
+    dxd_dx = radial + 2 * x * x * d_radial + 2 * p1 * y + 6 * p2 * x
+    dxd_dy = 2 * x * y * d_radial + 2 * p1 * x + 2 * p2 * y
+    dyd_dx = 2 * x * y * d_radial + 2 * p1 * x + 2 * p2 * y
+    dyd_dy = radial + 2 * y * y * d_radial + 6 * p1 * y + 2 * p2 * x
+    # d (x, y) / d (X, Y, Z): [[1/z, 0, -x/z], [0, 1/z, -y/z]]
+    zero = torch.zeros_like(x)
+    dn = torch.stack([torch.stack([1 / z, zero, -x / z], -1), torch.stack([zero, 1 / z, -y / z], -1)], -2)
+    dd = torch.stack([torch.stack([dxd_dx, dxd_dy], -1), torch.stack([dyd_dx, dyd_dy], -1)], -2)
+    kk = torch.as_tensor(K[:2, :2], dtype=points.dtype)  # [[fx, skew], [0, fy]]
+    return kk @ dd @ dn
+
+
 def pixel_rays(scanner: Scanner) -> np.ndarray:
     """Unit camera-space ray directions ``(H, W, 3)`` through every pixel centre (distortion undone)."""
     K = scanner.K

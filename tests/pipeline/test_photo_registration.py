@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from ntp_engine.io.mesh import load_mesh
-from ntp_engine.pipeline.align import Alignment
+from ntp_engine.pipeline.align import Alignment, turned_distance
 from ntp_engine.pipeline.photo_registration import (
     Correction,
     PhotoCheck,
@@ -15,10 +15,12 @@ from ntp_engine.pipeline.photo_registration import (
     corrected,
     outline_picture,
     refusal,
+    rival_turns,
     spread,
 )
 from ntp_engine.pipeline.scan_folder import load_poses, load_scan, read_photo
 from ntp_engine.sim.evaluate import pose_error
+from ntp_engine.sim.shapes import box_mesh
 
 
 def _rotation_z(deg: float) -> np.ndarray:
@@ -46,12 +48,36 @@ def test_spread_keeps_the_ends_and_at_most_count():
 
 def test_refusal_names_the_cause():
     fit = PhotometricFit(1.0, 0.8, 1000, 500)
-    assert refusal(PhotoCheck(None, fit, 0.9, float("inf"), [], 0)) is None  # type: ignore[arg-type]
-    rivals = [{"azimuth_change_deg": 0.0, "coarse_cost": 1}, {"azimuth_change_deg": 180.0, "coarse_cost": 1.01}]
-    ambiguous = refusal(PhotoCheck(None, fit, 0.9, 0.01, rivals, 0))  # type: ignore[arg-type]
-    assert ambiguous and "turned by 180 deg" in ambiguous
-    plain = refusal(PhotoCheck(None, fit, 0.02, 0.5, rivals, 0))  # type: ignore[arg-type]
+    assert refusal(PhotoCheck(None, fit, 0.9, float("inf"), [], 0, [])) is None  # type: ignore[arg-type]
+    rivals = [
+        {"azimuth_change_deg": 0.0, "coarse_cost": 1, "mesh_turned_mm": 0.0},
+        {"azimuth_change_deg": 90.0, "coarse_cost": 1.2, "mesh_turned_mm": 3.0},
+        {"azimuth_change_deg": 180.0, "coarse_cost": 1.01, "mesh_turned_mm": 0.04},
+    ]
+    ambiguous = refusal(PhotoCheck(None, fit, 0.9, 0.01, rivals, 0, []))  # type: ignore[arg-type]
+    assert ambiguous and "turned by 180 deg" in ambiguous and "0.0 mm from itself" in ambiguous  # the best rival
+    plain = refusal(PhotoCheck(None, fit, 0.02, 0.5, rivals, 0, []))  # type: ignore[arg-type]
     assert plain and "cannot confirm" in plain and "2% worse" in plain
+
+
+def test_rival_turns_are_the_lowest_distinct_minima_away_from_zero():
+    turns = np.arange(-180.0, 180.0, 3.0)
+    # minima at 0 (the alignment itself), 90 (best rival), 99 (same basin region), -120 and 150
+    costs = 2.0 - sum(
+        h * np.exp(-0.5 * ((turns - c) / 4.0) ** 2)
+        for c, h in [(0, 1.0), (90, 0.8), (99, 0.7), (-120, 0.5), (150, 0.3)]
+    )
+    rivals = rival_turns(turns, costs, count=3)
+    assert rivals == [90.0, -120.0, 150.0]  # 99 is within AMBIGUOUS_DEG of 90; 0 is not a rival
+    assert rival_turns(turns, np.full(len(turns), np.inf)) == []
+
+
+def test_turned_distance_is_zero_for_symmetries_of_the_mesh_only():
+    box = box_mesh(turn_deg=0.0)
+    centre = (box.vertices.min(0) + box.vertices.max(0)) / 2
+    d = turned_distance(box, centre, np.array([0.0, 180.0, 90.0, 30.0]))
+    assert d[0] < 1e-4 and d[1] < 1e-4  # a box turned half a turn is itself
+    assert d[2] > 3e-3 and d[3] > 1e-3  # 9 x 6.5 cm: a quarter turn moves its long faces 12.5 mm
 
 
 @pytest.fixture(scope="module")

@@ -32,6 +32,20 @@ def test_projection_matches_colmap_opencv_model():
     assert torch.isnan(camera.project(d, torch.tensor([[0.0, 0.0, -1.0]], dtype=torch.float64))).all()
 
 
+def test_projection_jacobian_matches_central_differences():
+    d = load_scanner()
+    d.distortion = np.array([-0.1, 0.02, 0.001, -0.002, 0.01])
+    pts = torch.tensor([[0.1, 0.05, 0.3], [-0.05, 0.02, 0.31], [0.0, 0.0, 0.4]], dtype=torch.float64)
+    J = camera.project_jacobian(d, pts)
+    h = 1e-7
+    for k in range(3):
+        e = torch.zeros(3, dtype=torch.float64)
+        e[k] = h
+        numeric = (camera.project(d, pts + e) - camera.project(d, pts - e)) / (2 * h)
+        torch.testing.assert_close(J[..., k], numeric, rtol=1e-6, atol=1e-4)
+    assert torch.isnan(camera.project_jacobian(d, torch.tensor([[0.0, 0.0, -1.0]], dtype=torch.float64))).all()
+
+
 def test_pixel_rays_invert_the_projection_with_distortion():
     d = camera.resampled(load_scanner(), 0.05)
     d.distortion = np.array([-0.1, 0.02, 0.001, -0.002, 0.0])
