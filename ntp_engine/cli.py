@@ -15,6 +15,7 @@ from .bench import network as bench_network
 from .bench import physics as bench_physics
 from .bench import registration as bench_registration
 from .bench import scan as bench_scan
+from .bench import sfm as bench_sfm
 from .bench import stability as bench_stability
 from .bench import virtual_scan as bench_virtual_scan
 from .io.errors import NtpInputError, error_line
@@ -24,6 +25,7 @@ from .learn.network import NetworkConfig
 from .learn.train import TrainConfig, train
 from .pipeline.photo_selection import BLUR_MARGIN
 from .pipeline.scan_folder import Scan, load_scan
+from .pipeline.sfm import MAPPERS
 from .pipeline.stages import DEFAULT_RESOLUTION, reconstruct, register_photos, write_registration
 from .scanner.device_file import DEFAULT_DEVICE, list_devices, load_scanner, write_pattern
 from .sim import demo
@@ -203,6 +205,13 @@ def _bench_registration(args: argparse.Namespace) -> int:
         samples=args.samples,
     )
     bench_registration.run(args.out, settings, tuple(args.seeds), json_path=args.json, progress=_progress(args))
+    return 0
+
+
+def _bench_sfm(args: argparse.Namespace) -> int:
+    bench_sfm.run(
+        args.out, tuple(args.photos), tuple(args.mappers), args.scale, json_path=args.json, progress=_progress(args)
+    )
     return 0
 
 
@@ -414,6 +423,14 @@ def _parser() -> argparse.ArgumentParser:
     br.add_argument("--json", type=Path, default=None)
     _quiet_and_progress(br)
     br.set_defaults(func=_bench_registration)
+    bs = bsub.add_parser("sfm", help="SfM mappers (incremental, global, hierarchical) at 60 / 300 / 1000 photos")
+    bs.add_argument("--out", type=Path, default=Path("ntp_sfm_bench"), help="folder for the scans and the table")
+    bs.add_argument("--photos", nargs="+", type=int, default=list(bench_sfm.PHOTOS))
+    bs.add_argument("--mappers", nargs="+", choices=list(MAPPERS), default=list(MAPPERS))
+    bs.add_argument("--scale", type=float, default=bench_sfm.SCALE, help="photo size (1.0 = the device's)")
+    bs.add_argument("--json", type=Path, default=None)
+    _quiet_and_progress(bs)
+    bs.set_defaults(func=_bench_sfm)
     bc = bsub.add_parser("cache", help="content keys: hashing photos (vs one thread, vs stat) and cache checksums")
     bc.add_argument("--photos", type=int, default=40, help="photos hashed (projected to 1000)")
     bc.add_argument("--scale", type=float, default=1.0, help="photo size (1.0 = 2448x2048)")

@@ -1,9 +1,13 @@
 """Structure from motion (pycolmap): the photos' camera poses and a sparse cloud in an arbitrary frame.
 
 SIFT features, sequential matching (a hand-held sweep: each photo against its neighbours, with
-quadratic overlap), incremental mapping with the device's intrinsics held fixed (OPENCV model; COLMAP
-puts pixel centres at +0.5, the device file at integers). The largest model wins; photos it does
-not contain are reported as unregistered.
+quadratic overlap), mapping with the device's intrinsics held fixed (OPENCV model; COLMAP puts pixel
+centres at +0.5, the device file at integers). The largest model wins; photos it does not contain
+are reported as unregistered.
+
+Mappers (``MAPPERS``): ``incremental`` (COLMAP's, the default), ``global`` (GLOMAP: rotation
+averaging and global positioning, then one bundle adjustment) and ``hierarchical`` (the sweep cut
+into overlapping clusters mapped incrementally, then merged); ``ntp bench sfm`` compares them.
 """
 
 from __future__ import annotations
@@ -19,6 +23,7 @@ from ..io.progress import QUIET, Progress
 from ..scanner.scanner import Scanner
 
 MIN_REGISTERED = 3
+MAPPERS = ("incremental", "global", "hierarchical")
 
 
 @dataclass
@@ -40,11 +45,16 @@ def structure_from_motion(
     progress: Progress = QUIET,
     peak_threshold: float = 0.0067,
     seed: int | None = None,
+    mapper: str = "incremental",
 ) -> SfmResult:
     """SfM poses of ``names`` (camera-from-world in SfM's frame) with the scanner's intrinsics held
     fixed; ``work`` is emptied and holds COLMAP's database. ``peak_threshold`` is SIFT's (lowering it
-    adds backdrop points, not object points, on virtual scans). ``seed`` seeds COLMAP's random choices."""
+    adds backdrop points, not object points, on virtual scans). ``seed`` seeds COLMAP's random choices;
+    ``mapper`` is one of ``MAPPERS``."""
     import pycolmap
+
+    if mapper not in MAPPERS:
+        raise ValueError(f"unknown mapper {mapper!r} (have {', '.join(MAPPERS)})")
 
     pycolmap.logging.minloglevel = 2  # COLMAP logs every image at INFO; errors still surface
     if seed is not None:  # RANSAC and mapping choices (threads still vary the result slightly)
@@ -74,11 +84,7 @@ def structure_from_motion(
     pairing.quadratic_overlap = True
     pycolmap.match_sequential(db, pairing_options=pairing)
     bar.update()
-    opts = pycolmap.IncrementalPipelineOptions()
-    opts.ba_refine_focal_length = False
-    opts.ba_refine_principal_point = False
-    opts.ba_refine_extra_params = False
-    models = pycolmap.incremental_mapping(db, photos_dir, work / "sparse", opts)
+    models = _map(pycolmap, mapper, db, photos_dir, work / "sparse")
     bar.update()
     bar.close()
     if not models:
@@ -96,3 +102,22 @@ def structure_from_motion(
         raise NtpInputError(photos_dir, f"only {len(poses)} photos registered (need {MIN_REGISTERED})")
     points = np.array([p.xyz for p in rec.points3D.values()]) if rec.num_points3D() else np.zeros((0, 3))
     return SfmResult(poses, points, sorted(set(names) - set(poses)), model_dir if model_dir.is_dir() else None)
+
+
+def _map(pycolmap, mapper: str, db: Path, photos_dir: Path, out: Path) -> dict:
+    """COLMAP's ``mapper`` on the matched database, intrinsics held fixed; models by index."""
+    out.mkdir(parents=True, exist_ok=True)
+    incremental = pycolmap.IncrementalPipelineOptions()
+    incremental.ba_refine_focal_length = False
+    incremental.ba_refine_principal_point = False
+    incremental.ba_refine_extra_params = False
+    if mapper == "incremental":
+        return pycolmap.incremental_mapping(db, photos_dir, out, incremental)
+    if mapper == "hierarchical":
+        hierarchical = pycolmap.HierarchicalPipelineOptions()
+        hierarchical.incremental_options = incremental
+        return pycolmap.hierarchical_mapping(db, photos_dir, out, hierarchical)
+    glomap = pycolmap.GlobalPipelineOptions()
+    ba = glomap.mapper.bundle_adjustment
+    ba.refine_focal_length = ba.refine_principal_point = ba.refine_extra_params = False
+    return pycolmap.global_mapping(db, photos_dir, out, glomap)

@@ -1,44 +1,57 @@
 """Structure-from-motion on a virtual scan: the recovered camera centres match the true ones up to
 the similarity SfM cannot know."""
 
-import json
-
 import numpy as np
 import pytest
 
 from ntp_engine.io.errors import NtpInputError
 from ntp_engine.io.images import write_png
+from ntp_engine.pipeline.scan_folder import load_poses
 from ntp_engine.pipeline.sfm import structure_from_motion
 from ntp_engine.scanner.device_file import load_scanner
+from ntp_engine.sim.evaluate import pose_error, similarity_fit
 
 
-def _umeyama(src: np.ndarray, dst: np.ndarray):
-    ms, md = src.mean(0), dst.mean(0)
-    U, S, Vt = np.linalg.svd((dst - md).T @ (src - ms) / len(src))
-    D = np.eye(3)
-    D[2, 2] = np.sign(np.linalg.det(U @ Vt))
-    R = U @ D @ Vt
-    s = np.trace(np.diag(S) @ D) / ((src - ms) ** 2).sum(1).mean()
-    return s, R, md - s * R @ ms
-
-
-def test_sfm_recovers_the_trajectory_up_to_a_similarity(scan24, tmp_path):
+@pytest.mark.parametrize("mapper", ["incremental", "global"])
+def test_sfm_recovers_the_trajectory_up_to_a_similarity(scan24, tmp_path, mapper):
     scan = scan24
     names = sorted(p.name for p in (scan / "photos").glob("*.png"))
-    reg = structure_from_motion(scan / "photos", names, load_scanner(scan / "device.toml"), tmp_path / "sfm")
+    device = load_scanner(scan / "device.toml")
+    reg = structure_from_motion(scan / "photos", names, device, tmp_path / "sfm", mapper=mapper)
     assert len(reg.poses) >= 0.8 * len(names) and len(reg.points) > 100
-    gt = json.loads((scan / "ground_truth" / "poses.json").read_text())
-    centre = lambda m: -m[:3, :3].T @ m[:3, 3]
-    src = np.array([centre(reg.poses[n]) for n in reg.poses])
-    dst = np.array([centre(np.array(gt[n])) for n in reg.poses])
-    s, R, t = _umeyama(src, dst)
-    err = np.linalg.norm((s * (R @ src.T)).T + t - dst, axis=1)
-    assert np.median(err) < 2e-3  # metres, cameras ~0.31 m from the object
-    # orientations agree too, through the same rotation
-    for n in list(reg.poses)[:5]:
-        R_sfm, R_gt = reg.poses[n][:3, :3], np.array(gt[n])[:3, :3]
-        ang = np.degrees(np.arccos(np.clip((np.trace(R_gt @ R @ R_sfm.T) - 1) / 2, -1, 1)))  # R_gt = R_sfm R^T
-        assert ang < 1.0
+    truth = load_poses(scan / "ground_truth" / "poses.json")
+    err = pose_error(similarity_fit(reg.poses, truth), truth)
+    assert err["centre_median_m"] < 2e-3  # cameras ~0.31 m from the object
+    assert err["rotation_max_deg"] < 1.0  # orientations agree too, through the same rotation
+
+
+def test_similarity_fit_takes_out_exactly_a_similarity():
+    rng = np.random.default_rng(0)
+    truth = {}
+    for i in range(6):
+        m = np.eye(4)
+        m[:3, :3] = np.linalg.qr(rng.normal(size=(3, 3)))[0] * np.sign(
+            np.linalg.det(np.linalg.qr(rng.normal(size=(3, 3)))[0])
+        )
+        m[:3, :3] *= np.sign(np.linalg.det(m[:3, :3]))
+        m[:3, 3] = rng.normal(size=3)
+        truth[str(i)] = m
+    c, s = np.cos(0.7), np.sin(0.7)
+    R, scale, t = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]]), 3.0, np.array([0.1, -2.0, 0.5])
+    moved = {}  # the same cameras in a frame x' = (R^T (x - t)) / scale
+    for n, m in truth.items():
+        out = np.eye(4)
+        out[:3, :3] = m[:3, :3] @ R
+        out[:3, 3] = (m[:3, 3] + m[:3, :3] @ t) / scale
+        moved[n] = out
+    err = pose_error(similarity_fit(moved, truth), truth)
+    assert err["centre_max_m"] < 1e-9 and err["rotation_max_deg"] < 1e-5
+    assert similarity_fit({"0": truth["0"]}, truth) == {}
+
+
+def test_unknown_mapper_is_refused(tmp_path):
+    with pytest.raises(ValueError, match="unknown mapper"):
+        structure_from_motion(tmp_path, [], load_scanner(), tmp_path / "sfm", mapper="magic")
 
 
 def test_featureless_photos_are_a_clear_error(tmp_path):
