@@ -113,6 +113,8 @@ def run(
                     )
                     row["right"] = row["centre_mm"] <= RIGHT_MM and row["rotation_deg"] <= RIGHT_DEG
                     rows.append(row)
+                    # rows so far survive an interrupted run (the SfM models are kept anyway)
+                    write_text_atomic(out / "registration.json", json.dumps({"runs": rows}, indent=1, default=float))
     record = {"settings": asdict(settings), "seeds": list(seeds), "runs": rows}
     table = _table(rows)
     write_text_atomic(out / "registration.json", json.dumps(record, indent=1, default=float))
