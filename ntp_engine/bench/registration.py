@@ -23,6 +23,7 @@ import numpy as np
 from ..io.atomic import temp_dir, write_text_atomic
 from ..io.errors import NtpInputError
 from ..io.progress import QUIET, Progress
+from ..pipeline.align import AMBIGUOUS_DEG
 from ..pipeline.colmap_model import model_files, read_colmap_model
 from ..pipeline.output_folder import claim
 from ..pipeline.photo_registration import refusal
@@ -90,11 +91,18 @@ def run(
                         row["seconds_photometric"] = placed.seconds_photometric
                     except NtpInputError as failure:
                         row["failed"] = str(failure)
+                        row["diagnosis"] = "refused: " + str(failure).split(": ", 1)[-1][:80]
                         rows.append(row)
                         continue
                     icp = pose_error({n: al.camera_from_mesh(reg.poses[n]) for n in names}, truth)
                     err = pose_error({n: check.alignment.camera_from_mesh(reg.poses[n]) for n in names}, truth)
                     why = refusal(check)
+                    # where the truth is among the candidates the photos compared (coarse refinement)
+                    near = [
+                        pose_error({n: a.camera_from_mesh(reg.poses[n]) for n in names}, truth)["rotation_median_deg"]
+                        for a in check.trials
+                    ]
+                    rival = _named_rival(check.candidates)
                     row.update(
                         registered=len(names),
                         icp_centre_mm=icp["centre_median_m"] * 1e3,
@@ -110,8 +118,16 @@ def run(
                         agreement=check.fit.agreement,
                         accepted=why is None,
                         refusal=why,
+                        candidate_rotation_deg=near,
+                        chosen=check.chosen,
+                        rival=rival,
+                        rival_mesh_turned_mm=check.candidates[rival]["mesh_turned_mm"] if rival is not None else None,
+                        symmetry_turn_deg=check.symmetry[0] if np.isfinite(check.symmetry[0]) else None,
+                        symmetry_mm=check.symmetry[1] if np.isfinite(check.symmetry[1]) else None,
+                        kind=_kind(why),
                     )
                     row["right"] = row["centre_mm"] <= RIGHT_MM and row["rotation_deg"] <= RIGHT_DEG
+                    row["diagnosis"] = _diagnosis(row)
                     rows.append(row)
                     # rows so far survive an interrupted run (the SfM models are kept anyway)
                     write_text_atomic(out / "registration.json", json.dumps({"runs": rows}, indent=1, default=float))
@@ -123,6 +139,44 @@ def run(
         write_text_atomic(json_path, json.dumps(record, indent=1, default=float))
     print(table)
     return record
+
+
+NEAR_DEG = 5.0  # a candidate this close (rotation median) to the truth holds it: finer refinement finds it
+
+
+def _named_rival(candidates: list[dict]) -> int | None:
+    """The candidate a refusal names: the best-fitting one more than AMBIGUOUS_DEG from the chosen."""
+    rivals = [i for i, c in enumerate(candidates) if abs(c["azimuth_change_deg"]) > AMBIGUOUS_DEG]
+    return min(rivals, key=lambda i: candidates[i]["coarse_cost"]) if rivals else None
+
+
+def _kind(why: str | None) -> str:
+    """accepted, symmetric, unconfirmed or ambiguous: which test of ``refusal`` spoke."""
+    if why is None:
+        return "accepted"
+    return "symmetric" if "symmetric" in why else "unconfirmed" if "cannot confirm" in why else "ambiguous"
+
+
+def _diagnosis(row: dict) -> str:
+    """Whether a row's verdict is right: a right registration accepted, a wrong one refused — and
+    whether the cause the refusal names holds the truth (the symmetric turn, the rival azimuth)."""
+    kind = row["kind"]
+    if kind == "accepted":
+        return "right" if row["right"] else "WRONG ACCEPTED"
+    if row["right"]:
+        return f"RIGHT REFUSED ({kind})"
+    if kind == "symmetric":
+        at_turn = abs(row["rotation_deg"] - abs(row["symmetry_turn_deg"] or 0.0)) <= NEAR_DEG
+        return f"wrong, refused: symmetric; truth {'at the symmetric turn' if at_turn else 'elsewhere'}"
+    if kind == "ambiguous":
+        near = row["candidate_rotation_deg"]
+        at = [
+            f"{w} ({near[i]:.1f} deg)"
+            for w, i in (("chosen", row["chosen"]), ("rival", row["rival"]))
+            if near[i] <= NEAR_DEG
+        ]
+        return "wrong, refused: ambiguous; truth at " + (" and ".join(at) if at else "neither")
+    return "wrong, refused: unconfirmed"
 
 
 def _table(rows: list[dict]) -> str:
@@ -138,13 +192,15 @@ def _table(rows: list[dict]) -> str:
         "refined mm / deg",
         "sharpness",
         "photo margin",
+        "mesh symmetry deg / mm",
         "right",
         "accepted",
+        "diagnosis",
     )
     cells = []
     for r in rows:
         if "failed" in r:
-            cells.append((r["object"], r["scanner"], r["seed"], "FAILED", r["failed"][:60], *[""] * 7, "no"))
+            cells.append((r["object"], r["scanner"], r["seed"], "FAILED", *[""] * 9, "refused", r["diagnosis"]))
             continue
         margin = "-" if r["azimuth_margin"] is None else f"{r['azimuth_margin']:.3g}"
         photo_margin = "-" if r["photometric_margin"] is None else f"{r['photometric_margin']:.3g}"
@@ -161,8 +217,10 @@ def _table(rows: list[dict]) -> str:
                 f"{r['centre_mm']:.2f} / {r['rotation_deg']:.2f}",
                 f"{r['sharpness']:.2f}",
                 photo_margin,
+                "-" if r["symmetry_mm"] is None else f"{r['symmetry_turn_deg']:.0f} / {r['symmetry_mm']:.2f}",
                 "yes" if r["right"] else "NO",
                 "yes" if r["accepted"] else "refused",
+                r["diagnosis"],
             )
         )
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
@@ -170,9 +228,13 @@ def _table(rows: list[dict]) -> str:
     done = [r for r in rows if "failed" not in r]
     wrong_accepted = sum(1 for r in done if r["accepted"] and not r["right"])
     right_refused = sum(1 for r in done if r["right"] and not r["accepted"])
+    right_accepted = sum(1 for r in done if r["right"] and r["accepted"])
+    wrong_refused = sum(1 for r in done if not r["right"] and not r["accepted"])
     lines += [
         "",
-        f"{sum(r['right'] for r in done)} of {len(rows)} right (<= {RIGHT_MM:g} mm and {RIGHT_DEG:g} deg); "
-        f"wrong accepted: {wrong_accepted}; right refused: {right_refused}; SfM failed: {len(rows) - len(done)}",
+        f"{len(rows)} registrations: right and accepted {right_accepted}, wrong and refused {wrong_refused}, "
+        f"SfM or point-cloud alignment refused {len(rows) - len(done)}; "
+        f"**wrong accepted: {wrong_accepted}; right refused: {right_refused}** "
+        f"(right: <= {RIGHT_MM:g} mm and {RIGHT_DEG:g} deg, camera centre and rotation medians)",
     ]
     return "\n".join(lines) + "\n"

@@ -22,6 +22,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.optimize import minimize_scalar
 from scipy.spatial import cKDTree
 
 from ..io.mesh import Mesh
@@ -333,6 +334,32 @@ def turned_distance(mesh: Mesh, centre: np.ndarray, turns_deg: np.ndarray, count
         _, near = tree.query(q)
         out.append(float(np.median(np.abs(((q - pts[near]) * normals[near]).sum(1)))))
     return np.array(out)
+
+
+SYMMETRY_STEP_DEG = 1.0  # the turns a mesh is tried under for a symmetry (then refined to 0.05 deg)
+SYMMETRY_SAMPLES = 5000
+
+
+def mesh_symmetry(mesh: Mesh, centre: np.ndarray) -> tuple[float, float]:
+    """The turn about the vertical through ``centre`` (degrees, more than ``AMBIGUOUS_DEG`` from 0)
+    under which the mesh lies closest to itself, and that distance (metres, ``turned_distance``):
+    the lowest local minimum of the distance over the whole circle, refined. A box gives (180, ~0),
+    a body of revolution ~0 everywhere, a round but asymmetric mesh no local minimum near 0 (its
+    distance only grows from the zero turn): then (nan, inf)."""
+    turns = np.arange(-180.0, 180.0, SYMMETRY_STEP_DEG)
+    d = turned_distance(mesh, centre, turns, count=SYMMETRY_SAMPLES)
+    lowest = (d <= np.roll(d, 1)) & (d <= np.roll(d, -1)) & (np.abs(turns) > AMBIGUOUS_DEG)
+    if not lowest.any():
+        return float("nan"), float("inf")
+    i = int(np.argmin(np.where(lowest, d, np.inf)))
+    best = minimize_scalar(
+        lambda a: turned_distance(mesh, centre, np.array([a]), count=SYMMETRY_SAMPLES)[0],
+        bounds=(turns[i] - SYMMETRY_STEP_DEG, turns[i] + SYMMETRY_STEP_DEG),
+        method="bounded",
+        options={"xatol": 0.05},
+    )
+    turn, dist = (float(best.x), float(best.fun)) if best.fun < d[i] else (float(turns[i]), float(d[i]))
+    return (turn + 180.0) % 360.0 - 180.0, dist
 
 
 def azimuth_apart(a_deg: float, b_deg: float) -> float:

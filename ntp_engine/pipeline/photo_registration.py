@@ -18,7 +18,7 @@ whole sweep vote on the 7 degrees of freedom SfM cannot know — then scores the
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import torch
@@ -31,10 +31,11 @@ from ..physics.frame import any_tangent
 from ..physics.measurement import local_emitter_geometry, terms_from_lobe
 from ..scanner import camera
 from ..scanner.scanner import Scanner
-from .align import AMBIGUOUS_DEG, Alignment, azimuth_apart, surface_samples, turned_distance
+from .align import AMBIGUOUS_DEG, Alignment, azimuth_apart, mesh_symmetry, surface_samples, turned_distance
 from .traces import MIN_COS_VIEW, SupportShadow
 
-SURFACE_POINTS = 3000  # surface samples that judge the candidates
+SURFACE_POINTS = 3000  # surface samples of a PhotometricRegistration by default
+CANDIDATE_POINTS = 1500  # ... that compare the candidate azimuths (on SWEEP_PHOTOS photos)
 FINE_POINTS = 8000  # ... and that refine the chosen one: its error is sampling noise (gallery dome, 40 photos:
 # 3000 points left 1.10 mm / 0.36 deg, 8000 points 0.54 mm / 0.14 deg)
 # Gaussian sigma of the photos per level, pixels of the working size: the coarse level widens the
@@ -50,6 +51,9 @@ SETTLED_RAD, SETTLED_M = 2e-4, 5e-5  # a round that moves the pose less than thi
 AZIMUTH_GRID_DEG = np.arange(-4.0, 4.01, 0.25)  # searched before the first level's descent
 CODE_RANGE = (6.0, 249.0)  # 8-bit codes used: above the noise floor, below clipping
 MAX_WORKING_WIDTH = 640  # photos are averaged down to at most this width (a registration needs no more)
+# the per-observation arrays (pixels, residuals, Jacobians): float32 holds a pixel to 1e-4 px and a log
+# residual to 1e-7, far below the photos' noise; only the 7 x 7 normal equations are solved in float64
+WORK = torch.float32
 
 
 @dataclass
@@ -205,11 +209,11 @@ def _diffuse_shading(
     """D ``(M, 3)``: the rho_d = 1 measurement of camera-space points ``x`` with normals ``n``
     (``groups``: ``shading_lights(scanner)`` when already at hand)."""
     lights, p_eff = groups if groups is not None else shading_lights(scanner)
-    p_eff_t = torch.as_tensor(p_eff, dtype=torch.float64)
+    p_eff_t = torch.as_tensor(p_eff, dtype=WORK)
     out = np.zeros((len(x), 3))
     for a in range(0, len(x), chunk):
-        xt = torch.as_tensor(x[a : a + chunk], dtype=torch.float64)
-        nt = torch.as_tensor(n[a : a + chunk], dtype=torch.float64)
+        xt = torch.as_tensor(x[a : a + chunk], dtype=WORK)
+        nt = torch.as_tensor(n[a : a + chunk], dtype=WORK)
         geo = local_emitter_geometry(lights, xt, nt, any_tangent(nt))
         a_l, _ = terms_from_lobe(geo, torch.zeros_like(geo.falloff))
         out[a : a + chunk] = (a_l @ p_eff_t).numpy() / np.pi
@@ -321,7 +325,7 @@ class PhotometricRegistration:
 
     def _pixels(self, poses: np.ndarray, params: np.ndarray) -> torch.Tensor:
         """Pixel coordinates ``(V, N, 2)`` of the mesh samples under the correction ``params``."""
-        return camera.project(self.scanner, torch.as_tensor(self._camera(poses, params)[0]))
+        return camera.project(self.scanner, torch.as_tensor(self._camera(poses, params)[0], dtype=WORK))
 
     def _pixel_jacobian(self, poses: np.ndarray, params: np.ndarray) -> torch.Tensor:
         """d pixel / d params ``(V, N, 2, 7)``: the chain rule through ``_camera`` (the rotation's own
@@ -336,15 +340,18 @@ class PhotometricRegistration:
             d_local[..., k] = (base @ _rotation(params[:3] + e) - base @ _rotation(params[:3] - e)) / 2e-5
         R, t = poses[:, :3, :3], poses[:, :3, 3]
         V, N = len(poses), len(base)
-        d_x = np.concatenate(
+        R_t = torch.as_tensor(R, dtype=WORK)
+        d_x = torch.cat(
             [
-                np.einsum("vab,nbk->vnak", R, d_local),
-                np.broadcast_to((-self.size * R @ Rw.T)[:, None], (V, N, 3, 3)),
-                np.broadcast_to((np.exp(params[6]) * (R @ self.centre + t))[:, None, :, None], (V, N, 3, 1)),
+                torch.einsum("vab,nbk->vnak", R_t, torch.as_tensor(d_local, dtype=WORK)),
+                torch.as_tensor(-self.size * R @ Rw.T, dtype=WORK)[:, None].expand(V, N, 3, 3),
+                torch.as_tensor(np.exp(params[6]) * (R @ self.centre + t), dtype=WORK)[:, None, :, None].expand(
+                    V, N, 3, 1
+                ),
             ],
             -1,
         )  # (V, N, 3, 7)
-        return camera.project_jacobian(self.scanner, torch.as_tensor(x)) @ torch.as_tensor(d_x)
+        return camera.project_jacobian(self.scanner, torch.as_tensor(x, dtype=WORK)) @ d_x
 
     def _log_shading_at(self, poses: np.ndarray, params: np.ndarray, seen: np.ndarray) -> np.ndarray:
         """log D ``(V, N, 3)`` of the seen pairs at ``params`` (0 elsewhere)."""
@@ -363,19 +370,19 @@ class PhotometricRegistration:
             e = np.zeros(7)
             e[k] = 1e-3
             J[..., k] = (self._log_shading_at(poses, params + e, seen) - base) / 1e-3
-        self._shade = (params.copy(), torch.as_tensor(base), torch.as_tensor(J))
+        self._shade = (params.copy(), torch.as_tensor(base, dtype=WORK), torch.as_tensor(J, dtype=WORK))
 
     def _log_shading(self, params: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
         """log D at ``params`` from the round's linear model, and its Jacobian ``(V, N, 3, 7)``."""
         p0, base, J = self._shade
-        return base + J @ torch.as_tensor(params - p0), J
+        return base + J @ torch.as_tensor(params - p0, dtype=WORK), J
 
     def _sample(self, images: torch.Tensor, px: torch.Tensor) -> torch.Tensor:
         """Bilinear samples ``(V, N, C)`` of ``images (V, C, h, w)`` at ``px (V, N, 2)``."""
         s = self.scanner
         grid = torch.stack([2 * px[..., 0] / (s.width - 1) - 1, 2 * px[..., 1] / (s.height - 1) - 1], -1)
-        grid = torch.nan_to_num(grid, nan=-2.0)[:, None].to(images.dtype)
-        return F.grid_sample(images, grid, align_corners=True)[:, :, 0].permute(0, 2, 1).to(torch.float64)
+        grid = torch.nan_to_num(grid, nan=-2.0)[:, None]
+        return F.grid_sample(images, grid.to(images.dtype), align_corners=True)[:, :, 0].permute(0, 2, 1)
 
     def _linearise(
         self,
@@ -413,7 +420,7 @@ class PhotometricRegistration:
             centre = torch.where(ok.any(0)[:, None], (w * r).sum(0) / w.sum(0).clamp_min(1e-12), 0.0)
         e = torch.where(ok[..., None], r - centre[None], 0.0)
         count = int(ok.sum())
-        cost = float(torch.log1p((e / CAUCHY_LOG) ** 2).sum()) / max(count, 1)
+        cost = float(torch.log1p((e / CAUCHY_LOG) ** 2).sum(dtype=torch.float64)) / max(count, 1)
         agree = (e.abs().amax(-1) < AGREE_LOG) & ok
         return e, ok, PhotometricFit(cost, float(agree.sum()) / max(count, 1), count, int(enough.sum()))
 
@@ -480,8 +487,8 @@ class PhotometricRegistration:
             Jc = J - ((w[..., None] * J).sum(0) / wsum[..., None])[None]  # minus the point's weighted mean
             ec = r - ((w * r).sum(0) / wsum)[None]
             wJ = (w[..., None] * Jc).reshape(-1, 7)
-            A = wJ.T @ Jc.reshape(-1, 7)
-            b = wJ.T @ ec.reshape(-1)
+            A = (wJ.T @ Jc.reshape(-1, 7)).double()  # 7 x 7 sums in float32, solved in float64
+            b = (wJ.T @ ec.reshape(-1)).double()
             improved = False
             while damping < 1e6:
                 step = np.zeros(7)
@@ -557,6 +564,15 @@ MAX_PHOTOS = 40  # photos (evenly spread over the sweep) that judge and refine a
 # the whole-circle azimuth sweep: a scout of fewer photos and points, a coarser edge map; its step is
 # within the coarse refinement's own azimuth grid (+-4 deg), so a rival's basin is not stepped over
 SWEEP_STEP_DEG, SWEEP_PHOTOS, SWEEP_POINTS, SWEEP_EDGE_STRIDE = 3.0, 20, 1000, 3
+EDGE_GRID_WIDTH = 320  # the mesh's image (for edge distances) is cast on a grid at most about this wide
+
+
+def edge_stride(photos: PhotoStack) -> int:
+    """Every how many pixels the mesh's image is cast for the edge distances of ``photos``: an edge
+    located to a pixel of a ~320-wide grid is enough to keep points ~2 px clear of it."""
+    return max(1, round(photos.scanner.width / EDGE_GRID_WIDTH))
+
+
 RIVALS = 3  # the sweep's best other azimuths (more than AMBIGUOUS_DEG apart) refined as rivals
 
 
@@ -579,6 +595,11 @@ class PhotoCheck:
     candidates: list[dict]
     chosen: int  # index of the chosen candidate (0: the point cloud's own alignment)
     profile: list[tuple[float, float]]
+    trials: list[Alignment] = field(default_factory=list)  # each candidate after its coarse refinement
+    # the mesh's own closest symmetry (turn deg, how far the turned mesh lies from itself in mm) and
+    # the distance no photo at this size can see (SYMMETRY_PX at the object's distance, mm)
+    symmetry: tuple[float, float] = (float("nan"), float("inf"))
+    symmetry_tolerance_mm: float = 0.0
 
     def to_json(self) -> dict:
         """The check as JSON values (``registration.json`` -> ``photometric``)."""
@@ -589,6 +610,11 @@ class PhotoCheck:
             "chosen_candidate": self.chosen,
             "candidates": self.candidates,
             "azimuth_profile": [[t, c if np.isfinite(c) else None] for t, c in self.profile],
+            "mesh_symmetry": {
+                "turn_deg": self.symmetry[0] if np.isfinite(self.symmetry[0]) else None,
+                "turned_mm": self.symmetry[1] if np.isfinite(self.symmetry[1]) else None,
+                "invisible_below_mm": self.symmetry_tolerance_mm,
+            },
         }
 
 
@@ -632,19 +658,20 @@ def check_registration(
     """``alignment`` refined by the photos ``photos`` (of ``names``; similarity only: SfM's relative
     poses are kept), its rivals found by sweeping the azimuth over the whole circle and refined the
     same way, the best chosen and judged (see ``PhotoCheck``)."""
-    judge = PhotometricRegistration(mesh, photos, support_z)
+    # candidates are compared on half the photos and fewer points (the chosen one is refined on all)
+    pick = [names.index(n) for n in spread(names, SWEEP_PHOTOS)]
+    judge = PhotometricRegistration(mesh, photos.subset(pick), support_z, points=CANDIDATE_POINTS)
     sfm = np.stack([camera_from_sfm[n] for n in names])
 
     def placed(al: Alignment) -> np.ndarray:
         return np.stack([al.camera_from_mesh(m) for m in sfm])
 
     def coarse(al: Alignment) -> tuple[Alignment, PhotometricFit]:
-        g, fit = judge.refine(placed(al), levels=BLUR_LEVELS_PX[:1], max_rounds=CANDIDATE_ROUNDS)
+        g, fit = judge.refine(placed(al)[pick], levels=BLUR_LEVELS_PX[:1], max_rounds=CANDIDATE_ROUNDS)
         return corrected(al, g), fit
 
     trials = [coarse(alignment)]
     # a point cloud with few points on the object can land at any azimuth: the photos vote on all
-    pick = [names.index(n) for n in spread(names, SWEEP_PHOTOS)]
     scout = PhotometricRegistration(
         mesh, photos.subset(pick), support_z, points=SWEEP_POINTS, edge_stride=SWEEP_EDGE_STRIDE
     )
@@ -659,25 +686,56 @@ def check_registration(
     # candidates the refinement brought into the chosen one's azimuth are the same answer, not rivals
     others = [fit.cost for c, (_, fit) in zip(change, trials, strict=True) if abs(c) > AMBIGUOUS_DEG]
     margin = (min(others) - trials[chosen][1].cost) / trials[chosen][1].cost if others else float("inf")
-    finisher = PhotometricRegistration(mesh, photos, support_z, points=FINE_POINTS)
+    finisher = PhotometricRegistration(mesh, photos, support_z, points=FINE_POINTS, edge_stride=edge_stride(photos))
     g, fit = finisher.refine(placed(best), levels=BLUR_LEVELS_PX[1:])
     best = corrected(best, g)
-    sharpness = judge.sharpness(placed(best), SHARPNESS_SIGMA_PX)
+    sharpness = finisher.sharpness(placed(best), SHARPNESS_SIGMA_PX)
     apart = turned_distance(mesh, judge.centre, np.array(change))
     candidates = [
         {"azimuth_change_deg": c, "coarse_cost": f.cost, "mesh_turned_mm": 1e3 * d}
         for c, (_, f), d in zip(change, trials, apart, strict=True)
     ]
     profile = [(float(t), float(c)) for t, c in zip(turns, costs, strict=True)]
-    return PhotoCheck(best, fit, sharpness, float(margin), candidates, chosen, profile)
+    turn, turned_m = mesh_symmetry(mesh, judge.centre)
+    final = placed(best)
+    distance = float(np.median(np.linalg.norm(final[:, :3, :3] @ judge.centre + final[:, :3, 3], axis=1)))
+    return PhotoCheck(
+        best,
+        fit,
+        sharpness,
+        float(margin),
+        candidates,
+        chosen,
+        profile,
+        [a for a, _ in trials],
+        (turn, 1e3 * turned_m),
+        1e3 * SYMMETRY_PX * distance / photos.scanner.fx,
+    )
 
 
-MIN_SHARPNESS = 0.3  # set from the gallery (docs/pipeline.md): right registrations >= 0.6, wrong <= 0.1
-MIN_MARGIN = 0.1  # the best other azimuth must fit the photos at least 10% worse
+# set from the gallery (docs/pipeline.md, ntp bench registration): right registrations had sharpness
+# >= 1.7 and margin >= 1.7; wrong ones that were not a symmetry of the mesh sharpness <= 0.53
+MIN_SHARPNESS = 0.8
+MIN_MARGIN = 0.5  # the best other azimuth must fit the photos at least 50% worse
+SYMMETRY_PX = 0.25  # a turned mesh lying closer to itself than this (at the object's distance) is a symmetry
 
 
 def refusal(check: PhotoCheck) -> str | None:
-    """Why the photos do not confirm a registration (one line), or None when they do."""
+    """Why the photos do not confirm a registration (one line), or None when they do. A symmetry of
+    the mesh comes first: every placement it relates is consistent with the photos (each surface
+    point sees one surface point in every photo), so no cost of them can choose."""
+    turn, turned_mm = check.symmetry
+    if turned_mm <= check.symmetry_tolerance_mm:
+        return (
+            f"the mesh is symmetric under a turn of {turn:.0f} deg about the vertical (turned, it lies "
+            f"{turned_mm:.2f} mm from itself): no photo can tell the two placements apart"
+        )
+    if check.fit.points < MIN_VIEWS or check.sharpness < MIN_SHARPNESS:
+        return (
+            f"the photos cannot confirm where the mesh is (moved {SHARPNESS_SHIFT_PX:g} px it fits them "
+            f"{100 * max(check.sharpness, 0.0):.0f}% worse, a confirmed registration >= {100 * MIN_SHARPNESS:.0f}%): "
+            "the mesh is not where the photos show it, or the object is too plain to tell"
+        )
     if check.margin < MIN_MARGIN:
         rivals = [c for c in check.candidates if abs(c["azimuth_change_deg"]) > AMBIGUOUS_DEG]
         rival = min(rivals, key=lambda c: c["coarse_cost"])
@@ -685,12 +743,6 @@ def refusal(check: PhotoCheck) -> str | None:
             f"the object's azimuth is ambiguous: turned by {rival['azimuth_change_deg']:.0f} deg it fits the photos "
             f"nearly as well (margin {check.margin:.2f} < {MIN_MARGIN}; the mesh turned so lies "
             f"{rival['mesh_turned_mm']:.1f} mm from itself)"
-        )
-    if check.fit.points < MIN_VIEWS or check.sharpness < MIN_SHARPNESS:
-        return (
-            f"the photos cannot confirm where the mesh is (moved {SHARPNESS_SHIFT_PX:g} px it fits them "
-            f"{100 * max(check.sharpness, 0.0):.0f}% worse, a confirmed registration >= {100 * MIN_SHARPNESS:.0f}%): "
-            "the mesh is not where the photos show it, or the object is too plain to tell"
         )
     return None
 

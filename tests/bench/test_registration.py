@@ -10,8 +10,23 @@ def test_registration_runs_per_seed_and_reuses_the_kept_sfm_model(tmp_path):
     assert (tmp_path / "g" / "sfm" / "dome-engine-s0" / "cameras.bin").is_file()
     assert row["sharpness"] == row["sharpness"] and row["accepted"] in (True, False) and row["seconds_photometric"] > 0
     assert row["accepted"] == (row["refusal"] is None)
+    assert row["kind"] in ("accepted", "symmetric", "unconfirmed", "ambiguous") and row["diagnosis"]
+    assert len(row["candidate_rotation_deg"]) >= 1
+    assert row["symmetry_mm"] is None or row["symmetry_mm"] > 0.3  # the dome has no symmetry
     table = (tmp_path / "g" / "registration.md").read_text()
     assert table.count("\n") == 5 and "wrong accepted:" in table and "right refused:" in table
     (again,) = registration.run(tmp_path / "g", settings, seeds=(0,))["runs"]
     # the kept model, re-aligned (its points come back in another order: RANSAC samples others)
     assert again["seconds_sfm"] == 0.0 and abs(again["centre_mm"] - row["centre_mm"]) < 0.05 * row["centre_mm"] + 0.5
+
+
+def test_diagnosis_names_wrong_acceptances_and_where_the_truth_was():
+    base = {"right": False, "chosen": 0, "rival": 1, "candidate_rotation_deg": [30.0, 2.0], "rotation_deg": 29.0}
+    assert registration._diagnosis({**base, "kind": "accepted"}) == "WRONG ACCEPTED"
+    assert registration._diagnosis({**base, "kind": "accepted", "right": True}) == "right"
+    assert registration._diagnosis({**base, "kind": "unconfirmed", "right": True}) == "RIGHT REFUSED (unconfirmed)"
+    assert "truth at rival (2.0 deg)" in registration._diagnosis({**base, "kind": "ambiguous"})
+    sym = {**base, "kind": "symmetric", "rotation_deg": 179.0, "symmetry_turn_deg": -180.0}
+    assert "truth at the symmetric turn" in registration._diagnosis(sym)
+    assert "elsewhere" in registration._diagnosis({**sym, "rotation_deg": 60.0})
+    assert registration._kind(None) == "accepted" and registration._kind("the mesh is symmetric under") == "symmetric"

@@ -3,8 +3,9 @@
 import numpy as np
 import pytest
 
-from ntp_engine.pipeline.align import align_to_mesh, convergence_point, ransac_plane, surface_samples
+from ntp_engine.pipeline.align import align_to_mesh, convergence_point, mesh_symmetry, ransac_plane, surface_samples
 from ntp_engine.sim.demo_asset import dome_mesh
+from ntp_engine.sim.shapes import blob_mesh, box_mesh
 
 
 def _random_similarity(rng):
@@ -89,3 +90,13 @@ def test_align_needs_points_on_the_object():
     a[:3, 3] = b[:3, 3] = [0, 0, 3]
     with pytest.raises(ValueError, match="on the object"):
         align_to_mesh(flat, [a, b], dome_mesh(16, 8), working_distance=0.31)
+
+
+def test_mesh_symmetry_finds_the_half_turn_of_a_box_and_none_on_an_asymmetric_mesh():
+    box = box_mesh(turn_deg=25.0)
+    centre = (box.vertices.min(0) + box.vertices.max(0)) / 2
+    turn, dist = mesh_symmetry(box, centre)
+    assert abs(abs(turn) - 180.0) < 0.2 and dist < 1e-5
+    blob = blob_mesh()
+    turn, dist = mesh_symmetry(blob, (blob.vertices.min(0) + blob.vertices.max(0)) / 2)
+    assert dist > 2e-3  # the nearest it comes to itself is millimetres away

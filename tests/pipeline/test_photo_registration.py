@@ -56,8 +56,12 @@ def test_refusal_names_the_cause():
     ]
     ambiguous = refusal(PhotoCheck(None, fit, 0.9, 0.01, rivals, 0, []))  # type: ignore[arg-type]
     assert ambiguous and "turned by 180 deg" in ambiguous and "0.0 mm from itself" in ambiguous  # the best rival
-    plain = refusal(PhotoCheck(None, fit, 0.02, 0.5, rivals, 0, []))  # type: ignore[arg-type]
-    assert plain and "cannot confirm" in plain and "2% worse" in plain
+    plain = refusal(PhotoCheck(None, fit, 0.02, 0.01, rivals, 0, []))  # type: ignore[arg-type]
+    assert plain and "cannot confirm" in plain and "2% worse" in plain  # a plateau is not an ambiguity
+    # a symmetry of the mesh (under a quarter pixel here) is named first, whatever the photos say
+    box = PhotoCheck(None, fit, 2.0, 3.0, rivals, 0, [], [], (180.0, 0.01), 0.26)  # type: ignore[arg-type]
+    assert (why := refusal(box)) and "symmetric under a turn of 180 deg" in why
+    assert refusal(PhotoCheck(None, fit, 2.0, 3.0, rivals, 0, [], [], (16.0, 0.8), 0.26)) is None  # type: ignore[arg-type]
 
 
 def test_rival_turns_are_the_lowest_distinct_minima_away_from_zero():
