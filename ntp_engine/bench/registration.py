@@ -166,8 +166,13 @@ def _diagnosis(row: dict) -> str:
     if row["right"]:
         return f"RIGHT REFUSED ({kind})"
     if kind == "symmetric":
-        at_turn = abs(row["rotation_deg"] - abs(row["symmetry_turn_deg"] or 0.0)) <= NEAR_DEG
-        return f"wrong, refused: symmetric; truth {'at the symmetric turn' if at_turn else 'elsewhere'}"
+        if row["rotation_deg"] <= NEAR_DEG:
+            where = f"near the chosen ({row['rotation_deg']:.1f} deg)"
+        elif abs(row["rotation_deg"] - abs(row["symmetry_turn_deg"] or 0.0)) <= NEAR_DEG:
+            where = "at the symmetric turn"
+        else:
+            where = "elsewhere"
+        return f"wrong, refused: symmetric; truth {where}"
     if kind == "ambiguous":
         near = row["candidate_rotation_deg"]
         at = [
