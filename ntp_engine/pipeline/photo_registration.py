@@ -99,6 +99,21 @@ class Correction:
         return out
 
 
+# how far a correction may move the point cloud's alignment: its scale within 20%, its shift within
+# a quarter of the object's size. Beyond, the alignment was wrong, not imprecise — and on an object
+# the photos cannot pin (an untextured body of revolution) the descent, its observations held for a
+# round, otherwise wandered off (scale x2.5) until no photo saw the mesh
+MAX_LOG_SCALE, MAX_SHIFT = 0.2, 0.25
+
+
+def _bounded(params: np.ndarray) -> np.ndarray:
+    """Correction parameters (omega, tau / size, lambda) within the bounds above."""
+    out = params.copy()
+    out[3:6] = np.clip(out[3:6], -MAX_SHIFT, MAX_SHIFT)
+    out[6] = np.clip(out[6], -MAX_LOG_SCALE, MAX_LOG_SCALE)
+    return out
+
+
 def _rotation(omega: np.ndarray) -> np.ndarray:
     theta = float(np.linalg.norm(omega))
     if theta < 1e-15:
@@ -430,7 +445,8 @@ class PhotometricRegistration:
             centre = torch.where(ok.any(0)[:, None], (w * r).sum(0) / w.sum(0).clamp_min(1e-12), 0.0)
         e = torch.where(ok[..., None], r - centre[None], 0.0)
         count = int(ok.sum())
-        cost = float(torch.log1p((e / CAUCHY_LOG) ** 2).sum(dtype=torch.float64)) / max(count, 1)
+        # nothing seen fits nothing: a pose that lost every observation never wins
+        cost = float(torch.log1p((e / CAUCHY_LOG) ** 2).sum(dtype=torch.float64)) / count if count else float("inf")
         agree = (e.abs().amax(-1) < AGREE_LOG) & ok
         return e, ok, PhotometricFit(cost, float(agree.sum()) / max(count, 1), count, int(enough.sum()))
 
@@ -478,7 +494,7 @@ class PhotometricRegistration:
             cos = float(step @ previous) / max(float(np.linalg.norm(step) * np.linalg.norm(previous)), 1e-30)
             ratio = float(np.linalg.norm(step) / max(float(np.linalg.norm(previous)), 1e-30))
             if not settled and cos > 0.9 and ratio < 0.95:
-                jump = params + step * min(ratio / (1 - ratio), 10.0)
+                jump = _bounded(params + step * min(ratio / (1 - ratio), 10.0))
                 seen_j = self._held(poses, jump, sigma)
                 here, there = (self._cost(*self._residual_mask(poses, q, sigma, seen_j))[2] for q in (params, jump))
                 if there.cost < here.cost:
@@ -502,9 +518,16 @@ class PhotometricRegistration:
             improved = False
             while damping < 1e6:
                 step = np.zeros(7)
-                free = torch.as_tensor(self.free)
-                Af = A[free][:, free]
-                step[self.free] = -torch.linalg.solve(Af + damping * torch.diag(torch.diag(Af)), b[free]).numpy()
+                # a direction the photos do not see (the azimuth of an untextured body of revolution)
+                # has a ~zero diagonal: it does not move (solving for it would be singular or wild)
+                diag = torch.diag(A).numpy()
+                seen_dir = self.free & (diag > 1e-6 * max(float(diag[self.free].max()), 1e-30))
+                if not seen_dir.any():
+                    break
+                sd = torch.as_tensor(seen_dir)
+                Af = A[sd][:, sd]
+                step[seen_dir] = -torch.linalg.solve(Af + damping * torch.diag(torch.diag(Af)), b[sd]).numpy()
+                step = _bounded(params + step) - params
                 r2, _, ok2 = self._linearise(poses, params + step, sigma, seen, jacobian=False)
                 e2, used2, fit2 = self._cost(r2, ok2)
                 if fit2.cost < fit.cost:

@@ -84,7 +84,7 @@ def structure_from_motion(
     pairing.quadratic_overlap = True
     pycolmap.match_sequential(db, pairing_options=pairing)
     bar.update()
-    models = _map(pycolmap, mapper, db, photos_dir, work / "sparse")
+    models = _map(pycolmap, mapper, db, photos_dir, work / "sparse", seed)
     bar.update()
     bar.close()
     if not models:
@@ -104,10 +104,13 @@ def structure_from_motion(
     return SfmResult(poses, points, sorted(set(names) - set(poses)), model_dir if model_dir.is_dir() else None)
 
 
-def _map(pycolmap, mapper: str, db: Path, photos_dir: Path, out: Path) -> dict:
-    """COLMAP's ``mapper`` on the matched database, intrinsics held fixed; models by index."""
+def _map(pycolmap, mapper: str, db: Path, photos_dir: Path, out: Path, seed: int | None) -> dict:
+    """COLMAP's ``mapper`` on the matched database, intrinsics held fixed; models by index. The
+    mappers' own options carry the seed (pycolmap's global one does not reach GLOMAP's choices)."""
     out.mkdir(parents=True, exist_ok=True)
     incremental = pycolmap.IncrementalPipelineOptions()
+    if seed is not None:
+        incremental.random_seed = seed
     incremental.ba_refine_focal_length = False
     incremental.ba_refine_principal_point = False
     incremental.ba_refine_extra_params = False
@@ -118,6 +121,8 @@ def _map(pycolmap, mapper: str, db: Path, photos_dir: Path, out: Path) -> dict:
         hierarchical.incremental_options = incremental
         return pycolmap.hierarchical_mapping(db, photos_dir, out, hierarchical)
     glomap = pycolmap.GlobalPipelineOptions()
+    if seed is not None:
+        glomap.random_seed = glomap.mapper.random_seed = seed
     ba = glomap.mapper.bundle_adjustment
     ba.refine_focal_length = ba.refine_principal_point = ba.refine_extra_params = False
     return pycolmap.global_mapping(db, photos_dir, out, glomap)
