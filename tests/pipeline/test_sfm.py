@@ -7,7 +7,7 @@ import pytest
 from ntp_engine.io.errors import NtpInputError
 from ntp_engine.io.images import write_png
 from ntp_engine.pipeline.scan_folder import load_poses
-from ntp_engine.pipeline.sfm import structure_from_motion
+from ntp_engine.pipeline.sfm import GLOBAL_FROM_PHOTOS, chosen_mapper, structure_from_motion
 from ntp_engine.scanner.device_file import load_scanner
 from ntp_engine.sim.evaluate import pose_error, similarity_fit
 
@@ -59,6 +59,12 @@ def test_similarity_fit_takes_out_exactly_a_similarity():
     err = pose_error(similarity_fit(moved, truth), truth)
     assert err["centre_max_m"] < 1e-9 and err["rotation_max_deg"] < 1e-5
     assert similarity_fit({"0": truth["0"]}, truth) == {}
+
+
+def test_auto_picks_the_mapper_by_photo_count():
+    assert chosen_mapper("auto", 24) == "incremental" and chosen_mapper("auto", GLOBAL_FROM_PHOTOS - 1) == "incremental"
+    assert chosen_mapper("auto", GLOBAL_FROM_PHOTOS) == "global" and chosen_mapper("auto", 1000) == "global"
+    assert chosen_mapper("hierarchical", 24) == "hierarchical"  # a named mapper is kept
 
 
 def test_unknown_mapper_is_refused(tmp_path):
