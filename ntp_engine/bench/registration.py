@@ -23,10 +23,9 @@ import numpy as np
 from ..io.atomic import temp_dir, write_text_atomic
 from ..io.errors import NtpInputError
 from ..io.progress import QUIET, Progress
-from ..pipeline.align import AMBIGUOUS_DEG
 from ..pipeline.colmap_model import model_files, read_colmap_model
 from ..pipeline.output_folder import claim
-from ..pipeline.photo_registration import refusal
+from ..pipeline.photo_registration import named_rival, refusal, refusal_kind
 from ..pipeline.scan_folder import load_poses, load_scan
 from ..pipeline.sfm import SfmResult, structure_from_motion
 from ..pipeline.stages import register_to_mesh
@@ -102,7 +101,7 @@ def run(
                         pose_error({n: a.camera_from_mesh(reg.poses[n]) for n in names}, truth)["rotation_median_deg"]
                         for a in check.trials
                     ]
-                    rival = _named_rival(check.candidates)
+                    rival = named_rival(check.candidates)
                     row.update(
                         registered=len(names),
                         icp_centre_mm=icp["centre_median_m"] * 1e3,
@@ -124,7 +123,7 @@ def run(
                         rival_mesh_turned_mm=check.candidates[rival]["mesh_turned_mm"] if rival is not None else None,
                         symmetry_turn_deg=check.symmetry[0] if np.isfinite(check.symmetry[0]) else None,
                         symmetry_mm=check.symmetry[1] if np.isfinite(check.symmetry[1]) else None,
-                        kind=_kind(why),
+                        kind=refusal_kind(check) or "accepted",
                     )
                     row["right"] = row["centre_mm"] <= RIGHT_MM and row["rotation_deg"] <= RIGHT_DEG
                     row["diagnosis"] = _diagnosis(row)
@@ -142,19 +141,6 @@ def run(
 
 
 NEAR_DEG = 5.0  # a candidate this close (rotation median) to the truth holds it: finer refinement finds it
-
-
-def _named_rival(candidates: list[dict]) -> int | None:
-    """The candidate a refusal names: the best-fitting one more than AMBIGUOUS_DEG from the chosen."""
-    rivals = [i for i, c in enumerate(candidates) if abs(c["azimuth_change_deg"]) > AMBIGUOUS_DEG]
-    return min(rivals, key=lambda i: candidates[i]["coarse_cost"]) if rivals else None
-
-
-def _kind(why: str | None) -> str:
-    """accepted, symmetric, unconfirmed or ambiguous: which test of ``refusal`` spoke."""
-    if why is None:
-        return "accepted"
-    return "symmetric" if "symmetric" in why else "unconfirmed" if "cannot confirm" in why else "ambiguous"
 
 
 def _diagnosis(row: dict) -> str:

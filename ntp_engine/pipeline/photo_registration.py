@@ -114,6 +114,11 @@ def _bounded(params: np.ndarray) -> np.ndarray:
     return out
 
 
+def object_distance(poses: np.ndarray, point: np.ndarray) -> float:
+    """Median distance (metres) from the cameras ``poses (V, 4, 4)`` (camera-from-mesh) to ``point (3,)``."""
+    return float(np.median(np.linalg.norm(poses[:, :3, :3] @ point + poses[:, :3, 3], axis=1)))
+
+
 def _rotation(omega: np.ndarray) -> np.ndarray:
     theta = float(np.linalg.norm(omega))
     if theta < 1e-15:
@@ -515,17 +520,17 @@ class PhotometricRegistration:
             wJ = (w[..., None] * Jc).reshape(-1, 7)
             A = (wJ.T @ Jc.reshape(-1, 7)).double()  # 7 x 7 sums in float32, solved in float64
             b = (wJ.T @ ec.reshape(-1)).double()
+            # a direction the photos do not see (the azimuth of an untextured body of revolution) has
+            # a ~zero diagonal: it does not move (solving for it would be singular or wild)
+            diag = torch.diag(A).numpy()
+            seen_dir = self.free & (diag > 1e-6 * max(float(diag[self.free].max()), 1e-30))
+            if not seen_dir.any():
+                break
+            sd = torch.as_tensor(seen_dir)
+            Af = A[sd][:, sd]
             improved = False
             while damping < 1e6:
                 step = np.zeros(7)
-                # a direction the photos do not see (the azimuth of an untextured body of revolution)
-                # has a ~zero diagonal: it does not move (solving for it would be singular or wild)
-                diag = torch.diag(A).numpy()
-                seen_dir = self.free & (diag > 1e-6 * max(float(diag[self.free].max()), 1e-30))
-                if not seen_dir.any():
-                    break
-                sd = torch.as_tensor(seen_dir)
-                Af = A[sd][:, sd]
                 step[seen_dir] = -torch.linalg.solve(Af + damping * torch.diag(torch.diag(Af)), b[sd]).numpy()
                 step = _bounded(params + step) - params
                 r2, _, ok2 = self._linearise(poses, params + step, sigma, seen, jacobian=False)
@@ -575,7 +580,7 @@ class PhotometricRegistration:
         distance) either way along each mesh axis, observations held."""
         seen = self._usable(poses, np.zeros(7), sigma, *self._observations(poses))
         self._hold_shading(poses, np.zeros(7), seen)
-        distance = float(np.median(np.linalg.norm(poses[:, :3, :3] @ self.centre + poses[:, :3, 3], axis=1)))
+        distance = object_distance(poses, self.centre)
         shift = SHARPNESS_SHIFT_PX * distance / self.scanner.fx / self.size
 
         def cost(params: np.ndarray) -> float:
@@ -731,7 +736,7 @@ def check_registration(
     profile = [(float(t), float(c)) for t, c in zip(turns, costs, strict=True)]
     turn, turned_m = mesh_symmetry(mesh, judge.centre)
     final = placed(best)
-    distance = float(np.median(np.linalg.norm(final[:, :3, :3] @ judge.centre + final[:, :3, 3], axis=1)))
+    distance = object_distance(final, judge.centre)
     return PhotoCheck(
         best,
         fit,
@@ -747,31 +752,53 @@ def check_registration(
 
 
 # set from the gallery (docs/pipeline.md, ntp bench registration): right registrations had sharpness
-# >= 1.7 and margin >= 1.7; wrong ones that were not a symmetry of the mesh sharpness <= 0.53
+# >= 1.48 and margin >= 1.84; wrong ones that were not a symmetry of the mesh sharpness <= 0.56
 MIN_SHARPNESS = 0.8
 MIN_MARGIN = 0.5  # the best other azimuth must fit the photos at least 50% worse
 SYMMETRY_PX = 0.25  # a turned mesh lying closer to itself than this (at the object's distance) is a symmetry
 
 
+def named_rival(candidates: list[dict]) -> int | None:
+    """The candidate an ambiguity names: the best-fitting one (coarse cost) more than
+    ``AMBIGUOUS_DEG`` from the chosen; None when there is none."""
+    rivals = [i for i, c in enumerate(candidates) if abs(c["azimuth_change_deg"]) > AMBIGUOUS_DEG]
+    return min(rivals, key=lambda i: candidates[i]["coarse_cost"]) if rivals else None
+
+
+def refusal_kind(check: PhotoCheck) -> str | None:
+    """Which test refuses a registration — ``symmetric``, ``unconfirmed`` or ``ambiguous``, in that
+    order — or None when the photos confirm it. A symmetry of the mesh comes first: every placement it
+    relates is consistent with the photos (each surface point sees one surface point in every
+    photo), so no cost of them can choose."""
+    if check.symmetry[1] <= check.symmetry_tolerance_mm:
+        return "symmetric"
+    if check.fit.points < MIN_VIEWS or check.sharpness < MIN_SHARPNESS:
+        return "unconfirmed"
+    if check.margin < MIN_MARGIN:
+        return "ambiguous"
+    return None
+
+
 def refusal(check: PhotoCheck) -> str | None:
-    """Why the photos do not confirm a registration (one line), or None when they do. A symmetry of
-    the mesh comes first: every placement it relates is consistent with the photos (each surface
-    point sees one surface point in every photo), so no cost of them can choose."""
-    turn, turned_mm = check.symmetry
-    if turned_mm <= check.symmetry_tolerance_mm:
+    """Why the photos do not confirm a registration (one line, ``refusal_kind``'s cause), or None
+    when they do."""
+    kind = refusal_kind(check)
+    if kind == "symmetric":
+        turn, turned_mm = check.symmetry
         return (
             f"the mesh is symmetric under a turn of {turn:.0f} deg about the vertical (turned, it lies "
             f"{turned_mm:.2f} mm from itself): no photo can tell the two placements apart"
         )
-    if check.fit.points < MIN_VIEWS or check.sharpness < MIN_SHARPNESS:
+    if kind == "unconfirmed":
         return (
             f"the photos cannot confirm where the mesh is (moved {SHARPNESS_SHIFT_PX:g} px it fits them "
             f"{100 * max(check.sharpness, 0.0):.0f}% worse, a confirmed registration >= {100 * MIN_SHARPNESS:.0f}%): "
             "the mesh is not where the photos show it, or the object is too plain to tell"
         )
-    if check.margin < MIN_MARGIN:
-        rivals = [c for c in check.candidates if abs(c["azimuth_change_deg"]) > AMBIGUOUS_DEG]
-        rival = min(rivals, key=lambda c: c["coarse_cost"])
+    if kind == "ambiguous":
+        i = named_rival(check.candidates)
+        assert i is not None  # a finite margin has a rival
+        rival = check.candidates[i]
         return (
             f"the object's azimuth is ambiguous: turned by {rival['azimuth_change_deg']:.0f} deg it fits the photos "
             f"nearly as well (margin {check.margin:.2f} < {MIN_MARGIN}; the mesh turned so lies "

@@ -30,4 +30,3 @@ def test_diagnosis_names_wrong_acceptances_and_where_the_truth_was():
     assert "truth at the symmetric turn" in registration._diagnosis(sym)
     assert "elsewhere" in registration._diagnosis({**sym, "rotation_deg": 60.0})
     assert "truth near the chosen (2.6 deg)" in registration._diagnosis({**sym, "rotation_deg": 2.6})
-    assert registration._kind(None) == "accepted" and registration._kind("the mesh is symmetric under") == "symmetric"

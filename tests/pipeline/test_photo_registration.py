@@ -13,8 +13,10 @@ from ntp_engine.pipeline.photo_registration import (
     PhotometricRegistration,
     PhotoStack,
     corrected,
+    named_rival,
     outline_picture,
     refusal,
+    refusal_kind,
     rival_turns,
     spread,
 )
@@ -48,19 +50,24 @@ def test_spread_keeps_the_ends_and_at_most_count():
 
 def test_refusal_names_the_cause():
     fit = PhotometricFit(1.0, 0.8, 1000, 500)
-    assert refusal(PhotoCheck(None, fit, 0.9, float("inf"), [], 0, [])) is None  # type: ignore[arg-type]
+    confirmed = PhotoCheck(None, fit, 0.9, float("inf"), [], 0, [])  # type: ignore[arg-type]
+    assert refusal(confirmed) is None and refusal_kind(confirmed) is None
     rivals = [
         {"azimuth_change_deg": 0.0, "coarse_cost": 1, "mesh_turned_mm": 0.0},
         {"azimuth_change_deg": 90.0, "coarse_cost": 1.2, "mesh_turned_mm": 3.0},
         {"azimuth_change_deg": 180.0, "coarse_cost": 1.01, "mesh_turned_mm": 0.04},
     ]
-    ambiguous = refusal(PhotoCheck(None, fit, 0.9, 0.01, rivals, 0, []))  # type: ignore[arg-type]
+    close = PhotoCheck(None, fit, 0.9, 0.01, rivals, 0, [])  # type: ignore[arg-type]
+    ambiguous = refusal(close)
     assert ambiguous and "turned by 180 deg" in ambiguous and "0.0 mm from itself" in ambiguous  # the best rival
-    plain = refusal(PhotoCheck(None, fit, 0.02, 0.01, rivals, 0, []))  # type: ignore[arg-type]
+    assert refusal_kind(close) == "ambiguous" and named_rival(rivals) == 2
+    flat = PhotoCheck(None, fit, 0.02, 0.01, rivals, 0, [])  # type: ignore[arg-type]
+    plain = refusal(flat)
     assert plain and "cannot confirm" in plain and "2% worse" in plain  # a plateau is not an ambiguity
+    assert refusal_kind(flat) == "unconfirmed" and named_rival(rivals[:1]) is None
     # a symmetry of the mesh (under a quarter pixel here) is named first, whatever the photos say
     box = PhotoCheck(None, fit, 2.0, 3.0, rivals, 0, [], [], (180.0, 0.01), 0.26)  # type: ignore[arg-type]
-    assert (why := refusal(box)) and "symmetric under a turn of 180 deg" in why
+    assert (why := refusal(box)) and "symmetric under a turn of 180 deg" in why and refusal_kind(box) == "symmetric"
     assert refusal(PhotoCheck(None, fit, 2.0, 3.0, rivals, 0, [], [], (16.0, 0.8), 0.26)) is None  # type: ignore[arg-type]
 
 
