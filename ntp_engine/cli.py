@@ -13,6 +13,7 @@ from .bench import fit as bench_fit
 from .bench import gallery as bench_gallery
 from .bench import network as bench_network
 from .bench import physics as bench_physics
+from .bench import refine as bench_refine
 from .bench import registration as bench_registration
 from .bench import scan as bench_scan
 from .bench import sfm as bench_sfm
@@ -35,6 +36,7 @@ from .sim.virtual_scan import ScanConfig, virtual_scan
 
 FORCE_HELP = "go on with a registration the photos do not confirm (see OUT/registration.png)"
 COLMAP_HELP = "a COLMAP model folder (cameras/images/points3D, .bin or .txt) instead of running SfM"
+REFINE_HELP = "refine every texel against its photos after the network (analysis by synthesis; slower)"
 INTERRUPTED = "interrupted — finished stages are kept, re-run to resume"
 
 
@@ -109,6 +111,7 @@ def _reconstruct(args: argparse.Namespace) -> int:
         blur_margin=args.blur_margin,
         progress=_progress(args),
         force_registration=args.force_registration,
+        refine=args.refine,
     )
     print(
         f"wrote {args.out}: {rep['texels']['coverage']:.1%} of {rep['texels']['total']} texels observed, "
@@ -188,8 +191,20 @@ def _bench_gallery(args: argparse.Namespace) -> int:
         scale=args.scale,
         resolution=args.resolution,
         samples=args.samples,
+        refine=args.refine or None,
     )
     bench_gallery.run(args.out, settings, json_path=args.json, progress=_progress(args))
+    return 0
+
+
+def _bench_refine(args: argparse.Namespace) -> int:
+    bench = bench_refine.bench_for(
+        objects=tuple(args.objects) if args.objects else None,
+        scanners=tuple(args.scanners) if args.scanners else None,
+        per_material=args.per_material,
+        baseline_texels=args.baseline_texels,
+    )
+    bench_refine.run(args.out, bench, json_path=args.json, progress=_progress(args))
     return 0
 
 
@@ -298,6 +313,7 @@ def _parser() -> argparse.ArgumentParser:
         help="drop photos whose blur score exceeds the scan's median by this much",
     )
     rc.add_argument("--force-registration", action="store_true", help=FORCE_HELP)
+    rc.add_argument("--refine", action="store_true", help=REFINE_HELP)
     _quiet_and_progress(rc)
     rc.set_defaults(func=_reconstruct)
 
@@ -408,9 +424,19 @@ def _parser() -> argparse.ArgumentParser:
     bg.add_argument("--scale", type=float, default=None)
     bg.add_argument("--resolution", type=int, default=None)
     bg.add_argument("--samples", type=int, default=None, help="Cycles samples per pixel")
+    bg.add_argument("--refine", action="store_true", help=REFINE_HELP + " (results and tables *-refined)")
     bg.add_argument("--json", type=Path, default=None)
     _quiet_and_progress(bg)
     bg.set_defaults(func=_bench_gallery)
+    bf = bsub.add_parser("refine", help="refinement error against time per material, and a scipy baseline")
+    bf.add_argument("--out", type=Path, default=Path("ntp_gallery"), help="the gallery's folder (scans shared)")
+    bf.add_argument("--objects", nargs="+", choices=list(GALLERY), default=None)
+    bf.add_argument("--scanners", nargs="+", choices=list(bench_gallery.SCANNERS), default=None)
+    bf.add_argument("--per-material", type=int, default=None, help="sampled texels per material and scan")
+    bf.add_argument("--baseline-texels", type=int, default=None, help="texels per scan for the scipy baseline")
+    bf.add_argument("--json", type=Path, default=None)
+    _quiet_and_progress(bf)
+    bf.set_defaults(func=_bench_refine)
     br = bsub.add_parser("registration", help="SfM + alignment alone on the gallery: pose error per object x seed")
     br.add_argument("--out", type=Path, default=Path("ntp_gallery"), help="the gallery's folder (scans shared)")
     br.add_argument("--quick", action="store_true", help="the quick gallery's objects and sizes")

@@ -5,7 +5,8 @@ Per run: pose error (SfM), relit SSIM under novel point lights (object pixels), 
 per material (``sim.evaluate.material_errors``): coverage, normal angle, tangent angle mod 180 on
 anisotropic texels, |log alpha ratio|, rho_d RMSE and ratio, |log rho_s ratio|, spurious-lobe
 rate on matte. Writes ``OUT/gallery.json``, ``OUT/gallery.md`` (the tables) and
-``OUT/gallery.png`` (error per material, a bar per scanner x poses), and prints the tables.
+``OUT/gallery.png`` (error per material, a bar per scanner x poses), and prints the tables; with
+``refine`` (``--refine``) the results and files are ``*-refined`` beside them, from the same scans.
 
 Everything is cached under ``OUT`` (assets, scans keyed by their settings and asset content,
 Cycles renders, pipeline stages), so a re-run after an interruption resumes.
@@ -63,6 +64,7 @@ class GallerySettings:
     relit_lights: int = 3
     relit_scale: float = 0.125
     seed: int = 0
+    refine: bool = False  # the analysis-by-synthesis refinement after the network's fit
 
 
 DEFAULT = GallerySettings()
@@ -98,7 +100,7 @@ def _evaluate(settings: GallerySettings, scan_dir: Path, poses: str, out: Path, 
     scan = load_scan(scan_dir, gt / "poses.json" if poses == "true" else None)
     t0 = time.perf_counter()
     try:
-        rep = reconstruct(scan, out, resolution=settings.resolution, progress=progress)
+        rep = reconstruct(scan, out, resolution=settings.resolution, progress=progress, refine=settings.refine)
     except NtpInputError as err:  # registration can fail on a hard object: that is a result too
         return {"failed": str(err), "seconds_reconstruct": time.perf_counter() - t0}
     seconds = time.perf_counter() - t0
@@ -139,7 +141,7 @@ def run(
                 capture = scan_object(settings, name, scanner, scan_dir, asset, progress)
                 t_scan = time.perf_counter() - t0
                 for poses in settings.poses:
-                    result_dir = out / "results" / f"{name}-{scanner}-{poses}"
+                    result_dir = out / "results" / f"{name}-{scanner}-{poses}{_suffix(settings)}"
                     result = _evaluate(settings, scan_dir, poses, result_dir, progress)
                     runs.append(
                         {
@@ -154,14 +156,20 @@ def run(
                     t_scan = 0.0  # counted once per scan
     record = {"settings": asdict(settings), "runs": runs, "seconds": time.perf_counter() - t_all}
     tables = markdown(record)
-    write_text_atomic(out / "gallery.json", json.dumps(record, indent=1, default=float))
-    write_text_atomic(out / "gallery.md", tables)
-    figure(record, out / "gallery.png")
+    stem = f"gallery{_suffix(settings)}"
+    write_text_atomic(out / f"{stem}.json", json.dumps(record, indent=1, default=float))
+    write_text_atomic(out / f"{stem}.md", tables)
+    figure(record, out / f"{stem}.png")
     if json_path:
         write_text_atomic(json_path, json.dumps(record, indent=1, default=float))
     _print(record)
-    print(f"wrote {out / 'gallery.md'}, {out / 'gallery.json'}, {out / 'gallery.png'}")
+    print(f"wrote {out / (stem + '.md')}, {out / (stem + '.json')}, {out / (stem + '.png')}")
     return record
+
+
+def _suffix(settings: GallerySettings) -> str:
+    """Results and tables with the refinement sit beside those without (same scans)."""
+    return "-refined" if settings.refine else ""
 
 
 def _f(x: float | None, digits: int = 3) -> str:

@@ -21,6 +21,7 @@ class RaggedTraces:
 
     entries: Tensor  # (E, 12) float32
     offsets: Tensor  # (N + 1,) int64, offsets[0] = 0, offsets[-1] = E
+    in_range: Tensor | None = None  # (E,) bool: the 8-bit code is in VALID_CODE (None: all are)
 
     def __post_init__(self):
         if self.entries.ndim != 2 or self.entries.shape[1] != ENTRY_SIZE:
@@ -29,6 +30,18 @@ class RaggedTraces:
             raise ValueError("offsets must start at 0 and end at the number of entries")
         if (self.offsets[1:] < self.offsets[:-1]).any():
             raise ValueError("offsets must not decrease")
+        if self.in_range is not None and self.in_range.shape != (len(self.entries),):
+            raise ValueError("in_range must hold one flag per entry")
+
+    def in_range_only(self) -> RaggedTraces:
+        """The traces with only their in-range entries (what the network and the lumitexel fit
+        use); the refinement also reads the dark and clipped ones."""
+        if self.in_range is None:
+            return self
+        keep = self.in_range
+        kept = torch.zeros(len(keep) + 1, dtype=torch.int64)
+        kept[1:] = torch.cumsum(keep.long(), 0)
+        return RaggedTraces(self.entries[keep], kept[self.offsets])
 
     @property
     def num_traces(self) -> int:

@@ -10,9 +10,11 @@ rho_s (N, 3). Traces with no entry keep the defaults (+z, +x, FALLBACK_ALPHA, ze
 from __future__ import annotations
 
 import numpy as np
+import torch
 
 from ..fit.albedo import highlights_and_albedo
-from ..fit.geometry import FALLBACK_ALPHA, fit_geometry
+from ..fit.geometry import FALLBACK_ALPHA, FLAG_NO_HIGHLIGHT, fit_geometry
+from ..fit.refine import RefineSettings, Start, refine
 from ..io.progress import QUIET, Progress
 from ..learn.inference import predict
 from ..learn.network import TraceNet
@@ -21,6 +23,8 @@ from ..scanner.scanner import Scanner
 
 ALBEDO_VIEWS = 16  # entries per texel for the beta check and the albedo LS (Eq. 1 per entry and emitter)
 RHO_S_PRIOR_WEIGHT = 1.0  # the network's rho_s counts as one view in the albedo LS (fit._albedo_ls)
+REFINE_VIEWS = 24  # entries per texel the refinement reads (spread evenly over the trace)
+REFINE_BATCH = 512  # texels per refinement batch: (batch, views, emitters) tensors stay ~100 MB
 
 
 def fit_traces(
@@ -31,9 +35,11 @@ def fit_traces(
     batch: int = 4096,
     progress: Progress = QUIET,
 ) -> dict[str, np.ndarray]:
-    """Network + geometry fit + RGB albedo per trace. ``pixel_scale`` is the factor the traces' linear
-    pixels were scaled by to the model's exposure (undone for the physical albedo LS). Returns per-trace arrays in the
-    texel's geometric frame: n_loc, t_loc (N, 3), alpha (N, 2), flags (N,), rho_d, rho_s (N, 3)."""
+    """Network + geometry fit + RGB albedo per trace (the refinement's start, ``refine_fit``).
+    ``pixel_scale`` is the factor the traces' linear pixels were scaled by to the model's exposure
+    (undone for the physical albedo LS). Reads the in-range entries only. Returns per-trace arrays in
+    the texel's geometric frame: n_loc, t_loc (N, 3), alpha (N, 2), flags (N,), rho_d, rho_s (N, 3)."""
+    traces = traces.in_range_only()
     N = traces.num_traces
     n_loc, t_loc = np.zeros((N, 3)), np.zeros((N, 3))
     n_loc[:, 2], t_loc[:, 0] = 1.0, 1.0
@@ -76,3 +82,37 @@ def fit_traces(
         "rho_d": rho_d,
         "rho_s": rho_s,
     }
+
+
+def refine_fit(
+    scanner: Scanner,
+    traces: RaggedTraces,
+    pixel_scale: float,
+    fit: dict[str, np.ndarray],
+    settings: RefineSettings | None = None,
+    progress: Progress = QUIET,
+) -> dict[str, np.ndarray]:
+    """``fit_traces``'s result refined by analysis-by-synthesis (``fit.refine``) against every entry
+    of every observed trace, dark and clipped ones included; adds ``std (N, 4)``, the 1-sigma
+    uncertainties of normal (deg), tangent (deg), log alpha, log rho_s (NaN where no trace reached).
+    Texels the network never saw (all entries out of range) start from the fallback lobe."""
+    fit = {k: v.copy() for k, v in fit.items()}
+    todo = (traces.lengths > 0).nonzero().squeeze(1)
+    std = np.full((traces.num_traces, 4), np.nan)
+    bar = progress.counter("refine", len(todo), "texel")
+    for a in range(0, len(todo), REFINE_BATCH):
+        idx = todo[a : a + REFINE_BATCH]
+        i = idx.numpy()
+        ent, mask = traces.padded(idx, max_views=REFINE_VIEWS)
+        ent[..., :3] /= pixel_scale  # pixels as captured: the camera model is the scanner's
+        specular = torch.as_tensor(fit["flags"][i] & FLAG_NO_HIGHLIGHT == 0)
+        r = refine(scanner, ent, mask, Start.from_fit(fit, i), specular, settings)
+        fit["n_loc"][i], fit["t_loc"][i] = r.frame[:, 2].numpy(), r.frame[:, 0].numpy()
+        fit["alpha"][i] = r.log_alpha.exp().numpy()
+        fit["rho_d"][i], fit["rho_s"][i] = r.rho_d.numpy(), r.rho_s.numpy()
+        fit["flags"][i] |= r.flags.numpy()
+        std[i] = r.std.numpy()
+        bar.update(len(idx))
+    bar.close()
+    fit["std"] = std
+    return fit

@@ -22,6 +22,8 @@ from ..physics.brdf import ALPHA_MAX, F0_DIELECTRIC, RHO_S_MAX
 from .texels import Texels
 
 PREVIEW_GAMMA = 2.2
+UNCERTAINTY_FILE = "uncertainty.exr"  # with the refinement: per-parameter 1-sigma (material.json says how)
+UNCONSTRAINED_STD = 1000.0  # an uncertainty this large or more: the photos do not determine the parameter
 
 
 def write_result(out: Path, mesh: Mesh, texels: Texels, fitted: dict[str, np.ndarray], lengths: np.ndarray) -> None:
@@ -55,6 +57,23 @@ def write_result(out: Path, mesh: Mesh, texels: Texels, fitted: dict[str, np.nda
     conf[texels.row, texels.col, 0] = observed & ((fitted["flags"] & FLAG_NO_LOBE) == 0)
     conf[texels.row, texels.col, 1] = lengths
     write_exr(out / "confidence.exr", conf)
+    documented = {}
+    if "std" in fitted:  # the refinement's 1-sigma uncertainties (fit.refine.Refined.std)
+        unc = np.full((H, W, 4), UNCONSTRAINED_STD)
+        std = np.nan_to_num(fitted["std"], nan=UNCONSTRAINED_STD, posinf=UNCONSTRAINED_STD)
+        unc[texels.row, texels.col] = np.minimum(std, UNCONSTRAINED_STD)
+        write_exr(out / UNCERTAINTY_FILE, unc)
+        documented["uncertainty"] = {
+            "file": UNCERTAINTY_FILE,
+            "channels": {
+                "R": "normal, deg",
+                "G": "tangent angle, deg",
+                "B": "log alpha (the larger)",
+                "A": "log rho_s (channel mean)",
+            },
+            "meaning": "1-sigma of each parameter given the texel's photos (Gauss-Newton at the refined answer)",
+            "unconstrained": f">= {UNCONSTRAINED_STD:g}: the photos do not determine it (or no photo saw the texel)",
+        }
     previews = out / "previews"
     write_png(previews / "diffuse_albedo.png", maps.diffuse_albedo ** (1 / PREVIEW_GAMMA))
     write_png(previews / "specular_albedo.png", (maps.specular_albedo / RHO_S_MAX) ** (1 / PREVIEW_GAMMA))
@@ -77,6 +96,7 @@ def write_result(out: Path, mesh: Mesh, texels: Texels, fitted: dict[str, np.nda
                     "fresnel_f0": F0_DIELECTRIC,
                     "uv_origin": "bottom-left",
                 },
+                **documented,
             },
             indent=2,
         ),

@@ -16,6 +16,7 @@ before the fit (``MIN_PHOTOS_USED``, ``MIN_COVERAGE``; a mesh of implausible siz
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import shutil
 import time
@@ -25,6 +26,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ..fit.refine import RefineSettings
 from ..io.atomic import atomic_path, temp_dir, write_text_atomic
 from ..io.errors import NtpInputError
 from ..io.images import write_png
@@ -38,7 +40,7 @@ from . import traces as trace_assembly
 from .align import Alignment, align_to_mesh
 from .cache import StageCache, content_digest, content_key, digest
 from .colmap_model import model_files, read_colmap_model
-from .fit_traces import ALBEDO_VIEWS, RHO_S_PRIOR_WEIGHT, fit_traces
+from .fit_traces import ALBEDO_VIEWS, REFINE_VIEWS, RHO_S_PRIOR_WEIGHT, fit_traces, refine_fit
 from .output_folder import claim, publish
 from .photo_registration import (
     MIN_MARGIN,
@@ -61,6 +63,7 @@ MIN_RESOLUTION = 8
 # below these a run has measured too little to be a result: refused (exit 2), not written
 MIN_PHOTOS_USED = 3
 MIN_COVERAGE = 0.05  # fraction of texels with a trace
+REFINE = RefineSettings()  # the refinement's settings when asked for (`reconstruct(refine=True)`)
 
 
 class _Report:
@@ -275,8 +278,10 @@ def reconstruct(
     blur_margin: float = BLUR_MARGIN,
     progress: Progress = QUIET,
     force_registration: bool = False,
+    refine: bool = False,
 ) -> dict:
-    """Run the pipeline on ``scan`` into ``out``; returns the report (also in ``out/report.json``,
+    """Run the pipeline on ``scan`` into ``out`` (``refine``: the analysis-by-synthesis refinement
+    after the network's fit); returns the report (also in ``out/report.json``,
     written last). ``out`` must be absent, empty or an ntp result, outside the scan folder
     (``output_folder.claim``); a run that measured too little, or whose registration the photos do
     not confirm (unless ``force_registration``), is refused, the old result kept."""
@@ -284,7 +289,7 @@ def reconstruct(
         raise NtpInputError(None, f"--resolution {resolution}: need at least {MIN_RESOLUTION}")
     check_mesh_size(load_mesh(scan.mesh_path), scan.scanner, scan.mesh_path)
     with claim(out, "result", inputs=scan.input_folders):
-        return _reconstruct(scan, Path(out), resolution, model, blur_margin, progress, force_registration)
+        return _reconstruct(scan, Path(out), resolution, model, blur_margin, progress, force_registration, refine)
 
 
 def _reconstruct(
@@ -295,6 +300,7 @@ def _reconstruct(
     blur_margin: float,
     progress: Progress,
     force_registration: bool,
+    refine: bool,
 ) -> dict:
     cache = StageCache(out / "cache")
     t_all = time.perf_counter()
@@ -330,10 +336,21 @@ def _reconstruct(
         np.savez(d / "fit.npz", **fit_traces(net, scan.scanner, traces, scale, progress=progress))
 
     fit_key = {"albedo_views": ALBEDO_VIEWS, "rho_s_prior_weight": RHO_S_PRIOR_WEIGHT}
-    folder, _ = cache.get("fit", {"traces": h_tr, **model_key, **fit_key}, fit_stage)
+    folder, h_fit = cache.get("fit", {"traces": h_tr, **model_key, **fit_key}, fit_stage)
     with np.load(folder / "fit.npz") as z:
         fitted = {k: z[k] for k in z.files}
     report.timed("network_and_fit", t0)
+    if refine:
+        t0 = time.perf_counter()
+
+        def refine_stage(d: Path) -> None:
+            np.savez(d / "refined.npz", **refine_fit(scan.scanner, traces, scale, fitted, REFINE, progress))
+
+        key = {"fit": h_fit, "settings": dataclasses.asdict(REFINE), "views": REFINE_VIEWS}
+        folder, _ = cache.get("refine", key, refine_stage)
+        with np.load(folder / "refined.npz") as z:
+            fitted = {k: z[k] for k in z.files}
+        report.timed("refine", t0)
 
     t0 = time.perf_counter()
     staging = temp_dir(out, "result")  # every output here first, then moved into place
@@ -361,6 +378,17 @@ def _reconstruct(
     finally:
         shutil.rmtree(staging, ignore_errors=True)
     return report.data
+
+
+def cached_fit(out: Path) -> tuple[RaggedTraces, dict[str, np.ndarray]]:
+    """The traces (linear pixels as captured) and the network's fit (``fit_traces``) that a finished
+    ``reconstruct`` into ``out`` keeps in its cache: what the refinement starts from."""
+    with np.load(out / "cache" / "traces" / "traces.npz") as z:
+        traces = RaggedTraces(
+            torch.from_numpy(z["entries"]), torch.from_numpy(z["offsets"]), torch.from_numpy(z["in_range"])
+        )
+    with np.load(out / "cache" / "fit" / "fit.npz") as z:
+        return traces, {k: z[k] for k in z.files}
 
 
 def _check_measured(scan: Scan, stats: dict, lengths: np.ndarray, posed: int) -> None:
@@ -421,7 +449,8 @@ def _traces_stage(
             progress=progress,
             support_z=support_z,
         )
-        np.savez(d / "traces.npz", entries=tr.entries.numpy(), offsets=tr.offsets.numpy())
+        assert tr.in_range is not None
+        np.savez(d / "traces.npz", entries=tr.entries.numpy(), offsets=tr.offsets.numpy(), in_range=tr.in_range.numpy())
         (d / "stats.json").write_text(
             json.dumps(
                 {
@@ -438,9 +467,12 @@ def _traces_stage(
         "poses": h_pose,
         "support": scan.support_plane,
         "max_shadowed_drive": trace_assembly.MAX_SHADOWED_DRIVE,
+        "out_of_range_kept": True,
         "device": scanner_to_dict(scan.scanner),
     }
     folder, h_tr = cache.get("traces", key, compute)
     with np.load(folder / "traces.npz") as z:
-        traces = RaggedTraces(torch.from_numpy(z["entries"]), torch.from_numpy(z["offsets"]))
+        traces = RaggedTraces(
+            torch.from_numpy(z["entries"]), torch.from_numpy(z["offsets"]), torch.from_numpy(z["in_range"])
+        )
     return traces, json.loads((folder / "stats.json").read_text()), h_tr

@@ -4,9 +4,12 @@ For every view j and texel p: the texel's object-space point goes into camera j 
 camera-from-world, the world being the mesh's frame); the entry is kept if (1) the point is in
 front of the camera, projects inside the photo (OpenCV distortion included) and lies in the valid
 volume, (2) nothing of the mesh lies between it and the camera (Embree, from the point offset
-along its normal), (3) wo . n^ > 0.3, and (4) every channel of the bilinearly sampled 8-bit pixel is
-in [32, 224]. The entry is (linear pixel RGB * ``pixel_scale``, x, n^, t^) in camera j's space — the
-layout of ``learn.ragged.RaggedTraces``. Views that see no texel cost one projection only.
+along its normal), (3) wo . n^ > 0.3. Entries whose bilinearly sampled 8-bit pixel has a channel
+outside [32, 224] (dark or near clipping) are kept too, flagged ``in_range = False``: the network and
+the lumitexel fit skip them (``RaggedTraces.in_range_only``), the refinement models them (a noise
+floor for dark values, clipped ones as lower bounds). The entry is (linear pixel RGB *
+``pixel_scale``, x, n^, t^) in camera j's space — the layout of ``learn.ragged.RaggedTraces``.
+Views that see no texel cost one projection only.
 """
 
 from __future__ import annotations
@@ -74,7 +77,7 @@ def assemble(
     ``MAX_SHADOWED_DRIVE`` of the pattern's drive are below that plane is skipped — the support
     blocks their light for every point of the object, which Eq. 1 (and the network) do not model."""
     n_tex = len(texels)
-    keys, rows = [], []
+    keys, rows, flags = [], [], []
     rejected = {
         "behind_or_outside": 0,
         "valid_volume": 0,
@@ -125,8 +128,7 @@ def assemble(
         idx = idx[~occ]
         codes = bilinear_pixels(img.astype(np.float64), px[idx, 1], px[idx, 0])
         ok = camera.code_is_valid(codes)
-        rejected["pixel_range"] += int((~ok).sum())
-        idx, codes = idx[ok], codes[ok]
+        rejected["pixel_range"] += int((~ok).sum())  # kept, flagged: only the refinement reads them
         if len(idx) == 0:
             continue
         views_used += 1
@@ -134,11 +136,13 @@ def assemble(
         entry = np.concatenate([lin, x[idx], n_hat[idx], texels.tangent[idx] @ R.T], 1)
         keys.append(idx)
         rows.append(entry.astype(np.float32))
+        flags.append(ok)
     key = np.concatenate(keys) if keys else np.zeros(0, np.int64)
     ent = np.concatenate(rows) if rows else np.zeros((0, 12), np.float32)
+    in_range = np.concatenate(flags) if flags else np.zeros(0, bool)
     order = np.argsort(key, kind="stable")  # by texel, views in photo order
     counts = np.bincount(key, minlength=n_tex)
     offsets = np.zeros(n_tex + 1, np.int64)
     offsets[1:] = np.cumsum(counts)
-    traces = RaggedTraces(torch.from_numpy(ent[order]), torch.from_numpy(offsets))
-    return traces, TraceStats(views_used, len(key), int((counts > 0).sum()), rejected)
+    traces = RaggedTraces(torch.from_numpy(ent[order]), torch.from_numpy(offsets), torch.from_numpy(in_range[order]))
+    return traces, TraceStats(views_used, int(in_range.sum()), int((counts > 0).sum()), rejected)

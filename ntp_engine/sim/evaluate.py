@@ -74,6 +74,29 @@ def _major_axis(maps: dict[str, np.ndarray]) -> np.ndarray:
     return np.where((a[:, 0] >= a[:, 1])[:, None], t, np.cross(n, t))
 
 
+def parameter_errors(rec: dict[str, np.ndarray], true: dict[str, np.ndarray], matte: bool) -> dict[str, float]:
+    """The per-material metrics (module docstring) of texels of one material: reconstructed and true
+    maps as ``{map name: (N, C)}`` (object space), the truth's labels saying whether it is matte."""
+    out = {
+        "normal_deg": float(np.median(_angle_deg(rec["normal"], true["normal"]))),
+        "rho_d_rmse": float(np.sqrt(((rec["diffuse_albedo"] - true["diffuse_albedo"]) ** 2).mean())),
+        "rho_d_ratio": float(rec["diffuse_albedo"].mean() / max(true["diffuse_albedo"].mean(), 1e-12)),
+    }
+    rs_rec = rec["specular_albedo"].mean(1)
+    if matte:
+        out["spurious_lobe"] = float((rs_rec > SPURIOUS_RHO_S).mean())
+        return out
+    ra, ta = np.sort(rec["roughness"][:, :2], 1), np.sort(true["roughness"][:, :2], 1)
+    out["log_alpha"] = float(np.median(np.abs(np.log(np.maximum(ra, 1e-6) / ta))))
+    out["log_rho_s"] = float(np.median(np.abs(np.log(np.maximum(rs_rec, 1e-3) / true["specular_albedo"].mean(1)))))
+    aniso = ta[:, 1] >= MIN_ANISOTROPY * ta[:, 0]
+    if aniso.any():
+        rec_axis = _major_axis({key: v[aniso] for key, v in rec.items()})
+        true_axis = _major_axis({key: v[aniso] for key, v in true.items()})
+        out["tangent_deg"] = float(np.median(_angle_deg(rec_axis, true_axis, axial=True)))
+    return out
+
+
 def material_errors(result: Path, truth: Path) -> list[dict]:
     """Errors per labelled material of a result against a gallery ground truth (module docstring):
     one dict per material in label order."""
@@ -104,26 +127,8 @@ def material_errors(result: Path, truth: Path) -> list[dict]:
             )
         )
         if sel.any():
-            t = {key: v[sel] for key, v in true.items()}
-            r = {key: v[sel] for key, v in rec.items()}
-            row["normal_deg"] = float(np.median(_angle_deg(r["normal"], t["normal"])))
-            d = r["diffuse_albedo"] - t["diffuse_albedo"]
-            row["rho_d_rmse"] = float(np.sqrt((d**2).mean()))
-            row["rho_d_ratio"] = float(r["diffuse_albedo"].mean() / max(t["diffuse_albedo"].mean(), 1e-12))
-            rs_rec = r["specular_albedo"].mean(1)
-            if mat["matte"]:
-                row["spurious_lobe"] = float((rs_rec > SPURIOUS_RHO_S).mean())
-            else:
-                ra, ta = np.sort(r["roughness"], 1), np.sort(t["roughness"], 1)
-                row["log_alpha"] = float(np.median(np.abs(np.log(np.maximum(ra, 1e-6) / ta))))
-                row["log_rho_s"] = float(
-                    np.median(np.abs(np.log(np.maximum(rs_rec, 1e-3) / t["specular_albedo"].mean(1))))
-                )
-                aniso = ta[:, 1] >= MIN_ANISOTROPY * ta[:, 0]
-                if aniso.any():
-                    rec_axis = _major_axis({key: v[aniso] for key, v in r.items()})
-                    true_axis = _major_axis({key: v[aniso] for key, v in t.items()})
-                    row["tangent_deg"] = float(np.median(_angle_deg(rec_axis, true_axis, axial=True)))
+            rec_sel = {key: v[sel] for key, v in rec.items()}
+            row.update(parameter_errors(rec_sel, {key: v[sel] for key, v in true.items()}, mat["matte"]))
         rows.append(row)
     return rows
 

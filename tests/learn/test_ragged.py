@@ -20,3 +20,15 @@ def test_padded_subsampling_spreads_over_the_trace():
     assert ms.sum(1).tolist() == [2, 4, 4]
     assert sub[1, :, 0].tolist() == [2.0, 5.0, 8.0, 11.0]  # first, evenly spread, last
     assert sub[0, :2, 0].tolist() == [0.0, 1.0] and (sub[0, 2:] == 0).all()
+
+
+def test_in_range_only_keeps_the_flagged_entries_per_trace():
+    entries = torch.arange(7 * 12, dtype=torch.float32).reshape(7, 12)
+    keep = torch.tensor([1, 0, 1, 1, 1, 0, 0], dtype=torch.bool)
+    tr = RaggedTraces(entries, torch.tensor([0, 3, 3, 7]), keep)
+    only = tr.in_range_only()
+    assert only.lengths.tolist() == [2, 0, 2]
+    torch.testing.assert_close(only.entries, entries[keep])
+    assert RaggedTraces(entries, torch.tensor([0, 7])).in_range_only().lengths.tolist() == [7]
+    with pytest.raises(ValueError):
+        RaggedTraces(entries, torch.tensor([0, 7]), keep[:3])

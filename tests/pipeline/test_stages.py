@@ -1,8 +1,10 @@
 """``ntp reconstruct`` end to end on virtual scans: SfM + alignment, given poses, caching/resume,
 photo selection, bad input."""
 
+import json
 import shutil
 
+import numpy as np
 import pytest
 import torch
 
@@ -93,3 +95,25 @@ def test_mesh_without_uvs_gets_an_xatlas_atlas(scan24, tmp_path):
     save_obj(scan / "mesh.obj", bare)
     rep = reconstruct(load_scan(scan, scan / "ground_truth" / "poses.json"), tmp_path / "rec", resolution=32)
     assert rep["texels"]["coverage"] > 0.8 and load_mesh(tmp_path / "rec" / "mesh.obj").uv is not None
+
+
+def test_refinement_stage_writes_uncertainty_and_resumes(scan24, tmp_path):
+    from ntp_engine.io.images import read_image
+    from ntp_engine.sim.evaluate import map_errors
+
+    scan = load_scan(scan24, scan24 / "ground_truth" / "poses.json")
+    plain = reconstruct(scan, tmp_path / "plain", resolution=24)
+    rep = reconstruct(scan, tmp_path / "rec", resolution=24, refine=True)
+    assert "refine" in rep["stages"] and not (tmp_path / "plain" / "uncertainty.exr").exists()
+    unc = read_image(tmp_path / "rec" / "uncertainty.exr")
+    assert unc.shape == (24, 24, 4) and np.isfinite(unc).all() and (unc > 0).all()
+    doc = json.loads((tmp_path / "rec" / "material.json").read_text())["uncertainty"]
+    assert doc["file"] == "uncertainty.exr" and set(doc["channels"]) == {"R", "G", "B", "A"}
+    assert np.median(unc[..., 0][unc[..., 0] < 1000]) < 5  # normals are constrained to a few degrees
+    truth = scan24 / "ground_truth"
+    before, after = map_errors(tmp_path / "plain", truth), map_errors(tmp_path / "rec", truth)
+    assert after["normal_median_deg"] < before["normal_median_deg"] + 0.3
+    assert after["diffuse_rmse"] < before["diffuse_rmse"] + 0.01
+    assert plain["texels"]["observed"] == rep["texels"]["observed"]
+    again = reconstruct(scan, tmp_path / "rec", resolution=24, refine=True)
+    assert again["cached_stages"][-2:] == ["fit", "refine"]

@@ -23,12 +23,20 @@ def test_traces_from_a_virtual_scan_match_the_renderer_and_respect_the_filters()
     traces, stats = assemble(tx, photos, poses, cam, scene.caster, pixel_scale=1.0 / cfg.exposure)
     assert stats.views_used == 8 and stats.texels_observed > 0.5 * len(tx)
     e = traces.entries.double().numpy()
-    # filters: facing the camera, inside the valid volume, every channel within [32, 224]
+    # filters: facing the camera, inside the valid volume; dark and near-clipped entries kept, flagged
     wo = -e[:, 3:6] / np.linalg.norm(e[:, 3:6], axis=1, keepdims=True)
     assert ((wo * e[:, 6:9]).sum(1) > MIN_COS_VIEW).all()
     assert dev.in_valid_volume(torch.as_tensor(e[:, 3:6])).all()
     codes = 255 * e[:, :3] * cfg.exposure
-    assert (codes >= 32 - 1e-3).all() and (codes <= 224 + 1e-3).all()  # float32 entries
+    in_range = ((codes >= 32) & (codes <= 224)).all(1)
+    edge = ((np.abs(codes - 32) < 1e-3) | (np.abs(codes - 224) < 1e-3)).any(1)  # float32 entries
+    assert traces.in_range is not None
+    np.testing.assert_array_equal(traces.in_range.numpy()[~edge], in_range[~edge])
+    in_range = traces.in_range.numpy()
+    assert 0 < (~in_range).sum() and stats.entries == in_range.sum()
+    assert stats.rejected["pixel_range"] == (~in_range).sum()
+    only = traces.in_range_only()
+    assert len(only.entries) == in_range.sum() and (only.lengths <= traces.lengths).all()
     # the entry's pixel is the scene's radiance at that surface point (bilinear + 8-bit aside)
     lengths = traces.lengths.numpy()
     texel_of_entry = np.repeat(np.arange(len(tx)), lengths)

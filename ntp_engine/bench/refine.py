@@ -1,0 +1,312 @@
+"""``ntp bench refine``: the analysis-by-synthesis refinement's error against its time, on the gallery.
+
+Per gallery scan (true poses; the dome is the demo's object), a seeded sample of observed texels per
+material starts from the network's fit (``reconstruct``'s cache) and is refined with a ladder of
+budgets (``VARIANTS``: rounds x LM iterations, the first round being the multi-start), with and
+without the weak priors; errors against the truth per material (``sim.evaluate.parameter_errors``)
+and texels per second. Baseline in the same run: scipy's ``least_squares`` per texel on the same
+objective (every emitter sample summed exactly, the same residuals, censoring, Cauchy loss, bounds
+and priors, finite-difference Jacobians) from the same start, on a few texels per scan: its
+seconds per texel and its errors beside ours on those texels.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+
+import numpy as np
+import torch
+from scipy.optimize import least_squares
+
+from ..fit import refine as rf
+from ..fit.geometry import FLAG_NO_HIGHLIGHT
+from ..io.atomic import write_text_atomic
+from ..io.maps import SVBRDFMaps
+from ..io.mesh import load_mesh
+from ..io.progress import QUIET, Progress
+from ..pipeline.fit_traces import REFINE_VIEWS
+from ..pipeline.output_folder import claim
+from ..pipeline.scan_folder import load_scan
+from ..pipeline.stages import cached_fit, reconstruct
+from ..pipeline.texels import rasterize
+from ..sim.evaluate import _nearest, parameter_errors
+from ..sim.gallery import GALLERY, build_asset
+from ..sim.materials import load_labels
+from . import gallery as bench_gallery
+
+# (label, settings): the ladder of budgets; "priors off" drops the weak normal and alpha priors
+VARIANTS: tuple[tuple[str, rf.RefineSettings], ...] = (
+    ("1 LM iteration", rf.RefineSettings(rounds=1, iterations=1, starts=False)),
+    ("2 LM iterations", rf.RefineSettings(rounds=1, iterations=2, starts=False)),
+    ("5 (multi-start 3 + 2)", rf.RefineSettings(rounds=2, iterations=2)),
+    ("9 (default: 3 rounds x 3)", rf.RefineSettings()),
+    ("default, priors off", rf.RefineSettings(log_alpha_prior_sigma=1e6, normal_prior_deg=1e6)),
+    ("12 (4 rounds x 3)", rf.RefineSettings(rounds=4)),
+)
+DEFAULT_LABEL = "9 (default: 3 rounds x 3)"
+
+
+@dataclass
+class RefineBench:
+    """What one run covers: gallery scans (made with ``gallery``'s settings), texels sampled per material."""
+
+    gallery: bench_gallery.GallerySettings = bench_gallery.DEFAULT
+    objects: tuple[str, ...] = tuple(GALLERY)
+    scanners: tuple[str, ...] = bench_gallery.SCANNERS
+    per_material: int = 128  # sampled texels per material and scan
+    baseline_texels: int = 6  # texels per scan for the scipy baseline
+    seed: int = 0
+
+
+def _truth_in_texel_frames(
+    out: Path, scan_dir: Path, resolution: int
+) -> tuple[dict, np.ndarray, list[dict], np.ndarray]:
+    """The truth at every texel (nearest), its labels and the texels' geometric frames (rows t^, b^, n^)."""
+    tex = rasterize(load_mesh(out / "mesh.obj"), (resolution, resolution))
+    uv = np.stack([(tex.col + 0.5) / resolution, 1 - (tex.row + 0.5) / resolution], 1)
+    gt = scan_dir / "ground_truth"
+    maps = SVBRDFMaps.load(gt)
+    true = {
+        k: _nearest(getattr(maps, k), uv)
+        for k in ("diffuse_albedo", "specular_albedo", "normal", "tangent", "roughness")
+    }
+    labels, table = load_labels(gt)
+    frame = np.stack([tex.tangent, np.cross(tex.normal, tex.tangent), tex.normal], 1)
+    return true, _nearest(labels[..., None], uv)[:, 0], table, frame
+
+
+def _as_maps(frame: np.ndarray, n_loc, t_loc, alpha, rho_d, rho_s) -> dict[str, np.ndarray]:
+    """Per-texel parameters (geometric frame) as object-space map values."""
+    return {
+        "normal": np.einsum("tji,tj->ti", frame, n_loc),
+        "tangent": np.einsum("tji,tj->ti", frame, t_loc),
+        "roughness": alpha,
+        "diffuse_albedo": rho_d,
+        "specular_albedo": rho_s,
+    }
+
+
+def run(out: Path, bench: RefineBench | None = None, json_path: Path | None = None, progress: Progress = QUIET) -> dict:
+    """The benchmark into ``out`` (the gallery's folder: scans are shared, built if missing)."""
+    bench = bench or RefineBench()
+    settings = bench.gallery
+    out = Path(out)
+    rows, speed, baseline = [], [], []
+    rng = np.random.default_rng(bench.seed)
+    with claim(out, "gallery"):
+        for name in bench.objects:
+            asset = build_asset(name, out / "assets" / name)
+            for scanner in bench.scanners:
+                scan_dir = out / "scans" / f"{name}-{scanner}"
+                bench_gallery.scan_object(settings, name, scanner, scan_dir, asset, progress)
+                result = out / "results" / f"{name}-{scanner}-true"
+                scan = load_scan(scan_dir, scan_dir / "ground_truth" / "poses.json")
+                reconstruct(scan, result, resolution=settings.resolution, progress=progress)
+                traces, fit = cached_fit(result)
+                true, label, table, frame = _truth_in_texel_frames(result, scan_dir, settings.resolution)
+                observed = traces.lengths.numpy() > 0
+                picks = []
+                for k in range(len(table)):
+                    cand = np.nonzero((label == k) & observed)[0]
+                    picks.append(np.sort(rng.choice(cand, min(bench.per_material, len(cand)), replace=False)))
+                sel = np.concatenate(picks)
+                ent, mask = traces.padded(torch.as_tensor(sel), max_views=REFINE_VIEWS)
+                specular = torch.as_tensor(fit["flags"][sel] & FLAG_NO_HIGHLIGHT == 0)
+                start = rf.Start.from_fit(fit, sel)
+                answers = {
+                    "network + fit": (
+                        fit["n_loc"][sel],
+                        fit["t_loc"][sel],
+                        fit["alpha"][sel],
+                        fit["rho_d"][sel],
+                        fit["rho_s"][sel],
+                    )
+                }
+                for label_v, st in VARIANTS:
+                    t0 = time.perf_counter()
+                    r = rf.refine(scan.scanner, ent, mask, start, specular, st)
+                    seconds = time.perf_counter() - t0
+                    speed.append(
+                        {
+                            "object": name,
+                            "scanner": scanner,
+                            "variant": label_v,
+                            "texels": len(sel),
+                            "texels_per_s": len(sel) / seconds,
+                        }
+                    )
+                    answers[label_v] = (
+                        r.frame[:, 2].numpy(),
+                        r.frame[:, 0].numpy(),
+                        r.log_alpha.exp().numpy(),
+                        r.rho_d.numpy(),
+                        r.rho_s.numpy(),
+                    )
+                offset = 0
+                for k, mat in enumerate(table):
+                    n_k = len(picks[k])
+                    part = slice(offset, offset + n_k)
+                    offset += n_k
+                    if n_k == 0:
+                        continue
+                    truth = {key: v[picks[k]] for key, v in true.items()}
+                    for label_v, ans in answers.items():
+                        rec = _as_maps(frame[picks[k]], *(a[part] for a in ans))
+                        rows.append(
+                            {
+                                "object": name,
+                                "scanner": scanner,
+                                "material": mat["name"],
+                                "variant": label_v,
+                                "texels": n_k,
+                                **parameter_errors(rec, truth, mat["matte"]),
+                            }
+                        )
+                baseline.append(
+                    _baseline(
+                        scan.scanner, ent, mask, fit, sel, specular, frame, true, table, label, bench, rng, answers
+                    )
+                )
+    record = {"bench": asdict(bench), "rows": rows, "speed": speed, "baseline": baseline}
+    text = markdown(record)
+    write_text_atomic(out / "refine.md", text)
+    write_text_atomic(out / "refine.json", json.dumps(record, indent=1, default=float))
+    if json_path:
+        write_text_atomic(json_path, json.dumps(record, indent=1, default=float))
+    print(text)
+    return record
+
+
+def _baseline(scanner, ent, mask, fit, sel, specular, frame, true, table, label, bench, rng, answers) -> dict:
+    """scipy least_squares per texel (exact model) on ``bench.baseline_texels`` sampled texels with a
+    lobe; seconds per texel for it and for ours on the same texels, and both answers' errors."""
+    spec_idx = np.nonzero(specular.numpy())[0]
+    pick = np.sort(rng.choice(spec_idx, min(bench.baseline_texels, len(spec_idx)), replace=False))
+    if len(pick) == 0:
+        return {}
+    st = rf.RefineSettings()
+    sub_ent, sub_mask = ent[pick].double(), mask[pick]
+    idx = sel[pick]
+    t0 = time.perf_counter()
+    ours = rf.refine(
+        scanner, ent[pick], mask[pick], rf.Start.from_fit(fit, idx), torch.ones(len(pick), dtype=torch.bool), st
+    )
+    t_ours = (time.perf_counter() - t0) / len(pick)
+    t0 = time.perf_counter()
+    res = [
+        _scipy_texel(
+            scanner,
+            sub_ent[i : i + 1],
+            sub_mask[i : i + 1],
+            {k: fit[k][idx[i : i + 1]] for k in ("n_loc", "t_loc", "alpha", "rho_d", "rho_s")},
+            st,
+        )
+        for i in range(len(pick))
+    ]
+    t_scipy = (time.perf_counter() - t0) / len(pick)
+    truth = {key: v[idx] for key, v in true.items()}
+    mine = _as_maps(
+        frame[idx],
+        ours.frame[:, 2].numpy(),
+        ours.frame[:, 0].numpy(),
+        ours.log_alpha.exp().numpy(),
+        ours.rho_d.numpy(),
+        ours.rho_s.numpy(),
+    )
+    theirs = _as_maps(frame[idx], *(np.concatenate([r[j] for r in res]) for j in range(5)))
+    matte = False
+    return {
+        "texels": len(pick),
+        "seconds_per_texel_ours": t_ours,
+        "seconds_per_texel_scipy": t_scipy,
+        "speed_ratio": t_scipy / max(t_ours, 1e-12),
+        "ours": parameter_errors(mine, truth, matte),
+        "scipy": parameter_errors(theirs, truth, matte),
+        "cost_ours": float(ours.cost.mean()),
+        "cost_scipy": float(np.mean([r[5] for r in res])),
+    }
+
+
+def _scipy_texel(scanner, ent: torch.Tensor, mask: torch.Tensor, start: dict, st: rf.RefineSettings) -> tuple:
+    """One texel by scipy least_squares on the refinement's objective with every sample exact."""
+    tr = rf._Trace(scanner, ent, mask, st.noise, None)  # no blocks: every emitter sample exact
+    frame0 = rf.frame_from_normal_tangent(torch.as_tensor(start["n_loc"]), torch.as_tensor(start["t_loc"]))
+    la0 = torch.as_tensor(np.log(np.clip(start["alpha"], rf.ALPHA_MIN, rf.ALPHA_MAX)))
+    rnd = rf._Round(tr, frame0, la0, True)
+    c, sa, sn = st.noise.robust, st.log_alpha_prior_sigma, math.radians(st.normal_prior_deg)
+    n_start = frame0[:, 2]
+
+    def fun(x: np.ndarray) -> np.ndarray:
+        q = torch.as_tensor(x)[None]
+        d, s = rnd.bases(q[:, rf.P_OMEGA], q[:, rf.P_LOGA])
+        r, _ = rf._residuals(tr, d, s, q)
+        u = rf._start_normal_in(frame0, n_start, q[:, rf.P_OMEGA])
+        return np.concatenate([r.flatten().numpy(), ((q[0, rf.P_LOGA] - la0[0]) / sa).numpy(), (u[0, :2] / sn).numpy()])
+
+    x0 = np.concatenate(
+        [[0, 0, 0], la0[0].numpy(), np.clip(start["rho_d"][0], 0, 1), np.clip(start["rho_s"][0], 0, 10)]
+    )
+    lo = np.array([-np.pi] * 3 + [math.log(rf.ALPHA_MIN)] * 2 + [0] * 6)
+    hi = np.array([np.pi] * 3 + [math.log(rf.ALPHA_MAX)] * 2 + [1] * 3 + [10] * 3)
+    x0 = np.clip(x0, lo + 1e-9, hi - 1e-9)
+    # the data residuals get the Cauchy loss, the priors too (scipy applies one loss to all): a priori
+    # small, so the difference is negligible
+    sol = least_squares(fun, x0, bounds=(lo, hi), loss="cauchy", f_scale=c, x_scale="jac", max_nfev=400)
+    q = torch.as_tensor(sol.x)[None]
+    frame = rf._fold(frame0, q[:, rf.P_OMEGA])
+    a = np.exp(sol.x[3:5])[None]
+    return frame[:, 2].numpy(), frame[:, 0].numpy(), a, sol.x[5:8][None], sol.x[8:11][None], float(sol.cost)
+
+
+def markdown(record: dict) -> str:
+    """The tables: errors per object x scanner x material x variant, speed, and the baseline."""
+    metrics = ("normal_deg", "tangent_deg", "log_alpha", "log_rho_s", "rho_d_rmse", "spurious_lobe")
+    lines = [
+        "| object | scanner | material | variant | " + " | ".join(metrics) + " |",
+        "|" + "---|" * (4 + len(metrics)),
+    ]
+    for r in record["rows"]:
+        vals = [
+            ("-" if (v := r.get(m)) is None or (isinstance(v, float) and math.isnan(v)) else f"{v:.3g}")
+            for m in metrics
+        ]
+        lines.append(
+            f"| {r['object']} | {r['scanner']} | {r['material']} | {r['variant']} | " + " | ".join(vals) + " |"
+        )
+    lines += ["", "| object | scanner | variant | texels | texels/s |", "|---|---|---|---|---|"]
+    for s in record["speed"]:
+        lines.append(f"| {s['object']} | {s['scanner']} | {s['variant']} | {s['texels']} | {s['texels_per_s']:.0f} |")
+    lines += [
+        "",
+        "| object | scanner | texels | s/texel ours | s/texel scipy | ratio | normal ours / scipy "
+        "| log alpha ours / scipy | cost ours / scipy |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for (o, sc), b in zip(((r["object"], r["scanner"]) for r in _scans(record)), record["baseline"]):
+        if not b:
+            continue
+        lines.append(
+            f"| {o} | {sc} | {b['texels']} | {b['seconds_per_texel_ours']:.3f} | {b['seconds_per_texel_scipy']:.2f} | "
+            f"{b['speed_ratio']:.0f}x | {b['ours']['normal_deg']:.2f} / {b['scipy']['normal_deg']:.2f} | "
+            f"{b['ours']['log_alpha']:.2f} / {b['scipy']['log_alpha']:.2f} | "
+            f"{b['cost_ours']:.1f} / {b['cost_scipy']:.1f} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
+def _scans(record: dict) -> list[dict]:
+    seen, out = set(), []
+    for s in record["speed"]:
+        if (s["object"], s["scanner"]) not in seen:
+            seen.add((s["object"], s["scanner"]))
+            out.append(s)
+    return out
+
+
+def bench_for(**overrides) -> RefineBench:
+    """The default bench with the given fields replaced (None leaves a field)."""
+    return replace(RefineBench(), **{k: v for k, v in overrides.items() if v is not None})

@@ -1,0 +1,85 @@
+"""Emitter blocks: the scanner's emitter samples grouped into spatially compact blocks, each also
+seen as one coarse emitter, so a lobe can be summed exactly where it is sharp and coarsely elsewhere.
+
+Convention: the samples are ``Scanner.emitter_samples`` flattened (K = L * Q, sample k = l * Q + q).
+Blocks come from sorting the samples along the two principal axes of their positions (columns of
+equal count, then rows within each column), so on the paper's 32 x 16 LED grid they are 4 x 4 LED
+squares. A block's coarse emitter sits at the drive-weighted centroid of its samples with their mean
+normal, and carries their summed, quadrature-weighted drive: for a lobe that changes little across
+the block (a broad one, or one far from the block) Eq. 1 over the block equals the coarse emitter's
+term. ``members (C, S)`` pads short blocks with the index K, a sample that emits nothing.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from ..scanner.scanner import Scanner
+
+BLOCK_SIZE = 16  # samples per block (4 x 4 LEDs on a grid)
+EXACT_UP_TO = 128  # devices with at most this many samples are always summed exactly
+
+
+@dataclass(frozen=True)
+class EmitterBlocks:
+    """Blocks of a scanner's K emitter samples (see the module docstring)."""
+
+    members: Tensor  # (C, S) int64 sample indices, K = padding
+    coarse: Scanner  # one point emitter per block (centroid, mean normal; Psi as the device's)
+    coarse_drive: Tensor  # (C, 3) summed quadrature-weighted effective drive per camera channel
+
+    @property
+    def count(self) -> int:
+        """C, the number of blocks."""
+        return int(self.members.shape[0])
+
+
+def emitter_blocks(scanner: Scanner, size: int = BLOCK_SIZE) -> EmitterBlocks | None:
+    """The blocks of ``scanner``'s samples, or None when it has few enough to sum exactly."""
+    pts_t, w_t = scanner.emitter_samples(torch.float64)
+    L, Q = w_t.shape
+    K = L * Q
+    if K <= EXACT_UP_TO:
+        return None
+    pts = pts_t.reshape(K, 3).numpy()
+    w = w_t.reshape(K).numpy()
+    drive = np.repeat(scanner.effective_pattern(), Q, axis=0) * w[:, None]  # (K, 3)
+    normals = np.repeat(scanner.emitter_normals, Q, axis=0)
+    centred = pts - pts.mean(0)
+    _, sv, axes = np.linalg.svd(centred, full_matrices=False)
+    u, v = centred @ axes[0], centred @ axes[1]
+    count = math.ceil(K / size)
+    ratio = sv[0] / max(sv[1], 1e-12 * sv[0])
+    cols = min(count, max(1, round(math.sqrt(count * ratio))))
+    groups = []
+    for col in np.array_split(np.argsort(u, kind="stable"), cols):
+        rows = max(1, round(len(col) / size))
+        groups += np.array_split(col[np.argsort(v[col], kind="stable")], rows)
+    S = max(len(g) for g in groups)
+    members = np.full((len(groups), S), K, np.int64)
+    for i, g in enumerate(groups):
+        members[i, : len(g)] = g
+    weight = drive.sum(1)
+    centroid, normal = np.zeros((len(groups), 3)), np.zeros((len(groups), 3))
+    for i, g in enumerate(groups):
+        wg = weight[g] if weight[g].sum() > 0 else np.ones(len(g))
+        centroid[i] = (pts[g] * wg[:, None]).sum(0) / wg.sum()
+        nm = normals[g].sum(0)
+        normal[i] = nm / max(np.linalg.norm(nm), 1e-12)
+    coarse = dataclasses.replace(
+        scanner,
+        emitter_kind="point",
+        emitter_positions=centroid,
+        emitter_normals=normal,
+        emitter_axes=np.repeat(scanner.emitter_axes[:1], len(groups), 0),
+        pattern=np.zeros((len(groups), 3)),
+        grid_shape=None,
+    )
+    block_drive = np.stack([drive[g].sum(0) for g in groups])
+    return EmitterBlocks(torch.from_numpy(members), coarse, torch.from_numpy(block_drive))

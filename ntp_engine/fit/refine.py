@@ -1,0 +1,546 @@
+"""Analysis-by-synthesis refinement (issue 17): per texel, the anisotropic GGX parameters that best
+explain the trace's own pixels through Eq. 1 and the camera model, starting from the network's fit.
+
+Model of one entry j (a view of the texel) and camera channel c, in linear pixel units (1 = code 255):
+    y_jc = exposure * sum_k P[k, c] w_jk (wi_jk . n)+ (rho_d,c / pi + rho_s,c lobe(wi_jk, wo_j; t, ax, ay))
+over the emitter samples k (``measurement``'s factorised Eq. 1, falloff w = w_q Psi / r^2). The
+camera is the sensor model ``SensorNoise``: an entry whose 8-bit code is above ``CENSOR_CODE`` may be
+clipped (or bilinearly mixed with a clipped pixel) and only says "at least this bright" (censored);
+dark entries keep their information with an absolute noise floor instead of being dropped.
+
+Convention: the parameters live in the texel's geometric (lumitexel) frame (z = n^, x = t^), like
+``fit_traces``'s results: ``frame (N, 3, 3)`` rows (t, b, n); ``log_alpha (N, 2)`` natural logs of
+(alpha_x, alpha_y); ``rho_d, rho_s (N, 3)``. Entries are the trace layout (``learn.ragged``) with
+pixels as captured (not scaled to a model's exposure).
+
+The solver: batched Levenberg-Marquardt over texels with 11 unknowns each (a frame rotation omega in
+the shading frame — omega_z turns the tangent about n, omega_x,y tilt n — two log alphas, RGB rho_d
+and rho_s), Cauchy-robust residuals, box bounds by projection with an active set, analytic
+Jacobians (rho enters linearly; the lobe's log-derivatives are closed form, ``_lobe_jacobian``).
+Speed: the diffuse basis is linear in n (precomputed per entry), and the specular sum runs over the
+emitter blocks (``emitter_blocks``) brightest under a broadened lobe sample by sample and over the
+other blocks as one coarse emitter each. Design and measurements: docs/refinement.md.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import NamedTuple
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from ..physics.brdf import ALPHA_MAX, ALPHA_MIN, RHO_D_MAX, RHO_S_MAX, fresnel_schlick
+from ..physics.frame import cross, frame_from_normal_tangent, rotation_from_vector, safe_normalize, to_local
+from ..physics.measurement import local_emitter_geometry
+from ..scanner.camera import VALID_CODE
+from ..scanner.scanner import Scanner
+from .albedo import bounded_ls2
+from .emitter_blocks import EmitterBlocks, emitter_blocks
+from .highlights import parked_positions
+
+CENSOR_CODE = VALID_CODE[1]  # above this an 8-bit code may be (or border) a clipped pixel: a lower bound
+EXPANDED_BLOCKS = 4  # emitter blocks per entry summed sample by sample (the rest as coarse emitters)
+SELECT_WIDEN, SELECT_FLOOR = 3.0, 0.03  # emitters are chosen under alphas x3 (at least 0.03)
+MAX_TRIES = 3  # damping increases per LM iteration before the texel waits for the next one
+SHARP_START = 0.25  # the multi-start's sharper lobe: alphas times this
+ISOTROPIC_RATIO = 1.25  # alpha_x / alpha_y below this: the tangent is not constrained by the lobe
+MIN_SPECULAR_SHARE = 0.05  # a lobe below this share of some entry's pixel was not observed
+LOBE_EVIDENCE = 4.0  # a lobe must lower the robust cost (half chi-square units) by this much to be kept
+N_PARAMS = 11
+P_OMEGA, P_LOGA, P_RHO_D, P_RHO_S = slice(0, 3), slice(3, 5), slice(5, 8), slice(8, 11)
+FLAG_SPECULAR_UNCONSTRAINED, FLAG_TANGENT_UNCONSTRAINED = 16, 32
+
+
+@dataclass(frozen=True)
+class SensorNoise:
+    """Per-entry noise of a linear pixel y: sigma^2 = (read_code / 255)^2 + (relative * y)^2 (an
+    absolute floor for dark values — 8-bit quantisation, read noise — plus shot/renderer noise that
+    grows with the signal); residuals beyond ``robust`` sigmas count less (Cauchy)."""
+
+    read_code: float = 1.0
+    relative: float = 0.03
+    robust: float = 3.0
+
+    def sigma(self, y: Tensor) -> Tensor:
+        """sigma ``(...)`` of linear pixels ``y (...)``."""
+        return torch.sqrt((self.read_code / 255.0) ** 2 + (self.relative * y) ** 2)
+
+
+@dataclass(frozen=True)
+class RefineSettings:
+    """How hard the refinement works (``ntp bench refine`` measures the ladder)."""
+
+    rounds: int = 3  # model re-linearisations: the emitter blocks reselected, the multi-start the first
+    iterations: int = 3  # LM iterations per round
+    starts: bool = True  # multi-start in the first round: tangent turned 90 deg, a 4x sharper lobe
+    noise: SensorNoise = field(default_factory=SensorNoise)
+    log_alpha_prior_sigma: float = 3.0  # a weak pull to the start's alphas (natural log units)
+    normal_prior_deg: float = 3.0  # a weak pull to the start's normal: a lobe seen in few views cannot tip it far
+
+
+class Start(NamedTuple):
+    """Where N texels' refinement starts (geometric frame): the network's fit, or any guess."""
+
+    normal: Tensor  # (N, 3)
+    tangent: Tensor  # (N, 3)
+    alpha: Tensor  # (N, 2) alpha_x, alpha_y
+    rho_d: Tensor  # (N, 3)
+    rho_s: Tensor  # (N, 3)
+
+    @classmethod
+    def from_fit(cls, fit: dict[str, np.ndarray], idx: np.ndarray) -> Start:
+        """The texels ``idx`` of a ``pipeline.fit_traces`` result (float32)."""
+
+        def col(key: str) -> Tensor:
+            return torch.as_tensor(fit[key][idx], dtype=torch.float32)
+
+        return cls(col("n_loc"), col("t_loc"), col("alpha"), col("rho_d"), col("rho_s"))
+
+
+@dataclass
+class Refined:
+    """Refined parameters of N texels (geometric frame) and how well their traces constrain them."""
+
+    frame: Tensor  # (N, 3, 3) rows t, b, n
+    log_alpha: Tensor  # (N, 2) alpha_x >= alpha_y
+    rho_d: Tensor  # (N, 3)
+    rho_s: Tensor  # (N, 3)
+    flags: Tensor  # (N,) FLAG_SPECULAR_UNCONSTRAINED | FLAG_TANGENT_UNCONSTRAINED
+    std: Tensor  # (N, 4) 1-sigma: normal (deg), tangent (deg), log alpha_x, log rho_s (mean channel)
+    cost: Tensor  # (N,) robust cost per entry at the answer
+
+
+class _Trace:
+    """One chunk of traces, ready for the model: every entry's directions to each emitter sample
+    (and, with ``blocks``, to each block's coarse emitter), half vectors and Fresnel-weighted falloff
+    in the texel's geometric frame — none depends on the parameters (a shading frame only rotates
+    them). Sample index K is padding: it emits nothing."""
+
+    def __init__(
+        self, scanner: Scanner, entries: Tensor, mask: Tensor, noise: SensorNoise, blocks: EmitterBlocks | None
+    ):
+        N, V, _ = entries.shape
+        self.N, self.V, self.blocks = N, V, blocks
+        x = parked_positions(entries[..., 3:6], mask).reshape(-1, 3)
+        n_geo, t_geo = entries[..., 6:9].reshape(-1, 3), entries[..., 9:12].reshape(-1, 3)
+        live = mask[..., None].to(x.dtype)
+        exposure = float(scanner.exposure(scanner.pattern))
+
+        def directions(dev: Scanner) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+            geo = local_emitter_geometry(dev, x, n_geo, t_geo)
+            K = geo.falloff.shape[1]
+            wi = geo.wi_l.reshape(N, V, K, 3)
+            self.wo = geo.wo_l.reshape(N, V, 3)
+            h = safe_normalize(wi + self.wo[:, :, None, :])
+            falloff = geo.falloff.reshape(N, V, K) * live
+            return wi, h, falloff, fresnel_schlick((wi * h).sum(-1)) * falloff
+
+        wi, h, falloff, ff = directions(scanner)
+        # one padding sample (index K): any direction, no light
+        self.wi = torch.cat([wi, wi[:, :, :1]], 2)
+        self.h = torch.cat([h, h[:, :, :1]], 2)
+        self.falloff = torch.cat([falloff, torch.zeros_like(falloff[:, :, :1])], 2)
+        self.fresnel_falloff = torch.cat([ff, torch.zeros_like(ff[:, :, :1])], 2)
+        Q = scanner.emitter_samples(x.dtype)[1].shape[1]
+        p_eff = torch.as_tensor(scanner.effective_pattern(), dtype=x.dtype)
+        drive = exposure * p_eff.repeat_interleave(Q, 0)  # per sample (the falloff holds w_q)
+        self.drive = torch.cat([drive, torch.zeros(1, 3, dtype=x.dtype)])  # (K + 1, 3)
+        if blocks is not None:
+            self.wi_c, self.h_c, _, self.ff_c = directions(blocks.coarse)
+            self.drive_c = exposure * blocks.coarse_drive.to(x.dtype)
+        y = entries[..., :3]
+        self.y = torch.where(mask[..., None], y, torch.zeros_like(y))
+        code = 255.0 * self.y
+        self.censored = (code > CENSOR_CODE).any(-1, keepdim=True).expand(N, V, 3) & mask[..., None]
+        self.mask = mask[..., None].expand(N, V, 3)
+        self.inv_sigma = torch.where(self.mask, 1.0 / noise.sigma(self.y), torch.zeros_like(self.y))
+
+    def rows(self, idx: Tensor) -> _Trace:
+        """The same chunk for the texels ``idx`` only."""
+        out = object.__new__(_Trace)
+        for k, v in vars(self).items():
+            setattr(out, k, v[idx] if isinstance(v, Tensor) and k not in ("drive", "drive_c") else v)
+        out.N = len(idx)
+        return out
+
+
+def _lobe(frame: Tensor, wi: Tensor, h: Tensor, wo: Tensor, fresnel_falloff: Tensor, alpha: Tensor) -> Tensor:
+    """Eq. 1's specular weight per emitter, F D G / (4 cos_i cos_o) (wi.n)+ * falloff, ``(N, V, K)``,
+    for shading frames ``frame (N, 3, 3)`` (rows t, b, n in the geometric frame), geometric-frame
+    ``wi, h (N, V, K, 3)``, ``wo (N, V, 3)`` and ``alpha (N, 2)``. The cancelled Smith form of
+    ``physics.brdf.ggx_specular``; F depends on wi.h only, so it comes precomputed with the falloff."""
+    f4 = frame[:, None, None]
+    wi_s, h_s, wo_s = to_local(wi, f4), to_local(h, f4), to_local(wo, frame[:, None])
+    ax, ay = alpha[:, 0, None, None], alpha[:, 1, None, None]
+    q = (h_s[..., 0] / ax) ** 2 + (h_s[..., 1] / ay) ** 2 + h_s[..., 2] ** 2
+    cos_i = wi_s[..., 2].clamp_min(0.0)
+    lam_i = torch.sqrt(((ax * wi_s[..., 0]) ** 2 + (ay * wi_s[..., 1]) ** 2 + wi_s[..., 2] ** 2).clamp_min(1e-20))
+    cos_o = wo_s[..., 2].clamp_min(0.0)
+    lam_o = torch.sqrt(
+        ((ax[..., 0] * wo_s[..., 0]) ** 2 + (ay[..., 0] * wo_s[..., 1]) ** 2 + wo_s[..., 2] ** 2).clamp_min(1e-20)
+    )
+    seen = (wo_s[..., 2] > 0).to(wo_s.dtype) / (cos_o + lam_o)  # the view-side Smith factor, 0 below
+    return cos_i * fresnel_falloff * seen[..., None] / (math.pi * ax * ay * q * q * (cos_i + lam_i))
+
+
+def _lobe_jacobian(
+    frame: Tensor, wi: Tensor, h: Tensor, wo: Tensor, fresnel_falloff: Tensor, alpha: Tensor
+) -> tuple[Tensor, Tensor]:
+    """``_lobe`` and d log(lobe) by (omega, log alpha_x, log alpha_y) ``(N, V, K, 5)``, omega the
+    shading-frame rotation at 0: a local vector v turns by v x omega, so d/d omega = g x v for
+    g = d log(lobe) / d v, summed over wi, h and wo."""
+    f4 = frame[:, None, None]
+    wi_s, h_s, wo_s = to_local(wi, f4), to_local(h, f4), to_local(wo, frame[:, None])
+    a2 = (alpha * alpha)[:, None, None, :]  # (N, 1, 1, 2)
+    ax, ay = alpha[:, 0, None, None], alpha[:, 1, None, None]
+    hx2, hy2 = (h_s[..., 0] / ax) ** 2, (h_s[..., 1] / ay) ** 2
+    q = hx2 + hy2 + h_s[..., 2] ** 2
+    above_i = (wi_s[..., 2] > 0).to(wi_s.dtype)
+    cos_i = wi_s[..., 2].clamp_min(0.0)
+    sq_i = (a2[..., 0] * wi_s[..., 0] ** 2, a2[..., 1] * wi_s[..., 1] ** 2)
+    lam_i = torch.sqrt((sq_i[0] + sq_i[1] + wi_s[..., 2] ** 2).clamp_min(1e-20))
+    a_i = cos_i + lam_i
+    a2o = a2[:, :, 0]  # (N, 1, 2)
+    sq_o = (a2o[..., 0] * wo_s[..., 0] ** 2, a2o[..., 1] * wo_s[..., 1] ** 2)
+    lam_o = torch.sqrt((sq_o[0] + sq_o[1] + wo_s[..., 2] ** 2).clamp_min(1e-20))
+    cos_o = wo_s[..., 2].clamp_min(0.0)
+    a_o = cos_o + lam_o
+    seen = (wo_s[..., 2] > 0).to(wo_s.dtype) / a_o
+    lobe = cos_i * fresnel_falloff * seen[..., None] / (math.pi * ax * ay * q * q * a_i)
+    # d log / d v for v = h (D), wi (cos_i / (cos_i + Lambda_i)), wo (1 / (cos_o + Lambda_o))
+    g_h = -4.0 / q[..., None] * torch.stack([h_s[..., 0] / ax**2, h_s[..., 1] / ay**2, h_s[..., 2]], -1)
+    inv_cos = above_i / wi_s[..., 2].clamp_min(1e-12)
+    g_i = (
+        -torch.stack([a2[..., 0] * wi_s[..., 0], a2[..., 1] * wi_s[..., 1], wi_s[..., 2]], -1)
+        / (a_i * lam_i)[..., None]
+    )
+    g_i[..., 2] += inv_cos - above_i / a_i
+    g_o = (
+        -torch.stack([a2o[..., 0] * wo_s[..., 0], a2o[..., 1] * wo_s[..., 1], wo_s[..., 2]], -1)
+        / (a_o * lam_o)[..., None]
+    )
+    g_o[..., 2] -= (wo_s[..., 2] > 0).to(wo_s.dtype) / a_o
+    d_omega = cross(g_i, wi_s) + cross(g_h, h_s) + cross(g_o, wo_s)[:, :, None, :]
+    # log alpha: D gives -1 + 4 (h/a)^2 / q; Lambda_i and Lambda_o give -(a v)^2 / (A Lambda)
+    d_ax = -1.0 + 4.0 * hx2 / q - sq_i[0] / (a_i * lam_i) - (sq_o[0] / (a_o * lam_o))[..., None]
+    d_ay = -1.0 + 4.0 * hy2 / q - sq_i[1] / (a_i * lam_i) - (sq_o[1] / (a_o * lam_o))[..., None]
+    return lobe, torch.cat([d_omega, d_ax[..., None], d_ay[..., None]], -1)
+
+
+class _Round:
+    """The model of one round: frame F0 fixed; per entry, the emitter blocks brightest under a
+    broadened lobe are summed sample by sample, the others as their coarse emitters."""
+
+    def __init__(self, tr: _Trace, frame0: Tensor, log_alpha: Tensor, specular: bool):
+        self.tr, self.specular, self.frame0 = tr, specular, frame0
+        # diffuse basis per channel: linear in the shading normal (emitters above F0's horizon)
+        cos = torch.einsum("nj,nvkj->nvk", frame0[:, 2], tr.wi)
+        above = (cos > 0).to(cos.dtype) * tr.falloff
+        self.diffuse = torch.einsum("nvk,kc,nvkj->nvcj", above, tr.drive, tr.wi) / math.pi  # (N, V, 3, 3)
+        if not specular:
+            return
+        if tr.blocks is None:
+            self.wi, self.h, self.ff = tr.wi, tr.h, tr.fresnel_falloff
+            self.drive = tr.drive.expand(tr.N, tr.V, -1, 3)
+            return
+        wide = (SELECT_WIDEN * log_alpha.exp()).clamp(SELECT_FLOOR, ALPHA_MAX)
+        score = _lobe(frame0, tr.wi_c, tr.h_c, tr.wo, tr.ff_c, wide)  # (N, V, C)
+        order = score.argsort(-1, descending=True)
+        fine = tr.blocks.members[order[..., :EXPANDED_BLOCKS]].flatten(2)  # (N, V, B S) sample indices
+        rest = order[..., EXPANDED_BLOCKS:]  # (N, V, C - B) blocks kept coarse
+
+        def take(a: Tensor, idx: Tensor) -> Tensor:
+            return torch.gather(a, 2, idx[..., None].expand(-1, -1, -1, a.shape[-1]))
+
+        self.wi = torch.cat([take(tr.wi, fine), take(tr.wi_c, rest)], 2)
+        self.h = torch.cat([take(tr.h, fine), take(tr.h_c, rest)], 2)
+        self.ff = torch.cat([torch.gather(tr.fresnel_falloff, 2, fine), torch.gather(tr.ff_c, 2, rest)], 2)
+        self.drive = torch.cat([tr.drive[fine], tr.drive_c[rest]], 2)  # (N, V, M, 3)
+
+    def rebase(self, omega: Tensor) -> None:
+        """Fold the rotation ``omega (N, 3)`` into the round's frame (linearise about it next)."""
+        self.frame0 = _fold(self.frame0, omega)
+
+    def bases_and_jacobian(self, log_alpha: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """``bases`` at omega = 0 and their derivatives ``(N, V, 5, 3)`` by (omega, log alpha)
+        (analytic: see ``_lobe_jacobian``)."""
+        frame = self.frame0
+        g_s = torch.einsum("nij,nvcj->nvci", frame, self.diffuse)  # diffuse basis in the shading frame
+        diffuse = g_s[..., 2]
+        # n(omega) = F0^T R(omega) e_z: d n / d omega_k = F0^T (e_k x e_z) -> (-y, x, 0) in shading coords
+        dd = torch.zeros(*diffuse.shape[:2], 5, 3, dtype=diffuse.dtype)
+        dd[:, :, 0], dd[:, :, 1] = -g_s[..., 1], g_s[..., 0]
+        if not self.specular:
+            return diffuse, torch.zeros_like(diffuse), dd, torch.zeros_like(dd)
+        lobe, dlog = _lobe_jacobian(frame, self.wi, self.h, self.tr.wo, self.ff, log_alpha.exp())
+        spec = torch.einsum("nvm,nvmc->nvc", lobe, self.drive)
+        ds = torch.einsum("nvm,nvmk,nvmc->nvkc", lobe, dlog, self.drive)
+        return diffuse, spec, dd, ds
+
+    def bases(self, omega: Tensor, log_alpha: Tensor) -> tuple[Tensor, Tensor]:
+        """Unit-albedo diffuse and specular pixel bases ``(N, V, 3)`` for the rotation ``omega
+        (N, 3)`` (shading frame at the round's start) and ``log_alpha (N, 2)``."""
+        frame = rotation_from_vector(omega).transpose(-1, -2) @ self.frame0
+        diffuse = (self.diffuse * frame[:, None, None, 2, :]).sum(-1)
+        if not self.specular:
+            return diffuse, torch.zeros_like(diffuse)
+        lobe = _lobe(frame, self.wi, self.h, self.tr.wo, self.ff, log_alpha.exp())
+        return diffuse, torch.einsum("nvm,nvmc->nvc", lobe, self.drive)
+
+
+_LO = torch.tensor([-math.inf] * 3 + [math.log(ALPHA_MIN)] * 2 + [0.0] * 6)
+_HI = torch.tensor([math.inf] * 3 + [math.log(ALPHA_MAX)] * 2 + [RHO_D_MAX] * 3 + [RHO_S_MAX] * 3)
+
+
+def _residuals(tr: _Trace, diffuse: Tensor, spec: Tensor, p: Tensor) -> tuple[Tensor, Tensor]:
+    """Normalised residuals ``(N, V, 3)`` and which of them count (censored entries only when the
+    prediction falls below the measured lower bound)."""
+    pred = p[:, None, P_RHO_D] * diffuse + p[:, None, P_RHO_S] * spec
+    r = (pred - tr.y) * tr.inv_sigma
+    active = tr.mask & ~(tr.censored & (pred >= tr.y))
+    return torch.where(active, r, torch.zeros_like(r)), active
+
+
+def _cost(r: Tensor, c: float) -> Tensor:
+    """Cauchy cost per texel from residuals ``(N, V, 3)``."""
+    return (0.5 * c * c * torch.log1p((r / c) ** 2)).flatten(1).sum(1)
+
+
+def _prior(p: Tensor, la0: Tensor, sigma: float) -> Tensor:
+    return 0.5 * (((p[:, P_LOGA] - la0) / sigma) ** 2).sum(1)
+
+
+def _start_normal_in(frame: Tensor, n_start: Tensor, omega: Tensor) -> Tensor:
+    """The start normal ``(N, 3)`` (geometric frame) in the shading frame R(omega)^T F ``(N, 3)``."""
+    u = (frame @ n_start[:, :, None])[..., 0]
+    return (rotation_from_vector(omega).transpose(-1, -2) @ u[:, :, None])[..., 0]
+
+
+def _lm(
+    rnd: _Round,
+    p: Tensor,
+    la0: Tensor,
+    n_start: Tensor,
+    free: Tensor,
+    iterations: int,
+    settings: RefineSettings,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """LM iterations from ``p (N, 11)`` with the parameters ``free (N, 11)``; each accepted
+    rotation is folded into ``rnd``'s frame (omega stays 0 between iterations). Returns p, the
+    cost per texel and the Gauss-Newton Hessian (float64) of the last linearisation."""
+    tr, c = rnd.tr, settings.noise.robust
+    N = p.shape[0]
+    lam = torch.full((N,), 1e-3, dtype=torch.float64)
+    lo, hi = _LO.to(p.dtype), _HI.to(p.dtype)
+    ip = 1.0 / settings.log_alpha_prior_sigma**2
+    sn = math.radians(settings.normal_prior_deg)
+    ch = torch.arange(3)
+
+    def cost_at(q: Tensor) -> Tensor:
+        d, s = rnd.bases(q[:, P_OMEGA], q[:, P_LOGA])
+        u = _start_normal_in(rnd.frame0, n_start, q[:, P_OMEGA])
+        tilt = 0.5 * ((u[:, :2] / sn) ** 2).sum(1)
+        return _cost(_residuals(tr, d, s, q)[0], c) + _prior(q, la0, settings.log_alpha_prior_sigma) + tilt
+
+    H = torch.zeros(N, N_PARAMS, N_PARAMS, dtype=torch.float64)
+    cost = cost_at(p)
+    for _ in range(iterations):
+        d, s, dd, ds = rnd.bases_and_jacobian(p[:, P_LOGA])
+        r, active = _residuals(tr, d, s, p)
+        V = d.shape[1]
+        # d pred / d geometry: rho_d dD + rho_s dS; d pred / d rho: the bases, channel by channel
+        J = torch.zeros(N, V, 3, N_PARAMS, dtype=p.dtype)
+        J[..., :5] = (p[:, None, None, P_RHO_D] * dd + p[:, None, None, P_RHO_S] * ds).transpose(2, 3)
+        J[:, :, ch, 5 + ch] = d
+        J[:, :, ch, 8 + ch] = s
+        J = J * (tr.inv_sigma * active)[..., None]
+        w = 1.0 / (1.0 + (r / c) ** 2)  # Cauchy IRLS weight
+        Jf = J.reshape(N, -1, N_PARAMS).double()
+        wf = w.reshape(N, -1, 1).double()
+        H = Jf.transpose(1, 2) @ (wf * Jf)
+        g = ((Jf * wf).transpose(1, 2) @ r.reshape(N, -1, 1).double())[..., 0]
+        H[:, 3, 3] += ip  # the weak alpha prior
+        H[:, 4, 4] += ip
+        g[:, 3:5] += (ip * (p[:, P_LOGA] - la0)).double()
+        # the weak normal prior: residuals u_x, u_y / sigma of the start normal u in the shading frame,
+        # d u / d omega_k = u x e_k
+        u = _start_normal_in(rnd.frame0, n_start, torch.zeros_like(p[:, P_OMEGA])).double()
+        zero = torch.zeros_like(u[:, 0])
+        ju = torch.stack([torch.stack([zero, -u[:, 2], u[:, 1]], 1), torch.stack([u[:, 2], zero, -u[:, 0]], 1)], 1) / sn
+        H[:, :3, :3] += ju.transpose(1, 2) @ ju
+        g[:, :3] += (ju.transpose(1, 2) @ (u[:, :2, None] / sn))[..., 0]
+        # active set: a parameter at a bound whose gradient points out stays there this iteration
+        at_lo = (p <= lo + 1e-7) & (g > 0)
+        at_hi = (p >= hi - 1e-7) & (g < 0)
+        mf = (free & ~at_lo & ~at_hi).double()
+        Hm = H * mf[:, :, None] * mf[:, None, :]
+        gm = g * mf
+        diag = Hm.diagonal(dim1=1, dim2=2)
+        p0, pending = p, torch.ones(N, dtype=torch.bool)
+        for _try in range(MAX_TRIES):  # a rejected step is retried with more damping (same linearisation)
+            A = Hm + torch.diag_embed(lam[:, None] * (diag + 1e-3 * diag.mean(1, keepdim=True)) + (1 - mf))
+            step = -torch.linalg.solve(A, gm[..., None])[..., 0]
+            q = torch.minimum(torch.maximum(p0 + step.to(p.dtype), lo), hi)
+            new = cost_at(q)
+            better = pending & torch.isfinite(new) & (new < cost)
+            p = torch.where(better[:, None], q, p)
+            cost = torch.where(better, new, cost)
+            lam = torch.where(better, (lam * 0.3).clamp_min(1e-7), torch.where(pending, lam * 10, lam))
+            pending = pending & ~better
+            if not bool(pending.any()):
+                break
+        rnd.rebase(p[:, P_OMEGA])
+        p = p.clone()
+        p[:, P_OMEGA] = 0.0
+    return p, cost, H
+
+
+def _fold(frame: Tensor, omega: Tensor) -> Tensor:
+    """The frame turned by ``omega`` (shading-frame rotation vector): rows of R^T F."""
+    return rotation_from_vector(omega).transpose(-1, -2) @ frame
+
+
+def _albedo_start(rnd: _Round, p: Tensor, specular: bool) -> Tensor:
+    """p with rho_d, rho_s replaced by the bounded weighted least squares for the round's geometry."""
+    tr = rnd.tr
+    d, s = rnd.bases(p[:, P_OMEGA], p[:, P_LOGA])
+    w = (tr.inv_sigma**2 * (tr.mask & ~tr.censored)).double()
+    if not specular:
+        s = torch.zeros_like(s)
+    rd, rs = bounded_ls2(
+        d.double().transpose(1, 2),
+        s.double().transpose(1, 2),
+        tr.y.double().transpose(1, 2),
+        w.transpose(1, 2),
+        RHO_D_MAX,
+        RHO_S_MAX if specular else 0.0,
+    )
+    p = p.clone()
+    p[:, P_RHO_D], p[:, P_RHO_S] = rd.to(p.dtype), rs.to(p.dtype)
+    return p
+
+
+def _solve(
+    tr: _Trace, frame: Tensor, p: Tensor, specular: bool, settings: RefineSettings
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """All rounds for one group of texels (all with a lobe, or all diffuse-only); returns frame,
+    p, cost and the last Gauss-Newton Hessian."""
+    N = p.shape[0]
+    free = torch.ones(N, N_PARAMS, dtype=torch.bool)
+    if not specular:
+        free[:, 2] = False  # omega_z turns only the tangent
+        free[:, P_LOGA] = False
+        free[:, P_RHO_S] = False
+        p = p.clone()
+        p[:, P_RHO_S] = 0.0
+    la0, n_start = p[:, P_LOGA].clone(), frame[:, 2].clone()
+    H = torch.zeros(N, N_PARAMS, N_PARAMS, dtype=torch.float64)
+    cost = torch.zeros(N, dtype=p.dtype)
+    first = 0
+    if settings.starts and specular and settings.rounds > 0:  # the multi-start is the first round
+        frame, p = _multi_start(tr, frame, p, la0, n_start, free, settings)
+        first = 1
+    for k in range(first, settings.rounds):
+        rnd = _Round(tr, frame, p[:, P_LOGA], specular)
+        if k == 0:
+            p = _albedo_start(rnd, p, specular)
+        p, cost, H = _lm(rnd, p, la0, n_start, free, settings.iterations, settings)
+        frame = rnd.frame0
+    return frame, p, cost, H
+
+
+def _multi_start(
+    tr: _Trace, frame: Tensor, p: Tensor, la0: Tensor, n_start: Tensor, free: Tensor, settings: RefineSettings
+) -> tuple[Tensor, Tensor]:
+    """Starts where the lobe is ambiguous: as given, the tangent turned 90 deg (the other axis
+    carries alpha_x), the lobe 4x sharper; one round of LM each, the cheapest kept per texel."""
+    N = p.shape[0]
+    quarter = torch.zeros(N, 3, dtype=p.dtype)
+    quarter[:, 2] = math.pi / 2
+    sharp = p.clone()
+    sharp[:, P_LOGA] = (sharp[:, P_LOGA] + math.log(SHARP_START)).clamp(math.log(ALPHA_MIN), math.log(ALPHA_MAX))
+    best_cost = torch.full((N,), math.inf, dtype=p.dtype)
+    best_frame, best_p = frame, p
+    for f0, q0 in ((frame, p), (_fold(frame, quarter), p), (frame, sharp)):
+        rnd = _Round(tr, f0, q0[:, P_LOGA], True)
+        q, cost, _ = _lm(rnd, _albedo_start(rnd, q0, True), la0, n_start, free, settings.iterations, settings)
+        better = cost < best_cost
+        best_cost = torch.where(better, cost, best_cost)
+        best_frame = torch.where(better[:, None, None], rnd.frame0, best_frame)
+        best_p = torch.where(better[:, None], q, best_p)
+    return best_frame, best_p
+
+
+def refine(
+    scanner: Scanner,
+    entries: Tensor,
+    mask: Tensor,
+    start: Start,
+    specular: Tensor,
+    settings: RefineSettings | None = None,
+) -> Refined:
+    """Refine N texels from ``start``. ``entries (N, V, 12)`` as captured with ``mask (N, V)``;
+    ``specular (N,)``: texels whose lobe is solved. A texel without one, or whose solved lobe no
+    entry shows (below ``MIN_SPECULAR_SHARE`` of every pixel), gets a diffuse-only solve from its
+    start and rho_s = 0, its lobe flagged unconstrained. Never NaN: a failed solve keeps the start."""
+    settings = settings or RefineSettings()
+    dtype = entries.dtype
+    N = len(entries)
+    tr = _Trace(scanner, entries, mask, settings.noise, emitter_blocks(scanner))
+    frame = frame_from_normal_tangent(start.normal.to(dtype), start.tangent.to(dtype))
+    p = torch.zeros(N, N_PARAMS, dtype=dtype)
+    p[:, P_LOGA] = start.alpha.to(dtype).clamp(ALPHA_MIN, ALPHA_MAX).log()
+    p[:, P_RHO_D] = start.rho_d.to(dtype).clamp(0, RHO_D_MAX)
+    p[:, P_RHO_S] = start.rho_s.to(dtype).clamp(0, RHO_S_MAX)
+    # every texel's diffuse-only answer (cheap: no lobe), then the lobe where one is sought; the lobe
+    # stays where an entry shows it and it lowers the cost by more than ``LOBE_EVIDENCE``
+    out_frame, out_p, cost, H = _solve(tr, frame, p, False, settings)
+    seen = torch.zeros(N, dtype=torch.bool)
+    idx = specular.nonzero().squeeze(1)
+    if len(idx):
+        sub = tr.rows(idx)
+        f, q, c, h = _solve(sub, frame[idx], p[idx], True, settings)
+        keep = _lobe_seen(sub, f, q) & (c < cost[idx] - LOBE_EVIDENCE)
+        seen[idx] = keep
+        k = idx[keep]
+        out_frame[k], out_p[k], cost[k], H[k] = f[keep], q[keep], c[keep], h[keep]
+    # never NaN: a texel whose solve went non-finite keeps its start
+    bad = ~(torch.isfinite(out_p).all(1) & torch.isfinite(out_frame).flatten(1).all(1) & torch.isfinite(cost))
+    out_p[bad], out_frame[bad] = p[bad], frame[bad]
+    return _finish(out_frame, out_p, H, cost, seen)
+
+
+def _lobe_seen(tr: _Trace, frame: Tensor, p: Tensor) -> Tensor:
+    """Texels ``(N,)`` whose fitted lobe makes at least ``MIN_SPECULAR_SHARE`` of some entry's pixel."""
+    rnd = _Round(tr, frame, p[:, P_LOGA], True)
+    d, s = rnd.bases(torch.zeros_like(p[:, P_OMEGA]), p[:, P_LOGA])
+    pred_s = (p[:, None, P_RHO_S] * s).sum(-1)
+    pred = (p[:, None, P_RHO_D] * d).sum(-1) + pred_s
+    share = torch.where(tr.mask[..., 0], pred_s / pred.clamp_min(1e-12), torch.zeros_like(pred))
+    return share.amax(1) >= MIN_SPECULAR_SHARE
+
+
+def _finish(frame: Tensor, p: Tensor, H: Tensor, cost: Tensor, seen: Tensor) -> Refined:
+    """Canonical lobe (alpha_x >= alpha_y), the unconstrained flags and the 1-sigma uncertainties."""
+    la = p[:, P_LOGA]
+    swap = la[:, 1] > la[:, 0]
+    t, b, n = frame[:, 0], frame[:, 1], frame[:, 2]
+    frame = torch.stack([torch.where(swap[:, None], b, t), torch.where(swap[:, None], -t, b), n], 1)
+    la = torch.where(swap[:, None], la.flip(1), la)
+    # uncertainty: diag of the inverse Gauss-Newton Hessian (unit-sigma residuals, priors included)
+    Hd = H + 1e-12 * torch.eye(N_PARAMS, dtype=H.dtype)
+    cov = torch.linalg.pinv(Hd).diagonal(dim1=1, dim2=2).clamp_min(0).sqrt().to(p.dtype)
+    normal_std = torch.rad2deg(torch.sqrt(cov[:, 0] ** 2 + cov[:, 1] ** 2))
+    rho_s_mean = p[:, P_RHO_S].mean(1).clamp_min(1e-3)
+    std = torch.stack(
+        [normal_std, torch.rad2deg(cov[:, 2]), cov[:, 3:5].amax(1), cov[:, P_RHO_S].mean(1) / rho_s_mean], 1
+    )
+    std = torch.where(seen[:, None], std, std.masked_fill(torch.tensor([False, True, True, True]), math.inf))
+    flags = (~seen).long() * FLAG_SPECULAR_UNCONSTRAINED
+    iso = (la[:, 0] - la[:, 1]) < math.log(ISOTROPIC_RATIO)
+    flags = flags | ((~seen | iso).long() * FLAG_TANGENT_UNCONSTRAINED)
+    rho_s = torch.where(seen[:, None], p[:, P_RHO_S], torch.zeros_like(p[:, P_RHO_S]))
+    return Refined(frame, la, p[:, P_RHO_D], rho_s, flags, std, cost)
