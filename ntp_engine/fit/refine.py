@@ -45,6 +45,7 @@ CENSOR_CODE = VALID_CODE[1]  # above this an 8-bit code may be (or border) a cli
 EXPANDED_BLOCKS = 4  # emitter blocks per entry summed sample by sample (the rest as coarse emitters)
 SELECT_WIDEN, SELECT_FLOOR = 3.0, 0.03  # emitters are chosen under alphas x3 (at least 0.03)
 MAX_TRIES = 3  # damping increases per LM iteration before the texel waits for the next one
+CONVERGED = 1e-4  # a texel whose LM step lowers its cost by less than this (relative) is done
 SHARP_START = 0.25  # the multi-start's sharper lobe: alphas times this
 ISOTROPIC_RATIO = 1.25  # alpha_x / alpha_y below this: the tangent is not constrained by the lobe
 MIN_SPECULAR_SHARE = 0.05  # a lobe below this share of some entry's pixel was not observed
@@ -158,6 +159,14 @@ class _Trace:
         self.mask = mask[..., None].expand(N, V, 3)
         self.inv_sigma = torch.where(self.mask, 1.0 / noise.sigma(self.y), torch.zeros_like(self.y))
 
+    def light_rows(self, idx: Tensor) -> _Trace:
+        """The texels ``idx`` with only what the residuals need (no per-emitter arrays)."""
+        out = object.__new__(_Trace)
+        for k in ("y", "inv_sigma", "censored", "mask", "wo"):
+            setattr(out, k, getattr(self, k)[idx])
+        out.N, out.V, out.blocks = len(idx), self.V, self.blocks
+        return out
+
     def rows(self, idx: Tensor) -> _Trace:
         """The same chunk for the texels ``idx`` only."""
         out = object.__new__(_Trace)
@@ -260,6 +269,15 @@ class _Round:
         self.ff = torch.cat([torch.gather(tr.fresnel_falloff, 2, fine), torch.gather(tr.ff_c, 2, rest)], 2)
         self.drive = torch.cat([tr.drive[fine], tr.drive_c[rest]], 2)  # (N, V, M, 3)
 
+    def rows(self, idx: Tensor) -> _Round:
+        """The same round for the texels ``idx`` only (the LM drops texels that have converged)."""
+        out = object.__new__(_Round)
+        out.tr, out.specular = self.tr.light_rows(idx), self.specular
+        out.frame0, out.diffuse = self.frame0[idx], self.diffuse[idx]
+        if self.specular:
+            out.wi, out.h, out.ff, out.drive = self.wi[idx], self.h[idx], self.ff[idx], self.drive[idx]
+        return out
+
     def rebase(self, omega: Tensor) -> None:
         """Fold the rotation ``omega (N, 3)`` into the round's frame (linearise about it next)."""
         self.frame0 = _fold(self.frame0, omega)
@@ -319,6 +337,15 @@ def _start_normal_in(frame: Tensor, n_start: Tensor, omega: Tensor) -> Tensor:
     return (rotation_from_vector(omega).transpose(-1, -2) @ u[:, :, None])[..., 0]
 
 
+def _cost_at(rnd: _Round, q: Tensor, la0: Tensor, n_start: Tensor, settings: RefineSettings) -> Tensor:
+    """The objective per texel at ``q (N, 11)``: robust data cost plus the weak alpha and normal priors."""
+    d, s = rnd.bases(q[:, P_OMEGA], q[:, P_LOGA])
+    u = _start_normal_in(rnd.frame0, n_start, q[:, P_OMEGA])
+    tilt = 0.5 * ((u[:, :2] / math.radians(settings.normal_prior_deg)) ** 2).sum(1)
+    data = _cost(_residuals(rnd.tr, d, s, q)[0], settings.noise.robust)
+    return data + _prior(q, la0, settings.log_alpha_prior_sigma) + tilt
+
+
 def _lm(
     rnd: _Round,
     p: Tensor,
@@ -328,74 +355,97 @@ def _lm(
     iterations: int,
     settings: RefineSettings,
 ) -> tuple[Tensor, Tensor, Tensor]:
-    """LM iterations from ``p (N, 11)`` with the parameters ``free (N, 11)``; each accepted
-    rotation is folded into ``rnd``'s frame (omega stays 0 between iterations). Returns p, the
-    cost per texel and the Gauss-Newton Hessian (float64) of the last linearisation."""
-    tr, c = rnd.tr, settings.noise.robust
+    """Up to ``iterations`` LM steps from ``p (N, 11)`` with the parameters ``free (N, 11)``; a
+    texel whose step no longer lowers its cost by ``CONVERGED`` (relative) is done and drops out.
+    Each accepted rotation is folded into ``rnd``'s frame (omega stays 0 between steps). Returns p,
+    the cost per texel and the Gauss-Newton Hessian (float64) of its last linearisation."""
     N = p.shape[0]
     lam = torch.full((N,), 1e-3, dtype=torch.float64)
+    H = torch.zeros(N, N_PARAMS, N_PARAMS, dtype=torch.float64)
+    cost = _cost_at(rnd, p, la0, n_start, settings)
+    p = p.clone()
+    live = torch.ones(N, dtype=torch.bool)
+    for _ in range(iterations):
+        ids = live.nonzero().squeeze(1)
+        if len(ids) == 0:
+            break
+        whole = len(ids) == N
+        sub = rnd if whole else rnd.rows(ids)
+        q, c_new, h, lam_new = _lm_step(sub, p[ids], cost[ids], lam[ids], la0[ids], n_start[ids], free[ids], settings)
+        done = cost[ids] - c_new <= CONVERGED * cost[ids].abs()  # no progress left
+        p[ids], cost[ids], H[ids], lam[ids] = q, c_new, h, lam_new
+        if not whole:
+            rnd.frame0 = rnd.frame0.index_copy(0, ids, sub.frame0)
+        live[ids[done]] = False
+    return p, cost, H
+
+
+def _lm_step(
+    rnd: _Round,
+    p: Tensor,
+    cost: Tensor,
+    lam: Tensor,
+    la0: Tensor,
+    n_start: Tensor,
+    free: Tensor,
+    settings: RefineSettings,
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """One LM linearisation (with up to ``MAX_TRIES`` damping increases) for all of ``rnd``'s texels:
+    returns p (omega folded into ``rnd.frame0``), cost, the Gauss-Newton Hessian and the damping."""
+    tr, c = rnd.tr, settings.noise.robust
+    N = p.shape[0]
     lo, hi = _LO.to(p.dtype), _HI.to(p.dtype)
     ip = 1.0 / settings.log_alpha_prior_sigma**2
     sn = math.radians(settings.normal_prior_deg)
     ch = torch.arange(3)
-
-    def cost_at(q: Tensor) -> Tensor:
-        d, s = rnd.bases(q[:, P_OMEGA], q[:, P_LOGA])
-        u = _start_normal_in(rnd.frame0, n_start, q[:, P_OMEGA])
-        tilt = 0.5 * ((u[:, :2] / sn) ** 2).sum(1)
-        return _cost(_residuals(tr, d, s, q)[0], c) + _prior(q, la0, settings.log_alpha_prior_sigma) + tilt
-
-    H = torch.zeros(N, N_PARAMS, N_PARAMS, dtype=torch.float64)
-    cost = cost_at(p)
-    for _ in range(iterations):
-        d, s, dd, ds = rnd.bases_and_jacobian(p[:, P_LOGA])
-        r, active = _residuals(tr, d, s, p)
-        V = d.shape[1]
-        # d pred / d geometry: rho_d dD + rho_s dS; d pred / d rho: the bases, channel by channel
-        J = torch.zeros(N, V, 3, N_PARAMS, dtype=p.dtype)
-        J[..., :5] = (p[:, None, None, P_RHO_D] * dd + p[:, None, None, P_RHO_S] * ds).transpose(2, 3)
-        J[:, :, ch, 5 + ch] = d
-        J[:, :, ch, 8 + ch] = s
-        J = J * (tr.inv_sigma * active)[..., None]
-        w = 1.0 / (1.0 + (r / c) ** 2)  # Cauchy IRLS weight
-        Jf = J.reshape(N, -1, N_PARAMS).double()
-        wf = w.reshape(N, -1, 1).double()
-        H = Jf.transpose(1, 2) @ (wf * Jf)
-        g = ((Jf * wf).transpose(1, 2) @ r.reshape(N, -1, 1).double())[..., 0]
-        H[:, 3, 3] += ip  # the weak alpha prior
-        H[:, 4, 4] += ip
-        g[:, 3:5] += (ip * (p[:, P_LOGA] - la0)).double()
-        # the weak normal prior: residuals u_x, u_y / sigma of the start normal u in the shading frame,
-        # d u / d omega_k = u x e_k
-        u = _start_normal_in(rnd.frame0, n_start, torch.zeros_like(p[:, P_OMEGA])).double()
-        zero = torch.zeros_like(u[:, 0])
-        ju = torch.stack([torch.stack([zero, -u[:, 2], u[:, 1]], 1), torch.stack([u[:, 2], zero, -u[:, 0]], 1)], 1) / sn
-        H[:, :3, :3] += ju.transpose(1, 2) @ ju
-        g[:, :3] += (ju.transpose(1, 2) @ (u[:, :2, None] / sn))[..., 0]
-        # active set: a parameter at a bound whose gradient points out stays there this iteration
-        at_lo = (p <= lo + 1e-7) & (g > 0)
-        at_hi = (p >= hi - 1e-7) & (g < 0)
-        mf = (free & ~at_lo & ~at_hi).double()
-        Hm = H * mf[:, :, None] * mf[:, None, :]
-        gm = g * mf
-        diag = Hm.diagonal(dim1=1, dim2=2)
-        p0, pending = p, torch.ones(N, dtype=torch.bool)
-        for _try in range(MAX_TRIES):  # a rejected step is retried with more damping (same linearisation)
-            A = Hm + torch.diag_embed(lam[:, None] * (diag + 1e-3 * diag.mean(1, keepdim=True)) + (1 - mf))
-            step = -torch.linalg.solve(A, gm[..., None])[..., 0]
-            q = torch.minimum(torch.maximum(p0 + step.to(p.dtype), lo), hi)
-            new = cost_at(q)
-            better = pending & torch.isfinite(new) & (new < cost)
-            p = torch.where(better[:, None], q, p)
-            cost = torch.where(better, new, cost)
-            lam = torch.where(better, (lam * 0.3).clamp_min(1e-7), torch.where(pending, lam * 10, lam))
-            pending = pending & ~better
-            if not bool(pending.any()):
-                break
-        rnd.rebase(p[:, P_OMEGA])
-        p = p.clone()
-        p[:, P_OMEGA] = 0.0
-    return p, cost, H
+    d, s, dd, ds = rnd.bases_and_jacobian(p[:, P_LOGA])
+    r, active = _residuals(tr, d, s, p)
+    V = d.shape[1]
+    # d pred / d geometry: rho_d dD + rho_s dS; d pred / d rho: the bases, channel by channel
+    J = torch.zeros(N, V, 3, N_PARAMS, dtype=p.dtype)
+    J[..., :5] = (p[:, None, None, P_RHO_D] * dd + p[:, None, None, P_RHO_S] * ds).transpose(2, 3)
+    J[:, :, ch, 5 + ch] = d
+    J[:, :, ch, 8 + ch] = s
+    J = J * (tr.inv_sigma * active)[..., None]
+    w = 1.0 / (1.0 + (r / c) ** 2)  # Cauchy IRLS weight
+    Jf = J.reshape(N, -1, N_PARAMS).double()
+    wf = w.reshape(N, -1, 1).double()
+    H = Jf.transpose(1, 2) @ (wf * Jf)
+    g = ((Jf * wf).transpose(1, 2) @ r.reshape(N, -1, 1).double())[..., 0]
+    H[:, 3, 3] += ip  # the weak alpha prior
+    H[:, 4, 4] += ip
+    g[:, 3:5] += (ip * (p[:, P_LOGA] - la0)).double()
+    # the weak normal prior: residuals u_x, u_y / sigma of the start normal u in the shading frame,
+    # d u / d omega_k = u x e_k
+    u = _start_normal_in(rnd.frame0, n_start, torch.zeros_like(p[:, P_OMEGA])).double()
+    zero = torch.zeros_like(u[:, 0])
+    ju = torch.stack([torch.stack([zero, -u[:, 2], u[:, 1]], 1), torch.stack([u[:, 2], zero, -u[:, 0]], 1)], 1) / sn
+    H[:, :3, :3] += ju.transpose(1, 2) @ ju
+    g[:, :3] += (ju.transpose(1, 2) @ (u[:, :2, None] / sn))[..., 0]
+    # active set: a parameter at a bound whose gradient points out stays there this iteration
+    at_lo = (p <= lo + 1e-7) & (g > 0)
+    at_hi = (p >= hi - 1e-7) & (g < 0)
+    mf = (free & ~at_lo & ~at_hi).double()
+    Hm = H * mf[:, :, None] * mf[:, None, :]
+    gm = g * mf
+    diag = Hm.diagonal(dim1=1, dim2=2)
+    p0, pending = p, torch.ones(N, dtype=torch.bool)
+    for _try in range(MAX_TRIES):  # a rejected step is retried with more damping (same linearisation)
+        A = Hm + torch.diag_embed(lam[:, None] * (diag + 1e-3 * diag.mean(1, keepdim=True)) + (1 - mf))
+        step = -torch.linalg.solve(A, gm[..., None])[..., 0]
+        q = torch.minimum(torch.maximum(p0 + step.to(p.dtype), lo), hi)
+        new = _cost_at(rnd, q, la0, n_start, settings)
+        better = pending & torch.isfinite(new) & (new < cost)
+        p = torch.where(better[:, None], q, p)
+        cost = torch.where(better, new, cost)
+        lam = torch.where(better, (lam * 0.3).clamp_min(1e-7), torch.where(pending, lam * 10, lam))
+        pending = pending & ~better
+        if not bool(pending.any()):
+            break
+    rnd.rebase(p[:, P_OMEGA])
+    p = p.clone()
+    p[:, P_OMEGA] = 0.0
+    return p, cost, H, lam
 
 
 def _fold(frame: Tensor, omega: Tensor) -> Tensor:

@@ -317,7 +317,8 @@ def _reconstruct(
 
     t0 = time.perf_counter()
     traces, stats, h_tr = _traces_stage(scan, cache, texels, mesh, h_atlas, poses, h_pose, progress)
-    lengths = traces.lengths.numpy()
+    # what counts as observed: entries the fit reads — the in-range ones, or with the refinement all
+    lengths = (traces if refine else traces.in_range_only()).lengths.numpy()
     _check_measured(scan, stats, lengths, len(poses))
     scale = net.exposure() / float(scan.scanner.exposure(scan.scanner.pattern))
     traces.entries[:, :3] *= scale  # linear pixels as captured -> the model's exposure

@@ -114,6 +114,6 @@ def test_refinement_stage_writes_uncertainty_and_resumes(scan24, tmp_path):
     before, after = map_errors(tmp_path / "plain", truth), map_errors(tmp_path / "rec", truth)
     assert after["normal_median_deg"] < before["normal_median_deg"] + 0.3
     assert after["diffuse_rmse"] < before["diffuse_rmse"] + 0.01
-    assert plain["texels"]["observed"] == rep["texels"]["observed"]
+    assert rep["texels"]["observed"] >= plain["texels"]["observed"]  # dark and clipped entries count too
     again = reconstruct(scan, tmp_path / "rec", resolution=24, refine=True)
     assert again["cached_stages"][-2:] == ["fit", "refine"]
