@@ -33,6 +33,7 @@ from ..pipeline.output_folder import claim
 from ..pipeline.scan_folder import load_scan
 from ..pipeline.stages import cached_fit, reconstruct
 from ..pipeline.texels import rasterize
+from ..scanner.scanner import Scanner
 from ..sim.evaluate import _nearest, parameter_errors
 from ..sim.gallery import GALLERY, build_asset
 from ..sim.materials import load_labels
@@ -117,6 +118,7 @@ def run(out: Path, bench: RefineBench | None = None, json_path: Path | None = No
                 ent, mask = traces.padded(torch.as_tensor(sel), max_views=REFINE_VIEWS)
                 specular = torch.as_tensor(fit["flags"][sel] & FLAG_NO_HIGHLIGHT == 0)
                 start = rf.Start.from_fit(fit, sel)
+                noise = rf.calibrated_noise(scan.scanner, ent, mask, start, specular, rf.RefineSettings())
                 answers = {
                     "network + fit": (
                         fit["n_loc"][sel],
@@ -127,11 +129,13 @@ def run(out: Path, bench: RefineBench | None = None, json_path: Path | None = No
                     )
                 }
                 for label_v, st in VARIANTS:
+                    st = replace(st, noise=noise)
                     t0 = time.perf_counter()
                     r = rf.refine(scan.scanner, ent, mask, start, specular, st)
                     seconds = time.perf_counter() - t0
                     speed.append(
                         {
+                            "noise_scale": noise.relative / rf.SensorNoise().relative,
                             "object": name,
                             "scanner": scanner,
                             "variant": label_v,
@@ -166,11 +170,7 @@ def run(out: Path, bench: RefineBench | None = None, json_path: Path | None = No
                                 **parameter_errors(rec, truth, mat["matte"]),
                             }
                         )
-                baseline.append(
-                    _baseline(
-                        scan.scanner, ent, mask, fit, sel, specular, frame, true, table, label, bench, rng, answers
-                    )
-                )
+                baseline.append(_baseline(noise, scan.scanner, ent, mask, fit, sel, specular, frame, true, bench, rng))
     record = {"bench": asdict(bench), "rows": rows, "speed": speed, "baseline": baseline}
     text = markdown(record)
     write_text_atomic(out / "refine.md", text)
@@ -181,14 +181,26 @@ def run(out: Path, bench: RefineBench | None = None, json_path: Path | None = No
     return record
 
 
-def _baseline(scanner, ent, mask, fit, sel, specular, frame, true, table, label, bench, rng, answers) -> dict:
+def _baseline(
+    noise: rf.SensorNoise,
+    scanner: Scanner,
+    ent: torch.Tensor,
+    mask: torch.Tensor,
+    fit: dict[str, np.ndarray],
+    sel: np.ndarray,
+    specular: torch.Tensor,
+    frame: np.ndarray,
+    true: dict[str, np.ndarray],
+    bench: RefineBench,
+    rng: np.random.Generator,
+) -> dict:
     """scipy least_squares per texel (exact model) on ``bench.baseline_texels`` sampled texels with a
     lobe; seconds per texel for it and for ours on the same texels, and both answers' errors."""
     spec_idx = np.nonzero(specular.numpy())[0]
     pick = np.sort(rng.choice(spec_idx, min(bench.baseline_texels, len(spec_idx)), replace=False))
     if len(pick) == 0:
         return {}
-    st = rf.RefineSettings()
+    st = rf.RefineSettings(noise=noise)
     sub_ent, sub_mask = ent[pick].double(), mask[pick]
     idx = sel[pick]
     t0 = time.perf_counter()
@@ -277,9 +289,12 @@ def markdown(record: dict) -> str:
         lines.append(
             f"| {r['object']} | {r['scanner']} | {r['material']} | {r['variant']} | " + " | ".join(vals) + " |"
         )
-    lines += ["", "| object | scanner | variant | texels | texels/s |", "|---|---|---|---|---|"]
+    lines += ["", "| object | scanner | noise scale | variant | texels | texels/s |", "|---|---|---|---|---|---|"]
     for s in record["speed"]:
-        lines.append(f"| {s['object']} | {s['scanner']} | {s['variant']} | {s['texels']} | {s['texels_per_s']:.0f} |")
+        lines.append(
+            f"| {s['object']} | {s['scanner']} | {s['noise_scale']:.2f} | {s['variant']} | {s['texels']} "
+            f"| {s['texels_per_s']:.0f} |"
+        )
     lines += [
         "",
         "| object | scanner | texels | s/texel ours | s/texel scipy | ratio | normal ours / scipy "

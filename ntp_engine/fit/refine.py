@@ -41,10 +41,12 @@ from .albedo import bounded_ls2
 from .emitter_blocks import EmitterBlocks, emitter_blocks
 from .highlights import parked_positions
 
+VERSION = 2  # of the method: part of the pipeline's cache key (bump when results change for the same settings)
 CENSOR_CODE = VALID_CODE[1]  # above this an 8-bit code may be (or border) a clipped pixel: a lower bound
 EXPANDED_BLOCKS = 4  # emitter blocks per entry summed sample by sample (the rest as coarse emitters)
 SELECT_WIDEN, SELECT_FLOOR = 3.0, 0.03  # emitters are chosen under alphas x3 (at least 0.03)
 MAX_TRIES = 3  # damping increases per LM iteration before the texel waits for the next one
+NOISE_SCALE = (0.5, 10.0)  # bounds of the noise model's calibration factor (``calibrated_noise``)
 CONVERGED = 1e-4  # a texel whose LM step lowers its cost by less than this (relative) is done
 SHARP_START = 0.25  # the multi-start's sharper lobe: alphas times this
 ISOTROPIC_RATIO = 1.25  # alpha_x / alpha_y below this: the tangent is not constrained by the lobe
@@ -561,6 +563,31 @@ def refine(
     bad = ~(torch.isfinite(out_p).all(1) & torch.isfinite(out_frame).flatten(1).all(1) & torch.isfinite(cost))
     out_p[bad], out_frame[bad] = p[bad], frame[bad]
     return _finish(out_frame, out_p, H, cost, seen)
+
+
+def residual_scale(scanner: Scanner, entries: Tensor, mask: Tensor, refined: Refined, noise: SensorNoise) -> float:
+    """How far the noise model is off for these traces: 1.4826 x the median |normalised residual|
+    of the refined answer over its entries (1 when ``noise`` is right; Monte Carlo renders and
+    unmodelled effects give more). ``calibrated_noise`` scales the model by it."""
+    tr = _Trace(scanner, entries, mask, noise, emitter_blocks(scanner))
+    zero = torch.zeros(len(entries), 3, dtype=entries.dtype)
+    p = torch.cat([zero, refined.log_alpha, refined.rho_d, refined.rho_s], 1)
+    rnd = _Round(tr, refined.frame, refined.log_alpha, True)
+    d, s = rnd.bases(zero, refined.log_alpha)
+    r, active = _residuals(tr, d, s, p)
+    vals = r[active].abs()
+    return float(1.4826 * vals.median()) if len(vals) else 1.0
+
+
+def calibrated_noise(
+    scanner: Scanner, entries: Tensor, mask: Tensor, start: Start, specular: Tensor, settings: RefineSettings
+) -> SensorNoise:
+    """The sensor noise model scaled (within ``NOISE_SCALE``) so that a refinement of these sample
+    traces leaves residuals of unit robust scale: data from a noisier source (a Monte Carlo render,
+    a real camera) then weigh against the priors as much as they deserve."""
+    r = refine(scanner, entries, mask, start, specular, settings)
+    k = min(max(residual_scale(scanner, entries, mask, r, settings.noise), NOISE_SCALE[0]), NOISE_SCALE[1])
+    return SensorNoise(settings.noise.read_code * k, settings.noise.relative * k, settings.noise.robust)
 
 
 def _lobe_seen(tr: _Trace, frame: Tensor, p: Tensor) -> Tensor:

@@ -9,12 +9,14 @@ rho_s (N, 3). Traces with no entry keep the defaults (+z, +x, FALLBACK_ALPHA, ze
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import torch
 
 from ..fit.albedo import highlights_and_albedo
 from ..fit.geometry import FALLBACK_ALPHA, FLAG_NO_HIGHLIGHT, fit_geometry
-from ..fit.refine import RefineSettings, Start, refine
+from ..fit.refine import RefineSettings, Start, calibrated_noise, refine
 from ..io.progress import QUIET, Progress
 from ..learn.inference import predict
 from ..learn.network import TraceNet
@@ -24,6 +26,7 @@ from ..scanner.scanner import Scanner
 ALBEDO_VIEWS = 16  # entries per texel for the beta check and the albedo LS (Eq. 1 per entry and emitter)
 RHO_S_PRIOR_WEIGHT = 1.0  # the network's rho_s counts as one view in the albedo LS (fit._albedo_ls)
 REFINE_VIEWS = 24  # entries per texel the refinement reads (spread evenly over the trace)
+CALIBRATION_TEXELS = 512  # texels refined first to calibrate the noise model (fit.refine.calibrated_noise)
 REFINE_BATCH = 512  # texels per refinement batch: (batch, views, emitters) tensors stay ~100 MB
 
 
@@ -94,10 +97,22 @@ def refine_fit(
 ) -> dict[str, np.ndarray]:
     """``fit_traces``'s result refined by analysis-by-synthesis (``fit.refine``) against every entry
     of every observed trace, dark and clipped ones included; adds ``std (N, 4)``, the 1-sigma
-    uncertainties of normal (deg), tangent (deg), log alpha, log rho_s (NaN where no trace reached).
+    uncertainties of normal (deg), tangent (deg), log alpha, log rho_s (NaN where no trace reached),
+    and ``noise_scale`` (the noise model's calibration factor, from a first pass over a sample).
     Texels the network never saw (all entries out of range) start from the fallback lobe."""
     fit = {k: v.copy() for k, v in fit.items()}
     todo = (traces.lengths > 0).nonzero().squeeze(1)
+    settings = settings or RefineSettings()
+    if len(todo):  # the noise model, calibrated on a seeded sample of the texels
+        gen = torch.Generator().manual_seed(0)
+        sample = todo[torch.randperm(len(todo), generator=gen)[:CALIBRATION_TEXELS]].sort().values
+        ent, mask = traces.padded(sample, max_views=REFINE_VIEWS)
+        ent[..., :3] /= pixel_scale
+        i = sample.numpy()
+        specular = torch.as_tensor(fit["flags"][i] & FLAG_NO_HIGHLIGHT == 0)
+        noise = calibrated_noise(scanner, ent, mask, Start.from_fit(fit, i), specular, settings)
+        settings = dataclasses.replace(settings, noise=noise)
+        fit["noise_scale"] = np.array(noise.relative / RefineSettings().noise.relative)
     std = np.full((traces.num_traces, 4), np.nan)
     bar = progress.counter("refine", len(todo), "texel")
     for a in range(0, len(todo), REFINE_BATCH):

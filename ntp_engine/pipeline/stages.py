@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ..fit.refine import VERSION as REFINE_VERSION
 from ..fit.refine import RefineSettings
 from ..io.atomic import atomic_path, temp_dir, write_text_atomic
 from ..io.errors import NtpInputError
@@ -40,7 +41,7 @@ from . import traces as trace_assembly
 from .align import Alignment, align_to_mesh
 from .cache import StageCache, content_digest, content_key, digest
 from .colmap_model import model_files, read_colmap_model
-from .fit_traces import ALBEDO_VIEWS, REFINE_VIEWS, RHO_S_PRIOR_WEIGHT, fit_traces, refine_fit
+from .fit_traces import ALBEDO_VIEWS, CALIBRATION_TEXELS, REFINE_VIEWS, RHO_S_PRIOR_WEIGHT, fit_traces, refine_fit
 from .output_folder import claim, publish
 from .photo_registration import (
     MIN_MARGIN,
@@ -347,10 +348,17 @@ def _reconstruct(
         def refine_stage(d: Path) -> None:
             np.savez(d / "refined.npz", **refine_fit(scan.scanner, traces, scale, fitted, REFINE, progress))
 
-        key = {"fit": h_fit, "settings": dataclasses.asdict(REFINE), "views": REFINE_VIEWS}
+        key = {
+            "fit": h_fit,
+            "settings": dataclasses.asdict(REFINE),
+            "views": REFINE_VIEWS,
+            "version": REFINE_VERSION,
+            "calibration_texels": CALIBRATION_TEXELS,
+        }
         folder, _ = cache.get("refine", key, refine_stage)
         with np.load(folder / "refined.npz") as z:
             fitted = {k: z[k] for k in z.files}
+        report.data["refine"] = {"noise_scale": float(fitted["noise_scale"])} if "noise_scale" in fitted else {}
         report.timed("refine", t0)
 
     t0 = time.perf_counter()
