@@ -49,5 +49,5 @@ def test_coarse_emitters_match_a_broad_lobe_not_a_sharp_one():
     for alpha, lo, hi in ((0.3, 0.0, 0.03), (0.01, 0.3, np.inf)):
         exact = _specular_pixel(dev, blocks, x, n, t, alpha, False)
         coarse = _specular_pixel(dev, blocks, x, n, t, alpha, True)
-        rel = float(((coarse - exact).abs().sum() / exact.abs().sum()))
+        rel = float((coarse - exact).abs().sum() / exact.abs().sum())
         assert lo <= rel < hi, (alpha, rel)
