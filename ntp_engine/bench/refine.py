@@ -23,12 +23,11 @@ import torch
 from scipy.optimize import least_squares
 
 from ..fit import refine as rf
-from ..fit.geometry import FLAG_NO_HIGHLIGHT
 from ..io.atomic import write_text_atomic
 from ..io.maps import SVBRDFMaps
 from ..io.mesh import load_mesh
 from ..io.progress import QUIET, Progress
-from ..pipeline.fit_traces import REFINE_VIEWS
+from ..pipeline.fit_traces import refine_inputs
 from ..pipeline.output_folder import claim
 from ..pipeline.scan_folder import load_scan
 from ..pipeline.stages import cached_fit, reconstruct
@@ -115,9 +114,8 @@ def run(out: Path, bench: RefineBench | None = None, json_path: Path | None = No
                     cand = np.nonzero((label == k) & observed)[0]
                     picks.append(np.sort(rng.choice(cand, min(bench.per_material, len(cand)), replace=False)))
                 sel = np.concatenate(picks)
-                ent, mask = traces.padded(torch.as_tensor(sel), max_views=REFINE_VIEWS)
-                specular = torch.as_tensor(fit["flags"][sel] & FLAG_NO_HIGHLIGHT == 0)
-                start = rf.Start.from_fit(fit, sel)
+                # the cache holds pixels as captured
+                ent, mask, start, specular = refine_inputs(traces, torch.as_tensor(sel), 1.0, fit)
                 noise = rf.calibrated_noise(scan.scanner, ent, mask, start, specular, rf.RefineSettings())
                 answers = {
                     "network + fit": (

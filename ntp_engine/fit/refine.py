@@ -113,7 +113,7 @@ class Refined:
     rho_s: Tensor  # (N, 3)
     flags: Tensor  # (N,) FLAG_SPECULAR_UNCONSTRAINED | FLAG_TANGENT_UNCONSTRAINED
     std: Tensor  # (N, 4) 1-sigma: normal (deg), tangent (deg), log alpha_x, log rho_s (mean channel)
-    cost: Tensor  # (N,) robust cost per entry at the answer
+    cost: Tensor  # (N,) objective at the answer (robust data cost plus the priors)
 
 
 class _Trace:
@@ -132,16 +132,16 @@ class _Trace:
         live = mask[..., None].to(x.dtype)
         exposure = float(scanner.exposure(scanner.pattern))
 
-        def directions(dev: Scanner) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        def directions(dev: Scanner) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+            """wo (N, V, 3), and per emitter sample wi, h (N, V, K, 3), falloff and F * falloff (N, V, K)."""
             geo = local_emitter_geometry(dev, x, n_geo, t_geo)
             K = geo.falloff.shape[1]
-            wi = geo.wi_l.reshape(N, V, K, 3)
-            self.wo = geo.wo_l.reshape(N, V, 3)
-            h = safe_normalize(wi + self.wo[:, :, None, :])
+            wi, wo = geo.wi_l.reshape(N, V, K, 3), geo.wo_l.reshape(N, V, 3)
+            h = safe_normalize(wi + wo[:, :, None, :])
             falloff = geo.falloff.reshape(N, V, K) * live
-            return wi, h, falloff, fresnel_schlick((wi * h).sum(-1)) * falloff
+            return wo, wi, h, falloff, fresnel_schlick((wi * h).sum(-1)) * falloff
 
-        wi, h, falloff, ff = directions(scanner)
+        self.wo, wi, h, falloff, ff = directions(scanner)
         # one padding sample (index K): any direction, no light
         self.wi = torch.cat([wi, wi[:, :, :1]], 2)
         self.h = torch.cat([h, h[:, :, :1]], 2)
@@ -152,7 +152,7 @@ class _Trace:
         drive = exposure * p_eff.repeat_interleave(Q, 0)  # per sample (the falloff holds w_q)
         self.drive = torch.cat([drive, torch.zeros(1, 3, dtype=x.dtype)])  # (K + 1, 3)
         if blocks is not None:
-            self.wi_c, self.h_c, _, self.ff_c = directions(blocks.coarse)
+            _, self.wi_c, self.h_c, _, self.ff_c = directions(blocks.coarse)
             self.drive_c = exposure * blocks.coarse_drive.to(x.dtype)
         y = entries[..., :3]
         self.y = torch.where(mask[..., None], y, torch.zeros_like(y))
@@ -178,23 +178,50 @@ class _Trace:
         return out
 
 
+class _LobeParts(NamedTuple):
+    """``_lobe``'s value and the intermediate terms its Jacobian reuses (shading-frame vectors,
+    GGX's q = |(hx/ax, hy/ay, hz)|^2, the Smith terms (alpha v)^2, Lambda and cos + Lambda)."""
+
+    lobe: Tensor
+    wi_s: Tensor
+    h_s: Tensor
+    wo_s: Tensor
+    q: Tensor
+    hx2: Tensor
+    hy2: Tensor
+    sq_i: tuple[Tensor, Tensor]
+    lam_i: Tensor
+    a_i: Tensor
+    sq_o: tuple[Tensor, Tensor]
+    lam_o: Tensor
+    a_o: Tensor
+
+
+def _lobe_parts(frame: Tensor, wi: Tensor, h: Tensor, wo: Tensor, fresnel_falloff: Tensor, alpha: Tensor) -> _LobeParts:
+    """``_lobe`` with its intermediate terms (see ``_lobe``)."""
+    f4 = frame[:, None, None]
+    wi_s, h_s, wo_s = to_local(wi, f4), to_local(h, f4), to_local(wo, frame[:, None])
+    ax, ay = alpha[:, 0, None, None], alpha[:, 1, None, None]
+    hx2, hy2 = (h_s[..., 0] / ax) ** 2, (h_s[..., 1] / ay) ** 2
+    q = hx2 + hy2 + h_s[..., 2] ** 2
+    cos_i = wi_s[..., 2].clamp_min(0.0)
+    sq_i = ((ax * wi_s[..., 0]) ** 2, (ay * wi_s[..., 1]) ** 2)
+    lam_i = torch.sqrt((sq_i[0] + sq_i[1] + wi_s[..., 2] ** 2).clamp_min(1e-20))
+    a_i = cos_i + lam_i
+    sq_o = ((ax[..., 0] * wo_s[..., 0]) ** 2, (ay[..., 0] * wo_s[..., 1]) ** 2)
+    lam_o = torch.sqrt((sq_o[0] + sq_o[1] + wo_s[..., 2] ** 2).clamp_min(1e-20))
+    a_o = wo_s[..., 2].clamp_min(0.0) + lam_o
+    seen = (wo_s[..., 2] > 0).to(wo_s.dtype) / a_o  # the view-side Smith factor, 0 below
+    lobe = cos_i * fresnel_falloff * seen[..., None] / (math.pi * ax * ay * q * q * a_i)
+    return _LobeParts(lobe, wi_s, h_s, wo_s, q, hx2, hy2, sq_i, lam_i, a_i, sq_o, lam_o, a_o)
+
+
 def _lobe(frame: Tensor, wi: Tensor, h: Tensor, wo: Tensor, fresnel_falloff: Tensor, alpha: Tensor) -> Tensor:
     """Eq. 1's specular weight per emitter, F D G / (4 cos_i cos_o) (wi.n)+ * falloff, ``(N, V, K)``,
     for shading frames ``frame (N, 3, 3)`` (rows t, b, n in the geometric frame), geometric-frame
     ``wi, h (N, V, K, 3)``, ``wo (N, V, 3)`` and ``alpha (N, 2)``. The cancelled Smith form of
     ``physics.brdf.ggx_specular``; F depends on wi.h only, so it comes precomputed with the falloff."""
-    f4 = frame[:, None, None]
-    wi_s, h_s, wo_s = to_local(wi, f4), to_local(h, f4), to_local(wo, frame[:, None])
-    ax, ay = alpha[:, 0, None, None], alpha[:, 1, None, None]
-    q = (h_s[..., 0] / ax) ** 2 + (h_s[..., 1] / ay) ** 2 + h_s[..., 2] ** 2
-    cos_i = wi_s[..., 2].clamp_min(0.0)
-    lam_i = torch.sqrt(((ax * wi_s[..., 0]) ** 2 + (ay * wi_s[..., 1]) ** 2 + wi_s[..., 2] ** 2).clamp_min(1e-20))
-    cos_o = wo_s[..., 2].clamp_min(0.0)
-    lam_o = torch.sqrt(
-        ((ax[..., 0] * wo_s[..., 0]) ** 2 + (ay[..., 0] * wo_s[..., 1]) ** 2 + wo_s[..., 2] ** 2).clamp_min(1e-20)
-    )
-    seen = (wo_s[..., 2] > 0).to(wo_s.dtype) / (cos_o + lam_o)  # the view-side Smith factor, 0 below
-    return cos_i * fresnel_falloff * seen[..., None] / (math.pi * ax * ay * q * q * (cos_i + lam_i))
+    return _lobe_parts(frame, wi, h, wo, fresnel_falloff, alpha).lobe
 
 
 def _lobe_jacobian(
@@ -203,24 +230,13 @@ def _lobe_jacobian(
     """``_lobe`` and d log(lobe) by (omega, log alpha_x, log alpha_y) ``(N, V, K, 5)``, omega the
     shading-frame rotation at 0: a local vector v turns by v x omega, so d/d omega = g x v for
     g = d log(lobe) / d v, summed over wi, h and wo."""
-    f4 = frame[:, None, None]
-    wi_s, h_s, wo_s = to_local(wi, f4), to_local(h, f4), to_local(wo, frame[:, None])
+    lobe, wi_s, h_s, wo_s, q, hx2, hy2, sq_i, lam_i, a_i, sq_o, lam_o, a_o = _lobe_parts(
+        frame, wi, h, wo, fresnel_falloff, alpha
+    )
     a2 = (alpha * alpha)[:, None, None, :]  # (N, 1, 1, 2)
-    ax, ay = alpha[:, 0, None, None], alpha[:, 1, None, None]
-    hx2, hy2 = (h_s[..., 0] / ax) ** 2, (h_s[..., 1] / ay) ** 2
-    q = hx2 + hy2 + h_s[..., 2] ** 2
-    above_i = (wi_s[..., 2] > 0).to(wi_s.dtype)
-    cos_i = wi_s[..., 2].clamp_min(0.0)
-    sq_i = (a2[..., 0] * wi_s[..., 0] ** 2, a2[..., 1] * wi_s[..., 1] ** 2)
-    lam_i = torch.sqrt((sq_i[0] + sq_i[1] + wi_s[..., 2] ** 2).clamp_min(1e-20))
-    a_i = cos_i + lam_i
     a2o = a2[:, :, 0]  # (N, 1, 2)
-    sq_o = (a2o[..., 0] * wo_s[..., 0] ** 2, a2o[..., 1] * wo_s[..., 1] ** 2)
-    lam_o = torch.sqrt((sq_o[0] + sq_o[1] + wo_s[..., 2] ** 2).clamp_min(1e-20))
-    cos_o = wo_s[..., 2].clamp_min(0.0)
-    a_o = cos_o + lam_o
-    seen = (wo_s[..., 2] > 0).to(wo_s.dtype) / a_o
-    lobe = cos_i * fresnel_falloff * seen[..., None] / (math.pi * ax * ay * q * q * a_i)
+    ax, ay = alpha[:, 0, None, None], alpha[:, 1, None, None]
+    above_i = (wi_s[..., 2] > 0).to(wi_s.dtype)
     # d log / d v for v = h (D), wi (cos_i / (cos_i + Lambda_i)), wo (1 / (cos_o + Lambda_o))
     g_h = -4.0 / q[..., None] * torch.stack([h_s[..., 0] / ax**2, h_s[..., 1] / ay**2, h_s[..., 2]], -1)
     inv_cos = above_i / wi_s[..., 2].clamp_min(1e-12)
@@ -539,9 +555,13 @@ def refine(
     entry shows (below ``MIN_SPECULAR_SHARE`` of every pixel), gets a diffuse-only solve from its
     start and rho_s = 0, its lobe flagged unconstrained. Never NaN: a failed solve keeps the start."""
     settings = settings or RefineSettings()
-    dtype = entries.dtype
-    N = len(entries)
-    tr = _Trace(scanner, entries, mask, settings.noise, emitter_blocks(scanner))
+    return _refine(_Trace(scanner, entries, mask, settings.noise, emitter_blocks(scanner)), start, specular, settings)
+
+
+def _refine(tr: _Trace, start: Start, specular: Tensor, settings: RefineSettings) -> Refined:
+    """``refine`` on traces already prepared with ``settings.noise``."""
+    dtype = tr.y.dtype
+    N = tr.N
     frame = frame_from_normal_tangent(start.normal.to(dtype), start.tangent.to(dtype))
     p = torch.zeros(N, N_PARAMS, dtype=dtype)
     p[:, P_LOGA] = start.alpha.to(dtype).clamp(ALPHA_MIN, ALPHA_MAX).log()
@@ -565,35 +585,31 @@ def refine(
     return _finish(out_frame, out_p, H, cost, seen)
 
 
-def residual_scale(scanner: Scanner, entries: Tensor, mask: Tensor, refined: Refined, noise: SensorNoise) -> float:
-    """How far the noise model is off for these traces: 1.4826 x the median |normalised residual|
-    of the refined answer over its entries (1 when ``noise`` is right; Monte Carlo renders and
-    unmodelled effects give more). ``calibrated_noise`` scales the model by it."""
-    tr = _Trace(scanner, entries, mask, noise, emitter_blocks(scanner))
-    zero = torch.zeros(len(entries), 3, dtype=entries.dtype)
-    p = torch.cat([zero, refined.log_alpha, refined.rho_d, refined.rho_s], 1)
-    rnd = _Round(tr, refined.frame, refined.log_alpha, True)
-    d, s = rnd.bases(zero, refined.log_alpha)
-    r, active = _residuals(tr, d, s, p)
-    vals = r[active].abs()
-    return float(1.4826 * vals.median()) if len(vals) else 1.0
-
-
 def calibrated_noise(
     scanner: Scanner, entries: Tensor, mask: Tensor, start: Start, specular: Tensor, settings: RefineSettings
 ) -> SensorNoise:
     """The sensor noise model scaled (within ``NOISE_SCALE``) so that a refinement of these sample
-    traces leaves residuals of unit robust scale: data from a noisier source (a Monte Carlo render,
-    a real camera) then weigh against the priors as much as they deserve."""
-    r = refine(scanner, entries, mask, start, specular, settings)
-    k = min(max(residual_scale(scanner, entries, mask, r, settings.noise), NOISE_SCALE[0]), NOISE_SCALE[1])
+    traces leaves residuals of unit robust scale — 1.4826 x the median |normalised residual| of the
+    answer over its entries is 1 when the model is right (Monte Carlo renders and unmodelled effects
+    give more): data from a noisier source then weigh against the priors as much as they deserve."""
+    tr = _Trace(scanner, entries, mask, settings.noise, emitter_blocks(scanner))
+    r = _refine(tr, start, specular, settings)
+    p = torch.cat([torch.zeros_like(r.rho_d), r.log_alpha, r.rho_d, r.rho_s], 1)
+    res, active = _residuals(tr, *_predict(tr, r.frame, p), p)
+    vals = res[active].abs()
+    k = float(1.4826 * vals.median()) if len(vals) else 1.0
+    k = min(max(k, NOISE_SCALE[0]), NOISE_SCALE[1])
     return SensorNoise(settings.noise.read_code * k, settings.noise.relative * k, settings.noise.robust)
+
+
+def _predict(tr: _Trace, frame: Tensor, p: Tensor) -> tuple[Tensor, Tensor]:
+    """Unit-albedo diffuse and specular bases ``(N, V, 3)`` of the answer ``frame``, ``p`` (omega 0)."""
+    return _Round(tr, frame, p[:, P_LOGA], True).bases(torch.zeros_like(p[:, P_OMEGA]), p[:, P_LOGA])
 
 
 def _lobe_seen(tr: _Trace, frame: Tensor, p: Tensor) -> Tensor:
     """Texels ``(N,)`` whose fitted lobe makes at least ``MIN_SPECULAR_SHARE`` of some entry's pixel."""
-    rnd = _Round(tr, frame, p[:, P_LOGA], True)
-    d, s = rnd.bases(torch.zeros_like(p[:, P_OMEGA]), p[:, P_LOGA])
+    d, s = _predict(tr, frame, p)
     pred_s = (p[:, None, P_RHO_S] * s).sum(-1)
     pred = (p[:, None, P_RHO_D] * d).sum(-1) + pred_s
     share = torch.where(tr.mask[..., 0], pred_s / pred.clamp_min(1e-12), torch.zeros_like(pred))

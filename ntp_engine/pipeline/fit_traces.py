@@ -87,6 +87,18 @@ def fit_traces(
     }
 
 
+def refine_inputs(
+    traces: RaggedTraces, idx: torch.Tensor, pixel_scale: float, fit: dict[str, np.ndarray]
+) -> tuple[torch.Tensor, torch.Tensor, Start, torch.Tensor]:
+    """What ``fit.refine.refine`` takes for the texels ``idx``: their entries (``REFINE_VIEWS``
+    spread over each trace, pixels as captured: the camera model is the scanner's), the mask, the
+    start from ``fit`` and which texels seek a lobe (those the highlight check did not flag)."""
+    ent, mask = traces.padded(idx, max_views=REFINE_VIEWS)
+    ent[..., :3] /= pixel_scale
+    i = idx.numpy()
+    return ent, mask, Start.from_fit(fit, i), torch.as_tensor(fit["flags"][i] & FLAG_NO_HIGHLIGHT == 0)
+
+
 def refine_fit(
     scanner: Scanner,
     traces: RaggedTraces,
@@ -106,11 +118,7 @@ def refine_fit(
     if len(todo):  # the noise model, calibrated on a seeded sample of the texels
         gen = torch.Generator().manual_seed(0)
         sample = todo[torch.randperm(len(todo), generator=gen)[:CALIBRATION_TEXELS]].sort().values
-        ent, mask = traces.padded(sample, max_views=REFINE_VIEWS)
-        ent[..., :3] /= pixel_scale
-        i = sample.numpy()
-        specular = torch.as_tensor(fit["flags"][i] & FLAG_NO_HIGHLIGHT == 0)
-        noise = calibrated_noise(scanner, ent, mask, Start.from_fit(fit, i), specular, settings)
+        noise = calibrated_noise(scanner, *refine_inputs(traces, sample, pixel_scale, fit), settings)
         settings = dataclasses.replace(settings, noise=noise)
         fit["noise_scale"] = np.array(noise.relative / RefineSettings().noise.relative)
     std = np.full((traces.num_traces, 4), np.nan)
@@ -118,10 +126,7 @@ def refine_fit(
     for a in range(0, len(todo), REFINE_BATCH):
         idx = todo[a : a + REFINE_BATCH]
         i = idx.numpy()
-        ent, mask = traces.padded(idx, max_views=REFINE_VIEWS)
-        ent[..., :3] /= pixel_scale  # pixels as captured: the camera model is the scanner's
-        specular = torch.as_tensor(fit["flags"][i] & FLAG_NO_HIGHLIGHT == 0)
-        r = refine(scanner, ent, mask, Start.from_fit(fit, i), specular, settings)
+        r = refine(scanner, *refine_inputs(traces, idx, pixel_scale, fit), settings)
         fit["n_loc"][i], fit["t_loc"][i] = r.frame[:, 2].numpy(), r.frame[:, 0].numpy()
         fit["alpha"][i] = r.log_alpha.exp().numpy()
         fit["rho_d"][i], fit["rho_s"][i] = r.rho_d.numpy(), r.rho_s.numpy()

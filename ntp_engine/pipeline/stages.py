@@ -392,12 +392,17 @@ def _reconstruct(
 def cached_fit(out: Path) -> tuple[RaggedTraces, dict[str, np.ndarray]]:
     """The traces (linear pixels as captured) and the network's fit (``fit_traces``) that a finished
     ``reconstruct`` into ``out`` keeps in its cache: what the refinement starts from."""
-    with np.load(out / "cache" / "traces" / "traces.npz") as z:
-        traces = RaggedTraces(
-            torch.from_numpy(z["entries"]), torch.from_numpy(z["offsets"]), torch.from_numpy(z["in_range"])
-        )
+    traces = _load_traces(out / "cache" / "traces")
     with np.load(out / "cache" / "fit" / "fit.npz") as z:
         return traces, {k: z[k] for k in z.files}
+
+
+def _load_traces(folder: Path) -> RaggedTraces:
+    """The traces stage's table (``traces.npz``: entries, offsets, in-range flags)."""
+    with np.load(folder / "traces.npz") as z:
+        return RaggedTraces(
+            torch.from_numpy(z["entries"]), torch.from_numpy(z["offsets"]), torch.from_numpy(z["in_range"])
+        )
 
 
 def _check_measured(scan: Scan, stats: dict, lengths: np.ndarray, posed: int) -> None:
@@ -480,8 +485,4 @@ def _traces_stage(
         "device": scanner_to_dict(scan.scanner),
     }
     folder, h_tr = cache.get("traces", key, compute)
-    with np.load(folder / "traces.npz") as z:
-        traces = RaggedTraces(
-            torch.from_numpy(z["entries"]), torch.from_numpy(z["offsets"]), torch.from_numpy(z["in_range"])
-        )
-    return traces, json.loads((folder / "stats.json").read_text()), h_tr
+    return _load_traces(folder), json.loads((folder / "stats.json").read_text()), h_tr
