@@ -33,7 +33,14 @@ import torch
 from torch import Tensor
 
 from ..physics.brdf import ALPHA_MAX, ALPHA_MIN, RHO_D_MAX, RHO_S_MAX, fresnel_schlick
-from ..physics.frame import cross, frame_from_normal_tangent, rotation_from_vector, safe_normalize, to_local
+from ..physics.frame import (
+    cross,
+    frame_from_normal_tangent,
+    rotation_from_vector,
+    safe_normalize,
+    to_local,
+    turned_about_normal,
+)
 from ..physics.measurement import local_emitter_geometry
 from ..scanner.camera import VALID_CODE
 from ..scanner.scanner import Scanner
@@ -41,7 +48,7 @@ from .albedo import bounded_ls2
 from .emitter_blocks import EmitterBlocks, emitter_blocks
 from .highlights import parked_positions
 
-VERSION = 2  # of the method: part of the pipeline's cache key (bump when results change for the same settings)
+VERSION = 3  # of the method: part of the pipeline's cache key (bump when results change for the same settings)
 CENSOR_CODE = VALID_CODE[1]  # above this an 8-bit code may be (or border) a clipped pixel: a lower bound
 EXPANDED_BLOCKS = 4  # emitter blocks per entry summed sample by sample (the rest as coarse emitters)
 SELECT_WIDEN, SELECT_FLOOR = 3.0, 0.03  # emitters are chosen under alphas x3 (at least 0.03)
@@ -50,11 +57,14 @@ NOISE_SCALE = (0.5, 10.0)  # bounds of the noise model's calibration factor (``c
 CONVERGED = 1e-4  # a texel whose LM step lowers its cost by less than this (relative) is done
 SHARP_START = 0.25  # the multi-start's sharper lobe: alphas times this
 ISOTROPIC_RATIO = 1.25  # alpha_x / alpha_y below this: the tangent is not constrained by the lobe
+TANGENT_TURNS = 4  # tangents an anisotropic material's lobe is tried at (material_costs): 45 deg apart
 MIN_SPECULAR_SHARE = 0.05  # a lobe below this share of some entry's pixel was not observed
-LOBE_EVIDENCE = 4.0  # a lobe must lower the robust cost (half chi-square units) by this much to be kept
+LOBE_PARAMS = 6  # what a texel's own lobe adds to its diffuse-only model: tangent turn, 2 alphas, RGB rho_s
+LOBE_EVIDENCE = 4.0  # a lobe must lower the robust cost (half chi-square units) by at least this much, and
+# by BIC's 0.5 LOBE_PARAMS ln(residuals): a short trace fits any 6 more parameters to its noise
 N_PARAMS = 11
 P_OMEGA, P_LOGA, P_RHO_D, P_RHO_S = slice(0, 3), slice(3, 5), slice(5, 8), slice(8, 11)
-FLAG_SPECULAR_UNCONSTRAINED, FLAG_TANGENT_UNCONSTRAINED = 16, 32
+FLAG_SPECULAR_UNCONSTRAINED, FLAG_TANGENT_UNCONSTRAINED, FLAG_FROM_MATERIAL = 16, 32, 64
 
 
 @dataclass(frozen=True)
@@ -82,6 +92,7 @@ class RefineSettings:
     noise: SensorNoise = field(default_factory=SensorNoise)
     log_alpha_prior_sigma: float = 3.0  # a weak pull to the start's alphas (natural log units)
     normal_prior_deg: float = 3.0  # a weak pull to the start's normal: a lobe seen in few views cannot tip it far
+    materials: bool = True  # basis materials for texels whose own trace does not show their lobe (fit.materials)
 
 
 class Start(NamedTuple):
@@ -114,6 +125,17 @@ class Refined:
     flags: Tensor  # (N,) FLAG_SPECULAR_UNCONSTRAINED | FLAG_TANGENT_UNCONSTRAINED
     std: Tensor  # (N, 4) 1-sigma: normal (deg), tangent (deg), log alpha_x, log rho_s (mean channel)
     cost: Tensor  # (N,) objective at the answer (robust data cost plus the priors)
+    highlight: Tensor  # (N,) the largest share of an entry's pixel the texel's kept lobe makes (0: none)
+
+
+class LobePrior(NamedTuple):
+    """N texels' basis-material lobes as priors (``refine_toward``): alphas ``(N, 2)``, rho_s ``(N, 3)``
+    and their 1-sigma spreads, of log alpha ``(N,)`` and of rho_s ``(N,)`` (linear units)."""
+
+    alpha: Tensor
+    rho_s: Tensor
+    log_alpha_sigma: Tensor
+    rho_s_sigma: Tensor
 
 
 class _Trace:
@@ -345,8 +367,39 @@ def _cost(r: Tensor, c: float) -> Tensor:
     return (0.5 * c * c * torch.log1p((r / c) ** 2)).flatten(1).sum(1)
 
 
-def _prior(p: Tensor, la0: Tensor, sigma: float) -> Tensor:
-    return 0.5 * (((p[:, P_LOGA] - la0) / sigma) ** 2).sum(1)
+class _Prior(NamedTuple):
+    """Gaussian pulls per texel: the normal toward ``n_start (N, 3)`` (geometric frame, weight
+    ``n_w = 1 / sigma^2`` in rad^-2), log alphas toward ``la0 (N, 2)`` (``la_w (N,)``) and rho_s
+    toward ``rs0 (N, 3)`` (``rs_w (N,)``; 0 = none): the start's, or a basis material's."""
+
+    n_start: Tensor
+    n_w: float
+    la0: Tensor
+    la_w: Tensor
+    rs0: Tensor
+    rs_w: Tensor
+
+    def rows(self, idx: Tensor) -> _Prior:
+        return _Prior(self.n_start[idx], self.n_w, self.la0[idx], self.la_w[idx], self.rs0[idx], self.rs_w[idx])
+
+    @classmethod
+    def weak(cls, frame: Tensor, p: Tensor, settings: RefineSettings) -> _Prior:
+        """The weak pulls to the start ``frame``, ``p`` (``RefineSettings``); none on rho_s."""
+        N = p.shape[0]
+        return cls(
+            frame[:, 2].clone(),
+            math.radians(settings.normal_prior_deg) ** -2,
+            p[:, P_LOGA].clone(),
+            torch.full((N,), settings.log_alpha_prior_sigma**-2, dtype=p.dtype),
+            torch.zeros(N, 3, dtype=p.dtype),
+            torch.zeros(N, dtype=p.dtype),
+        )
+
+
+def _prior(p: Tensor, prior: _Prior) -> Tensor:
+    """The alpha and rho_s pulls' cost per texel at ``p (N, 11)``."""
+    la = 0.5 * prior.la_w * ((p[:, P_LOGA] - prior.la0) ** 2).sum(1)
+    return la + 0.5 * prior.rs_w * ((p[:, P_RHO_S] - prior.rs0) ** 2).sum(1)
 
 
 def _start_normal_in(frame: Tensor, n_start: Tensor, omega: Tensor) -> Tensor:
@@ -355,20 +408,19 @@ def _start_normal_in(frame: Tensor, n_start: Tensor, omega: Tensor) -> Tensor:
     return (rotation_from_vector(omega).transpose(-1, -2) @ u[:, :, None])[..., 0]
 
 
-def _cost_at(rnd: _Round, q: Tensor, la0: Tensor, n_start: Tensor, settings: RefineSettings) -> Tensor:
-    """The objective per texel at ``q (N, 11)``: robust data cost plus the weak alpha and normal priors."""
+def _cost_at(rnd: _Round, q: Tensor, prior: _Prior, settings: RefineSettings) -> Tensor:
+    """The objective per texel at ``q (N, 11)``: robust data cost plus the priors."""
     d, s = rnd.bases(q[:, P_OMEGA], q[:, P_LOGA])
-    u = _start_normal_in(rnd.frame0, n_start, q[:, P_OMEGA])
-    tilt = 0.5 * ((u[:, :2] / math.radians(settings.normal_prior_deg)) ** 2).sum(1)
+    u = _start_normal_in(rnd.frame0, prior.n_start, q[:, P_OMEGA])
+    tilt = 0.5 * prior.n_w * (u[:, :2] ** 2).sum(1)
     data = _cost(_residuals(rnd.tr, d, s, q)[0], settings.noise.robust)
-    return data + _prior(q, la0, settings.log_alpha_prior_sigma) + tilt
+    return data + _prior(q, prior) + tilt
 
 
 def _lm(
     rnd: _Round,
     p: Tensor,
-    la0: Tensor,
-    n_start: Tensor,
+    prior: _Prior,
     free: Tensor,
     iterations: int,
     settings: RefineSettings,
@@ -380,7 +432,7 @@ def _lm(
     N = p.shape[0]
     lam = torch.full((N,), 1e-3, dtype=torch.float64)
     H = torch.zeros(N, N_PARAMS, N_PARAMS, dtype=torch.float64)
-    cost = _cost_at(rnd, p, la0, n_start, settings)
+    cost = _cost_at(rnd, p, prior, settings)
     p = p.clone()
     live = torch.ones(N, dtype=torch.bool)
     for _ in range(iterations):
@@ -389,7 +441,7 @@ def _lm(
             break
         whole = len(ids) == N
         sub = rnd if whole else rnd.rows(ids)
-        q, c_new, h, lam_new = _lm_step(sub, p[ids], cost[ids], lam[ids], la0[ids], n_start[ids], free[ids], settings)
+        q, c_new, h, lam_new = _lm_step(sub, p[ids], cost[ids], lam[ids], prior.rows(ids), free[ids], settings)
         done = cost[ids] - c_new <= CONVERGED * cost[ids].abs()  # no progress left
         p[ids], cost[ids], H[ids], lam[ids] = q, c_new, h, lam_new
         if not whole:
@@ -403,8 +455,7 @@ def _lm_step(
     p: Tensor,
     cost: Tensor,
     lam: Tensor,
-    la0: Tensor,
-    n_start: Tensor,
+    prior: _Prior,
     free: Tensor,
     settings: RefineSettings,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
@@ -413,8 +464,6 @@ def _lm_step(
     tr, c = rnd.tr, settings.noise.robust
     N = p.shape[0]
     lo, hi = _LO.to(p.dtype), _HI.to(p.dtype)
-    ip = 1.0 / settings.log_alpha_prior_sigma**2
-    sn = math.radians(settings.normal_prior_deg)
     ch = torch.arange(3)
     d, s, dd, ds = rnd.bases_and_jacobian(p[:, P_LOGA])
     r, active = _residuals(tr, d, s, p)
@@ -430,13 +479,16 @@ def _lm_step(
     wf = w.reshape(N, -1, 1).double()
     H = Jf.transpose(1, 2) @ (wf * Jf)
     g = ((Jf * wf).transpose(1, 2) @ r.reshape(N, -1, 1).double())[..., 0]
-    H[:, 3, 3] += ip  # the weak alpha prior
-    H[:, 4, 4] += ip
-    g[:, 3:5] += (ip * (p[:, P_LOGA] - la0)).double()
-    # the weak normal prior: residuals u_x, u_y / sigma of the start normal u in the shading frame,
+    la_w, rs_w = prior.la_w.double()[:, None], prior.rs_w.double()[:, None]
+    H[:, [3, 4], [3, 4]] += la_w  # the alpha and rho_s priors
+    H[:, [8, 9, 10], [8, 9, 10]] += rs_w
+    g[:, P_LOGA] += la_w * (p[:, P_LOGA] - prior.la0).double()
+    g[:, P_RHO_S] += rs_w * (p[:, P_RHO_S] - prior.rs0).double()
+    # the normal prior: residuals u_x, u_y / sigma of the start normal u in the shading frame,
     # d u / d omega_k = u x e_k
-    u = _start_normal_in(rnd.frame0, n_start, torch.zeros_like(p[:, P_OMEGA])).double()
+    u = _start_normal_in(rnd.frame0, prior.n_start, torch.zeros_like(p[:, P_OMEGA])).double()
     zero = torch.zeros_like(u[:, 0])
+    sn = prior.n_w**-0.5
     ju = torch.stack([torch.stack([zero, -u[:, 2], u[:, 1]], 1), torch.stack([u[:, 2], zero, -u[:, 0]], 1)], 1) / sn
     H[:, :3, :3] += ju.transpose(1, 2) @ ju
     g[:, :3] += (ju.transpose(1, 2) @ (u[:, :2, None] / sn))[..., 0]
@@ -452,7 +504,7 @@ def _lm_step(
         A = Hm + torch.diag_embed(lam[:, None] * (diag + 1e-3 * diag.mean(1, keepdim=True)) + (1 - mf))
         step = -torch.linalg.solve(A, gm[..., None])[..., 0]
         q = torch.minimum(torch.maximum(p0 + step.to(p.dtype), lo), hi)
-        new = _cost_at(rnd, q, la0, n_start, settings)
+        new = _cost_at(rnd, q, prior, settings)
         better = pending & torch.isfinite(new) & (new < cost)
         p = torch.where(better[:, None], q, p)
         cost = torch.where(better, new, cost)
@@ -471,31 +523,43 @@ def _fold(frame: Tensor, omega: Tensor) -> Tensor:
     return rotation_from_vector(omega).transpose(-1, -2) @ frame
 
 
-def _albedo_start(rnd: _Round, p: Tensor, specular: bool) -> Tensor:
-    """p with rho_d, rho_s replaced by the bounded weighted least squares for the round's geometry."""
+def _albedo_start(rnd: _Round, p: Tensor, specular: bool, keep_rho_s: bool = False) -> Tensor:
+    """p with rho_d (and rho_s unless ``keep_rho_s``) replaced by the bounded weighted least squares
+    for the round's geometry; ``specular`` False: rho_s = 0."""
     tr = rnd.tr
     d, s = rnd.bases(p[:, P_OMEGA], p[:, P_LOGA])
     w = (tr.inv_sigma**2 * (tr.mask & ~tr.censored)).double()
+    y = tr.y
     if not specular:
         s = torch.zeros_like(s)
+    elif keep_rho_s:  # the lobe is given: only rho_d is solved, against what the lobe leaves
+        y, s = y - p[:, None, P_RHO_S] * s, torch.zeros_like(s)
     rd, rs = bounded_ls2(
         d.double().transpose(1, 2),
         s.double().transpose(1, 2),
-        tr.y.double().transpose(1, 2),
+        y.double().transpose(1, 2),
         w.transpose(1, 2),
         RHO_D_MAX,
-        RHO_S_MAX if specular else 0.0,
+        RHO_S_MAX if specular and not keep_rho_s else 0.0,
     )
     p = p.clone()
-    p[:, P_RHO_D], p[:, P_RHO_S] = rd.to(p.dtype), rs.to(p.dtype)
+    p[:, P_RHO_D] = rd.to(p.dtype)
+    if not keep_rho_s:
+        p[:, P_RHO_S] = rs.to(p.dtype)
     return p
 
 
 def _solve(
-    tr: _Trace, frame: Tensor, p: Tensor, specular: bool, settings: RefineSettings
+    tr: _Trace,
+    frame: Tensor,
+    p: Tensor,
+    specular: bool,
+    settings: RefineSettings,
+    prior: _Prior | None = None,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """All rounds for one group of texels (all with a lobe, or all diffuse-only); returns frame,
-    p, cost and the last Gauss-Newton Hessian."""
+    p, cost and the last Gauss-Newton Hessian. ``prior``: the weak pulls to the start unless given
+    (a basis material's lobe: then no multi-start, and the first round keeps the prior's rho_s)."""
     N = p.shape[0]
     free = torch.ones(N, N_PARAMS, dtype=torch.bool)
     if not specular:
@@ -504,24 +568,25 @@ def _solve(
         free[:, P_RHO_S] = False
         p = p.clone()
         p[:, P_RHO_S] = 0.0
-    la0, n_start = p[:, P_LOGA].clone(), frame[:, 2].clone()
+    given = prior is not None
+    prior = prior if prior is not None else _Prior.weak(frame, p, settings)
     H = torch.zeros(N, N_PARAMS, N_PARAMS, dtype=torch.float64)
     cost = torch.zeros(N, dtype=p.dtype)
     first = 0
-    if settings.starts and specular and settings.rounds > 0:  # the multi-start is the first round
-        frame, p = _multi_start(tr, frame, p, la0, n_start, free, settings)
+    if settings.starts and specular and not given and settings.rounds > 0:  # the multi-start is round one
+        frame, p = _multi_start(tr, frame, p, prior, free, settings)
         first = 1
     for k in range(first, settings.rounds):
         rnd = _Round(tr, frame, p[:, P_LOGA], specular)
         if k == 0:
-            p = _albedo_start(rnd, p, specular)
-        p, cost, H = _lm(rnd, p, la0, n_start, free, settings.iterations, settings)
+            p = _albedo_start(rnd, p, specular, keep_rho_s=given)
+        p, cost, H = _lm(rnd, p, prior, free, settings.iterations, settings)
         frame = rnd.frame0
     return frame, p, cost, H
 
 
 def _multi_start(
-    tr: _Trace, frame: Tensor, p: Tensor, la0: Tensor, n_start: Tensor, free: Tensor, settings: RefineSettings
+    tr: _Trace, frame: Tensor, p: Tensor, prior: _Prior, free: Tensor, settings: RefineSettings
 ) -> tuple[Tensor, Tensor]:
     """Starts where the lobe is ambiguous: as given, the tangent turned 90 deg (the other axis
     carries alpha_x), the lobe 4x sharper; one round of LM each, the cheapest kept per texel."""
@@ -534,7 +599,7 @@ def _multi_start(
     best_frame, best_p = frame, p
     for f0, q0 in ((frame, p), (_fold(frame, quarter), p), (frame, sharp)):
         rnd = _Round(tr, f0, q0[:, P_LOGA], True)
-        q, cost, _ = _lm(rnd, _albedo_start(rnd, q0, True), la0, n_start, free, settings.iterations, settings)
+        q, cost, _ = _lm(rnd, _albedo_start(rnd, q0, True), prior, free, settings.iterations, settings)
         better = cost < best_cost
         best_cost = torch.where(better, cost, best_cost)
         best_frame = torch.where(better[:, None, None], rnd.frame0, best_frame)
@@ -568,21 +633,116 @@ def _refine(tr: _Trace, start: Start, specular: Tensor, settings: RefineSettings
     p[:, P_RHO_D] = start.rho_d.to(dtype).clamp(0, RHO_D_MAX)
     p[:, P_RHO_S] = start.rho_s.to(dtype).clamp(0, RHO_S_MAX)
     # every texel's diffuse-only answer (cheap: no lobe), then the lobe where one is sought; the lobe
-    # stays where an entry shows it and it lowers the cost by more than ``LOBE_EVIDENCE``
+    # stays where an entry shows it and it lowers the cost by more than ``lobe_evidence``
     out_frame, out_p, cost, H = _solve(tr, frame, p, False, settings)
-    seen = torch.zeros(N, dtype=torch.bool)
+    highlight = torch.zeros(N, dtype=dtype)
     idx = specular.nonzero().squeeze(1)
     if len(idx):
         sub = tr.rows(idx)
         f, q, c, h = _solve(sub, frame[idx], p[idx], True, settings)
-        keep = _lobe_seen(sub, f, q) & (c < cost[idx] - LOBE_EVIDENCE)
-        seen[idx] = keep
+        peak = _highlight(sub, f, q)
+        keep = (peak >= MIN_SPECULAR_SHARE) & (c < cost[idx] - lobe_evidence(sub.mask.sum((1, 2))))
+        highlight[idx] = torch.where(keep, peak, torch.zeros_like(peak))
         k = idx[keep]
         out_frame[k], out_p[k], cost[k], H[k] = f[keep], q[keep], c[keep], h[keep]
     # never NaN: a texel whose solve went non-finite keeps its start
     bad = ~(torch.isfinite(out_p).all(1) & torch.isfinite(out_frame).flatten(1).all(1) & torch.isfinite(cost))
     out_p[bad], out_frame[bad] = p[bad], frame[bad]
-    return _finish(out_frame, out_p, H, cost, seen)
+    return _finish(out_frame, out_p, H, cost, highlight)
+
+
+def lobe_evidence(residuals: Tensor) -> Tensor:
+    """How much a texel's own lobe must lower its robust cost to be kept, for its number of
+    ``residuals (N,)``: ``LOBE_EVIDENCE`` or BIC's penalty for ``LOBE_PARAMS``, the larger."""
+    return (0.5 * LOBE_PARAMS * residuals.clamp_min(1).to(torch.float32).log()).clamp_min(LOBE_EVIDENCE)
+
+
+def material_costs(
+    scanner: Scanner,
+    entries: Tensor,
+    mask: Tensor,
+    start: Start,
+    alpha: Tensor,
+    rho_s: Tensor,
+    candidates: Tensor | None = None,
+    settings: RefineSettings | None = None,
+) -> tuple[Tensor, Tensor]:
+    """How well K basis materials' lobes (``alpha (K, 2)``, ``rho_s (K, 3)``) explain N traces:
+    the robust data cost ``(N, 1 + K)`` of each texel's trace under no lobe (column 0) and under each
+    material's lobe where ``candidates (N, K)`` (default all; elsewhere inf), with the texel's own
+    normal and its rho_d re-solved (bounded least squares), and the turn ``(N, K)`` (radians, about
+    the normal from ``start``'s tangent) that fits best. An anisotropic lobe at the texel's start
+    tangent is a guess (a UV direction), so it is tried at ``TANGENT_TURNS`` turns over 180 deg and
+    its cost is the negative log of their mean likelihood (uniform over turns; the cheapest alone
+    would let a lobe hide in the noise by choosing where to point). Columns are comparable: each
+    model has the same free rho_d."""
+    settings = settings or RefineSettings()
+    tr_all = _Trace(scanner, entries, mask, settings.noise, emitter_blocks(scanner))
+    dtype = tr_all.y.dtype
+    N, K = tr_all.N, alpha.shape[0]
+    frame_all = frame_from_normal_tangent(start.normal.to(dtype), start.tangent.to(dtype))
+    cost = torch.full((N, 1 + K), math.inf, dtype=dtype)
+    turn = torch.zeros(N, K, dtype=dtype)
+    candidates = torch.ones(N, K, dtype=torch.bool) if candidates is None else candidates
+
+    def judged(tr: _Trace, f: Tensor, m: int) -> Tensor:
+        p = torch.zeros(tr.N, N_PARAMS, dtype=dtype)
+        if m:
+            p[:, P_LOGA] = alpha[m - 1].to(dtype).clamp(ALPHA_MIN, ALPHA_MAX).log()
+            p[:, P_RHO_S] = rho_s[m - 1].to(dtype).clamp(0, RHO_S_MAX)
+        rnd = _Round(tr, f, p[:, P_LOGA], m > 0)
+        p = _albedo_start(rnd, p, m > 0, keep_rho_s=True)
+        d, s = rnd.bases(p[:, P_OMEGA], p[:, P_LOGA])
+        return torch.nan_to_num(_cost(_residuals(tr, d, s, p)[0], settings.noise.robust), nan=math.inf)
+
+    cost[:, 0] = judged(tr_all, frame_all, 0)
+    for m in range(1, K + 1):
+        idx = candidates[:, m - 1].nonzero().squeeze(1)
+        if len(idx) == 0:
+            continue
+        tr, frame = tr_all.rows(idx), frame_all[idx]
+        anisotropic = bool(alpha[m - 1, 0] >= ISOTROPIC_RATIO * alpha[m - 1, 1])
+        turns = torch.arange(TANGENT_TURNS if anisotropic else 1, dtype=dtype) * math.pi / TANGENT_TURNS
+        c = torch.stack([judged(tr, turned_about_normal(frame, a.expand(len(idx))), m) for a in turns], 1)
+        cost[idx, m] = math.log(len(turns)) - torch.logsumexp(-c, 1)
+        turn[idx, m - 1] = turns[c.argmin(1)]
+    return cost, turn
+
+
+def refine_toward(
+    scanner: Scanner,
+    entries: Tensor,
+    mask: Tensor,
+    start: Start,
+    prior: LobePrior,
+    settings: RefineSettings | None = None,
+) -> Refined:
+    """Refine N texels that take their lobe from a basis material: from ``start`` (the material's
+    lobe with the texel's own frame, rho_d), with alphas and rho_s pulled to ``prior`` by its
+    spreads; no multi-start. The lobe is kept whether or not an entry shows it (flags:
+    ``FLAG_FROM_MATERIAL``, and ``FLAG_SPECULAR_UNCONSTRAINED`` where none does: its parameters are
+    then the material's; its uncertainty the prior's). Never NaN: a failed solve keeps the start."""
+    settings = settings or RefineSettings()
+    tr = _Trace(scanner, entries, mask, settings.noise, emitter_blocks(scanner))
+    dtype = tr.y.dtype
+    N = tr.N
+    frame = frame_from_normal_tangent(start.normal.to(dtype), start.tangent.to(dtype))
+    p = torch.zeros(N, N_PARAMS, dtype=dtype)
+    p[:, P_LOGA] = prior.alpha.to(dtype).clamp(ALPHA_MIN, ALPHA_MAX).log()
+    p[:, P_RHO_D] = start.rho_d.to(dtype).clamp(0, RHO_D_MAX)
+    p[:, P_RHO_S] = prior.rho_s.to(dtype).clamp(0, RHO_S_MAX)
+    pulls = _Prior(
+        frame[:, 2].clone(),
+        math.radians(settings.normal_prior_deg) ** -2,
+        p[:, P_LOGA].clone(),
+        prior.log_alpha_sigma.to(dtype).clamp_min(1e-3) ** -2,
+        p[:, P_RHO_S].clone(),
+        prior.rho_s_sigma.to(dtype).clamp_min(1e-3) ** -2,
+    )
+    f, q, cost, H = _solve(tr, frame, p, True, settings, pulls)
+    bad = ~(torch.isfinite(q).all(1) & torch.isfinite(f).flatten(1).all(1) & torch.isfinite(cost))
+    q[bad], f[bad] = p[bad], frame[bad]
+    return _finish(f, q, H, cost, _highlight(tr, f, q), from_material=torch.ones(N, dtype=torch.bool))
 
 
 def calibrated_noise(
@@ -607,17 +767,25 @@ def _predict(tr: _Trace, frame: Tensor, p: Tensor) -> tuple[Tensor, Tensor]:
     return _Round(tr, frame, p[:, P_LOGA], True).bases(torch.zeros_like(p[:, P_OMEGA]), p[:, P_LOGA])
 
 
-def _lobe_seen(tr: _Trace, frame: Tensor, p: Tensor) -> Tensor:
-    """Texels ``(N,)`` whose fitted lobe makes at least ``MIN_SPECULAR_SHARE`` of some entry's pixel."""
+def _highlight(tr: _Trace, frame: Tensor, p: Tensor) -> Tensor:
+    """The largest share ``(N,)`` of an entry's pixel that the fitted lobe makes (``MIN_SPECULAR_SHARE``
+    or more: some entry shows it)."""
     d, s = _predict(tr, frame, p)
     pred_s = (p[:, None, P_RHO_S] * s).sum(-1)
     pred = (p[:, None, P_RHO_D] * d).sum(-1) + pred_s
     share = torch.where(tr.mask[..., 0], pred_s / pred.clamp_min(1e-12), torch.zeros_like(pred))
-    return share.amax(1) >= MIN_SPECULAR_SHARE
+    return share.amax(1)
 
 
-def _finish(frame: Tensor, p: Tensor, H: Tensor, cost: Tensor, seen: Tensor) -> Refined:
-    """Canonical lobe (alpha_x >= alpha_y), the unconstrained flags and the 1-sigma uncertainties."""
+def _finish(
+    frame: Tensor, p: Tensor, H: Tensor, cost: Tensor, highlight: Tensor, from_material: Tensor | None = None
+) -> Refined:
+    """Canonical lobe (alpha_x >= alpha_y), the flags and the 1-sigma uncertainties. A lobe is
+    written where seen (its ``highlight`` is ``MIN_SPECULAR_SHARE`` of some entry's pixel or more)
+    or given ``from_material``; else rho_s = 0."""
+    seen = highlight >= MIN_SPECULAR_SHARE
+    from_material = torch.zeros_like(seen) if from_material is None else from_material
+    kept = seen | from_material
     la = p[:, P_LOGA]
     swap = la[:, 1] > la[:, 0]
     t, b, n = frame[:, 0], frame[:, 1], frame[:, 2]
@@ -631,9 +799,9 @@ def _finish(frame: Tensor, p: Tensor, H: Tensor, cost: Tensor, seen: Tensor) -> 
     std = torch.stack(
         [normal_std, torch.rad2deg(cov[:, 2]), cov[:, 3:5].amax(1), cov[:, P_RHO_S].mean(1) / rho_s_mean], 1
     )
-    std = torch.where(seen[:, None], std, std.masked_fill(torch.tensor([False, True, True, True]), math.inf))
-    flags = (~seen).long() * FLAG_SPECULAR_UNCONSTRAINED
+    std = torch.where(kept[:, None], std, std.masked_fill(torch.tensor([False, True, True, True]), math.inf))
+    flags = (~seen).long() * FLAG_SPECULAR_UNCONSTRAINED | from_material.long() * FLAG_FROM_MATERIAL
     iso = (la[:, 0] - la[:, 1]) < math.log(ISOTROPIC_RATIO)
     flags = flags | ((~seen | iso).long() * FLAG_TANGENT_UNCONSTRAINED)
-    rho_s = torch.where(seen[:, None], p[:, P_RHO_S], torch.zeros_like(p[:, P_RHO_S]))
-    return Refined(frame, la, p[:, P_RHO_D], rho_s, flags, std, cost)
+    rho_s = torch.where(kept[:, None], p[:, P_RHO_S], torch.zeros_like(p[:, P_RHO_S]))
+    return Refined(frame, la, p[:, P_RHO_D], rho_s, flags, std, cost, highlight)

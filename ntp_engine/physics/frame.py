@@ -92,3 +92,12 @@ def rotation_from_vector(r: Tensor) -> Tensor:
 def reflect(v: Tensor, n: Tensor) -> Tensor:
     """Mirror direction of ``v`` about unit ``n`` (both pointing away from the surface)."""
     return 2.0 * (v * n).sum(-1, keepdim=True) * n - v
+
+
+def turned_about_normal(frame: Tensor, angle: Tensor) -> Tensor:
+    """Frames ``(..., 3, 3)`` (rows t, b, n) turned by ``angle (...)`` radians about their normals.
+
+    Convention: right-handed about n: t' = cos t + sin b, b' = cos b - sin t; n unchanged."""
+    c, s = angle.cos()[..., None], angle.sin()[..., None]
+    t, b = frame[..., 0, :], frame[..., 1, :]
+    return torch.stack([c * t + s * b, c * b - s * t, frame[..., 2, :]], -2)

@@ -16,7 +16,20 @@ import torch
 
 from ..fit.albedo import highlights_and_albedo
 from ..fit.geometry import FALLBACK_ALPHA, FLAG_NO_HIGHLIGHT, fit_geometry
-from ..fit.refine import RefineSettings, Start, calibrated_noise, refine
+from ..fit.materials import candidates, class_costs, lobe_materials
+from ..fit.refine import (
+    FLAG_FROM_MATERIAL,
+    FLAG_SPECULAR_UNCONSTRAINED,
+    FLAG_TANGENT_UNCONSTRAINED,
+    LobePrior,
+    Refined,
+    RefineSettings,
+    Start,
+    calibrated_noise,
+    material_costs,
+    refine,
+    refine_toward,
+)
 from ..io.progress import QUIET, Progress
 from ..learn.inference import predict
 from ..learn.network import TraceNet
@@ -28,6 +41,7 @@ RHO_S_PRIOR_WEIGHT = 1.0  # the network's rho_s counts as one view in the albedo
 REFINE_VIEWS = 24  # entries per texel the refinement reads (spread evenly over the trace)
 CALIBRATION_TEXELS = 512  # texels refined first to calibrate the noise model (fit.refine.calibrated_noise)
 REFINE_BATCH = 512  # texels per refinement batch: (batch, views, emitters) tensors stay ~100 MB
+REFINE_FLAGS = FLAG_SPECULAR_UNCONSTRAINED | FLAG_TANGENT_UNCONSTRAINED | FLAG_FROM_MATERIAL
 
 
 def fit_traces(
@@ -111,7 +125,13 @@ def refine_fit(
     of every observed trace, dark and clipped ones included; adds ``std (N, 4)``, the 1-sigma
     uncertainties of normal (deg), tangent (deg), log alpha, log rho_s (NaN where no trace reached),
     and ``noise_scale`` (the noise model's calibration factor, from a first pass over a sample).
-    Texels the network never saw (all entries out of range) start from the fallback lobe."""
+    Texels the network never saw (all entries out of range) start from the fallback lobe.
+
+    With ``settings.materials`` (``fit.materials``), a second pass: basis materials from the texels
+    whose own traces kept a lobe, every observed texel assigned one or the matte class
+    (``material (N,)``: -1 matte, -2 unobserved; the table as ``material_*`` arrays), and the
+    texels without a lobe of their own that belong to a lobe material refined toward its lobe, from
+    the tangent turn its trace liked best (``fit.refine.material_costs``)."""
     fit = {k: v.copy() for k, v in fit.items()}
     todo = (traces.lengths > 0).nonzero().squeeze(1)
     settings = settings or RefineSettings()
@@ -121,18 +141,89 @@ def refine_fit(
         noise = calibrated_noise(scanner, *refine_inputs(traces, sample, pixel_scale, fit), settings)
         settings = dataclasses.replace(settings, noise=noise)
         fit["noise_scale"] = np.array(noise.relative / RefineSettings().noise.relative)
-    std = np.full((traces.num_traces, 4), np.nan)
+    fit["std"] = np.full((traces.num_traces, 4), np.nan)
+    fit["highlight"] = np.zeros(traces.num_traces, np.float32)
     bar = progress.counter("refine", len(todo), "texel")
-    for a in range(0, len(todo), REFINE_BATCH):
-        idx = todo[a : a + REFINE_BATCH]
-        i = idx.numpy()
-        r = refine(scanner, *refine_inputs(traces, idx, pixel_scale, fit), settings)
-        fit["n_loc"][i], fit["t_loc"][i] = r.frame[:, 2].numpy(), r.frame[:, 0].numpy()
-        fit["alpha"][i] = r.log_alpha.exp().numpy()
-        fit["rho_d"][i], fit["rho_s"][i] = r.rho_d.numpy(), r.rho_s.numpy()
-        fit["flags"][i] |= r.flags.numpy()
-        std[i] = r.std.numpy()
+    for idx in todo.split(REFINE_BATCH):
+        _store(fit, idx, refine(scanner, *refine_inputs(traces, idx, pixel_scale, fit), settings))
         bar.update(len(idx))
     bar.close()
-    fit["std"] = std
+    if settings.materials:
+        _material_pass(scanner, traces, pixel_scale, fit, todo, settings, progress)
     return fit
+
+
+def _store(fit: dict[str, np.ndarray], idx: torch.Tensor, r: Refined) -> None:
+    i = idx.numpy()
+    fit["n_loc"][i], fit["t_loc"][i] = r.frame[:, 2].numpy(), r.frame[:, 0].numpy()
+    fit["alpha"][i] = r.log_alpha.exp().numpy()
+    fit["rho_d"][i], fit["rho_s"][i] = r.rho_d.numpy(), r.rho_s.numpy()
+    fit["flags"][i] = (fit["flags"][i] & ~REFINE_FLAGS) | r.flags.numpy()
+    fit["std"][i] = r.std.numpy()
+    fit["highlight"][i] = r.highlight.numpy()
+
+
+def _material_pass(
+    scanner: Scanner,
+    traces: RaggedTraces,
+    pixel_scale: float,
+    fit: dict[str, np.ndarray],
+    todo: torch.Tensor,
+    settings: RefineSettings,
+    progress: Progress,
+) -> None:
+    """Basis materials from the first pass, assignment, and the texels that take a lobe from theirs
+    refined toward it (``refine_fit``); updates ``fit`` in place."""
+    N = traces.num_traces
+    fit["material"] = np.full(N, -2, np.int64)
+    i_obs = todo.numpy()
+    own = np.zeros(N, bool)
+    own[i_obs] = fit["flags"][i_obs] & FLAG_SPECULAR_UNCONSTRAINED == 0
+    basis = lobe_materials(fit["rho_d"][own], fit["alpha"][own], fit["rho_s"][own], fit["highlight"][own])
+    if len(basis) == 0:  # too few texels kept a lobe to make a material of: all matte
+        fit["material"][i_obs] = -1
+        fit.update(basis.to_arrays())
+        return
+    # the texels without a lobe of their own: their traces judge their colour's lobe materials and
+    # no lobe; the colours weigh in where the traces cannot tell
+    prior = class_costs(fit["rho_d"][i_obs], basis)
+    rest = np.nonzero(~own[i_obs])[0]
+    costs = np.full((len(i_obs), 1 + len(basis)), np.inf)
+    turns = np.zeros((len(i_obs), len(basis)))
+    alpha, rho_s = torch.as_tensor(basis.alpha), torch.as_tensor(basis.rho_s)
+    bar = progress.counter("materials", len(rest), "texel")
+    for k in np.array_split(rest, -(-len(rest) // REFINE_BATCH)) if len(rest) else []:
+        ent, mask, start, _ = refine_inputs(traces, torch.as_tensor(i_obs[k]), pixel_scale, fit)
+        c, t = material_costs(scanner, ent, mask, start, alpha, rho_s, torch.as_tensor(candidates(prior[k])), settings)
+        costs[k], turns[k] = c.numpy(), t.numpy()
+        bar.update(len(k))
+    bar.close()
+    label = np.argmin(costs + prior, 1) - 1  # -1: matte
+    label[own[i_obs]] = np.argmin(prior[own[i_obs]], 1) - 1  # a texel with its own lobe: by its colour
+    fit["material"][i_obs] = label
+    fit.update(basis.to_arrays())
+    # texels without a lobe of their own in a lobe material: toward its lobe
+    takes = np.zeros(N, bool)
+    takes[i_obs] = (label >= 0) & ~own[i_obs]
+    if not takes.any():
+        return
+    # their tangents turned to where their material's lobe fits their traces best
+    k_takes = np.nonzero(takes[i_obs])[0]
+    turn = turns[k_takes, label[k_takes]]
+    i_takes = i_obs[k_takes]
+    t, n = fit["t_loc"][i_takes], fit["n_loc"][i_takes]
+    fit["t_loc"][i_takes] = np.cos(turn)[:, None] * t + np.sin(turn)[:, None] * np.cross(n, t)
+    sel = torch.as_tensor(np.nonzero(takes)[0])
+    bar = progress.counter("material lobes", len(sel), "texel")
+    for idx in sel.split(REFINE_BATCH):
+        ent, mask, start, _ = refine_inputs(traces, idx, pixel_scale, fit)
+        m = fit["material"][idx.numpy()]
+        pull = LobePrior(
+            torch.as_tensor(basis.alpha[m], dtype=torch.float32),
+            torch.as_tensor(basis.rho_s[m], dtype=torch.float32),
+            torch.as_tensor(basis.log_alpha_sigma[m], dtype=torch.float32),
+            torch.as_tensor(basis.rho_s_sigma[m], dtype=torch.float32),
+        )
+        _store(fit, idx, refine_toward(scanner, ent, mask, start, pull, settings))
+        bar.update(len(idx))
+    bar.close()

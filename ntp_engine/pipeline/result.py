@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from ..fit.geometry import FLAG_NO_LOBE
+from ..fit.materials import BasisMaterials
 from ..io.atomic import write_text_atomic
 from ..io.images import write_exr, write_png
 from ..io.maps import MAP_FILES, SVBRDFMaps, fill_missing
@@ -24,6 +25,25 @@ from .texels import Texels
 PREVIEW_GAMMA = 2.2
 UNCERTAINTY_FILE = "uncertainty.exr"  # with the refinement: per-parameter 1-sigma (material.json says how)
 UNCONSTRAINED_STD = 1000.0  # an uncertainty this large or more: the photos do not determine the parameter
+
+
+def basis_materials_doc(materials: BasisMaterials) -> dict:
+    """``material.json``'s description of the basis materials and where each texel's is."""
+    return {
+        "file": "confidence.exr",
+        "channel": "B",
+        "meaning": "1 + index into table: the lobe material the texel belongs to (0: none, matte or unseen); "
+        "a texel whose own photos did not show its lobe has its material's, refined against its photos",
+        "table": [
+            {
+                "rho_d": [round(float(v), 4) for v in materials.rho_d[k]],
+                "alpha": [round(float(v), 4) for v in materials.alpha[k]],
+                "rho_s": [round(float(v), 4) for v in materials.rho_s[k]],
+                "share": round(float(materials.share[k]), 3),
+            }
+            for k in range(len(materials))
+        ],
+    }
 
 
 def write_result(out: Path, mesh: Mesh, texels: Texels, fitted: dict[str, np.ndarray], lengths: np.ndarray) -> None:
@@ -56,8 +76,11 @@ def write_result(out: Path, mesh: Mesh, texels: Texels, fitted: dict[str, np.nda
     conf = np.zeros((H, W, 3))
     conf[texels.row, texels.col, 0] = observed & ((fitted["flags"] & FLAG_NO_LOBE) == 0)
     conf[texels.row, texels.col, 1] = lengths
-    write_exr(out / "confidence.exr", conf)
     documented = {}
+    if "material" in fitted:  # the refinement's basis materials (fit.materials, pipeline.fit_traces)
+        conf[texels.row, texels.col, 2] = fitted["material"] + 1  # 0: no lobe material (-1 matte, -2 unseen)
+        documented["basis_materials"] = basis_materials_doc(BasisMaterials.from_arrays(fitted))
+    write_exr(out / "confidence.exr", conf)
     if "std" in fitted:  # the refinement's 1-sigma uncertainties (fit.refine.Refined.std)
         unc = np.full((H, W, 4), UNCONSTRAINED_STD)
         std = np.nan_to_num(fitted["std"], nan=UNCONSTRAINED_STD, posinf=UNCONSTRAINED_STD)

@@ -26,8 +26,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ..fit.refine import FLAG_FROM_MATERIAL, RefineSettings
 from ..fit.refine import VERSION as REFINE_VERSION
-from ..fit.refine import RefineSettings
 from ..io.atomic import atomic_path, temp_dir, write_text_atomic
 from ..io.errors import NtpInputError
 from ..io.images import write_png
@@ -358,7 +358,7 @@ def _reconstruct(
         folder, _ = cache.get("refine", key, refine_stage)
         with np.load(folder / "refined.npz") as z:
             fitted = {k: z[k] for k in z.files}
-        report.data["refine"] = {"noise_scale": float(fitted["noise_scale"])} if "noise_scale" in fitted else {}
+        report.data["refine"] = refine_summary(fitted)
         report.timed("refine", t0)
 
     t0 = time.perf_counter()
@@ -387,6 +387,17 @@ def _reconstruct(
     finally:
         shutil.rmtree(staging, ignore_errors=True)
     return report.data
+
+
+def refine_summary(fitted: dict[str, np.ndarray]) -> dict:
+    """``report.json``'s ``refine``: the noise calibration and the basis materials' reach."""
+    out: dict = {}
+    if "noise_scale" in fitted:
+        out["noise_scale"] = float(fitted["noise_scale"])
+    if "material" in fitted:
+        out["basis_materials"] = int(len(fitted["material_share"]))
+        out["texels_lobe_from_material"] = int((fitted["flags"] & FLAG_FROM_MATERIAL != 0).sum())
+    return out
 
 
 def cached_fit(out: Path) -> tuple[RaggedTraces, dict[str, np.ndarray]]:

@@ -6,7 +6,18 @@ import math
 import pytest
 import torch
 
-from ntp_engine.fit.refine import FLAG_SPECULAR_UNCONSTRAINED, RefineSettings, Start, refine
+from ntp_engine.fit.refine import (
+    FLAG_FROM_MATERIAL,
+    FLAG_SPECULAR_UNCONSTRAINED,
+    LOBE_EVIDENCE,
+    LobePrior,
+    RefineSettings,
+    Start,
+    lobe_evidence,
+    material_costs,
+    refine,
+    refine_toward,
+)
 from ntp_engine.learn.synthetic import SyntheticConfig, sample_batch
 from ntp_engine.physics.frame import cross, rotation_from_vector, safe_normalize
 from ntp_engine.physics.measurement import emitter_terms, measure_terms
@@ -73,6 +84,7 @@ def test_anisotropic_lobe_recovered_from_a_perturbed_start():
     r = refine(DEV, entries, mask, Start(*start), torch.ones(48, dtype=torch.bool))
     seen = _seen(r)
     assert seen.float().mean() > 0.4
+    assert (r.highlight[seen] >= 0.05).all() and (r.highlight[~seen] == 0).all()
     tangent = torch.rad2deg(torch.acos((r.frame[:, 0] * _major(p)).sum(-1).abs().clamp(0, 1)))
     log_a = (r.log_alpha - torch.log(torch.tensor([0.2, 0.04]))).abs()
     # from 2 deg, 30 deg, |log alpha| = log 2 = 0.69 and |log rho_s| = 0.51
@@ -110,6 +122,7 @@ def test_matte_gets_no_spurious_lobe():
     n0, t0, a0, rd0, _ = _perturbed(p, 8)
     r = refine(DEV, entries, mask, Start(n0, t0, a0, rd0, torch.full((32, 3), 2.0)), torch.ones(32, dtype=torch.bool))
     assert (r.rho_s.mean(1) < 0.05).float().mean() > 0.95
+    assert ((r.highlight == 0) == (r.rho_s.mean(1) == 0)).all()  # a highlight only where a lobe is kept
     assert (r.rho_d - p["rho_d"]).abs().median() < 0.01
     assert _normal_err(r, p).median() < 0.5
 
@@ -137,3 +150,52 @@ def test_never_nan(case):
     assert ((a >= 0.006 - 1e-6) & (a <= 0.5 + 1e-6)).all() and (a[:, 0] >= a[:, 1]).all()
     torch.testing.assert_close(r.frame @ r.frame.transpose(1, 2), torch.eye(3).expand(16, 3, 3), atol=1e-5, rtol=0)
     assert torch.isclose(safe_normalize(r.frame[:, 2]), r.frame[:, 2], atol=1e-6).all()
+
+
+def test_lobe_evidence_grows_with_the_trace():
+    n = torch.tensor([0, 1, 10, 100, 10000])
+    e = lobe_evidence(n)
+    assert (e >= LOBE_EVIDENCE).all() and (e[1:] >= e[:-1]).all()
+    torch.testing.assert_close(e[-1], torch.tensor(3 * math.log(10000.0)))
+
+
+def test_material_costs_pick_the_lobe_and_its_tangent():
+    """Traces of an anisotropic lobe, judged from a start tangent 90 deg off: its material is the
+    cheapest where the trace shows a lobe, found at the turn that undoes the 90 deg."""
+    entries, mask, p = _traces(48, 11, (0.3, 0.25, 0.2), (3.0, 3.0, 3.0), (0.2, 0.04))
+    t90 = cross(p["n_local"], p["t_local"])
+    start = Start(p["n_local"], t90, torch.full((48, 2), 0.3), p["rho_d"], torch.zeros(48, 3))
+    alpha = torch.tensor([[0.2, 0.04], [0.05, 0.05]])
+    rho_s = torch.tensor([[3.0] * 3, [10.0] * 3])
+    cost, turn = material_costs(DEV, entries, mask, start, alpha, rho_s)
+    only_first = material_costs(DEV, entries, mask, start, alpha, rho_s, torch.tensor([[True, False]]).expand(48, 2))[0]
+    torch.testing.assert_close(only_first[:, :2], cost[:, :2])
+    assert torch.isinf(only_first[:, 2]).all()
+    assert cost.shape == (48, 3) and turn.shape == (48, 2)
+    shows = cost[:, 0] - cost[:, 1] > 10
+    assert shows.float().mean() > 0.4
+    assert (cost[shows].argmin(1) == 1).all()
+    assert ((turn[shows, 0] - math.pi / 2).abs() < 0.01).float().mean() > 0.9
+    assert (turn[:, 1] == 0).all()  # an isotropic lobe is not turned
+
+
+def test_refine_toward_keeps_a_material_lobe_the_trace_misses():
+    """A sharp lobe most traces miss: refined toward its material, every texel keeps the lobe — the
+    material's where its trace cannot tell, its own where it can — and its rho_d."""
+    entries, mask, p = _traces(48, 12, (0.2, 0.3, 0.4), (2.0, 2.0, 2.0), (0.03, 0.03))
+    n0, t0, a0, rd0, _ = _perturbed(p, 13, turn_deg=0.0)
+    alone = refine(DEV, entries, mask, Start(n0, t0, a0, rd0, torch.zeros(48, 3)), torch.ones(48, dtype=torch.bool))
+    missed = ~_seen(alone)
+    assert missed.float().mean() > 0.3  # the case is real: many traces miss the lobe
+    prior = LobePrior(
+        torch.tensor([[0.03, 0.03]]).expand(48, 2),
+        torch.full((48, 3), 2.0),
+        torch.full((48,), 0.25),
+        torch.full((48,), 0.5),
+    )
+    r = refine_toward(DEV, entries, mask, Start(n0, t0, a0, rd0, torch.zeros(48, 3)), prior)
+    assert (r.flags & FLAG_FROM_MATERIAL).all()
+    assert (r.rho_s.mean(1) / 2.0).log().abs().median() < 0.2
+    assert (r.log_alpha - math.log(0.03)).abs().median() < 0.2
+    assert (r.rho_d - p["rho_d"]).abs()[missed].median() < 0.01
+    assert _normal_err(r, p).median() < 1.0

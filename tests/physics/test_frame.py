@@ -7,6 +7,7 @@ from ntp_engine.physics.frame import (
     safe_normalize,
     to_local,
     to_world,
+    turned_about_normal,
 )
 
 F64 = torch.float64
@@ -68,3 +69,17 @@ def test_rotation_from_vector():
     z = torch.zeros(3, requires_grad=True)
     rotation_from_vector(z).sum().backward()
     assert torch.isfinite(z.grad).all()
+
+
+def test_turned_about_normal_is_a_rotation_about_n():
+    gen = torch.Generator().manual_seed(3)
+    fr = frame_from_normal_tangent(
+        torch.randn(50, 3, generator=gen, dtype=F64), torch.randn(50, 3, generator=gen, dtype=F64)
+    )
+    angle = torch.rand(50, generator=gen, dtype=F64) * 6.0
+    out = turned_about_normal(fr, angle)
+    torch.testing.assert_close(out, fr @ rotation_from_vector(fr[:, 2] * angle[:, None]).transpose(-1, -2))
+    torch.testing.assert_close(out[:, 2], fr[:, 2])
+    torch.testing.assert_close(torch.linalg.det(out), torch.ones(50, dtype=F64))
+    torch.testing.assert_close((out[:, 0] * fr[:, 0]).sum(-1), angle.cos())
+    torch.testing.assert_close(turned_about_normal(fr, torch.full((50,), torch.pi / 2, dtype=F64))[:, 0], fr[:, 1])

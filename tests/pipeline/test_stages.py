@@ -110,6 +110,12 @@ def test_refinement_stage_writes_uncertainty_and_resumes(scan24, tmp_path):
     doc = json.loads((tmp_path / "rec" / "material.json").read_text())["uncertainty"]
     assert doc["file"] == "uncertainty.exr" and set(doc["channels"]) == {"R", "G", "B", "A"}
     assert np.median(unc[..., 0][unc[..., 0] < 1000]) < 5  # normals are constrained to a few degrees
+    # the basis materials: a table in material.json, each texel's in confidence.exr's B, counted in the report
+    basis = json.loads((tmp_path / "rec" / "material.json").read_text())["basis_materials"]
+    ids = read_image(tmp_path / "rec" / "confidence.exr")[..., 2]
+    assert len(basis["table"]) == rep["refine"]["basis_materials"]
+    assert set(np.unique(ids).astype(int)) <= set(range(len(basis["table"]) + 1))
+    assert 0 <= rep["refine"]["texels_lobe_from_material"] <= rep["texels"]["observed"]
     truth = scan24 / "ground_truth"
     before, after = map_errors(tmp_path / "plain", truth), map_errors(tmp_path / "rec", truth)
     assert after["normal_median_deg"] < before["normal_median_deg"] + 0.3

@@ -1,0 +1,185 @@
+"""Basis materials: most objects are made of a few materials (Lensch et al. 2003; Nam et al. 2018),
+so a texel whose own trace does not constrain its lobe takes it from the material it belongs to.
+
+The lobe materials come from the texels that are informative about a lobe: k-means clusters of the
+texels whose own trace kept one (``refine``'s evidence test), in (log rho_d, log alpha, log rho_s)
+scaled so that one unit is a difference worth telling materials apart by. Besides them, one broad
+matte class: no lobe, any colour. A texel is assigned by its trace and its colour together (a
+mixture model): the data cost of its trace under each material's lobe or none
+(``refine.material_costs``), plus the colour's cost — a lobe material's Gaussian in log rho_d with its
+members' spread, the matte class's a broad one — minus the log of the class's share. So a texel
+whose trace cannot tell (its entries miss the lobe) joins the lobe material of its colour, one of
+another colour stays matte, and where the trace tells, it decides. Only the lobe materials whose
+colour cost is within ``CANDIDATE_MARGIN`` of the texel's best are judged by its trace.
+
+Convention: rho_d, rho_s linear RGB ``(N, 3)``; alpha ``(N, 2)`` with alpha_x >= alpha_y (the
+refinement's canonical lobe); costs in half chi-square units like the refinement's.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.cluster.vq import kmeans2
+
+MAX_MATERIALS = 6  # k-means clusters at most
+SEPARATION = 2.0  # feature units between the centres of two materials
+MIN_MEMBERS = 16  # texels a material needs (and 2% of its kind's texels)
+MIN_SHARE = 0.02
+# feature scales: one unit is a difference worth telling materials apart by
+COLOUR_SCALE, LOG_ALPHA_SCALE, LOG_RHO_S_SCALE = 0.25, 0.5, 0.5
+COLOUR_FLOOR = 0.02  # added to rho_d before logs: dark albedos differ by their noise, not their ratio
+# spreads are floored: a material's members are a sample, and the prior must let a texel's data speak
+MIN_COLOUR_SIGMA, MIN_LOG_ALPHA_SIGMA, MIN_RHO_S_SIGMA = 0.1, 0.25, 0.25  # rho_s: relative
+MATTE_SHARE = 0.5  # prior share of the broad matte class (the lobe materials share the rest by their members)
+MATTE_COLOUR_SIGMA = 1.0  # the broad matte class's colour spread (log rho_d): any colour
+MIN_HIGHLIGHT = 0.4  # a material's members' lobes make this share of some pixel (median) or more
+CANDIDATE_MARGIN = math.log(1000.0)  # lobe materials this much less likely by colour than the best are not judged
+
+
+@dataclass(frozen=True)
+class BasisMaterials:
+    """K lobe materials: medians and spreads of their members, and their shares."""
+
+    rho_d: np.ndarray  # (K, 3)
+    alpha: np.ndarray  # (K, 2) alpha_x >= alpha_y
+    rho_s: np.ndarray  # (K, 3)
+    colour_sigma: np.ndarray  # (K,) of log(rho_d + COLOUR_FLOOR), per channel
+    log_alpha_sigma: np.ndarray  # (K,)
+    rho_s_sigma: np.ndarray  # (K,) linear units
+    share: np.ndarray  # (K,) prior share: (1 - MATTE_SHARE) x members / all lobe texels
+
+    def __len__(self) -> int:
+        return len(self.share)
+
+    @staticmethod
+    def empty() -> BasisMaterials:
+        """No materials (K = 0)."""
+        z2, z1 = np.zeros((0, 3)), np.zeros(0)
+        return BasisMaterials(z2, np.zeros((0, 2)), z2, z1, z1, z1, z1)
+
+    def to_arrays(self, prefix: str = "material_") -> dict[str, np.ndarray]:
+        """Flat arrays for an ``.npz`` (``from_arrays`` reads them back)."""
+        return {prefix + k: v for k, v in zip(_NAMES, _fields(self), strict=True)}
+
+    @staticmethod
+    def from_arrays(z: dict[str, np.ndarray], prefix: str = "material_") -> BasisMaterials:
+        """The materials ``to_arrays`` wrote."""
+        return BasisMaterials(*(np.asarray(z[prefix + k]) for k in _NAMES))
+
+
+_NAMES = ("rho_d", "alpha", "rho_s", "colour_sigma", "log_alpha_sigma", "rho_s_sigma", "share")
+
+
+def _fields(m: BasisMaterials) -> tuple[np.ndarray, ...]:
+    return tuple(getattr(m, k) for k in _NAMES)
+
+
+def _log_colour(rho_d: np.ndarray) -> np.ndarray:
+    return np.log(np.clip(rho_d, 0, None) + COLOUR_FLOOR)
+
+
+def _mad(x: np.ndarray) -> float:
+    """Robust standard deviation (1.4826 median absolute deviation) over all of ``x``."""
+    return float(1.4826 * np.median(np.abs(x - np.median(x, 0)))) if len(x) else 0.0
+
+
+def clusters(features: np.ndarray, max_k: int = MAX_MATERIALS, seed: int = 0) -> np.ndarray:
+    """Labels ``(n,)`` of k-means clusters of ``features (n, d)`` (units of equal weight): the most
+    clusters, up to ``max_k``, whose centres all lie ``SEPARATION`` units apart, once clusters smaller
+    than ``MIN_MEMBERS`` (or ``MIN_SHARE``) have joined their nearest larger one. (A likelihood
+    criterion such as BIC splits any Gaussian blob under hard assignments; the feature units say
+    what difference makes another material.) Deterministic."""
+    n = len(features)
+    best = np.zeros(n, np.int64)
+    for k in range(2, min(max_k, n) + 1):
+        _, labels = kmeans2(features, k, minit="++", seed=seed + k)
+        labels = _merge_small(features, labels)
+        centres = np.stack([features[labels == j].mean(0) for j in range(int(labels.max()) + 1)])
+        gaps = np.sqrt(((centres[:, None] - centres[None]) ** 2).sum(-1)) + np.eye(len(centres)) * SEPARATION
+        if len(centres) > int(best.max(initial=0)) + 1 and gaps.min() >= SEPARATION:
+            best = labels
+    return best
+
+
+def _merge_small(features: np.ndarray, labels: np.ndarray) -> np.ndarray:
+    """``labels`` with clusters below ``MIN_MEMBERS`` (or ``MIN_SHARE``) joined to the nearest big
+    one (by centre), renumbered 0..K-1."""
+    ids, counts = np.unique(labels, return_counts=True)
+    big = ids[(counts >= MIN_MEMBERS) & (counts >= MIN_SHARE * len(labels))]
+    if len(big) == 0:
+        return np.zeros(len(labels), np.int64)
+    centres = np.stack([features[labels == k].mean(0) for k in big])
+    nearest = big[np.argmin(((features[:, None] - centres[None]) ** 2).sum(-1), 1)]
+    return np.unique(np.where(np.isin(labels, big), labels, nearest), return_inverse=True)[1]
+
+
+def lobe_materials(
+    rho_d: np.ndarray, alpha: np.ndarray, rho_s: np.ndarray, highlight: np.ndarray | None = None
+) -> BasisMaterials:
+    """Lobe materials from the texels whose own trace kept a lobe: their rho_d, alpha, rho_s
+    ``(n, 3), (n, 2), (n, 3)`` and ``highlight (n,)`` (the largest share of a pixel their lobe made,
+    ``refine.Refined.highlight``; default 1); shares: (1 - ``MATTE_SHARE``) x members / n. A cluster whose
+    members' median highlight is below ``MIN_HIGHLIGHT`` is no material: its lobes are small
+    corrections to a bright diffuse (pixels that blend two albedos, shadow edges), not a
+    highlight the photos showed."""
+    if len(rho_d) < MIN_MEMBERS:
+        return BasisMaterials.empty()
+    f = np.concatenate(
+        [
+            _log_colour(rho_d) / COLOUR_SCALE,
+            np.log(alpha) / LOG_ALPHA_SCALE,
+            np.log(np.maximum(rho_s.mean(1, keepdims=True), 1e-3)) / LOG_RHO_S_SCALE,
+        ],
+        1,
+    )
+    labels = clusters(f)
+    highlight = np.ones(len(rho_d)) if highlight is None else highlight
+    rows = []
+    for k in range(int(labels.max()) + 1):
+        m = labels == k
+        if np.median(highlight[m]) < MIN_HIGHLIGHT:
+            continue
+        la, rs = np.log(alpha[m]), rho_s[m]
+        rs_mean = float(np.median(rs.mean(1)))
+        rows.append(
+            (
+                np.median(rho_d[m], 0),
+                np.exp(np.median(la, 0)),
+                np.median(rs, 0),
+                max(_mad(_log_colour(rho_d[m])), MIN_COLOUR_SIGMA),
+                max(_mad(la), MIN_LOG_ALPHA_SIGMA),
+                max(_mad(rs.mean(1)), MIN_RHO_S_SIGMA * rs_mean),
+                (1 - MATTE_SHARE) * m.sum() / len(rho_d),
+            )
+        )
+    if not rows:
+        return BasisMaterials.empty()
+    return BasisMaterials(*(np.array([r[i] for r in rows]) for i in range(len(_NAMES))))
+
+
+def _colour_costs(rho_d: np.ndarray, materials: BasisMaterials) -> np.ndarray:
+    """Negative log density ``(N, K)`` of each texel's log(rho_d + COLOUR_FLOOR) under each material."""
+    z = (_log_colour(rho_d)[:, None] - _log_colour(materials.rho_d)[None]) / materials.colour_sigma[None, :, None]
+    return 0.5 * (z**2).sum(-1) + 3 * np.log(materials.colour_sigma)[None]
+
+
+# the broad matte class's colour cost, at its expected value (any colour being as likely)
+_BROAD = 1.5 + 3 * math.log(MATTE_COLOUR_SIGMA) - math.log(MATTE_SHARE)
+
+
+def class_costs(rho_d: np.ndarray, materials: BasisMaterials) -> np.ndarray:
+    """Prior cost ``(N, 1 + K)`` of each texel's ``rho_d (N, 3)`` under the broad matte class
+    (column 0) and each lobe material: the colour's negative log density minus the log of the
+    class's share."""
+    lobe = _colour_costs(rho_d, materials) - np.log(materials.share)[None]
+    return np.concatenate([np.full((len(rho_d), 1), _BROAD), lobe], 1)
+
+
+def candidates(prior: np.ndarray) -> np.ndarray:
+    """The lobe materials ``(N, K)`` worth judging by a texel's trace, from ``class_costs``: those
+    within ``CANDIDATE_MARGIN`` of its likeliest by colour."""
+    lobe = prior[:, 1:]
+    return lobe <= lobe.min(1, keepdims=True, initial=math.inf) + CANDIDATE_MARGIN

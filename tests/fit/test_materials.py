@@ -1,0 +1,74 @@
+"""Basis materials: clusters of the texels that kept a lobe, their lobe rates, and the class costs
+that assign every texel a lobe material or none."""
+
+import numpy as np
+
+from ntp_engine.fit.materials import (
+    MATTE_SHARE,
+    BasisMaterials,
+    candidates,
+    class_costs,
+    clusters,
+    lobe_materials,
+)
+
+
+def _two_materials(rng: np.random.Generator, n: int = 200):
+    """Texels of a blue glossy and a grey brushed material, with the scatter of a fit."""
+    rho_d = np.concatenate([np.tile([0.05, 0.08, 0.3], (n, 1)), np.tile([0.2, 0.2, 0.2], (n, 1))])
+    alpha = np.concatenate([np.tile([0.05, 0.05], (n, 1)), np.tile([0.3, 0.05], (n, 1))])
+    rho_s = np.concatenate([np.full((n, 3), 3.0), np.full((n, 3), 1.0)])
+
+    def jitter(shape: tuple[int, int]) -> np.ndarray:
+        return np.exp(0.05 * rng.standard_normal(shape))
+
+    return rho_d * jitter((2 * n, 3)), alpha * jitter((2 * n, 2)), rho_s * jitter((2 * n, 3))
+
+
+def test_clusters_separate_distinct_groups_deterministically():
+    rng = np.random.default_rng(0)
+    f = np.concatenate([rng.normal(0, 0.3, (100, 3)), rng.normal(5, 0.3, (80, 3)), rng.normal(-5, 0.3, (5, 3))])
+    labels = clusters(f)
+    assert (labels == clusters(f)).all()
+    # two big groups; the 5 stragglers (fewer than MIN_MEMBERS) joined the nearest
+    assert len(np.unique(labels)) == 2
+    assert len(np.unique(labels[:100])) == 1 and len(np.unique(labels[100:180])) == 1
+    assert labels[0] != labels[100]
+    assert len(clusters(np.zeros((0, 3)))) == 0
+
+
+def test_lobe_materials_are_their_members_medians():
+    rho_d, alpha, rho_s = _two_materials(np.random.default_rng(1))
+    m = lobe_materials(rho_d, alpha, rho_s)
+    assert len(m) == 2
+    order = np.argsort(m.alpha[:, 0])
+    np.testing.assert_allclose(m.alpha[order], [[0.05, 0.05], [0.3, 0.05]], rtol=0.05)
+    np.testing.assert_allclose(m.rho_s[order].mean(1), [3.0, 1.0], rtol=0.05)
+    np.testing.assert_allclose(m.share.sum(), 1 - MATTE_SHARE)
+    back = BasisMaterials.from_arrays(m.to_arrays())
+    for a, b in zip(back.to_arrays().values(), m.to_arrays().values(), strict=True):
+        np.testing.assert_array_equal(a, b)
+    assert len(lobe_materials(rho_d[:3], alpha[:3], rho_s[:3])) == 0  # too few to be a material
+    # lobes that never made much of a pixel (corrections to a bright diffuse) make no material
+    faint = np.r_[np.full(200, 0.9), np.full(200, 0.1)]
+    only = lobe_materials(rho_d, alpha, rho_s, faint)
+    assert len(only) == 1
+    np.testing.assert_allclose(only.rho_d[0], np.median(rho_d[:200], 0))
+
+
+def test_class_costs_follow_colour_and_share():
+    rho_d, alpha, rho_s = _two_materials(np.random.default_rng(3))
+    m = lobe_materials(rho_d, alpha, rho_s)
+    blue = int(np.argmin(m.alpha[:, 0]))
+    probe = np.array([[0.05, 0.08, 0.3], [0.2, 0.2, 0.2], [0.9, 0.1, 0.05]])  # blue, grey, a red no material has
+    c = class_costs(probe, m)
+    assert c.shape == (3, 3)
+    assert np.argmin(c[0]) == 1 + blue  # a trace that cannot tell: its colour's lobe material
+    assert np.argmin(c[1]) == 2 - blue
+    assert np.argmin(c[2]) == 0  # red: the broad matte class, by far
+    assert c[2, 1:].min() - c[2, 0] > 10
+    # only the materials of a texel's colour are worth its trace's judgement
+    cand = candidates(c)
+    assert cand.shape == (3, 2) and cand[0, blue] and not cand[0, 1 - blue] and cand[1, 1 - blue]
+    assert class_costs(probe, BasisMaterials.empty()).shape == (3, 1)
+    assert candidates(class_costs(probe, BasisMaterials.empty())).shape == (3, 0)
