@@ -22,6 +22,7 @@ from ntp_engine.io.errors import NtpInputError, error_line
 
 from . import material
 from . import scene as bscene
+from .gltf import export_glb
 
 
 def export(
@@ -43,23 +44,7 @@ def export(
     bscene.relight_rig(obj, *size, samples=samples, turntable_frames=turntable)
     written = {}
     if gltf is not None:
-        chosen = obj.data.materials[0]
-        obj.data.materials[0] = principled  # glTF carries the Principled material
-        try:
-            bpy.ops.object.select_all(action="DESELECT")
-            obj.select_set(True)
-            bpy.context.view_layer.objects.active = obj
-            with atomic_path(gltf) as tmp:
-                bpy.ops.export_scene.gltf(
-                    filepath=str(tmp),
-                    export_format="GLB",
-                    use_selection=True,
-                    export_tangents=True,
-                    export_cameras=False,
-                    export_lights=False,
-                )
-        finally:
-            obj.data.materials[0] = chosen
+        export_glb(obj, principled, gltf)
         written["gltf"] = str(gltf)
     if preview is not None:
         scene = bpy.context.scene

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ntp_engine.io.colour import srgb_encode
 from ntp_engine.io.maps import SVBRDFMaps, fill_missing
 from ntp_engine.io.mesh import Mesh
 from ntp_engine.pipeline.texels import rasterize
@@ -37,10 +38,14 @@ def _unit(v: np.ndarray) -> np.ndarray:
 
 
 def principled_inputs(maps: SVBRDFMaps, mesh: Mesh) -> dict[str, np.ndarray]:
-    """Principled BSDF inputs per texel: ``roughness`` (H, W, 1), ``anisotropy`` (H, W, 3) in the
-    glTF KHR_materials_anisotropy layout (RG = direction of the larger alpha in the UV tangent
-    frame, encoded 0.5 v + 0.5; B = Blender's Anisotropic), ``specular_level`` (H, W, 1),
-    ``specular_tint`` (H, W, 3), ``normal_tangent_space`` (H, W, 3, encoded 0.5 v + 0.5)."""
+    """Principled BSDF inputs per texel, laid out as glTF reads them: ``base_color_srgb`` (H, W, 3,
+    sRGB-encoded rho_d), ``roughness`` (H, W, 1), ``anisotropy`` (H, W, 3) in the
+    KHR_materials_anisotropy layout (RG = direction of the larger alpha in the UV tangent frame,
+    encoded 0.5 v + 0.5; B = Blender's Anisotropic), KHR_materials_specular's ``specular_strength``
+    (H, W, 1, in [0, 1]: max_c rho_s / ``specular_scale``, the scalar that becomes the material's
+    factor) and ``specular_tint_srgb`` (H, W, 3, sRGB-encoded rho_s / max_c rho_s),
+    ``normal_tangent_space`` (H, W, 3, encoded 0.5 v + 0.5). Blender's Specular IOR Level is
+    strength x scale / 2 (F0 = 0.04 x 2 x level x tint = 0.04 rho_s)."""
     ax, ay = maps.roughness[..., 0], maps.roughness[..., 1]
     hi, lo = np.maximum(ax, ay), np.minimum(ax, ay)
     strength = np.clip((1 - lo / hi) / 0.9, 0.0, 1.0)
@@ -53,14 +58,17 @@ def principled_inputs(maps: SVBRDFMaps, mesh: Mesh) -> dict[str, np.ndarray]:
     theta = np.arctan2((major * bu).sum(-1), (major * tu).sum(-1))
     aniso = np.stack([0.5 * np.cos(theta) + 0.5, 0.5 * np.sin(theta) + 0.5, strength], -1)
     s = np.maximum(maps.specular_albedo.max(-1, keepdims=True), 1e-6)
+    scale = float(s.max())  # glTF's specular strength is a texture in [0, 1] times a factor
     tg = _unit(t_uv - (t_uv * n_geo).sum(-1, keepdims=True) * n_geo)
     bg = np.cross(n_geo, tg)
     n_ts = np.stack([(n * tg).sum(-1), (n * bg).sum(-1), (n * n_geo).sum(-1)], -1)
     return {
         "roughness": ((ax * ay) ** 0.25)[..., None],
         "anisotropy": aniso,
-        "specular_level": 0.5 * s,
-        "specular_tint": maps.specular_albedo / s,
+        "base_color_srgb": srgb_encode(np.clip(maps.diffuse_albedo, 0, 1)),
+        "specular_strength": s / scale,
+        "specular_scale": np.array(scale),
+        "specular_tint_srgb": srgb_encode(np.clip(maps.specular_albedo / s, 0, 1)),
         "normal_tangent_space": 0.5 * _unit(n_ts) + 0.5,
     }
 

@@ -5,8 +5,10 @@ same maps.
   KHR_materials_anisotropy (Tangent node on the UV map; a direction/strength texture through
   Separate XYZ -> ArcTan2 -> Add -> Divide 2 pi into Anisotropic Rotation, its B channel x 1 into
   Anisotropic — the layout the glTF importer builds) and a tangent-space normal map (glTF has no
-  object-space normals). F0 = 0.04 x rho_s through Specular IOR Level (0.5 max rho_s) and Specular
-  Tint (rho_s / max rho_s). Limits: anisotropy capped at 10:1, Fresnel rises to 1 (not rho_s) at
+  object-space normals). Colours are sRGB PNGs, as glTF reads base and specular colour; F0 = 0.04 x
+  rho_s through Specular IOR Level (a strength texture's alpha, as KHR_materials_specular reads it,
+  times half the scene's largest rho_s: a factor the exporter writes) and Specular Tint
+  (rho_s / max_c rho_s). Limits: anisotropy capped at 10:1, Fresnel rises to 1 (not rho_s) at
   grazing, the diffuse is dimmed by the specular layer.
 - ``NTP Accurate``: Diffuse BSDF (rho_d) + Glossy BSDF (GGX) whose colour is rho_s times Schlick's
   Fresnel with F0 = 0.04 on n.v (the engine uses w_i.h; equal at the mirror peak); the object-space
@@ -35,7 +37,7 @@ from . import derive
 
 PRINCIPLED, ACCURATE = "NTP Principled", "NTP Accurate"
 DEFAULT_VARIANT = "accurate"  # chosen by `ntp bench blender` (docs/blender.md)
-LINEAR, DATA = "Linear Rec.709", "Non-Color"
+LINEAR, DATA, SRGB = "Linear Rec.709", "Non-Color", "sRGB"
 
 
 @dataclass
@@ -90,6 +92,24 @@ def packed_image(name: str, data: np.ndarray) -> bpy.types.Image:
     return img
 
 
+def packed_png(name: str, data: np.ndarray, colorspace: str, alpha: np.ndarray | None = None) -> bpy.types.Image:
+    """An 8-bit image held in the .blend as PNG, ``data (H, W, 3)`` in [0, 1] as the file stores it
+    (sRGB-encoded for ``colorspace`` sRGB), row 0 = top; ``alpha (H, W, 1)`` (linear, kept apart
+    from the colour: channel-packed). The glTF exporter copies such an image's PNG as it is."""
+    h, w, _ = data.shape
+    rgba = np.ones((h, w, 4), np.float32)
+    rgba[..., :3] = np.clip(data, 0, 1)
+    if alpha is not None:
+        rgba[..., 3] = np.clip(alpha[..., 0], 0, 1)
+    img = bpy.data.images.new(name, w, h, alpha=alpha is not None, float_buffer=False)
+    img.colorspace_settings.name = colorspace
+    img.alpha_mode = "CHANNEL_PACKED"
+    img.pixels.foreach_set(rgba[::-1].reshape(-1))  # Blender rows start at the bottom
+    img.file_format = "PNG"
+    img.pack()
+    return img
+
+
 class _Tree:
     """Small helper: nodes laid out in columns, links by socket name or index."""
 
@@ -124,20 +144,26 @@ def _principled(ri: ResultInputs, name: str) -> bpy.types.Material:
     T.link(bsdf, "BSDF", out, "Surface")
     bsdf.inputs["Metallic"].default_value = 0.0
     bsdf.inputs["IOR"].default_value = 1.5
+    # colours as glTF reads them (sRGB PNGs), the specular strength in alpha times a factor
     T.link(
-        T.image(_file_image(ri.folder / "diffuse_albedo.exr", LINEAR), -3, 4, "diffuse albedo"),
+        T.image(packed_png(f"{name} base color", p["base_color_srgb"], SRGB), -3, 4, "diffuse albedo (sRGB)"),
         "Color",
         bsdf,
         "Base Color",
     )
-    T.link(
-        T.image(packed_image(f"{name} specular level", p["specular_level"]), -3, 3, "specular IOR level"),
-        "Color",
-        bsdf,
-        "Specular IOR Level",
+    strength = p["specular_strength"]
+    level_tex = T.image(
+        packed_png(f"{name} specular strength", np.repeat(strength, 3, -1), DATA, alpha=strength),
+        -4,
+        3,
+        "specular strength (alpha)",
     )
+    level = T.node("ShaderNodeMath", -3, 3, "Specular level factor", operation="MULTIPLY")
+    level.inputs[1].default_value = 0.5 * float(p["specular_scale"])
+    T.link(level_tex, "Alpha", level, 0)
+    T.link(level, 0, bsdf, "Specular IOR Level")
     T.link(
-        T.image(packed_image(f"{name} specular tint", p["specular_tint"]), -3, 2, "specular tint"),
+        T.image(packed_png(f"{name} specular color", p["specular_tint_srgb"], SRGB), -3, 2, "specular tint (sRGB)"),
         "Color",
         bsdf,
         "Specular Tint",

@@ -16,6 +16,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ..io.colour import srgb_decode, srgb_encode
 from .scanner import Scanner
 
 VALID_CODE = (32.0, 224.0)  # an 8-bit code in this range is neither noise-dominated nor near clipping
@@ -40,7 +41,7 @@ def encode(scanner: Scanner, linear: Tensor) -> Tensor:
     if scanner.response == "gamma":
         x = x ** (1.0 / scanner.gamma)
     elif scanner.response == "srgb":
-        x = torch.where(x <= 0.0031308, 12.92 * x, 1.055 * x.clamp_min(1e-12) ** (1 / 2.4) - 0.055)
+        x = srgb_encode(x)
     return 255.0 * x
 
 
@@ -50,7 +51,7 @@ def decode(scanner: Scanner, code: Tensor) -> Tensor:
     if scanner.response == "gamma":
         return x**scanner.gamma
     if scanner.response == "srgb":
-        return torch.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4)
+        return srgb_decode(x)
     return x
 
 

@@ -1,0 +1,82 @@
+"""glTF binary export of a result's Principled material, and the round trip that checks it: the
+``.glb`` re-imported with Blender's own glTF importer and rendered in Cycles beside the material
+it came from, under the same camera and point light (``compare``'s novel views). SSIM and mean
+colour on the object's pixels say whether glTF carries what the .blend shows (colour spaces,
+specular strength, anisotropy, normals).
+"""
+
+from __future__ import annotations
+
+import tempfile
+from pathlib import Path
+
+import bpy
+import numpy as np
+
+from ntp_engine.io.atomic import atomic_path
+from ntp_engine.sim.evaluate import compare_images
+
+from . import compare, material
+
+
+def export_glb(obj: bpy.types.Object, mat: bpy.types.Material, path: Path) -> None:
+    """``obj`` alone, wearing ``mat`` for the export (its first slot restored after), as a .glb with
+    tangents (KHR_materials_anisotropy needs them), written atomically."""
+    chosen = obj.data.materials[0]
+    obj.data.materials[0] = mat
+    try:
+        bpy.ops.object.select_all(action="DESELECT")
+        obj.select_set(True)
+        bpy.context.view_layer.objects.active = obj
+        with atomic_path(path) as tmp:
+            bpy.ops.export_scene.gltf(
+                filepath=str(tmp),
+                export_format="GLB",
+                use_selection=True,
+                export_tangents=True,
+                export_cameras=False,
+                export_lights=False,
+            )
+    finally:
+        obj.data.materials[0] = chosen
+
+
+def import_glb(path: Path) -> bpy.types.Object:
+    """The mesh object of a .glb, imported with Blender's glTF importer."""
+    before = set(bpy.data.objects)
+    bpy.ops.import_scene.gltf(filepath=str(path))
+    new = [o for o in bpy.data.objects if o not in before and o.type == "MESH"]
+    if not new:
+        raise RuntimeError(f"{path}: no mesh imported")
+    return new[0]
+
+
+def round_trip(result: str | Path, views: int = 2, scale: float = 0.2, samples: int = 32) -> dict:
+    """Render the Principled material and its .glb re-import in Cycles from ``views`` novel views;
+    per view and mean: SSIM, and the ratio of mean colours (re-import / original) on object pixels."""
+    result = Path(result)
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    obj = material.import_result_mesh(result)
+    principled, _ = material.build_materials(result, obj, "principled")
+    cam = compare.point_device(scale)
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        work = Path(tmp)
+        export_glb(obj, principled, work / "asset.glb")
+        twin = import_glb(work / "asset.glb")
+        for k, (pose, light) in enumerate(compare.novel_views(result, views, scale=scale)):
+            _, mask = compare.engine_render(result, pose, light, cam)  # the object's pixels
+            imgs = []
+            for shown, hidden in ((obj, twin), (twin, obj)):
+                shown.hide_render, hidden.hide_render = False, True
+                img, _ = compare.cycles_render(
+                    shown, shown.data.materials[0], pose, light, cam, work / f"{k}_{shown.name}.exr", samples
+                )
+                imgs.append(img)
+            ratio = imgs[1][mask].mean(0) / np.maximum(imgs[0][mask].mean(0), 1e-12)
+            rows.append({"ssim": compare_images(imgs[0], imgs[1], mask)["ssim"], "mean_colour_ratio": ratio.tolist()})
+    return {
+        "ssim": float(np.mean([r["ssim"] for r in rows])),
+        "mean_colour_ratio": np.mean([r["mean_colour_ratio"] for r in rows], 0).tolist(),
+        "per_view": rows,
+    }
