@@ -5,8 +5,9 @@
 Imports the result's mesh with its maps, builds both materials (the default variant on the
 object, the other kept in the file), saves the .blend, exports glTF binary with the Principled
 material (KHR_materials_anisotropy, KHR_materials_specular) and renders a Cycles preview with the
-key-light rig. Each output is written to a temporary name and renamed. Exit code 2 and one line on
-stderr for bad input.
+key-light rig. The .blend holds the result's map files (packed; ``--no-pack`` links them) and its
+datablocks are named after the result folder. Each output is written to a temporary name and
+renamed. Exit code 2 and one line on stderr for bad input.
 """
 
 from __future__ import annotations
@@ -34,13 +35,17 @@ def export(
     samples: int = 64,
     size: tuple[int, int] = (640, 512),
     turntable: int = 0,
+    pack: bool = True,
 ) -> dict:
-    """Import the result, build both materials and write the requested .blend, .glb and preview (each atomically)."""
+    """Import the result, build both materials and write the requested .blend, .glb and preview
+    (each atomically); with ``pack`` the .blend holds the map files too (self-contained)."""
     bpy.ops.wm.read_factory_settings(use_empty=True)
     ri_check = material.read_result(result)  # validate before creating anything
     del ri_check
     obj = material.import_result_mesh(result)
     principled, accurate = material.build_materials(result, obj, variant)
+    if pack:
+        material.pack_file_images((principled, accurate))
     bscene.relight_rig(obj, *size, samples=samples, turntable_frames=turntable)
     written = {}
     if gltf is not None:
@@ -74,9 +79,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--variant", choices=["accurate", "principled"], default=material.DEFAULT_VARIANT)
     p.add_argument("--samples", type=int, default=64)
     p.add_argument("--turntable", type=int, default=0, help="frames of a 360-degree turntable (0: none)")
+    p.add_argument("--no-pack", action="store_true", help="link the map files instead of packing them into the .blend")
     a = p.parse_args(argv)
     try:
-        info = export(a.result, a.blend, a.gltf, a.preview, a.variant, a.samples, turntable=a.turntable)
+        info = export(
+            a.result, a.blend, a.gltf, a.preview, a.variant, a.samples, turntable=a.turntable, pack=not a.no_pack
+        )
     except (NtpInputError, OSError) as err:
         print(f"ntp_addon.batch: error: {error_line(err)}", file=sys.stderr)
         return 2

@@ -71,14 +71,30 @@ def read_result(folder: str | Path, require_report: bool = True) -> ResultInputs
     return ResultInputs(folder, maps, derive.principled_inputs(maps, mesh), derive.glossy_inputs(maps))
 
 
-def _file_image(path: Path, colorspace: str) -> bpy.types.Image:
-    img = bpy.data.images.load(str(path), check_existing=True)
+def asset_name(result: str | Path) -> str:
+    """The name an asset's datablocks derive from: its result folder's name."""
+    return Path(result).resolve().name
+
+
+def _fresh_image(name: str) -> None:
+    """Remove an image of this name (a previous build's), so a rebuild replaces it in place."""
+    old = bpy.data.images.get(name)
+    if old is not None:
+        bpy.data.images.remove(old)
+
+
+def _file_image(path: Path, colorspace: str, name: str) -> bpy.types.Image:
+    """A map file of the result as image ``name`` (a rebuild reloads it under the same name)."""
+    _fresh_image(name)
+    img = bpy.data.images.load(str(path), check_existing=False)
+    img.name = name
     img.colorspace_settings.name = colorspace
     return img
 
 
 def packed_image(name: str, data: np.ndarray) -> bpy.types.Image:
     """A float image held in the .blend (packed), ``data (H, W, C)`` row 0 = top."""
+    _fresh_image(name)
     h, w, c = data.shape
     rgba = np.ones((h, w, 4), np.float32)
     rgba[..., :c] = data
@@ -96,6 +112,7 @@ def packed_png(name: str, data: np.ndarray, colorspace: str, alpha: np.ndarray |
     """An 8-bit image held in the .blend as PNG, ``data (H, W, 3)`` in [0, 1] as the file stores it
     (sRGB-encoded for ``colorspace`` sRGB), row 0 = top; ``alpha (H, W, 1)`` (linear, kept apart
     from the colour: channel-packed). The glTF exporter copies such an image's PNG as it is."""
+    _fresh_image(name)
     h, w, _ = data.shape
     rgba = np.ones((h, w, 4), np.float32)
     rgba[..., :3] = np.clip(data, 0, 1)
@@ -137,7 +154,7 @@ class _Tree:
 
 def _principled(ri: ResultInputs, name: str) -> bpy.types.Material:
     p = ri.principled
-    mat = bpy.data.materials.new(name)
+    mat = bpy.data.materials.get(name) or bpy.data.materials.new(name)
     T = _Tree(mat)
     out = T.node("ShaderNodeOutputMaterial", 2, 0)
     bsdf = T.node("ShaderNodeBsdfPrincipled", 0, 0)
@@ -212,7 +229,7 @@ def _principled(ri: ResultInputs, name: str) -> bpy.types.Material:
 
 def _accurate(ri: ResultInputs, name: str) -> bpy.types.Material:
     g = ri.glossy
-    mat = bpy.data.materials.new(name)
+    mat = bpy.data.materials.get(name) or bpy.data.materials.new(name)
     T = _Tree(mat)
     out = T.node("ShaderNodeOutputMaterial", 3, 0)
     add = T.node("ShaderNodeAddShader", 2, 0)
@@ -223,18 +240,18 @@ def _accurate(ri: ResultInputs, name: str) -> bpy.types.Material:
     T.link(diffuse, 0, add, 0)
     T.link(glossy, 0, add, 1)
     T.link(
-        T.image(_file_image(ri.folder / "diffuse_albedo.exr", LINEAR), -1, 2, "diffuse albedo"),
+        T.image(_file_image(ri.folder / "diffuse_albedo.exr", LINEAR, f"{name} diffuse albedo"), -1, 2, "rho_d"),
         "Color",
         diffuse,
         "Color",
     )
     # object-space frame maps -> world space
-    n_img = T.image(_file_image(ri.folder / "normal.exr", DATA), -4, 0, "normal (object space)")
+    n_img = T.image(_file_image(ri.folder / "normal.exr", DATA, f"{name} normal"), -4, 0, "normal (object space)")
     n_xf = T.node("ShaderNodeVectorTransform", -3, 0, vector_type="NORMAL", convert_from="OBJECT", convert_to="WORLD")
     n_unit = T.node("ShaderNodeVectorMath", -2, 0, operation="NORMALIZE")
     T.link(n_img, "Color", n_xf, 0)
     T.link(n_xf, 0, n_unit, 0)
-    t_img = T.image(_file_image(ri.folder / "tangent.exr", DATA), -4, -2, "tangent (object space)")
+    t_img = T.image(_file_image(ri.folder / "tangent.exr", DATA, f"{name} tangent"), -4, -2, "tangent (object space)")
     t_xf = T.node("ShaderNodeVectorTransform", -3, -2, vector_type="VECTOR", convert_from="OBJECT", convert_to="WORLD")
     t_unit = T.node("ShaderNodeVectorMath", -2, -2, operation="NORMALIZE")
     T.link(t_img, "Color", t_xf, 0)
@@ -264,7 +281,8 @@ def _accurate(ri: ResultInputs, name: str) -> bpy.types.Material:
     fr.inputs[1].default_value, fr.inputs[2].default_value = 1 - F0_DIELECTRIC, F0_DIELECTRIC
     T.link(lw, "Facing", pw, 0)
     T.link(pw, 0, fr, 0)
-    spec = T.image(_file_image(ri.folder / "specular_albedo.exr", LINEAR), -1, 0, "specular albedo")
+    spec_file = _file_image(ri.folder / "specular_albedo.exr", LINEAR, f"{name} specular albedo")
+    spec = T.image(spec_file, -1, 0, "specular albedo")
     scale = T.node("ShaderNodeVectorMath", 0, 0, "rho_s x Fresnel", operation="SCALE")
     T.link(spec, "Color", scale, 0)
     T.link(fr, 0, scale, "Scale")
@@ -279,11 +297,13 @@ def build_materials(
     require_report: bool = True,
 ) -> tuple[bpy.types.Material, bpy.types.Material]:
     """Both materials for a result folder (``read_result``); ``obj`` (if given) gets ``variant`` in
-    its first slot. The other material is kept with a fake user so a saved .blend holds both."""
+    its first slot. The other material is kept with a fake user so a saved .blend holds both.
+    Names derive from the result folder's (``asset_name``); building again replaces both materials
+    and their images in place (no ``.001`` copies, no orphans)."""
     if variant not in ("principled", "accurate"):
         raise ValueError(f"variant must be 'principled' or 'accurate', not {variant!r}")
     ri = read_result(result, require_report)  # may raise: nothing created yet
-    stem = Path(result).resolve().name
+    stem = asset_name(result)
     principled = _principled(ri, f"{PRINCIPLED} ({stem})")
     accurate = _accurate(ri, f"{ACCURATE} ({stem})")
     for m in (principled, accurate):
@@ -298,8 +318,9 @@ def build_materials(
     return principled, accurate
 
 
-def import_result_mesh(result: str | Path, name: str = "ntp_asset") -> bpy.types.Object:
-    """The result's mesh.obj as a smooth-shaded object, coordinates unchanged (z up, metres)."""
+def import_result_mesh(result: str | Path, name: str | None = None) -> bpy.types.Object:
+    """The result's mesh.obj as a smooth-shaded object, coordinates unchanged (z up, metres);
+    object and mesh named ``name`` (default ``asset_name``)."""
     path = Path(result) / "mesh.obj"
     if not path.is_file():
         raise NtpInputError(path, "mesh missing")
@@ -309,7 +330,16 @@ def import_result_mesh(result: str | Path, name: str = "ntp_asset") -> bpy.types
     if not new:
         raise NtpInputError(path, "no mesh could be imported")
     obj = new[0]
-    obj.name = name
+    obj.name = obj.data.name = name or asset_name(result)
     for poly in obj.data.polygons:
         poly.use_smooth = True
     return obj
+
+
+def pack_file_images(materials: tuple[bpy.types.Material, ...]) -> None:
+    """Pack the map files ``materials`` reference into the .blend, so a saved file is self-contained."""
+    for mat in materials:
+        for node in mat.node_tree.nodes:
+            img = getattr(node, "image", None)
+            if img is not None and img.packed_file is None and img.source == "FILE":
+                img.pack()

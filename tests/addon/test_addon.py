@@ -146,6 +146,25 @@ def test_material_links_are_the_intended_ones(demo_result):
     assert {_link_from(add.inputs[0]).type, _link_from(add.inputs[1]).type} == {"BSDF_DIFFUSE", "BSDF_GLOSSY"}
 
 
+def test_rebuilding_replaces_in_place_and_two_scans_do_not_collide(demo_result, tmp_path):
+    _fresh()
+    other = tmp_path / "vase_scan"
+    shutil.copytree(demo_result, other)
+    obj = material.import_result_mesh(demo_result)
+    material.build_materials(demo_result, obj)
+    before = sorted(i.name for i in bpy.data.images), sorted(m.name for m in bpy.data.materials)
+    p, a = material.build_materials(demo_result, obj)  # again: the same datablocks, rebuilt
+    assert (sorted(i.name for i in bpy.data.images), sorted(m.name for m in bpy.data.materials)) == before
+    assert not any(".00" in n for names in before for n in names)
+    assert not [i for i in bpy.data.images if i.users == 0 and not i.use_fake_user]  # no orphans
+    obj2 = material.import_result_mesh(other)
+    p2, a2 = material.build_materials(other, obj2)
+    assert obj.name == demo_result.name and obj2.name == obj2.data.name == "vase_scan"
+    assert {p2.name, a2.name}.isdisjoint({p.name, a.name}) and "vase_scan" in p2.name
+    assert all("vase_scan" in i.name or demo_result.name in i.name for i in bpy.data.images)
+    assert len(bpy.data.images) == 2 * len(before[0])
+
+
 def test_derived_inputs_reproduce_the_alphas(demo_result):
     from ntp_engine.io.maps import SVBRDFMaps
 
@@ -199,7 +218,9 @@ def test_batch_writes_blend_glb_preview_that_reopen(demo_result, tmp_path):
     bpy.ops.wm.open_mainfile(filepath=str(out / "a.blend"))
     names = {m.name.split(" (")[0] for m in bpy.data.materials}
     assert {material.PRINCIPLED, material.ACCURATE} <= names
-    assert bpy.data.objects["ntp_asset"].data.materials[0].name.startswith(material.ACCURATE)
+    assert bpy.data.objects[demo_result.name].data.materials[0].name.startswith(material.ACCURATE)
+    files = [i for i in bpy.data.images if i.source == "FILE"]
+    assert files and all(i.packed_file is not None for i in files)  # self-contained: moved, it still renders
     from ntp_engine.io.images import read_image
 
     assert read_image(out / "a.png").mean() > 0.02  # lit, not black
