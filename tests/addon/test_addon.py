@@ -7,6 +7,7 @@ import shutil
 import struct
 import subprocess
 import sys
+from pathlib import Path
 
 import bpy  # noqa: E402  (a pinned dependency: a missing bpy must fail, not skip)
 import numpy as np
@@ -18,6 +19,7 @@ from ntp_addon import compare, derive, gltf, material  # noqa: E402
 from ntp_engine.sim.demo_asset import DEMO_DIR  # noqa: E402
 
 DEMO = DEMO_DIR
+REPO = Path(__file__).resolve().parents[2]
 
 
 @pytest.fixture(scope="module")
@@ -215,6 +217,11 @@ def test_batch_writes_blend_glb_preview_that_reopen(demo_result, tmp_path):
     spec = mat["extensions"]["KHR_materials_specular"]  # strength texture (alpha) and rho_s > 1 in the factor
     assert "specularTexture" in spec and "specularColorTexture" in spec and min(spec["specularColorFactor"]) > 1
     assert {i["mimeType"] for i in gltf["images"]} == {"image/png"}
+    if shutil.which("node"):  # the Khronos validator (make setup installs it where npm exists)
+        v = subprocess.run(["node", str(REPO / "tools" / "gltf_validate.js"), str(out / "a.glb")], capture_output=True, text=True)
+        assert v.returncode == 0, v.stderr[-500:]
+        issues = json.loads(v.stdout)
+        assert issues["numErrors"] == 0 and issues["numWarnings"] == 0, issues["messages"][:5]
     bpy.ops.wm.open_mainfile(filepath=str(out / "a.blend"))
     names = {m.name.split(" (")[0] for m in bpy.data.materials}
     assert {material.PRINCIPLED, material.ACCURATE} <= names
