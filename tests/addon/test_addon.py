@@ -218,7 +218,8 @@ def test_batch_writes_blend_glb_preview_that_reopen(demo_result, tmp_path):
     assert "specularTexture" in spec and "specularColorTexture" in spec and min(spec["specularColorFactor"]) > 1
     assert {i["mimeType"] for i in gltf["images"]} == {"image/png"}
     if shutil.which("node"):  # the Khronos validator (make setup installs it where npm exists)
-        v = subprocess.run(["node", str(REPO / "tools" / "gltf_validate.js"), str(out / "a.glb")], capture_output=True, text=True)
+        validate = ["node", str(REPO / "tools" / "gltf_validate.js"), str(out / "a.glb")]
+        v = subprocess.run(validate, capture_output=True, text=True)
         assert v.returncode == 0, v.stderr[-500:]
         issues = json.loads(v.stdout)
         assert issues["numErrors"] == 0 and issues["numWarnings"] == 0, issues["messages"][:5]
