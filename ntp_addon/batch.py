@@ -46,18 +46,14 @@ def export(
     principled, accurate = material.build_materials(result, obj, variant)
     if pack:
         material.pack_file_images((principled, accurate))
-    bscene.relight_rig(obj, *size, samples=samples, turntable_frames=turntable)
+    rig = bscene.relight_rig(obj, *size, samples=samples, turntable_frames=turntable)
     written = {}
     if gltf is not None:
         export_glb(obj, principled, gltf)
         written["gltf"] = str(gltf)
     if preview is not None:
-        scene = bpy.context.scene
-        scene.view_settings.view_transform = "AgX"
-        scene.render.image_settings.file_format = "PNG"
         with atomic_path(preview) as tmp:
-            scene.render.filepath = str(tmp)
-            bpy.ops.render.render(write_still=True)
+            bscene.render_still(rig["scene"], tmp)
         written["preview"] = str(preview)
     if blend is not None:
         with atomic_path(blend) as tmp:

@@ -34,12 +34,9 @@ def run(views: int = 3, scale: float = 0.25, samples: int = 64, json_path: Path 
         bpy.ops.wm.read_factory_settings(use_empty=True)
         obj = material.import_result_mesh(result)
         material.build_materials(result, obj)
-        bscene.relight_rig(obj, 640, 512, samples=samples)
-        scene = bpy.context.scene
-        scene.render.image_settings.file_format = "PNG"
-        scene.render.filepath = str(Path(tmp) / "preview.png")
+        rig = bscene.relight_rig(obj, 640, 512, samples=samples)
         t0 = time.perf_counter()
-        bpy.ops.render.render(write_still=True)
+        bscene.render_still(rig["scene"], Path(tmp) / "preview.png")
         preview_s = time.perf_counter() - t0
     rows = []
     for v in ("accurate", "principled"):

@@ -319,8 +319,10 @@ class NTP_OT_relight_preview(bpy.types.Operator):
         if obj is None:
             self.report({"ERROR"}, "select the mesh to light first")
             return {"CANCELLED"}
-        bscene.relight_rig(obj, turntable_frames=_settings(context).turntable_frames)
-        self.report({"INFO"}, "relight rig ready (render with F12)")
+        rig = bscene.relight_rig(obj, turntable_frames=_settings(context).turntable_frames)
+        if context.window is not None:  # show it; the user's scene stays as it was, one click away
+            context.window.scene = rig["scene"]
+        self.report({"INFO"}, f"relight rig ready in scene '{rig['scene'].name}' (render with F12)")
         return {"FINISHED"}
 
 

@@ -93,23 +93,42 @@ def bounds(obj: bpy.types.Object) -> tuple[np.ndarray, float]:
     return 0.5 * (lo + hi), float(0.5 * np.linalg.norm(hi - lo))
 
 
+RELIGHT_PREFIX = "NTP Relight"
+
+
+def render_still(scene: bpy.types.Scene, path: Path, file_format: str = "PNG") -> None:
+    """Render ``scene``'s camera to ``path`` (the scene's own settings; no other scene touched)."""
+    scene.render.image_settings.file_format = file_format
+    scene.render.filepath = str(path)
+    bpy.ops.render.render(write_still=True, scene=scene.name)
+
+
 def relight_rig(
     obj: bpy.types.Object, width: int = 640, height: int = 512, samples: int = 64, turntable_frames: int = 0
-) -> dict[str, bpy.types.Object]:
-    """A look-dev scene around ``obj``: Cycles, a camera, a three-point area-light rig (key, fill,
-    rim) in a collection ``NTP Relight``; optionally a turntable (the object turns 360 degrees about
-    world z over ``turntable_frames`` frames, linear). Existing rig objects are replaced."""
-    scene = bpy.context.scene
-    coll = bpy.data.collections.get("NTP Relight")
-    if coll is None:
-        coll = bpy.data.collections.new("NTP Relight")
-        scene.collection.children.link(coll)
-    for o in list(coll.objects):
-        bpy.data.objects.remove(o, do_unlink=True)
+) -> dict:
+    """A look-dev scene for ``obj`` of its own, ``NTP Relight (OBJECT)``: the object linked in (the
+    same datablock, not a copy), Cycles, a camera and a three-point area-light rig (key, fill, rim)
+    sized from its bounds, AgX; optionally a turntable — the rig orbits the object 360 degrees
+    about world z over ``turntable_frames`` frames, so the object keeps its own transform and
+    animation. The user's scenes, worlds, cameras and settings are left as they were; building it
+    again replaces the rig scene. Returns the scene and the rig's objects."""
+    name = f"{RELIGHT_PREFIX} ({obj.name})"
+    old = bpy.data.scenes.get(name)
+    if old is not None:
+        for o in list(old.collection.all_objects):
+            if o.name.startswith("NTP ") and o is not obj:
+                bpy.data.objects.remove(o, do_unlink=True)
+        bpy.data.scenes.remove(old)
+    scene = bpy.data.scenes.new(name)
+    scene.collection.objects.link(obj)
     setup_cycles(scene, width, height, samples)
     scene.cycles.max_bounces = 4
+    scene.view_settings.view_transform = "AgX"
     centre, radius = bounds(obj)
     dist = max(radius, 1e-3) * 4.0
+    pivot = bpy.data.objects.new(f"NTP Turntable ({obj.name})", None)
+    pivot.location = tuple(float(v) for v in centre)
+    scene.collection.objects.link(pivot)
     cam_pos = centre + dist * np.array([0.0, -0.82, 0.57])
     f = 0.5 * width / math.tan(math.radians(22))
     lens = dataclasses.replace(
@@ -118,34 +137,39 @@ def relight_rig(
         height=height,
         K=np.array([[f, 0, (width - 1) / 2], [0, f, (height - 1) / 2], [0, 0, 1]]),
     )
-    cam = camera_object("NTP Camera", lens, look_at(cam_pos, centre), coll)
+    cam = camera_object(f"NTP Camera ({obj.name})", lens, look_at(cam_pos, centre), scene.collection)
     scene.camera = cam
-    rig = {"camera": cam}
-    for name, direction, share, size in (
+    rig: dict = {"scene": scene, "camera": cam, "pivot": pivot}
+    for label, direction, share, size in (
         ("Key", (-0.6, -0.6, 0.7), 1.0, 0.5),
         ("Fill", (0.8, -0.4, 0.3), 0.3, 1.0),
         ("Rim", (0.2, 0.9, 0.6), 0.6, 0.4),
     ):
         d = np.array(direction) / np.linalg.norm(direction)
-        data = bpy.data.lights.new(f"NTP {name}", type="AREA")
+        data = bpy.data.lights.new(f"NTP {label} ({obj.name})", type="AREA")
         # irradiance ~ P / (pi d^2) from a small area light: P = share * pi^2 d^2 puts a white
         # Lambertian surface facing the key light near display white, at any object scale
         data.energy = share * math.pi**2 * dist**2
         data.size = size * dist
-        light = bpy.data.objects.new(f"NTP {name}", data)
+        light = bpy.data.objects.new(data.name, data)
         pos = centre + dist * d
         m = np.linalg.inv(look_at(pos, centre)) @ FLIP  # area lights emit along -Z, like cameras look
         light.matrix_world = Matrix(m.tolist())
-        coll.objects.link(light)
-        rig[name.lower()] = light
+        scene.collection.objects.link(light)
+        rig[label.lower()] = light
+    for o in (cam, rig["key"], rig["fill"], rig["rim"]):  # the rig turns about the object's centre
+        world = o.matrix_world.copy()
+        o.parent = pivot
+        o.matrix_parent_inverse = pivot.matrix_world.inverted()
+        o.matrix_world = world
     if turntable_frames > 0:
-        obj.animation_data_clear()
         scene.frame_start, scene.frame_end = 1, turntable_frames
-        obj.rotation_euler = (0.0, 0.0, 0.0)
-        obj.keyframe_insert("rotation_euler", index=2, frame=1)
-        obj.rotation_euler[2] = 2 * math.pi * turntable_frames / (turntable_frames + 1)
-        obj.keyframe_insert("rotation_euler", index=2, frame=turntable_frames)
-        for fc in obj.animation_data.action.fcurves if hasattr(obj.animation_data.action, "fcurves") else []:
+        pivot.keyframe_insert("rotation_euler", index=2, frame=1)
+        # the rig turns the other way: the object appears to turn 360 degrees (last frame != first)
+        pivot.rotation_euler[2] = -2 * math.pi * turntable_frames / (turntable_frames + 1)
+        pivot.keyframe_insert("rotation_euler", index=2, frame=turntable_frames)
+        action = pivot.animation_data.action
+        for fc in action.fcurves if hasattr(action, "fcurves") else []:
             for k in fc.keyframe_points:
                 k.interpolation = "LINEAR"
     return rig

@@ -16,6 +16,7 @@ from scans import make_virtual_scan  # noqa: E402
 
 import ntp_addon  # noqa: E402
 from ntp_addon import compare, derive, gltf, material  # noqa: E402
+from ntp_addon import scene as bscene  # noqa: E402
 from ntp_engine.sim.demo_asset import DEMO_DIR  # noqa: E402
 
 DEMO = DEMO_DIR
@@ -82,8 +83,38 @@ def test_every_operator_in_background_mode(addon, posed_scan, tmp_path):
     assert obj.data.materials[0].name.startswith(material.ACCURATE)
     s.turntable_frames = 24
     assert bpy.ops.ntp.relight_preview() == {"FINISHED"}
-    assert bpy.context.scene.camera is not None and bpy.context.scene.frame_end == 24
-    assert len(bpy.data.collections["NTP Relight"].objects) == 4
+    rig = bpy.data.scenes[f"NTP Relight ({obj.name})"]
+    assert rig.camera is not None and rig.frame_end == 24 and obj.name in rig.collection.objects
+    assert len([o for o in rig.collection.objects if o.type in ("CAMERA", "LIGHT")]) == 4
+
+
+def test_relight_preview_leaves_the_users_scene_alone(demo_result):
+    _fresh()
+    scene = bpy.context.scene
+    world = bpy.data.worlds.new("user HDRI")
+    scene.world = world
+    cam = bpy.data.objects.new("user camera", bpy.data.cameras.new("user camera"))
+    scene.collection.objects.link(cam)
+    scene.camera = cam
+    scene.render.resolution_x, scene.render.resolution_y = 1234, 567
+    scene.view_settings.view_transform = "Standard"
+    scene.cycles.use_denoising, scene.cycles.filter_width = True, 1.7
+    obj = material.import_result_mesh(demo_result)
+    obj.location.x = 0.25
+    obj.keyframe_insert("location", index=0, frame=10)
+    settings = lambda: (  # noqa: E731
+        scene.world, scene.camera, scene.render.resolution_x, scene.render.resolution_y,
+        scene.view_settings.view_transform, scene.cycles.use_denoising, scene.cycles.filter_width,
+        scene.frame_end, tuple(obj.matrix_world.translation), len(scene.objects),
+    )  # fmt: skip
+    before = settings()
+    for _ in range(2):  # built again: replaced, not duplicated
+        rig = bscene.relight_rig(obj, 64, 48, samples=2, turntable_frames=12)
+    assert settings() == before and world.users > 0 and cam.name in bpy.data.objects
+    assert obj.animation_data.action is not None  # the user's animation is kept
+    assert len([s for s in bpy.data.scenes if s.name.startswith("NTP Relight")]) == 1
+    assert rig["scene"].frame_end == 12 and rig["pivot"].animation_data.action is not None
+    assert len([o for o in bpy.data.objects if o.name.startswith("NTP Key")]) == 1  # no orphaned rig objects
 
 
 def test_bad_result_folder_is_reported_and_builds_nothing(addon, demo_result, tmp_path):
