@@ -253,8 +253,15 @@ class NTP_OT_register_photos(_EngineProcess, bpy.types.Operator):
         if coll is None:
             coll = bpy.data.collections.new("NTP Cameras")
             context.scene.collection.children.link(coll)
-        for o in list(coll.objects):
+        for o in list(coll.objects):  # re-registering replaces the cameras (and their data)
+            data = o.data
             bpy.data.objects.remove(o, do_unlink=True)
+            if data is not None and data.users == 0:
+                bpy.data.cameras.remove(data)
+        # the photos' frame, so their background images are not stretched (sensor fit: horizontal)
+        render = context.scene.render
+        render.resolution_x, render.resolution_y = scan.scanner.width, scan.scanner.height
+        render.resolution_percentage, render.pixel_aspect_x, render.pixel_aspect_y = 100, 1.0, 1.0
         for name in sorted(poses):
             cam = bscene.camera_object(f"NTP {name}", scan.scanner, poses[name], coll)
             img = bpy.data.images.load(str(scan.photos_dir / name), check_existing=True)

@@ -77,6 +77,13 @@ def test_every_operator_in_background_mode(addon, posed_scan, tmp_path):
     g = np.array(truth["0000.png"])
     assert np.abs(c0[:3, 3] - (-g[:3, :3].T @ g[:3, 3])).max() < 1e-5  # camera centre
     assert np.abs(c0[:3, 2] + g[2, :3]).max() < 1e-5  # Blender looks down -Z, OpenCV along +z
+    from ntp_engine.pipeline.scan_folder import load_scan
+
+    dev = load_scan(posed_scan).scanner
+    r = bpy.context.scene.render
+    assert (r.resolution_x, r.resolution_y, r.resolution_percentage) == (dev.width, dev.height, 100)
+    assert bpy.ops.ntp.register_photos() == {"FINISHED"}  # again: replaced, not added
+    assert len(bpy.data.collections["NTP Cameras"].objects) == 6 and len(bpy.data.cameras) == 6
     assert bpy.ops.ntp.reconstruct() == {"FINISHED"}  # background mode: waits for the child process
     assert (tmp_path / "result" / "normal.exr").is_file() and "texels observed" in s.status
     assert bpy.ops.ntp.build_material() == {"FINISHED"}
