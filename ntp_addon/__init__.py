@@ -7,6 +7,8 @@ helpers (``scene``), headless export (``python -m ntp_addon.batch``).
 
 from __future__ import annotations
 
+import atexit
+
 import bpy
 
 from . import operators, panel, properties
@@ -19,10 +21,17 @@ def register() -> None:
     properties.register()
     for cls in _CLASSES:
         bpy.utils.register_class(cls)
+    if operators.stop_children not in bpy.app.handlers.load_pre:  # another file: no orphaned child
+        bpy.app.handlers.load_pre.append(operators.stop_children)
+    atexit.register(operators.stop_children)
 
 
 def unregister() -> None:
     """Remove everything ``register`` added."""
+    operators.stop_children()
+    if operators.stop_children in bpy.app.handlers.load_pre:
+        bpy.app.handlers.load_pre.remove(operators.stop_children)
+    atexit.unregister(operators.stop_children)
     for cls in reversed(_CLASSES):
         bpy.utils.unregister_class(cls)
     properties.unregister()

@@ -57,12 +57,31 @@ def _target_object(context):
     return obj if obj is not None and obj.type == "MESH" else None
 
 
+def _needs_scan(cls, context) -> bool:
+    if not _settings(context).scan_folder:
+        cls.poll_message_set("set the scan folder first")
+        return False
+    return True
+
+
+def _idle(cls) -> bool:
+    if any(p.poll() is None for p in _CHILDREN):
+        cls.poll_message_set("an NTP run is in progress (ESC cancels it)")
+        return False
+    return True
+
+
 class NTP_OT_import_mesh(bpy.types.Operator):
     """Import the scan's pre-scanned mesh (coordinates unchanged: z up, metres)"""
 
     bl_idname = "ntp.import_mesh"
     bl_label = "Import mesh"
     bl_options = {"REGISTER", "UNDO"}
+
+    @classmethod
+    def poll(cls, context):
+        """Needs a scan folder."""
+        return _needs_scan(cls, context)
 
     def execute(self, context):
         """Import the scan's mesh."""
@@ -85,6 +104,37 @@ class NTP_OT_import_mesh(bpy.types.Operator):
         context.view_layer.objects.active = new[0]
         self.report({"INFO"}, f"imported {scan.mesh_path.name}")
         return {"FINISHED"}
+
+
+_CHILDREN: set[subprocess.Popen] = set()  # engine processes running for this Blender session
+
+
+def stop_child(proc: subprocess.Popen) -> None:
+    """Stop an engine child: SIGINT (the engine removes its temporary files and exits 130; on
+    Windows terminate), killed if it has not exited within 10 s (the next run removes what it left)."""
+    if proc.poll() is None:
+        if sys.platform == "win32":
+            proc.terminate()
+        else:
+            proc.send_signal(signal.SIGINT)
+        try:
+            proc.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+    _CHILDREN.discard(proc)
+
+
+@bpy.app.handlers.persistent
+def stop_children(*_args) -> None:
+    """Stop every running engine child (handler for loading another file; also at exit)."""
+    for proc in list(_CHILDREN):
+        stop_child(proc)
+
+
+def is_cancel(event) -> bool:
+    """ESC pressed (a release, or any other key, does not cancel)."""
+    return event.type == "ESC" and event.value == "PRESS"
 
 
 def progress_status(record: dict) -> tuple[str, float]:
@@ -138,6 +188,7 @@ class _EngineProcess:
         self._proc = subprocess.Popen(
             cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, bufsize=1, env=env
         )
+        _CHILDREN.add(self._proc)
 
         def read():  # stderr holds only errors (--quiet): keep its lines for the report
             for line in self._proc.stderr:
@@ -156,6 +207,7 @@ class _EngineProcess:
 
     def _finish(self, context) -> set[str]:
         out, _ = self._proc.communicate()
+        _CHILDREN.discard(self._proc)
         self._reader.join(timeout=5)
         if self._progress_file is not None:
             self._progress_file.unlink(missing_ok=True)
@@ -192,16 +244,8 @@ class _EngineProcess:
 
     def modal(self, context, event):
         wm = context.window_manager
-        if event.type == "ESC":
-            # SIGINT: the engine removes its temporary files and exits 130 (Windows: terminate)
-            if sys.platform == "win32":
-                self._proc.terminate()
-            else:
-                self._proc.send_signal(signal.SIGINT)
-            try:
-                self._proc.wait(timeout=10)
-            except subprocess.TimeoutExpired:
-                self._proc.kill()  # the next run removes what it left
+        if is_cancel(event):
+            stop_child(self._proc)
             self._cleanup(context)
             _settings(context).status = "cancelled (a re-run resumes from the last finished stage)"
             self.report({"WARNING"}, _settings(context).status)
@@ -216,6 +260,12 @@ class _EngineProcess:
                 self._cleanup(context)
                 return self._finish(context)
         return {"PASS_THROUGH"}
+
+    def cancel(self, context) -> None:
+        """Blender ends the operator (another file loaded, quit): stop the child, tidy up."""
+        if self._proc is not None:
+            stop_child(self._proc)
+        self._cleanup(context)
 
     def _cleanup(self, context) -> None:
         if self._progress_file is not None:
@@ -242,6 +292,11 @@ class NTP_OT_register_photos(_EngineProcess, bpy.types.Operator):
     bl_idname = "ntp.register_photos"
     bl_label = "Register photos"
     bl_options = {"REGISTER", "UNDO"}
+
+    @classmethod
+    def poll(cls, context):
+        """Needs a scan folder and no engine run in progress."""
+        return _needs_scan(cls, context) and _idle(cls)
 
     def _command(self, context) -> list[str]:
         return ["register", *_engine_args(context)]
@@ -277,6 +332,11 @@ class NTP_OT_reconstruct(_EngineProcess, bpy.types.Operator):
     bl_idname = "ntp.reconstruct"
     bl_label = "Reconstruct"
 
+    @classmethod
+    def poll(cls, context):
+        """Needs a scan folder and no engine run in progress."""
+        return _needs_scan(cls, context) and _idle(cls)
+
     def _command(self, context) -> list[str]:
         s = _settings(context)
         cmd = ["reconstruct", *_engine_args(context), "--resolution", str(s.resolution)]
@@ -296,6 +356,14 @@ class NTP_OT_build_material(bpy.types.Operator):
     bl_idname = "ntp.build_material"
     bl_label = "Build material"
     bl_options = {"REGISTER", "UNDO"}
+
+    @classmethod
+    def poll(cls, context):
+        """Needs a result folder (what is in it is checked when run, with the reason reported)."""
+        if not result_folder(context).is_dir():
+            cls.poll_message_set("reconstruct first (or set a result folder)")
+            return False
+        return True
 
     def execute(self, context):
         """Build both materials from the result folder on the active (or imported) mesh."""
@@ -319,6 +387,14 @@ class NTP_OT_relight_preview(bpy.types.Operator):
     bl_idname = "ntp.relight_preview"
     bl_label = "Relight preview"
     bl_options = {"REGISTER", "UNDO"}
+
+    @classmethod
+    def poll(cls, context):
+        """Needs an active mesh."""
+        if _target_object(context) is None:
+            cls.poll_message_set("select the mesh to light")
+            return False
+        return True
 
     def execute(self, context):
         """Build the look-dev rig around the active mesh."""

@@ -145,6 +145,34 @@ def test_bad_result_folder_is_reported_and_builds_nothing(addon, demo_result, tm
         bpy.ops.ntp.import_mesh()
 
 
+def test_operators_poll_and_children_stop_with_the_file(addon, posed_scan, tmp_path):
+    from types import SimpleNamespace
+
+    from ntp_addon import operators
+
+    addon.scan_folder, addon.result_folder = "", str(tmp_path / "none")
+    for op in (bpy.ops.ntp.import_mesh, bpy.ops.ntp.register_photos, bpy.ops.ntp.reconstruct):
+        assert not op.poll()  # greyed out: no scan folder
+    assert not bpy.ops.ntp.build_material.poll() and not bpy.ops.ntp.relight_preview.poll()
+    addon.scan_folder = str(posed_scan)
+    assert bpy.ops.ntp.import_mesh.poll() and bpy.ops.ntp.reconstruct.poll()
+    assert bpy.ops.ntp.import_mesh() == {"FINISHED"} and bpy.ops.ntp.relight_preview.poll()  # an active mesh
+    # ESC on press only
+    assert operators.is_cancel(SimpleNamespace(type="ESC", value="PRESS"))
+    assert not operators.is_cancel(SimpleNamespace(type="ESC", value="RELEASE"))
+    assert not operators.is_cancel(SimpleNamespace(type="A", value="PRESS"))
+    # a running engine child blocks new runs and is stopped when another file is loaded
+    child = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    operators._CHILDREN.add(child)
+    try:
+        assert not bpy.ops.ntp.reconstruct.poll()
+        bpy.ops.wm.read_homefile(use_empty=True)
+        assert child.wait(timeout=15) is not None and child not in operators._CHILDREN
+    finally:
+        child.kill()
+        operators._CHILDREN.discard(child)
+
+
 def _link_from(sock):
     assert sock.is_linked, sock.name
     return sock.links[0].from_node
