@@ -28,6 +28,7 @@ from .pipeline.photo_selection import BLUR_MARGIN
 from .pipeline.scan_folder import Scan, load_scan
 from .pipeline.sfm import MAPPERS
 from .pipeline.stages import DEFAULT_RESOLUTION, reconstruct, register_photos, write_registration
+from .pipeline.threads import set_threads
 from .scanner.device_file import DEFAULT_DEVICE, list_devices, load_scanner, write_pattern
 from .sim import demo
 from .sim.cycles_scan import CyclesConfig, cycles_scan
@@ -93,8 +94,14 @@ def _demo(args: argparse.Namespace) -> int:
 
 
 def _register(args: argparse.Namespace) -> int:
+    set_threads(args.threads)
     poses, rep, _ = register_photos(
-        _scan(args), args.out, args.blur_margin, progress=_progress(args), force_registration=args.force_registration
+        _scan(args),
+        args.out,
+        args.blur_margin,
+        progress=_progress(args),
+        force_registration=args.force_registration,
+        cache=args.cache,
     )
     write_registration(args.out, poses, rep)
     reg = rep["registration"]
@@ -103,6 +110,7 @@ def _register(args: argparse.Namespace) -> int:
 
 
 def _reconstruct(args: argparse.Namespace) -> int:
+    set_threads(args.threads)
     rep = reconstruct(
         _scan(args, args.poses),
         args.out,
@@ -112,6 +120,7 @@ def _reconstruct(args: argparse.Namespace) -> int:
         progress=_progress(args),
         force_registration=args.force_registration,
         refine=args.refine,
+        cache=args.cache,
     )
     print(
         f"wrote {args.out}: {rep['texels']['coverage']:.1%} of {rep['texels']['total']} texels observed, "
@@ -280,6 +289,17 @@ def _quiet_and_progress(p: argparse.ArgumentParser) -> None:
     )
 
 
+def _run_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--threads", type=int, default=0, help="CPU threads (default 0: every core)")
+    p.add_argument(
+        "--cache",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help="stage cache folder (default OUT/cache), e.g. on a fast local disk; one per result",
+    )
+
+
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="ntp", description="Neural trace photography: hand-held reflectance scans to relightable Blender assets."
@@ -314,6 +334,7 @@ def _parser() -> argparse.ArgumentParser:
     )
     rc.add_argument("--force-registration", action="store_true", help=FORCE_HELP)
     rc.add_argument("--refine", action="store_true", help=REFINE_HELP)
+    _run_options(rc)
     _quiet_and_progress(rc)
     rc.set_defaults(func=_reconstruct)
 
@@ -324,6 +345,7 @@ def _parser() -> argparse.ArgumentParser:
     rg.add_argument("--colmap", type=Path, default=None, help=COLMAP_HELP)
     rg.add_argument("--blur-margin", type=float, default=BLUR_MARGIN)
     rg.add_argument("--force-registration", action="store_true", help=FORCE_HELP)
+    _run_options(rg)
     _quiet_and_progress(rg)
     rg.set_defaults(func=_register)
 

@@ -214,6 +214,16 @@ CASES = {
     "register_out_is_a_file": Case(_out(_a_file, "register"), "is a file, not a folder", "result.txt"),
     "virtual_scan_into_users_folder": Case(_out(_user_folder, "virtual-scan"), "not an ntp scan folder", "mine"),
     "demo_into_users_folder": Case(_out(_user_folder, "demo"), "not an ntp demo folder", "mine"),
+    "cache_is_users_folder": Case(
+        lambda s, o, t: reconstruct_argv(s, o, "--cache", str(_user_folder(s, t))), "not an ntp cache folder", "mine"
+    ),
+    "cache_is_the_result": Case(
+        lambda s, o, t: reconstruct_argv(s, o, "--cache", str(o)), "is an ntp result folder, not a cache", "out"
+    ),
+    "cache_inside_the_scan": Case(
+        lambda s, o, t: reconstruct_argv(s, o, "--cache", str(s / "cache")), "inside the input folder", "cache"
+    ),
+    "threads_negative": Case(lambda s, o, t: reconstruct_argv(s, o, "--threads", "-1"), "need 0", "--threads"),
 }
 
 
@@ -321,6 +331,19 @@ def test_leftovers_of_a_killed_run_are_removed(copies, capsys):
     _, rep = _run_ok(reconstruct_argv(scan, out), capsys)
     assert rep["cached_stages"] == ["select", "atlas", "traces", "fit"]
     assert not [p for p in out.rglob(".ntp-tmp.*")]
+
+
+def test_a_cache_elsewhere_holds_the_stages_and_resumes(good, copies, tmp_path, capsys):
+    scan, out = copies
+    shutil.rmtree(out / "cache")
+    elsewhere = tmp_path / "fast-disk" / "cache"
+    _, rep = _run_ok(reconstruct_argv(scan, out, "--cache", str(elsewhere), "--threads", "1"), capsys)
+    assert rep["cached_stages"] == [] and not (out / "cache").exists()
+    assert json.loads((elsewhere / ".ntp").read_text()) == {"ntp": "cache"}
+    assert {p.name for p in elsewhere.iterdir()} >= {"select", "atlas", "traces", "fit"}
+    assert outputs(out) == outputs(good[1])
+    _, rep = _run_ok(reconstruct_argv(scan, out, "--cache", str(elsewhere)), capsys)
+    assert rep["cached_stages"] == ["select", "atlas", "traces", "fit"]
 
 
 def test_changed_photos_with_a_poses_file_recompute(good, copies, capsys):

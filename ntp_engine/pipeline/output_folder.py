@@ -32,7 +32,7 @@ except ImportError:  # Windows: no advisory locks (documented above)
 
 MARKER = ".ntp"
 REPORT = "report.json"
-KINDS = ("result", "scan", "demo", "gallery")
+KINDS = ("result", "scan", "demo", "gallery", "cache")  # cache: a stage cache kept apart (--cache)
 
 
 def check_not_inside(out: Path, inputs: tuple[Path, ...]) -> None:

@@ -24,6 +24,7 @@ import numpy as np
 from ..io.errors import NtpInputError
 from ..io.progress import QUIET, Progress
 from ..scanner.scanner import Scanner
+from .threads import colmap_threads
 
 MIN_REGISTERED = 3
 MAPPERS = ("incremental", "global", "hierarchical")
@@ -82,6 +83,7 @@ def structure_from_motion(
     reader.camera_params = ",".join(str(float(v)) for v in (K[0, 0], K[1, 1], K[0, 2] + 0.5, K[1, 2] + 0.5, *d[:4]))
     extraction = pycolmap.FeatureExtractionOptions()
     extraction.sift.peak_threshold = peak_threshold
+    extraction.num_threads = colmap_threads()
     pycolmap.extract_features(
         db,
         photos_dir,
@@ -94,7 +96,9 @@ def structure_from_motion(
     pairing = pycolmap.SequentialPairingOptions()
     pairing.overlap = overlap
     pairing.quadratic_overlap = True
-    pycolmap.match_sequential(db, pairing_options=pairing)
+    matching = pycolmap.FeatureMatchingOptions()
+    matching.num_threads = colmap_threads()
+    pycolmap.match_sequential(db, matching_options=matching, pairing_options=pairing)
     bar.update()
     models = _map(pycolmap, mapper, db, photos_dir, work / "sparse", seed)
     bar.update()
@@ -121,6 +125,7 @@ def _map(pycolmap, mapper: str, db: Path, photos_dir: Path, out: Path, seed: int
     mappers' own options carry the seed (pycolmap's global one does not reach GLOMAP's choices)."""
     out.mkdir(parents=True, exist_ok=True)
     incremental = pycolmap.IncrementalPipelineOptions()
+    incremental.num_threads = colmap_threads()
     if seed is not None:
         incremental.random_seed = seed
     incremental.ba_refine_focal_length = False
@@ -131,8 +136,10 @@ def _map(pycolmap, mapper: str, db: Path, photos_dir: Path, out: Path, seed: int
     if mapper == "hierarchical":
         hierarchical = pycolmap.HierarchicalPipelineOptions()
         hierarchical.incremental_options = incremental
+        hierarchical.num_threads = colmap_threads()
         return pycolmap.hierarchical_mapping(db, photos_dir, out, hierarchical)
     glomap = pycolmap.GlobalPipelineOptions()
+    glomap.num_threads = colmap_threads()
     if seed is not None:
         glomap.random_seed = glomap.mapper.random_seed = seed
     ba = glomap.mapper.bundle_adjustment

@@ -1,5 +1,5 @@
 """``ntp reconstruct``: a scan folder to texture maps, stage by stage, each stage cached under
-``OUT/cache`` (DESIGN.md data flow):
+``OUT/cache`` or ``--cache DIR`` (DESIGN.md data flow):
 
 select (blur, unreadable) -> register (pycolmap SfM, or a COLMAP model, + similarity to the mesh;
 skipped with a poses file)
@@ -16,10 +16,12 @@ before the fit (``MIN_PHOTOS_USED``, ``MIN_COVERAGE``; a mesh of implausible siz
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import shutil
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -84,16 +86,27 @@ def register_photos(
     blur_margin: float = BLUR_MARGIN,
     progress: Progress = QUIET,
     force_registration: bool = False,
+    cache: Path | None = None,
 ) -> tuple[dict[str, np.ndarray], dict, str]:
     """Stages 1-2 (photo selection, then the poses file or SfM + alignment), cached under
-    ``out/cache`` (``out`` is claimed as an ntp result folder). Returns (camera-from-world poses by
-    photo name, report entries, poses key). A registration the photos do not confirm raises
-    ``RegistrationRefused`` unless ``force_registration``."""
+    ``cache`` (default ``out/cache``; ``out`` is claimed as an ntp result folder, a ``cache``
+    elsewhere as an ntp cache folder). Returns (camera-from-world poses by photo name, report
+    entries, poses key). A registration the photos do not confirm raises ``RegistrationRefused``
+    unless ``force_registration``."""
     check_mesh_size(load_mesh(scan.mesh_path), scan.scanner, scan.mesh_path)
-    with claim(out, "result", inputs=scan.input_folders):
-        return _registration(
-            scan, Path(out), StageCache(Path(out) / "cache"), blur_margin, progress, force_registration
-        )
+    with claim(out, "result", inputs=scan.input_folders), _stage_cache(Path(out), cache, scan) as stages:
+        return _registration(scan, Path(out), stages, blur_margin, progress, force_registration)
+
+
+@contextlib.contextmanager
+def _stage_cache(out: Path, cache: Path | None, scan: Scan) -> Iterator[StageCache]:
+    """The run's stage cache: ``out/cache``, or ``cache`` claimed as an ntp cache folder (one run
+    at a time, never the user's files, never inside the scan)."""
+    if cache is None or Path(cache).resolve() == (out / "cache").resolve():
+        yield StageCache(out / "cache")
+        return
+    with claim(cache, "cache", inputs=scan.input_folders) as folder:
+        yield StageCache(folder)
 
 
 class RegistrationRefused(NtpInputError):
@@ -280,22 +293,28 @@ def reconstruct(
     progress: Progress = QUIET,
     force_registration: bool = False,
     refine: bool = False,
+    cache: Path | None = None,
 ) -> dict:
     """Run the pipeline on ``scan`` into ``out`` (``refine``: the analysis-by-synthesis refinement
     after the network's fit); returns the report (also in ``out/report.json``,
     written last). ``out`` must be absent, empty or an ntp result, outside the scan folder
     (``output_folder.claim``); a run that measured too little, or whose registration the photos do
-    not confirm (unless ``force_registration``), is refused, the old result kept."""
+    not confirm (unless ``force_registration``), is refused, the old result kept. Stages are cached
+    under ``cache`` (default ``out/cache``; elsewhere, e.g. a fast local disk, claimed as an ntp
+    cache folder); a re-run resumes from the last stage whose inputs did not change."""
     if resolution < MIN_RESOLUTION:
         raise NtpInputError(None, f"--resolution {resolution}: need at least {MIN_RESOLUTION}")
     check_mesh_size(load_mesh(scan.mesh_path), scan.scanner, scan.mesh_path)
-    with claim(out, "result", inputs=scan.input_folders):
-        return _reconstruct(scan, Path(out), resolution, model, blur_margin, progress, force_registration, refine)
+    with claim(out, "result", inputs=scan.input_folders), _stage_cache(Path(out), cache, scan) as stages:
+        return _reconstruct(
+            scan, Path(out), stages, resolution, model, blur_margin, progress, force_registration, refine
+        )
 
 
 def _reconstruct(
     scan: Scan,
     out: Path,
+    cache: StageCache,
     resolution: int,
     model: str | None,
     blur_margin: float,
@@ -303,7 +322,6 @@ def _reconstruct(
     force_registration: bool,
     refine: bool,
 ) -> dict:
-    cache = StageCache(out / "cache")
     t_all = time.perf_counter()
     report = _Report(scan=str(scan.folder))
     poses, reg_report, h_pose = _registration(scan, out, cache, blur_margin, progress, force_registration)

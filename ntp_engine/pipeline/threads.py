@@ -1,0 +1,26 @@
+"""How many CPU threads a run uses (``ntp reconstruct|register --threads N``, the add-on's
+preference): one home for the setting, read by torch and by COLMAP's feature extraction, matching
+and mapping. 0 means every core (torch's and COLMAP's own default)."""
+
+from __future__ import annotations
+
+import torch
+
+from ..io.errors import NtpInputError
+
+_threads = 0
+
+
+def set_threads(n: int) -> None:
+    """Use ``n`` CPU threads from now on (0: every core). ``NtpInputError`` for a negative ``n``."""
+    global _threads
+    if n < 0:
+        raise NtpInputError(None, f"--threads {n}: need 0 (every core) or more")
+    _threads = n
+    if n:
+        torch.set_num_threads(n)
+
+
+def colmap_threads() -> int:
+    """COLMAP's ``num_threads`` option for the setting (-1: every core)."""
+    return _threads or -1
