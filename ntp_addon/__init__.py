@@ -1,7 +1,8 @@
 """ntp Blender add-on: the thin Blender layer over ``ntp_engine`` (which never imports bpy).
 
-Sidebar tab "NTP" in the 3D view (``panel``), operators (``operators``), scene properties
-(``properties``), material building (``material`` over the bpy-free ``derive``), Cycles scene
+Sidebar tab "NTP" in the 3D view (``panel``), operators (``operators``, also in File → Import),
+scene properties (``properties``), preferences (``preferences``), the coverage overlay
+(``coverage``), material building (``material`` over the bpy-free ``derive``), Cycles scene
 helpers (``scene``), headless export (``python -m ntp_addon.batch``).
 """
 
@@ -11,9 +12,9 @@ import atexit
 
 import bpy
 
-from . import operators, panel, properties
+from . import operators, panel, preferences, properties
 
-_CLASSES = (*operators.CLASSES, *panel.CLASSES)
+_CLASSES = (*preferences.CLASSES, *operators.CLASSES, *panel.CLASSES)
 
 
 def register() -> None:
@@ -21,6 +22,7 @@ def register() -> None:
     properties.register()
     for cls in _CLASSES:
         bpy.utils.register_class(cls)
+    bpy.types.TOPBAR_MT_file_import.append(operators.menu_import)
     if operators.stop_children not in bpy.app.handlers.load_pre:  # another file: no orphaned child
         bpy.app.handlers.load_pre.append(operators.stop_children)
     atexit.register(operators.stop_children)
@@ -32,6 +34,7 @@ def unregister() -> None:
     if operators.stop_children in bpy.app.handlers.load_pre:
         bpy.app.handlers.load_pre.remove(operators.stop_children)
     atexit.unregister(operators.stop_children)
+    bpy.types.TOPBAR_MT_file_import.remove(operators.menu_import)
     for cls in reversed(_CLASSES):
         bpy.utils.unregister_class(cls)
     properties.unregister()

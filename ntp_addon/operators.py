@@ -19,6 +19,7 @@ import threading
 from pathlib import Path
 
 import bpy
+from bpy_extras.io_utils import ImportHelper
 
 from ntp_engine.io.errors import NtpInputError, error_line
 from ntp_engine.io.progress import read_progress
@@ -26,6 +27,7 @@ from ntp_engine.pipeline.scan_folder import load_poses, load_scan
 
 from . import material
 from . import scene as bscene
+from .preferences import engine_options
 
 
 def _settings(context):
@@ -206,7 +208,8 @@ class _EngineProcess:
             s.status, s.progress = progress_status(records[-1])
 
     def _finish(self, context) -> set[str]:
-        out, _ = self._proc.communicate()
+        out = self._proc.stdout.read()  # stderr belongs to the reader thread (communicate() would race it)
+        self._proc.wait()
         _CHILDREN.discard(self._proc)
         self._reader.join(timeout=5)
         if self._progress_file is not None:
@@ -278,11 +281,19 @@ class _EngineProcess:
 
 
 def _engine_args(context) -> list[str]:
-    s = _settings(context)
-    args = [str(_abs(s.scan_folder)), "--out", str(result_folder(context))]
+    """Arguments shared by register and reconstruct: scan, result, device, COLMAP model, and the
+    preferences' threads and cache location."""
+    s, opts = _settings(context), engine_options(context)
+    out = result_folder(context)
+    args = [str(_abs(s.scan_folder)), "--out", str(out)]
     if s.device:
         args += ["--device", str(_abs(s.device))]
-    return args
+    if s.colmap_folder:
+        args += ["--colmap", str(_abs(s.colmap_folder))]
+    if opts.threads:
+        args += ["--threads", str(opts.threads)]
+    cache = opts.cache_for(out)
+    return args + (["--cache", str(cache)] if cache is not None else [])
 
 
 class NTP_OT_register_photos(_EngineProcess, bpy.types.Operator):
@@ -339,8 +350,8 @@ class NTP_OT_reconstruct(_EngineProcess, bpy.types.Operator):
 
     def _command(self, context) -> list[str]:
         s = _settings(context)
-        cmd = ["reconstruct", *_engine_args(context), "--resolution", str(s.resolution)]
-        return cmd + (["--model", s.model] if s.model else [])
+        model = s.model or engine_options(context).model
+        return ["reconstruct", *_engine_args(context), "--resolution", str(s.resolution), "--model", model]
 
     def _succeeded(self, context, stdout: str) -> str:
         s = _settings(context)
@@ -409,7 +420,67 @@ class NTP_OT_relight_preview(bpy.types.Operator):
         return {"FINISHED"}
 
 
+class NTP_OT_import_result(bpy.types.Operator, ImportHelper):
+    """Import an NTP result folder: its mesh with both materials (File → Import)"""
+
+    bl_idname = "import_scene.ntp_result"
+    bl_label = "Import NTP result"
+    bl_options = {"REGISTER", "UNDO"}
+
+    directory: bpy.props.StringProperty(subtype="DIR_PATH", options={"HIDDEN", "SKIP_SAVE"})
+    filter_folder: bpy.props.BoolProperty(default=True, options={"HIDDEN"})
+    filename_ext = ""
+    use_filter_folder = True
+
+    def execute(self, context):
+        """Check the folder, import its mesh, build the materials, remember it as the result."""
+        folder = Path(self.directory)
+        try:
+            material.read_result(folder)  # everything checked before anything is created
+            obj = material.import_result_mesh(folder)
+            p, a = material.build_materials(folder, obj, _settings(context).variant)
+        except (NtpInputError, OSError) as err:
+            self.report({"ERROR"}, error_line(err))
+            return {"CANCELLED"}
+        _settings(context).result_folder = str(folder)
+        context.view_layer.objects.active = obj
+        self.report({"INFO"}, f"imported {obj.name} with {p.name} and {a.name}")
+        return {"FINISHED"}
+
+
+class NTP_OT_import_colmap(bpy.types.Operator, ImportHelper):
+    """Register the scan's photos from an existing COLMAP model folder (no SfM) and add the
+    cameras (File → Import; needs the scan folder set in the NTP panel)"""
+
+    bl_idname = "import_scene.ntp_colmap"
+    bl_label = "Import COLMAP model as NTP cameras"
+    bl_options = {"REGISTER", "UNDO"}
+
+    directory: bpy.props.StringProperty(subtype="DIR_PATH", options={"HIDDEN", "SKIP_SAVE"})
+    filter_folder: bpy.props.BoolProperty(default=True, options={"HIDDEN"})
+    filename_ext = ""
+    use_filter_folder = True
+
+    @classmethod
+    def poll(cls, context):
+        """Needs a scan folder (the photos the model registered) and no run in progress."""
+        return _needs_scan(cls, context) and _idle(cls)
+
+    def execute(self, context):
+        """Register with the model: the engine aligns it to the mesh and checks it on the photos."""
+        _settings(context).colmap_folder = self.directory
+        return bpy.ops.ntp.register_photos("INVOKE_DEFAULT")
+
+
+def menu_import(self, context) -> None:
+    """File → Import entries."""
+    self.layout.operator(NTP_OT_import_result.bl_idname, text="NTP result (folder)")
+    self.layout.operator(NTP_OT_import_colmap.bl_idname, text="COLMAP model as NTP cameras (folder)")
+
+
 CLASSES = (
+    NTP_OT_import_result,
+    NTP_OT_import_colmap,
     NTP_OT_import_mesh,
     NTP_OT_register_photos,
     NTP_OT_reconstruct,

@@ -6,6 +6,8 @@ import bpy
 
 from ntp_engine.pipeline.stages import DEFAULT_RESOLUTION, MIN_RESOLUTION
 
+from . import coverage
+
 
 class NTPSettings(bpy.types.PropertyGroup):
     """The add-on's settings on the scene (``scene.ntp``)."""
@@ -16,7 +18,14 @@ class NTPSettings(bpy.types.PropertyGroup):
     device: bpy.props.StringProperty(
         name="Device", subtype="FILE_PATH", description="Scanner calibration TOML (empty: the scan's own device file)"
     )
-    model: bpy.props.StringProperty(name="Model", default="compact", description="Shipped model name or a model folder")
+    model: bpy.props.StringProperty(
+        name="Model", default="", description="Shipped model name or a model folder (empty: the add-on preference's)"
+    )
+    colmap_folder: bpy.props.StringProperty(
+        name="COLMAP model",
+        subtype="DIR_PATH",
+        description="An existing COLMAP model (cameras/images/points3D) to register from instead of running SfM",
+    )
     resolution: bpy.props.IntProperty(
         name="Resolution",
         default=DEFAULT_RESOLUTION,
@@ -37,6 +46,13 @@ class NTPSettings(bpy.types.PropertyGroup):
     )
     turntable_frames: bpy.props.IntProperty(
         name="Turntable frames", default=0, min=0, max=10000, description="0: no turntable"
+    )
+    coverage: bpy.props.EnumProperty(
+        name="Coverage",
+        default="off",
+        items=coverage.ITEMS,
+        update=coverage.on_change,
+        description="Show on the active mesh where the photos measured well and where to scan more",
     )
     status: bpy.props.StringProperty(name="Status", default="")
     progress: bpy.props.FloatProperty(name="Progress", default=0.0, min=0.0, max=100.0, subtype="PERCENTAGE")

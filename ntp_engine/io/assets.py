@@ -10,3 +10,5 @@ ASSETS = next((p for p in (_PACKAGE.parent / "assets", _PACKAGE / "assets") if p
 DEVICES_DIR = ASSETS / "devices"  # scanner calibrations (TOML)
 MODELS_DIR = ASSETS / "models"  # shipped trace networks
 DEMO_DIR = ASSETS / "demo"  # the demo asset: mesh.obj + ground_truth/
+# the user guides: docs/ of the checkout, else the copy the extension's wheel carries
+DOCS_DIR = next((p for p in (_PACKAGE.parent / "docs", _PACKAGE / "docs") if p.is_dir()), _PACKAGE.parent / "docs")

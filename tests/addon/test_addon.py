@@ -57,15 +57,18 @@ def test_register_unregister_twice():
 
 @pytest.fixture
 def addon():
+    """Enabled through Blender's add-on system, as a user does (so its preferences exist)."""
     _fresh()
-    ntp_addon.register()
+    assert bpy.ops.preferences.addon_enable(module="ntp_addon") == {"FINISHED"}
     yield bpy.context.scene.ntp
-    ntp_addon.unregister()
+    bpy.ops.preferences.addon_disable(module="ntp_addon")
 
 
 def test_every_operator_in_background_mode(addon, posed_scan, tmp_path):
     s = addon
     s.scan_folder, s.resolution, s.result_folder = str(posed_scan), 24, str(tmp_path / "result")
+    prefs = bpy.context.preferences.addons["ntp_addon"].preferences
+    prefs.threads, prefs.cache_root = 1, str(tmp_path / "caches")  # the engine child obeys the preferences
     assert bpy.ops.ntp.import_mesh() == {"FINISHED"}
     obj = bpy.context.view_layer.objects.active
     assert obj.type == "MESH" and len(obj.data.vertices) > 100
@@ -86,6 +89,9 @@ def test_every_operator_in_background_mode(addon, posed_scan, tmp_path):
     assert len(bpy.data.collections["NTP Cameras"].objects) == 6 and len(bpy.data.cameras) == 6
     assert bpy.ops.ntp.reconstruct() == {"FINISHED"}  # background mode: waits for the child process
     assert (tmp_path / "result" / "normal.exr").is_file() and "texels observed" in s.status
+    caches = list((tmp_path / "caches").iterdir())
+    assert [c.name[:7] for c in caches] == ["result-"] and (caches[0] / "fit").is_dir()
+    assert not (tmp_path / "result" / "cache").exists()
     assert bpy.ops.ntp.build_material() == {"FINISHED"}
     assert obj.data.materials[0].name.startswith(material.ACCURATE)
     s.turntable_frames = 24
@@ -369,3 +375,93 @@ def test_reconstruct_progress_is_read_from_the_engines_structured_channel(tmp_pa
     records, _ = read_progress(path, offset)
     assert progress_status(records[-1]) == ("network + fit: 100%", 100.0)
     assert progress_status({"stage": "SfM", "done": 0, "total": None}) == ("SfM: 0%", 0.0)
+
+
+def test_import_menu_entries_and_preferences(addon, posed_scan, tmp_path):
+    from ntp_addon import operators, preferences
+
+    assert operators.menu_import in bpy.types.TOPBAR_MT_file_import._dyn_ui_initialize()
+    assert {"import_scene.ntp_result", "import_scene.ntp_colmap"} <= {
+        f"import_scene.{n}" for n in dir(bpy.ops.import_scene)
+    }
+    prefs = bpy.context.preferences.addons[preferences.PACKAGE].preferences
+    addon.scan_folder, addon.result_folder = str(posed_scan), str(tmp_path / "a" / "scan_result")
+    assert operators.NTP_OT_reconstruct._command(None, bpy.context)[-2:] == ["--model", "compact"]
+    prefs.model, prefs.threads, prefs.cache_root = "small", 3, str(tmp_path / "c")
+    addon.colmap_folder = str(tmp_path / "colmap")
+    cmd = operators.NTP_OT_reconstruct._command(None, bpy.context)
+    assert cmd[cmd.index("--threads") + 1] == "3" and cmd[cmd.index("--model") + 1] == "small"
+    assert cmd[cmd.index("--colmap") + 1] == str(tmp_path / "colmap")
+    other = preferences.engine_options(bpy.context).cache_for(tmp_path / "b" / "scan_result")
+    assert Path(cmd[cmd.index("--cache") + 1]).parent == tmp_path / "c" and Path(cmd[cmd.index("--cache") + 1]) != other
+    addon.model = "paper"  # the scene's own setting overrides the preference
+    assert operators.NTP_OT_reconstruct._command(None, bpy.context)[-1] == "paper"
+
+
+def test_import_result_from_the_file_menu(addon, demo_result, tmp_path):
+    n_obj = len(bpy.data.objects)
+    with pytest.raises(RuntimeError, match="report.json: missing"):
+        bpy.ops.import_scene.ntp_result(directory=str(tmp_path))
+    assert len(bpy.data.objects) == n_obj
+    assert bpy.ops.import_scene.ntp_result(directory=str(demo_result)) == {"FINISHED"}
+    obj = bpy.context.view_layer.objects.active
+    assert obj.name == demo_result.name and obj.data.materials[0].name.startswith(material.ACCURATE)
+    assert Path(addon.result_folder) == demo_result
+
+
+def test_colmap_import_runs_the_engine_and_reports_a_bad_model(addon, posed_scan, tmp_path):
+    scan = tmp_path / "scan"
+    shutil.copytree(posed_scan, scan)
+    toml = scan / "scan.toml"
+    toml.write_text("".join(ln for ln in toml.read_text().splitlines(True) if not ln.startswith("poses")))
+    addon.result_folder = str(tmp_path / "result")
+    assert not bpy.ops.import_scene.ntp_colmap.poll()  # greyed out without a scan folder
+    addon.scan_folder = str(scan)
+    (tmp_path / "model").mkdir()
+    with pytest.raises(RuntimeError, match="not a COLMAP model folder"):
+        bpy.ops.import_scene.ntp_colmap(directory=str(tmp_path / "model"))
+    assert "NTP Cameras" not in bpy.data.collections and Path(addon.colmap_folder) == tmp_path / "model"
+
+
+def test_coverage_overlay_bakes_to_its_legend_and_gives_the_materials_back(addon, demo_result, tmp_path):
+    from ntp_addon import coverage
+    from ntp_engine.io.images import write_exr
+
+    result = tmp_path / "cov_result"
+    shutil.copytree(demo_result, result)
+    n = 64
+    conf = np.zeros((n, n, 3))
+    conf[..., 1] = np.arange(n)[None, :] * 0.4  # photos per point: 0 .. 25 across the columns
+    conf[n // 2 :, :, 0] = 1.0
+    write_exr(result / "confidence.exr", conf)
+    assert bpy.ops.import_scene.ntp_result(directory=str(result)) == {"FINISHED"}
+    obj = bpy.context.view_layer.objects.active
+    own = [sl.material.name for sl in obj.material_slots]
+    addon.coverage = "photos"
+    assert [sl.material.name for sl in obj.material_slots] == [coverage.MATERIAL] * len(own)
+    assert "scan that side again" in addon.status
+    # bake the overlay's emission into UV space: each texel must be the legend's colour of its value
+    scene = bpy.context.scene
+    scene.render.engine, scene.cycles.samples, scene.render.bake.margin = "CYCLES", 1, 0
+    target = bpy.data.images.new("bake", n, n, float_buffer=True)
+    target.colorspace_settings.name = "Non-Color"
+    target.generated_color = (1.0, 0.0, 1.0, 1.0)  # magenta: not baked
+    nodes = bpy.data.materials[coverage.MATERIAL].node_tree.nodes
+    node = nodes.new("ShaderNodeTexImage")
+    node.image, nodes.active = target, node
+    obj.select_set(True)
+    assert bpy.ops.object.bake(type="EMIT") == {"FINISHED"}
+    baked = np.array(target.pixels[:]).reshape(n, n, 4)[::-1, :, :3]  # Blender's rows run bottom-up
+    got = (baked[:, :, 1] < 0.5) & (baked[:, :, 0] > 0.99) & (baked[:, :, 2] > 0.99)
+    seen = ~got
+    assert seen.mean() > 0.2
+    fac = np.clip(conf[..., 1] / 16.0, 0, 1)
+    stops = np.array([c for _, c in coverage.RAMP])[:, :3]
+    expect = np.stack([np.interp(fac, [0, 0.5, 1], stops[:, k]) for k in range(3)], -1)
+    assert np.abs(baked[seen] - expect[seen]).max() < 2e-3
+    nodes.remove(node)
+    # a layer the result lacks: reported, nothing changed; off: the user's materials back
+    addon.coverage = "normal"
+    assert "uncertainty.exr" in addon.status and "--refine" in addon.status
+    addon.coverage = "off"
+    assert [sl.material.name for sl in obj.material_slots] == own and coverage.RESTORE not in obj
