@@ -1,14 +1,16 @@
 """Build the installable Blender extension zip (linux-x64) with Blender's own packager.
 
-    python tools/build_extension.py [--out dist] [--no-dependency-wheels]
+    python tools/build_extension.py [--out dist] [--no-dependency-wheels] [--torch-index URL]
 
 Stages ``build/extension/ntp/``: the add-on modules at the root (Blender imports the extension as
 a package), ``blender_manifest.toml`` with a ``wheels`` list, and ``wheels/``: ``ntp_engine`` as a
-wheel carrying ``assets/`` (devices, models, the demo) inside the package, plus the engine's
-dependencies for CPython 3.11 on manylinux x86-64 — torch (the CPU build pip resolves here),
-scipy, pycolmap, xatlas, OpenImageIO, embreex, trimesh, scikit-image, pillow, tomli_w, tqdm and
-what they need. numpy is left out: Blender ships it. Then ``blender_ext.py validate`` and ``build``
-(from the bpy module's bundled ``bl_pkg``) check and zip it.
+wheel carrying the shipped devices, the default model and the user guides (``docs/*.md``) inside
+the package — not the bench-only comparison networks nor the demo asset — plus the engine's
+dependencies for CPython 3.11 on manylinux x86-64: torch's CPU build from PyTorch's CPU index
+(``TORCH_CPU_INDEX``; PyPI's Linux torch is the CUDA build, gigabytes of nvidia wheels), scipy,
+pycolmap, xatlas, OpenImageIO, embreex, trimesh, scikit-image, pillow, tomli_w, tqdm and what they
+need. numpy is left out: Blender ships it. Then ``blender_ext.py validate`` and ``build`` (from
+the bpy module's bundled ``bl_pkg``) check and zip it.
 
 Other platforms: run with ``--platform`` set to pip's tag for the target (``win_amd64``,
 ``macosx_11_0_arm64``, ...) and the manifest's ``platforms`` to match (``windows-x64``,
@@ -40,6 +42,10 @@ EXCLUDE = {
     "mypy",
 }  # Blender ships numpy; the rest is dev-only
 PLATFORMS = ["manylinux_2_28_x86_64", "manylinux2014_x86_64"]  # torch's CPU wheel is 2_28
+TORCH_CPU_INDEX = "https://download.pytorch.org/whl/cpu"  # torch==X resolves to X+cpu there
+GPU_ONLY = ("nvidia", "triton")  # CUDA runtime wheels: never shipped (the extension runs on the CPU)
+# assets only the benchmarks and the demo use (the comparison networks, the demo object): not shipped
+BENCH_ONLY = ("models/compare_", "demo/")
 
 
 def blender_ext() -> Path:
@@ -71,8 +77,11 @@ def engine_wheel(wheels: Path) -> Path:
     files: list[tuple[str, Path]] = []
     for base, prefix in ((ROOT / "ntp_engine", "ntp_engine"), (ROOT / "assets", "ntp_engine/assets")):
         for f in sorted(base.rglob("*")):
-            if f.is_file() and "__pycache__" not in f.parts and f.suffix != ".pyc":
-                files.append((f"{prefix}/{f.relative_to(base).as_posix()}", f))
+            rel = f.relative_to(base).as_posix()
+            shipped = not (prefix.endswith("assets") and rel.startswith(BENCH_ONLY))
+            if f.is_file() and shipped and "__pycache__" not in f.parts and f.suffix != ".pyc":
+                files.append((f"{prefix}/{rel}", f))
+    files += [(f"ntp_engine/docs/{f.name}", f) for f in sorted((ROOT / "docs").glob("*.md"))]
     dist = f"{name}-{version}.dist-info"
     meta = {
         f"{dist}/METADATA": f"Metadata-Version: 2.1\nName: ntp-engine\nVersion: {version}\n"
@@ -97,7 +106,12 @@ def engine_wheel(wheels: Path) -> Path:
     return target
 
 
-def build(out: Path, with_dependencies: bool = True, platforms: list[str] | None = None) -> Path:
+def build(
+    out: Path,
+    with_dependencies: bool = True,
+    platforms: list[str] | None = None,
+    torch_index: str = TORCH_CPU_INDEX,
+) -> Path:
     """Build the installable extension zip (the add-on, manifest and wheels) into ``out``."""
     stage = ROOT / "build" / "extension" / "ntp"
     if stage.exists():
@@ -124,13 +138,18 @@ def build(out: Path, with_dependencies: bool = True, platforms: list[str] | None
                 "3.11",
                 "--implementation",
                 "cp",
+                "--extra-index-url",
+                torch_index,
                 *dependency_pins(),
             ],
             check=True,
         )
         for w in wheels.glob("*.whl"):
-            if w.name.split("-")[0].lower() in EXCLUDE:
+            if w.name.split("-")[0].lower() in EXCLUDE or w.name.lower().startswith(GPU_ONLY):
                 w.unlink()
+        torch = [w.name for w in wheels.glob("torch-*.whl")]
+        if not torch or ("+cpu" not in torch[0] and "linux" in torch[0]):
+            raise SystemExit(f"torch's CPU build not found at {torch_index} (got {torch}); pass --torch-index")
     manifest = tomllib.loads((ROOT / "blender_manifest.toml").read_text())
     manifest["wheels"] = [f"./wheels/{w.name}" for w in sorted(wheels.glob("*.whl"))]
     (stage / "blender_manifest.toml").write_text(tomli_w.dumps(manifest))
@@ -153,8 +172,9 @@ def main() -> int:
         help="only the ntp_engine wheel (for tests; the add-on then needs the deps installed)",
     )
     p.add_argument("--platform", action="append", default=None, help="pip platform tag(s) of the target")
+    p.add_argument("--torch-index", default=TORCH_CPU_INDEX, help="index with torch's CPU build (or a mirror)")
     a = p.parse_args()
-    print(f"wrote {build(a.out, not a.no_dependency_wheels, a.platform)}")
+    print(f"wrote {build(a.out, not a.no_dependency_wheels, a.platform, a.torch_index)}")
     return 0
 
 

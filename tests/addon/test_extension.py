@@ -3,6 +3,7 @@ validator, strict, and the add-on tag list), and the build step (engine wheel on
 and fast) producing a zip that Blender's validator accepts."""
 
 import importlib.util
+import os
 import subprocess
 import sys
 import tomllib
@@ -34,6 +35,7 @@ def test_manifest_follows_the_schema(tmp_path):
     manifest = tomllib.loads((ROOT / "blender_manifest.toml").read_text())
     assert _errors(ROOT / "blender_manifest.toml") == []
     assert manifest["schema_version"] == "1.0.0" and manifest["blender_version_min"] == "4.2.0"
+    assert manifest["blender_version_max"] == "5.1.0"  # cp311 wheels: Blender 4.2-5.0 run Python 3.11
     assert set(manifest["tags"]) <= valid_tags and manifest["platforms"] == ["linux-x64"]
     assert all(reason and len(reason) <= 64 for reason in manifest["permissions"].values())
     # the validator is not a rubber stamp: the faults it must catch
@@ -71,6 +73,28 @@ def test_build_makes_a_valid_installable_zip(tmp_path):
             inner = set(w.namelist())
     assert "ntp_engine/assets/devices/ntp_led_32x16.toml" in inner and "ntp_engine/cli.py" in inner
     assert any(n.startswith("ntp_engine/assets/models/compact/") for n in inner)
+    assert not [n for n in inner if "/models/compare_" in n or "/assets/demo/" in n]  # bench-only: not shipped
+    assert "ntp_engine/docs/blender.md" in inner  # the help panel's guides
+    assert zips[0].stat().st_size < 20e6
+    # installed into Blender's extension repository as a user does, it registers from there
+    probe = (
+        "import sys, bpy; "
+        "r = bpy.ops.extensions.package_install_files(filepath=sys.argv[-1], repo='user_default', "
+        "enable_on_install=True); "
+        "import ntp_engine.io.assets as a; m = sys.modules['bl_ext.user_default.ntp']; "
+        "p = bpy.context.preferences.addons['bl_ext.user_default.ntp'].preferences; "
+        "print(r, m.__file__, a.DOCS_DIR, p.model, hasattr(bpy.ops.ntp, 'reconstruct'), "
+        "hasattr(bpy.ops.import_scene, 'ntp_result'))"
+    )
+    home = tmp_path / "blender-home"
+    env = {**os.environ, "BLENDER_USER_RESOURCES": str(home)}
+    r = subprocess.run(
+        [sys.executable, "-c", probe, str(zips[0])], capture_output=True, text=True, env=env, cwd=tmp_path
+    )
+    assert r.returncode == 0, r.stderr[-2000:]
+    status, module, docs, model, has_op, has_import = r.stdout.split()[-6:]
+    assert status == "{'FINISHED'}" and module.startswith(str(home / "extensions" / "user_default" / "ntp"))
+    assert docs.startswith(str(home)) and model == "compact" and has_op == has_import == "True"
 
 
 def test_engine_wheel_installs_and_finds_its_assets(tmp_path):
