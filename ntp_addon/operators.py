@@ -134,6 +134,29 @@ def stop_children(*_args) -> None:
         stop_child(proc)
 
 
+def _interruptible() -> None:  # in the child, before the engine starts
+    signal.signal(signal.SIGINT, signal.SIG_DFL)  # Blender started from a background job ignores SIGINT
+
+
+def spawn_engine(args: list[str], progress_file: Path) -> subprocess.Popen:
+    """``ntp ARGS --quiet --progress FILE`` in a child process that sees the packages Blender sees
+    (extension wheels) and stops cleanly on SIGINT (``stop_child``); registered in ``_CHILDREN``."""
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join(p for p in sys.path if p)
+    cmd = [sys.executable, "-m", "ntp_engine.cli", *args, "--quiet", "--progress", str(progress_file)]
+    proc = subprocess.Popen(
+        cmd,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        bufsize=1,
+        env=env,
+        preexec_fn=_interruptible if sys.platform != "win32" else None,
+    )
+    _CHILDREN.add(proc)
+    return proc
+
+
 def is_cancel(event) -> bool:
     """ESC pressed (a release, or any other key, does not cancel)."""
     return event.type == "ESC" and event.value == "PRESS"
@@ -176,21 +199,7 @@ class _EngineProcess:
         fd, name = tempfile.mkstemp(prefix="ntp-progress-", suffix=".jsonl")
         os.close(fd)
         self._progress_file, self._progress_offset = Path(name), 0
-        env = dict(os.environ)  # the child must see the packages Blender sees (extension wheels)
-        env["PYTHONPATH"] = os.pathsep.join(p for p in sys.path if p)
-        cmd = [
-            sys.executable,
-            "-m",
-            "ntp_engine.cli",
-            *self._command(context),
-            "--quiet",
-            "--progress",
-            str(self._progress_file),
-        ]
-        self._proc = subprocess.Popen(
-            cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, bufsize=1, env=env
-        )
-        _CHILDREN.add(self._proc)
+        self._proc = spawn_engine(self._command(context), self._progress_file)
 
         def read():  # stderr holds only errors (--quiet): keep its lines for the report
             for line in self._proc.stderr:

@@ -179,6 +179,31 @@ def test_operators_poll_and_children_stop_with_the_file(addon, posed_scan, tmp_p
         operators._CHILDREN.discard(child)
 
 
+def test_a_stopped_engine_child_leaves_no_temporaries(posed_scan, tmp_path):
+    """What ESC, loading another file or quitting do to a running reconstruct: SIGINT, exit 130,
+    the engine's temporaries gone (finished stages kept for a resume), the child no longer tracked."""
+    import time
+
+    from ntp_addon import operators
+
+    out = tmp_path / "result"
+    for attempt in range(5):  # a busy machine may let the small run finish first: again, fresh
+        shutil.rmtree(out, ignore_errors=True)
+        progress = tmp_path / f"progress{attempt}.jsonl"
+        progress.touch()
+        args = ["reconstruct", str(posed_scan), "--out", str(out), "--resolution", "32"]
+        proc = operators.spawn_engine(args, progress)
+        t0 = time.time()
+        while proc.poll() is None and '"stage": "traces"' not in progress.read_text() and time.time() - t0 < 120:
+            time.sleep(0.05)
+        operators.stop_children()  # the load_pre / exit handler
+        if proc.returncode != 0:
+            break
+    assert proc.returncode == 130 and proc not in operators._CHILDREN
+    assert "interrupted" in proc.stderr.read()
+    assert out.is_dir() and not [p for p in out.rglob(".ntp-tmp.*")]
+
+
 def _link_from(sock):
     assert sock.is_linked, sock.name
     return sock.links[0].from_node
