@@ -17,6 +17,7 @@ from ntp_engine.io.atomic import atomic_path
 from ntp_engine.sim.evaluate import compare_images
 
 from . import compare, material
+from . import scene as bscene
 
 
 def export_glb(obj: bpy.types.Object, mat: bpy.types.Material, path: Path) -> None:
@@ -80,3 +81,25 @@ def round_trip(result: str | Path, views: int = 2, scale: float = 0.2, samples: 
         "mean_colour_ratio": np.mean([r["mean_colour_ratio"] for r in rows], 0).tolist(),
         "per_view": rows,
     }
+
+
+def preview_renders(
+    result: str | Path, out: dict[str, Path], size: tuple[int, int] = (480, 384), samples: int = 64
+) -> None:
+    """Look-dev renders of ``result`` from one relight rig (camera, key/fill/rim lights), each to
+    ``out[name]``: ``"accurate"`` and ``"principled"`` the .blend's object with that material,
+    ``"glb"`` the Principled material exported to .glb and re-imported with Blender's glTF
+    importer (docs/blender.md shows the three side by side)."""
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    obj = material.import_result_mesh(Path(result))
+    principled, accurate = material.build_materials(Path(result), obj)
+    with tempfile.TemporaryDirectory() as tmp:
+        export_glb(obj, principled, Path(tmp) / "asset.glb")
+        twin = import_glb(Path(tmp) / "asset.glb")
+        for name, path in out.items():
+            shown = twin if name == "glb" else obj
+            if name != "glb":
+                obj.data.materials[0] = accurate if name == "accurate" else principled
+            rig = bscene.relight_rig(shown, *size, samples=samples)
+            with atomic_path(path) as target:
+                bscene.render_still(rig["scene"], target)

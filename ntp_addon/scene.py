@@ -157,11 +157,12 @@ def relight_rig(
         light.matrix_world = Matrix(m.tolist())
         scene.collection.objects.link(light)
         rig[label.lower()] = light
-    for o in (cam, rig["key"], rig["fill"], rig["rim"]):  # the rig turns about the object's centre
-        world = o.matrix_world.copy()
+    # the rig turns about the object's centre; the pivot's matrix_world is not evaluated yet (no
+    # depsgraph update in a scene nobody shows), so its inverse comes from its location
+    at_pivot = Matrix.Translation(tuple(float(v) for v in centre)).inverted()
+    for o in (cam, rig["key"], rig["fill"], rig["rim"]):
         o.parent = pivot
-        o.matrix_parent_inverse = pivot.matrix_world.inverted()
-        o.matrix_world = world
+        o.matrix_parent_inverse = at_pivot
     if turntable_frames > 0:
         scene.frame_start, scene.frame_end = 1, turntable_frames
         pivot.keyframe_insert("rotation_euler", index=2, frame=1)

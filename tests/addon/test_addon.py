@@ -127,6 +127,16 @@ def test_relight_preview_leaves_the_users_scene_alone(demo_result):
     assert obj.animation_data.action is not None  # the user's animation is kept
     assert len([s for s in bpy.data.scenes if s.name.startswith("NTP Relight")]) == 1
     assert rig["scene"].frame_end == 12 and rig["pivot"].animation_data.action is not None
+    from bpy_extras.object_utils import world_to_camera_view
+    from mathutils import Vector
+
+    centre = Vector(bscene.bounds(obj)[0].tolist())
+    depsgraph = rig["scene"].view_layers[0].depsgraph
+    for frame in (1, 7):  # as rendered, at any turntable frame the object is in the middle of the picture
+        rig["scene"].frame_set(frame)
+        depsgraph.update()
+        cam = rig["camera"].evaluated_get(depsgraph)
+        assert (world_to_camera_view(rig["scene"], cam, centre).xy - Vector((0.5, 0.5))).length < 1e-3
     assert len([o for o in bpy.data.objects if o.name.startswith("NTP Key")]) == 1  # no orphaned rig objects
 
 
