@@ -429,6 +429,10 @@ def test_import_menu_entries_and_preferences(addon, posed_scan, tmp_path):
     assert cmd[cmd.index("--colmap") + 1] == str(tmp_path / "colmap")
     other = preferences.engine_options(bpy.context).cache_for(tmp_path / "b" / "scan_result")
     assert Path(cmd[cmd.index("--cache") + 1]).parent == tmp_path / "c" and Path(cmd[cmd.index("--cache") + 1]) != other
+    from ntp_addon import panel
+    from ntp_engine.io.assets import DOCS_DIR
+
+    assert all((DOCS_DIR / f).is_file() for f, _ in panel.GUIDES)  # the help panel's guides exist
     addon.model = "paper"  # the scene's own setting overrides the preference
     assert operators.NTP_OT_reconstruct._command(None, bpy.context)[-1] == "paper"
 
