@@ -9,7 +9,8 @@ outside [32, 224] (dark or near clipping) are kept too, flagged ``in_range = Fal
 the lumitexel fit skip them (``RaggedTraces.in_range_only``), the refinement models them (a noise
 floor for dark values, clipped ones as lower bounds). The entry is (linear pixel RGB *
 ``pixel_scale``, x, n^, t^) in camera j's space — the layout of ``learn.ragged.RaggedTraces``.
-Views that see no texel cost one projection only.
+Views that see no texel cost one projection only. Two passes (visibility, then fill in place) keep
+the peak memory near the table's own size (docs/performance.md).
 """
 
 from __future__ import annotations
@@ -60,6 +61,42 @@ class SupportShadow:
         return bool(self.drive[below].sum() > MAX_SHADOWED_DRIVE)
 
 
+def _visible(
+    texels: Texels, pose: np.ndarray, scanner: Scanner, caster: RayCaster, eps: float, rejected: dict[str, int]
+) -> np.ndarray:
+    """Texels view ``pose`` measures (conditions 1-3 of the module docstring, geometry only: no
+    pixel is read): their indices, ascending."""
+    n_tex = len(texels)
+    R, t = pose[:3, :3], pose[:3, 3]
+    x = texels.position @ R.T + t
+    front = x[:, 2] > 1e-6
+    px = np.full((n_tex, 2), -1.0)
+    if front.any():
+        px[front] = camera.project(scanner, torch.as_tensor(x[front])).numpy()
+    inside = (
+        front & (px[:, 0] >= 0) & (px[:, 1] >= 0) & (px[:, 0] <= scanner.width - 1) & (px[:, 1] <= scanner.height - 1)
+    )
+    rejected["behind_or_outside"] += int(n_tex - inside.sum())
+    idx = np.nonzero(inside)[0]
+    if len(idx) == 0:
+        return idx
+    in_box = scanner.in_valid_volume(torch.as_tensor(x[idx])).numpy()
+    rejected["valid_volume"] += int((~in_box).sum())
+    idx = idx[in_box]
+    wo = -x[idx] / np.linalg.norm(x[idx], axis=1, keepdims=True)
+    facing = (wo * (texels.normal[idx] @ R.T)).sum(1) > MIN_COS_VIEW
+    rejected["grazing"] += int((~facing).sum())
+    idx = idx[facing]
+    if len(idx) == 0:
+        return idx
+    origin = texels.position[idx] + eps * texels.normal[idx]
+    to_cam = -R.T @ t - origin
+    dist = np.linalg.norm(to_cam, axis=1)
+    occ = caster.occluded(origin, to_cam / dist[:, None], dist - 1e-4)
+    rejected["occluded"] += int(occ.sum())
+    return idx[~occ]
+
+
 def assemble(
     texels: Texels,
     photos: Iterable[np.ndarray],
@@ -72,12 +109,17 @@ def assemble(
     support_z: float | None = None,
 ) -> tuple[RaggedTraces, TraceStats]:
     """Traces of all texels. ``photos``: 8-bit ``(H, W, 3)`` arrays (any iterable: they are read
-    one at a time); ``poses``: 4x4 camera-from-world, one per photo. ``support_z``: the object
-    stands on a plane z = support_z; a photo in which emitters carrying more than
+    one at a time, once); ``poses``: 4x4 camera-from-world, one per photo. ``support_z``: the
+    object stands on a plane z = support_z; a photo in which emitters carrying more than
     ``MAX_SHADOWED_DRIVE`` of the pattern's drive are below that plane is skipped — the support
-    blocks their light for every point of the object, which Eq. 1 (and the network) do not model."""
+    blocks their light for every point of the object, which Eq. 1 (and the network) do not model.
+
+    Two passes keep the peak memory near the table's own size: the first decides from geometry
+    alone which texels each view measures (kept as int32 indices, 4 bytes per entry against the
+    table's 48) and counts them per texel; the second reads each photo, projects its texels again
+    (the same arithmetic, so the same pixel coordinates) and writes their entries straight into
+    their final rows (texel by texel, views in photo order): no concatenation, no sort."""
     n_tex = len(texels)
-    keys, rows, flags = [], [], []
     rejected = {
         "behind_or_outside": 0,
         "valid_volume": 0,
@@ -86,63 +128,42 @@ def assemble(
         "pixel_range": 0,
         "support_shadow_views": 0,
     }
-    views_used = 0
     shadowed = SupportShadow(scanner, support_z) if support_z is not None else None
-    for img, pose in progress.track(zip(photos, poses), "traces", total=len(poses), unit="photo"):
-        R, t = pose[:3, :3], pose[:3, 3]
+    seen: list[np.ndarray | None] = []
+    counts = np.zeros(n_tex, np.int64)
+    for pose in progress.track(poses, "visibility", total=len(poses), unit="photo"):
         if shadowed is not None and shadowed(pose):
             rejected["support_shadow_views"] += 1
+            seen.append(None)
             continue
-        x = texels.position @ R.T + t
-        n_hat = texels.normal @ R.T
-        cam_w = -R.T @ t
-        front = x[:, 2] > 1e-6
-        px = np.full((n_tex, 2), -1.0)
-        if front.any():
-            px[front] = camera.project(scanner, torch.as_tensor(x[front])).numpy()
-        inside = (
-            front
-            & (px[:, 0] >= 0)
-            & (px[:, 1] >= 0)
-            & (px[:, 0] <= scanner.width - 1)
-            & (px[:, 1] <= scanner.height - 1)
-        )
-        rejected["behind_or_outside"] += int(n_tex - inside.sum())
-        if not inside.any():
-            continue
-        idx = np.nonzero(inside)[0]
-        in_box = scanner.in_valid_volume(torch.as_tensor(x[idx])).numpy()
-        rejected["valid_volume"] += int((~in_box).sum())
-        idx = idx[in_box]
-        wo = -x[idx] / np.linalg.norm(x[idx], axis=1, keepdims=True)
-        facing = (wo * n_hat[idx]).sum(1) > MIN_COS_VIEW
-        rejected["grazing"] += int((~facing).sum())
-        idx = idx[facing]
-        if len(idx) == 0:
-            continue
-        origin = texels.position[idx] + eps * texels.normal[idx]
-        to_cam = cam_w - origin
-        dist = np.linalg.norm(to_cam, axis=1)
-        occ = caster.occluded(origin, to_cam / dist[:, None], dist - 1e-4)
-        rejected["occluded"] += int(occ.sum())
-        idx = idx[~occ]
-        codes = bilinear_pixels(img.astype(np.float64), px[idx, 1], px[idx, 0])
-        ok = camera.code_is_valid(codes)
-        rejected["pixel_range"] += int((~ok).sum())  # kept, flagged: only the refinement reads them
-        if len(idx) == 0:
-            continue
-        views_used += 1
-        lin = camera.decode(scanner, torch.as_tensor(codes)).numpy() * pixel_scale
-        entry = np.concatenate([lin, x[idx], n_hat[idx], texels.tangent[idx] @ R.T], 1)
-        keys.append(idx)
-        rows.append(entry.astype(np.float32))
-        flags.append(ok)
-    key = np.concatenate(keys) if keys else np.zeros(0, np.int64)
-    ent = np.concatenate(rows) if rows else np.zeros((0, 12), np.float32)
-    in_range = np.concatenate(flags) if flags else np.zeros(0, bool)
-    order = np.argsort(key, kind="stable")  # by texel, views in photo order
-    counts = np.bincount(key, minlength=n_tex)
+        idx = _visible(texels, pose, scanner, caster, eps, rejected)
+        counts[idx] += 1
+        seen.append(idx.astype(np.int32) if len(idx) else None)
     offsets = np.zeros(n_tex + 1, np.int64)
     offsets[1:] = np.cumsum(counts)
-    traces = RaggedTraces(torch.from_numpy(ent[order]), torch.from_numpy(offsets), torch.from_numpy(in_range[order]))
+    entries = np.empty((int(offsets[-1]), 12), np.float32)
+    in_range = np.empty(int(offsets[-1]), bool)
+    cursor = offsets[:-1].copy()  # each texel's next free row
+    views_used = 0
+    for k, (img, pose) in enumerate(progress.track(zip(photos, poses), "traces", total=len(poses), unit="photo")):
+        if seen[k] is None:
+            continue
+        idx = seen[k].astype(np.int64)
+        seen[k] = None  # free this view's indices as its entries land
+        R, t = pose[:3, :3], pose[:3, 3]
+        x = texels.position[idx] @ R.T + t
+        px = camera.project(scanner, torch.as_tensor(x)).numpy()
+        codes = bilinear_pixels(img.astype(np.float64), px[:, 1], px[:, 0])
+        ok = camera.code_is_valid(codes)
+        rejected["pixel_range"] += int((~ok).sum())  # kept, flagged: only the refinement reads them
+        views_used += 1
+        rows = cursor[idx]
+        lin = camera.decode(scanner, torch.as_tensor(codes)).numpy() * pixel_scale
+        entries[rows, 0:3] = lin
+        entries[rows, 3:6] = x
+        entries[rows, 6:9] = texels.normal[idx] @ R.T
+        entries[rows, 9:12] = texels.tangent[idx] @ R.T
+        in_range[rows] = ok
+        cursor[idx] += 1
+    traces = RaggedTraces(torch.from_numpy(entries), torch.from_numpy(offsets), torch.from_numpy(in_range))
     return traces, TraceStats(views_used, int(in_range.sum()), int((counts > 0).sum()), rejected)

@@ -76,3 +76,66 @@ def test_photos_whose_leds_the_support_shadows_are_skipped():
     assert st.rejected["support_shadow_views"] == 1 and st.views_used == 1
     _, st = assemble(tx, photos, [above, level], cam, caster)  # no support declared: both used
     assert st.rejected["support_shadow_views"] == 0 and st.views_used == 2
+
+
+def _reference_assemble(tx, photos, poses, cam, caster):
+    """The one-pass form (per-view rows, concatenated, sorted by texel): what ``assemble`` must
+    equal, at about 3x the table's memory."""
+    from ntp_engine.io.maps import bilinear_pixels
+    from ntp_engine.pipeline import traces as tr
+    from ntp_engine.scanner import camera
+
+    keys, rows, flags, rejected = (
+        [],
+        [],
+        [],
+        dict.fromkeys(("behind_or_outside", "valid_volume", "occluded", "grazing"), 0),
+    )
+    for img, pose in zip(photos, poses, strict=True):
+        R, t = pose[:3, :3], pose[:3, 3]
+        idx = tr._visible(tx, pose, cam, caster, 2e-5, rejected)
+        x = tx.position[idx] @ R.T + t
+        px = camera.project(cam, torch.as_tensor(x)).numpy()
+        codes = bilinear_pixels(img.astype(np.float64), px[:, 1], px[:, 0])
+        lin = camera.decode(cam, torch.as_tensor(codes)).numpy()
+        rows.append(np.concatenate([lin, x, tx.normal[idx] @ R.T, tx.tangent[idx] @ R.T], 1).astype(np.float32))
+        keys.append(idx)
+        flags.append(camera.code_is_valid(codes))
+    key = np.concatenate(keys)
+    order = np.argsort(key, kind="stable")
+    return np.concatenate(rows)[order], np.bincount(key, minlength=len(tx)), np.concatenate(flags)[order]
+
+
+def test_two_pass_assembly_equals_the_one_pass_table_at_a_fraction_of_its_memory():
+    import tracemalloc
+
+    from ntp_engine.sim.virtual_scan import ScanConfig, trajectory
+
+    mesh, _, _, _ = load_asset(None, None, None)
+    dev = load_scanner()
+    cam = resampled(dev, 0.02)
+    tx = rasterize(mesh, (16, 16))
+    poses = trajectory(np.array([0.0, 0.0, 0.03]), dev, ScanConfig(views=200), np.random.default_rng(0))
+    rng = np.random.default_rng(1)
+    photos = [rng.integers(0, 256, (cam.height, cam.width, 3)).astype(np.uint8) for _ in poses]
+    caster = RayCaster([mesh.triangles])
+    tracemalloc.start()
+    try:
+        base = tracemalloc.get_traced_memory()[0]
+        tracemalloc.reset_peak()
+        traces, stats = assemble(tx, photos, poses, cam, caster)
+        peak = tracemalloc.get_traced_memory()[1] - base
+        table = traces.entries.numpy().nbytes + traces.in_range.numpy().nbytes + traces.offsets.numpy().nbytes
+        tracemalloc.reset_peak()
+        base = tracemalloc.get_traced_memory()[0]
+        entries, counts, in_range = _reference_assemble(tx, photos, poses, cam, caster)
+        one_pass = tracemalloc.get_traced_memory()[1] - base
+    finally:
+        tracemalloc.stop()
+    print(f"peak / table: two-pass {peak / table:.2f}, one-pass {one_pass / table:.2f} ({len(entries)} entries)")
+    assert len(entries) > 50 * len(tx)  # long traces: the table, not per-view temporaries, dominates
+    np.testing.assert_array_equal(traces.lengths.numpy(), counts)
+    np.testing.assert_array_equal(traces.in_range.numpy(), in_range)
+    np.testing.assert_allclose(traces.entries.numpy(), entries, rtol=1e-6, atol=1e-9)
+    assert stats.entries == in_range.sum() and 0 < stats.views_used <= len(poses)
+    assert peak <= 1.2 * table < one_pass
