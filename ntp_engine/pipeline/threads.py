@@ -9,6 +9,7 @@ import torch
 from ..io.errors import NtpInputError
 
 _threads = 0
+_TORCH_DEFAULT = torch.get_num_threads()  # torch's own choice (every physical core), for 0
 
 
 def set_threads(n: int) -> None:
@@ -17,8 +18,7 @@ def set_threads(n: int) -> None:
     if n < 0:
         raise NtpInputError(None, f"--threads {n}: need 0 (every core) or more")
     _threads = n
-    if n:
-        torch.set_num_threads(n)
+    torch.set_num_threads(n or _TORCH_DEFAULT)
 
 
 def colmap_threads() -> int:
