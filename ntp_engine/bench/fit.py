@@ -1,7 +1,11 @@
 """``ntp bench fit``: the batched fitter against per-texel scipy L-BFGS-B, in one run, on the same
 synthetic lumitexels: exact ones, and the network's predictions for the same points (the noise a
 network leaves; log-space Gaussian noise if no trained model is shipped yet). Errors are compared on
-the texels both methods fitted; texels/s of each from its own run."""
+the texels both methods fitted; texels/s of each from its own run.
+
+Then the whole fit stage as the pipeline runs it (``pipeline.fit_traces``: network, geometry fit,
+highlight check and RGB albedo) on synthetic 64-view traces measured through the shipped model's
+sensor: texels/s and the share of each part — the geometry fit alone is not the stage's speed."""
 
 from __future__ import annotations
 
@@ -13,7 +17,9 @@ import torch
 from ..fit.baseline import fit_geometry_lbfgsb
 from ..fit.geometry import GeometryFit, fit_geometry, lumitexel_log_rmse
 from ..learn import models
+from ..learn.ragged import RaggedTraces
 from ..learn.synthetic import SyntheticConfig, sample_batch
+from ..pipeline.fit_traces import fit_traces
 from ..scanner.device_file import load_scanner
 from . import dump_json, print_table
 
@@ -76,6 +82,33 @@ def _errors(fit: GeometryFit, gt: dict, inp: torch.Tensor, sel: slice) -> dict:
     }
 
 
+def whole_fit(texels: int, seed: int, chunk: int = 256) -> dict:
+    """The fit stage (``fit_traces``) on ``texels`` synthetic 64-view traces: texels/s and the
+    seconds of network, geometry fit and highlight check + albedo."""
+    scanner = load_scanner()
+    net, meta = models.load(None, scanner)
+    gen = torch.Generator().manual_seed(seed)
+    entries, masks = [], []
+    for i in range(0, texels, chunk):
+        b = sample_batch(scanner, min(chunk, texels - i), gen, SyntheticConfig(), views=64)
+        with torch.no_grad():
+            pixel, valid = net.measure_batch(b, gen)
+        entries.append(torch.cat([pixel, b.position, b.normal_geo, b.tangent_geo], -1))
+        masks.append(valid)
+    traces = RaggedTraces.from_padded(torch.cat(entries), torch.cat(masks))
+    seconds: dict[str, float] = {}
+    t0 = time.perf_counter()
+    fit_traces(net, scanner, traces, 1.0, seconds=seconds)
+    total = time.perf_counter() - t0
+    return {
+        "texels": texels,
+        "model": meta["network"]["preset"],
+        "texels_per_s": texels / total,
+        "seconds": {"total": total, **seconds},
+        "share": {k: v / total for k, v in seconds.items()},
+    }
+
+
 def run(
     quick: bool = False, texels: int | None = None, baseline_texels: int | None = None, seed: int = 7, json_path=None
 ) -> dict:
@@ -132,6 +165,14 @@ def run(
     )
     for kind in ("exact", "noisy"):
         print(f"{kind}: batched is {result[kind]['speedup']:.0f}x the baseline's texels/s")
+    whole = whole_fit(min(texels, 4096), seed)
+    result["whole_fit"] = whole
+    split = ", ".join(f"{k} {100 * v:.0f}%" for k, v in whole["share"].items())
+    print(
+        f"whole fit stage (network + geometry + highlight check + albedo, pipeline.fit_traces) on "
+        f"{whole['texels']} 64-view traces: {whole['texels_per_s']:.0f} texels/s ({split}); the geometry "
+        f"fit alone on the network's lumitexels: {result['noisy']['batched']['texels_per_s']:.0f} texels/s"
+    )
     # the issue's keys: batched/baseline with texels_per_s and lumitexel_log_rmse (exact input),
     # the noisy-input figures beside them
     for name in ("batched", "baseline"):

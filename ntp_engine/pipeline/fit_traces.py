@@ -10,6 +10,7 @@ rho_s (N, 3). Traces with no entry keep the defaults (+z, +x, FALLBACK_ALPHA, ze
 from __future__ import annotations
 
 import dataclasses
+import time
 
 import numpy as np
 import torch
@@ -51,11 +52,15 @@ def fit_traces(
     pixel_scale: float,
     batch: int = 4096,
     progress: Progress = QUIET,
+    seconds: dict[str, float] | None = None,
 ) -> dict[str, np.ndarray]:
     """Network + geometry fit + RGB albedo per trace (the refinement's start, ``refine_fit``).
     ``pixel_scale`` is the factor the traces' linear pixels were scaled by to the model's exposure
     (undone for the physical albedo LS). Reads the in-range entries only. Returns per-trace arrays in
-    the texel's geometric frame: n_loc, t_loc (N, 3), alpha (N, 2), flags (N,), rho_d, rho_s (N, 3)."""
+    the texel's geometric frame: n_loc, t_loc (N, 3), alpha (N, 2), flags (N,), rho_d, rho_s (N, 3).
+    ``seconds``, if given, receives the wall time of each part: network, geometry, albedo
+    (``ntp bench fit`` reports them)."""
+    clock = {"network": 0.0, "geometry": 0.0, "albedo": 0.0}
     traces = traces.in_range_only()
     N = traces.num_traces
     n_loc, t_loc = np.zeros((N, 3)), np.zeros((N, 3))
@@ -64,12 +69,18 @@ def fit_traces(
     rho_d, rho_s = np.zeros((N, 3)), np.zeros((N, 3))
     observed = int((traces.lengths > 0).sum())
     bar = progress.counter("network + fit", observed, "texel")
+    t0 = time.perf_counter()
     for idx, d, s in predict(net, traces, max_entries=batch * 32):
+        t1 = time.perf_counter()
+        clock["network"] += t1 - t0
         keep = traces.lengths[idx] > 0
         idx, d, s = idx[keep], d[keep], s[keep]
         if len(idx) == 0:
+            t0 = time.perf_counter()
             continue
         g = fit_geometry(s, d)
+        t2 = time.perf_counter()
+        clock["geometry"] += t2 - t1
         i = idx.numpy()
         n_loc[i], t_loc[i] = g.normal.numpy(), g.tangent.numpy()
         ax[i], ay[i], flags[i] = g.alpha_x.numpy(), g.alpha_y.numpy(), g.flags.numpy()
@@ -90,7 +101,11 @@ def fit_traces(
             rho_d[i[sub]], rho_s[i[sub]] = rd.numpy(), rs.numpy()
             ax[i[sub]], ay[i[sub]], flags[i[sub]] = gs.alpha_x.numpy(), gs.alpha_y.numpy(), gs.flags.numpy()
         bar.update(len(idx))
+        t0 = time.perf_counter()
+        clock["albedo"] += t0 - t2
     bar.close()
+    if seconds is not None:
+        seconds.update(clock)
     return {
         "n_loc": n_loc,
         "t_loc": t_loc,

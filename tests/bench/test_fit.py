@@ -6,3 +6,7 @@ def test_batched_fitter_against_the_baseline_on_a_few_texels():
     for kind in ("exact", "noisy"):
         assert r[kind]["batched"]["texels_per_s"] > 0 and r[kind]["baseline"]["texels_per_s"] > 0
     assert r["exact"]["batched"]["lumitexel_log_rmse"] < 1e-3  # exact lumitexels are fitted exactly
+    whole = r["whole_fit"]  # the stage as the pipeline runs it: every part timed, parts within the total
+    assert whole["texels"] == 64 and whole["texels_per_s"] > 0
+    assert all(whole["seconds"][k] > 0 for k in ("network", "geometry", "albedo"))
+    assert sum(whole["share"].values()) <= 1.0 + 1e-6
