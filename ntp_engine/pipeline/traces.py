@@ -146,10 +146,10 @@ def assemble(
     cursor = offsets[:-1].copy()  # each texel's next free row
     views_used = 0
     for k, (img, pose) in enumerate(progress.track(zip(photos, poses), "traces", total=len(poses), unit="photo")):
-        if seen[k] is None:
+        visible, seen[k] = seen[k], None  # free this view's indices as its entries land
+        if visible is None:
             continue
-        idx = seen[k].astype(np.int64)
-        seen[k] = None  # free this view's indices as its entries land
+        idx = visible.astype(np.int64)
         R, t = pose[:3, :3], pose[:3, 3]
         x = texels.position[idx] @ R.T + t
         px = camera.project(scanner, torch.as_tensor(x)).numpy()
