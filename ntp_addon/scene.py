@@ -85,12 +85,13 @@ def render_exr(scene: bpy.types.Scene, path: Path) -> np.ndarray:
 
 
 def bounds(obj: bpy.types.Object) -> tuple[np.ndarray, float]:
-    """World-space bounding-box centre and radius of an object."""
-    corners = (
+    """World-space bounding-box centre of an object and the radius of the sphere about it that holds
+    every vertex (tighter than half the box's diagonal: a dome or a vase fills the frame)."""
+    points = (
         np.array([obj.matrix_world @ v.co for v in obj.data.vertices]) if len(obj.data.vertices) else np.zeros((1, 3))
     )
-    lo, hi = corners.min(0), corners.max(0)
-    return 0.5 * (lo + hi), float(0.5 * np.linalg.norm(hi - lo))
+    centre = 0.5 * (points.min(0) + points.max(0))
+    return centre, float(np.linalg.norm(points - centre, axis=1).max())
 
 
 RELIGHT_PREFIX = "NTP Relight"
