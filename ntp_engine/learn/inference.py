@@ -1,7 +1,8 @@
 """Network inference on ragged traces (``ragged.RaggedTraces``), in memory-bounded batches.
 
 Traces are batched by similar length (less padding), at most ``max_entries`` padded entries per
-batch, and results come back with their trace indices.
+batch, and results come back with their trace indices. ``max_views`` caps the entries the network
+reads per trace, spread evenly over it (``RaggedTraces.padded``).
 """
 
 from __future__ import annotations
@@ -28,17 +29,23 @@ def _batches(lengths: Tensor, max_entries: int) -> Iterator[Tensor]:
 
 @torch.inference_mode()
 def predict(
-    model: TraceNet, traces: RaggedTraces, max_entries: int = 1 << 16, device: torch.device | str | None = None
+    model: TraceNet,
+    traces: RaggedTraces,
+    max_entries: int = 1 << 16,
+    device: torch.device | str | None = None,
+    max_views: int | None = None,
 ) -> Iterator[tuple[Tensor, Tensor, Tensor]]:
-    """Yield ``(trace indices (n,), diffuse (n, 384), specular (n, 6144))`` batch by batch.
+    """Yield ``(trace indices (n,), diffuse (n, 384), specular (n, 6144))`` batch by batch; the
+    network reads at most ``max_views`` entries per trace (evenly spread, first and last kept).
 
     Lumitexels are non-negative (the specular head predicts log(1 + x)); a trace with no entry
     gives the network's answer for an empty trace. Memory is bounded by ``max_entries`` padded
     entries per batch plus ``n * 6528`` outputs."""
     model.eval()
     dev = torch.device(device) if device else next(model.parameters()).device
-    for idx in _batches(traces.lengths, max_entries):
-        raw, mask = traces.padded(idx)
+    lengths = traces.lengths if max_views is None else traces.lengths.clamp_max(max_views)
+    for idx in _batches(lengths, max_entries):
+        raw, mask = traces.padded(idx, max_views=max_views)
         raw = raw.to(dev)
         x = model.entries(raw[..., 0:3], raw[..., 3:6], raw[..., 6:9], raw[..., 9:12])
         d, s = model(x, mask.to(dev))

@@ -43,7 +43,15 @@ from . import traces as trace_assembly
 from .align import Alignment, align_to_mesh
 from .cache import StageCache, content_digest, content_key, digest
 from .colmap_model import model_files, read_colmap_model
-from .fit_traces import ALBEDO_VIEWS, CALIBRATION_TEXELS, REFINE_VIEWS, RHO_S_PRIOR_WEIGHT, fit_traces, refine_fit
+from .fit_traces import (
+    ALBEDO_VIEWS,
+    CALIBRATION_TEXELS,
+    NETWORK_VIEWS,
+    REFINE_VIEWS,
+    RHO_S_PRIOR_WEIGHT,
+    fit_traces,
+    refine_fit,
+)
 from .output_folder import claim, publish
 from .photo_registration import (
     MIN_MARGIN,
@@ -355,7 +363,7 @@ def _reconstruct(
     def fit_stage(d: Path) -> None:
         np.savez(d / "fit.npz", **fit_traces(net, scan.scanner, traces, scale, progress=progress))
 
-    fit_key = {"albedo_views": ALBEDO_VIEWS, "rho_s_prior_weight": RHO_S_PRIOR_WEIGHT}
+    fit_key = {"albedo_views": ALBEDO_VIEWS, "rho_s_prior_weight": RHO_S_PRIOR_WEIGHT, "network_views": NETWORK_VIEWS}
     folder, h_fit = cache.get("fit", {"traces": h_tr, **model_key, **fit_key}, fit_stage)
     with np.load(folder / "fit.npz") as z:
         fitted = {k: z[k] for k in z.files}

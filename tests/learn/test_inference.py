@@ -34,3 +34,25 @@ def test_ragged_prediction_matches_padded_forward_in_any_batching():
     assert (s_all >= 0).all() and torch.isfinite(d_all).all()
     seen = torch.cat([idx for idx, _, _ in predict(net, tr, max_entries=20)])
     assert sorted(seen.tolist()) == list(range(tr.num_traces))
+
+
+def test_a_view_cap_feeds_the_network_evenly_spread_entries():
+    torch.manual_seed(0)
+    net = TraceNet(NetworkConfig(preset="small"), load_scanner()).eval()
+    tr = _traces(n=7, seed=3)
+    cap = 4
+    capped = {}
+    for idx, _, s in predict(net, tr, max_entries=16, max_views=cap):
+        capped.update({int(i): s[j] for j, i in enumerate(idx)})
+    assert sorted(capped) == list(range(tr.num_traces)) and int(tr.lengths.max()) > cap  # the cap does something
+    for k in range(tr.num_traces):
+        a, n = int(tr.offsets[k]), int(tr.lengths[k])
+        if n == 0:
+            continue
+        kept = min(n, cap)
+        keep = [a + round(j * (n - 1) / max(kept - 1, 1)) for j in range(kept)]  # first and last kept
+        raw = tr.entries[keep][None]
+        x = net.entries(raw[..., :3], raw[..., 3:6], raw[..., 6:9], raw[..., 9:])
+        with torch.no_grad():
+            _, s = net(x, torch.ones(1, len(keep), dtype=torch.bool))
+        torch.testing.assert_close(capped[k], torch.expm1(s[0].clamp_min(0)), msg=f"trace {k}, {n} entries")
