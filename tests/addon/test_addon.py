@@ -504,3 +504,28 @@ def test_coverage_overlay_bakes_to_its_legend_and_gives_the_materials_back(addon
     assert "uncertainty.exr" in addon.status and "--refine" in addon.status
     addon.coverage = "off"
     assert [sl.material.name for sl in obj.material_slots] == own and coverage.RESTORE not in obj
+
+
+def test_colmap_model_imports_as_cameras_aligned_to_the_mesh(addon, scan24, tmp_path):
+    """File → Import → COLMAP model: a model COLMAP (pycolmap) wrote for the scan's photos becomes
+    cameras in the mesh's frame (the engine aligns it and checks it against the photos)."""
+    import pycolmap
+
+    from ntp_engine.pipeline.scan_folder import load_poses, load_scan
+    from ntp_engine.pipeline.sfm import structure_from_motion
+
+    scan = load_scan(scan24)
+    work = tmp_path / "colmap"
+    structure_from_motion(scan.photos_dir, [p.name for p in scan.photo_paths], scan.scanner, work)
+    model = max((work / "sparse").iterdir(), key=lambda d: pycolmap.Reconstruction(str(d)).num_reg_images())
+    addon.scan_folder, addon.result_folder = str(scan24), str(tmp_path / "result")
+    assert bpy.ops.import_scene.ntp_colmap(directory=str(model)) == {"FINISHED"}
+    assert "COLMAP model" in addon.status
+    cams = bpy.data.collections["NTP Cameras"].objects
+    truth = load_poses(scan24 / "ground_truth" / "poses.json")
+    assert len(cams) >= 20
+    err = [
+        np.linalg.norm(np.array(c.matrix_world)[:3, 3] + truth[c.name[4:]][:3, :3].T @ truth[c.name[4:]][:3, 3])
+        for c in cams
+    ]
+    assert np.median(err) < 0.02  # 24 photos: the alignment's own accuracy (as tests/pipeline/test_colmap_model.py)
