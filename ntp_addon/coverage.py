@@ -191,7 +191,7 @@ def on_change(settings, context) -> None:
         settings.status = f"coverage: {LAYERS[settings.coverage].hint}"
 
 
-def legend_node(context):
+def legend_node():
     """The overlay's ramp node (the panel draws it as the legend), or ``None``."""
     mat = bpy.data.materials.get(MATERIAL)
     return mat.node_tree.nodes.get("legend") if mat is not None and mat.node_tree else None

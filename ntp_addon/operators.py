@@ -369,6 +369,21 @@ class NTP_OT_reconstruct(_EngineProcess, bpy.types.Operator):
         return stdout.strip().splitlines()[-1] if stdout.strip() else "done"
 
 
+def _build_materials(op, context, folder: Path, obj=None) -> set[str]:
+    """Both materials of result ``folder`` on ``obj`` (``None``: the result's mesh, imported), the
+    mesh made active; a bad folder is one report and creates nothing (checked before anything is)."""
+    try:
+        material.read_result(folder)
+        obj = obj or material.import_result_mesh(folder)
+        p, a = material.build_materials(folder, obj, _settings(context).variant)
+    except (NtpInputError, OSError) as err:
+        op.report({"ERROR"}, error_line(err))
+        return {"CANCELLED"}
+    context.view_layer.objects.active = obj
+    op.report({"INFO"}, f"built {p.name} and {a.name} on {obj.name}")
+    return {"FINISHED"}
+
+
 class NTP_OT_build_material(bpy.types.Operator):
     """Build the NTP materials (accurate + Principled) from the result folder on the active mesh
     (imports the result's mesh if none is selected)"""
@@ -387,18 +402,7 @@ class NTP_OT_build_material(bpy.types.Operator):
 
     def execute(self, context):
         """Build both materials from the result folder on the active (or imported) mesh."""
-        s = _settings(context)
-        folder = result_folder(context)
-        try:
-            material.read_result(folder)  # everything checked before anything is created
-            obj = _target_object(context) or material.import_result_mesh(folder)
-            p, a = material.build_materials(folder, obj, s.variant)
-        except (NtpInputError, OSError) as err:
-            self.report({"ERROR"}, error_line(err))
-            return {"CANCELLED"}
-        context.view_layer.objects.active = obj
-        self.report({"INFO"}, f"built {p.name} and {a.name} on {obj.name}")
-        return {"FINISHED"}
+        return _build_materials(self, context, result_folder(context), _target_object(context))
 
 
 class NTP_OT_relight_preview(bpy.types.Operator):
@@ -429,46 +433,36 @@ class NTP_OT_relight_preview(bpy.types.Operator):
         return {"FINISHED"}
 
 
-class NTP_OT_import_result(bpy.types.Operator, ImportHelper):
-    """Import an NTP result folder: its mesh with both materials (File → Import)"""
+class _FolderImport(ImportHelper):
+    """File → Import of a folder: the file browser picks a directory (``self.directory``)."""
 
-    bl_idname = "import_scene.ntp_result"
-    bl_label = "Import NTP result"
     bl_options = {"REGISTER", "UNDO"}
-
     directory: bpy.props.StringProperty(subtype="DIR_PATH", options={"HIDDEN", "SKIP_SAVE"})
     filter_folder: bpy.props.BoolProperty(default=True, options={"HIDDEN"})
     filename_ext = ""
     use_filter_folder = True
 
+
+class NTP_OT_import_result(_FolderImport, bpy.types.Operator):
+    """Import an NTP result folder: its mesh with both materials (File → Import)"""
+
+    bl_idname = "import_scene.ntp_result"
+    bl_label = "Import NTP result"
+
     def execute(self, context):
         """Check the folder, import its mesh, build the materials, remember it as the result."""
-        folder = Path(self.directory)
-        try:
-            material.read_result(folder)  # everything checked before anything is created
-            obj = material.import_result_mesh(folder)
-            p, a = material.build_materials(folder, obj, _settings(context).variant)
-        except (NtpInputError, OSError) as err:
-            self.report({"ERROR"}, error_line(err))
-            return {"CANCELLED"}
-        _settings(context).result_folder = str(folder)
-        context.view_layer.objects.active = obj
-        self.report({"INFO"}, f"imported {obj.name} with {p.name} and {a.name}")
-        return {"FINISHED"}
+        done = _build_materials(self, context, Path(self.directory))
+        if done == {"FINISHED"}:
+            _settings(context).result_folder = str(Path(self.directory))
+        return done
 
 
-class NTP_OT_import_colmap(bpy.types.Operator, ImportHelper):
+class NTP_OT_import_colmap(_FolderImport, bpy.types.Operator):
     """Register the scan's photos from an existing COLMAP model folder (no SfM) and add the
     cameras (File → Import; needs the scan folder set in the NTP panel)"""
 
     bl_idname = "import_scene.ntp_colmap"
     bl_label = "Import COLMAP model as NTP cameras"
-    bl_options = {"REGISTER", "UNDO"}
-
-    directory: bpy.props.StringProperty(subtype="DIR_PATH", options={"HIDDEN", "SKIP_SAVE"})
-    filter_folder: bpy.props.BoolProperty(default=True, options={"HIDDEN"})
-    filename_ext = ""
-    use_filter_folder = True
 
     @classmethod
     def poll(cls, context):

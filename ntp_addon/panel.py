@@ -63,16 +63,21 @@ class NTP_PT_scan(bpy.types.Panel):
                 box.prop(s, "progress", slider=True)
 
 
-class NTP_PT_device(bpy.types.Panel):
-    """The scanner device's summary, under the NTP tab."""
+class _SubPanel:
+    """A closed-by-default sub-panel of the NTP tab."""
 
-    bl_idname = "NTP_PT_device"
-    bl_label = "Scanner device"
     bl_space_type = "VIEW_3D"
     bl_region_type = "UI"
     bl_category = "NTP"
     bl_parent_id = "NTP_PT_scan"
     bl_options = {"DEFAULT_CLOSED"}
+
+
+class NTP_PT_device(_SubPanel, bpy.types.Panel):
+    """The scanner device's summary, under the NTP tab."""
+
+    bl_idname = "NTP_PT_device"
+    bl_label = "Scanner device"
 
     def draw(self, context):
         """Lay out the device summary."""
@@ -85,7 +90,7 @@ def _legend(box, key: str) -> None:
     """The coverage overlay's legend: the ramp, what its ends mean, what to do about red."""
     layer = coverage.LAYERS[key]
     box.label(text=layer.label)
-    node = coverage.legend_node(bpy.context)
+    node = coverage.legend_node()
     if node is not None:
         box.template_color_ramp(node, "color_ramp", expand=False)
     row = box.row()
@@ -95,16 +100,11 @@ def _legend(box, key: str) -> None:
     box.label(text=layer.hint)
 
 
-class NTP_PT_help(bpy.types.Panel):
+class NTP_PT_help(_SubPanel, bpy.types.Panel):
     """The workflow in five steps and the user guides, under the NTP tab."""
 
     bl_idname = "NTP_PT_help"
     bl_label = "Help"
-    bl_space_type = "VIEW_3D"
-    bl_region_type = "UI"
-    bl_category = "NTP"
-    bl_parent_id = "NTP_PT_scan"
-    bl_options = {"DEFAULT_CLOSED"}
 
     def draw(self, context):
         """Lay out the steps and a button per guide."""
