@@ -24,10 +24,12 @@ from .io.progress import Progress
 from .learn import models
 from .learn.network import NetworkConfig
 from .learn.train import TrainConfig, train
+from .pipeline.collection import SUMMARY, BatchOptions, reconstruct_collection
 from .pipeline.photo_selection import BLUR_MARGIN
 from .pipeline.scan_folder import Scan, load_scan
 from .pipeline.sfm import MAPPERS
 from .pipeline.stages import DEFAULT_RESOLUTION, reconstruct, register_photos, write_registration
+from .pipeline.task_pool import LOCAL, LocalPool, RayPool, TaskPool
 from .pipeline.threads import set_threads
 from .scanner.device_file import DEFAULT_DEVICE, list_devices, load_scanner, write_pattern
 from .sim import demo
@@ -38,6 +40,14 @@ from .sim.virtual_scan import ScanConfig, virtual_scan
 FORCE_HELP = "go on with a registration the photos do not confirm (see OUT/registration.png)"
 COLMAP_HELP = "a COLMAP model folder (cameras/images/points3D, .bin or .txt) instead of running SfM"
 REFINE_HELP = "refine every texel against its photos after the network (analysis by synthesis; slower)"
+RAY_HELP = (
+    "run the fit stage's texel blocks as Ray tasks: on the cluster at ADDRESS (auto, HOST:6379, "
+    "ray://HOST:10001), or without ADDRESS on a Ray instance started on this machine"
+)
+BATCH_RAY_HELP = (
+    "one Ray task per scan: on the cluster at ADDRESS (OUT on a folder every node sees), or without "
+    "ADDRESS on a Ray instance started on this machine"
+)
 INTERRUPTED = "interrupted — finished stages are kept, re-run to resume"
 
 
@@ -121,12 +131,29 @@ def _reconstruct(args: argparse.Namespace) -> int:
         force_registration=args.force_registration,
         refine=args.refine,
         cache=args.cache,
+        ray=args.ray,
     )
     print(
         f"wrote {args.out}: {rep['texels']['coverage']:.1%} of {rep['texels']['total']} texels observed, "
         f"{rep['photos']['used']} of {rep['photos']['total']} photos used"
         f"{_alignment_note(rep['registration'])}, {rep['seconds']:.1f} s"
     )
+    return 0
+
+
+def _batch(args: argparse.Namespace) -> int:
+    options = BatchOptions(resolution=args.resolution, model=args.model, refine=args.refine, threads=args.threads)
+    set_threads(args.threads)  # checks the value; also the CPUs of a local Ray instance
+    pool: TaskPool = RayPool(args.ray, args.threads) if args.ray else LocalPool()
+    outcomes = reconstruct_collection(args.scans, args.out, options, pool, _progress(args))
+    for o in outcomes:
+        if o["ok"]:
+            print(f"done    {o['scan']} -> {o['result']}: {o['coverage']:.1%} of texels observed, {o['seconds']:.1f} s")
+        else:
+            print(f"failed  {o['scan']}: {o['error']}")
+    failed = [o for o in outcomes if not o["ok"]]
+    if failed:
+        return _fail(f"{len(failed)} of {len(outcomes)} scans failed (see {args.out / SUMMARY})", 2)
     return 0
 
 
@@ -334,9 +361,23 @@ def _parser() -> argparse.ArgumentParser:
     )
     rc.add_argument("--force-registration", action="store_true", help=FORCE_HELP)
     rc.add_argument("--refine", action="store_true", help=REFINE_HELP)
+    rc.add_argument("--ray", nargs="?", const=LOCAL, default=None, metavar="ADDRESS", help=RAY_HELP)
     _run_options(rc)
     _quiet_and_progress(rc)
     rc.set_defaults(func=_reconstruct)
+
+    ba = sub.add_parser("batch", help="reconstruct a collection of scans into OUT/<scan name> (resumable)")
+    ba.add_argument("scans", type=Path, nargs="+", metavar="SCAN", help="scan folders")
+    ba.add_argument("--out", type=Path, required=True, help="collection folder (one result per scan, batch.json)")
+    ba.add_argument("--resolution", type=int, default=DEFAULT_RESOLUTION, help="texture maps are RESOLUTION^2")
+    ba.add_argument("--model", default=None, help="shipped model name or a model folder (default: compact)")
+    ba.add_argument("--refine", action="store_true", help=REFINE_HELP)
+    ba.add_argument(
+        "--threads", type=int, default=0, help="CPU threads per scan (default 0: every core; 1 per Ray task)"
+    )
+    ba.add_argument("--ray", nargs="?", const=LOCAL, default=None, metavar="ADDRESS", help=BATCH_RAY_HELP)
+    _quiet_and_progress(ba)
+    ba.set_defaults(func=_batch)
 
     rg = sub.add_parser("register", help="photo selection + camera poses (SfM aligned to the mesh) -> OUT/poses.json")
     rg.add_argument("scan", type=Path, help="scan folder (scan.toml, mesh, photos/)")

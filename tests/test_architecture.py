@@ -129,3 +129,11 @@ def test_every_engine_module_has_its_own_test_module():
         if not test.is_file():
             missing.append(str(test.relative_to(ROOT)))
     assert not missing, f"engine modules without a test module: {missing}"
+
+
+def test_only_the_task_pool_imports_ray_and_only_when_entered():
+    """Without --ray nothing imports ray: one module may, inside the function that connects."""
+    found = [
+        (_module_name(p), local) for p in _engine_modules() for t, local, _ in _imports(p) if t.split(".")[0] == "ray"
+    ]
+    assert found == [("ntp_engine.pipeline.task_pool", True)]

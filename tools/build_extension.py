@@ -40,7 +40,8 @@ EXCLUDE = {
     "hypothesis",
     "ruff",
     "mypy",
-}  # Blender ships numpy; the rest is dev-only
+    "ray",
+}  # Blender ships numpy; ray is the command line's (--ray, ntp batch); the rest is dev-only
 PLATFORMS = ["manylinux_2_28_x86_64", "manylinux2014_x86_64"]  # torch's CPU wheel is 2_28
 TORCH_CPU_INDEX = "https://download.pytorch.org/whl/cpu"  # torch==X resolves to X+cpu there
 GPU_ONLY = ("nvidia", "triton")  # CUDA runtime wheels: never shipped (the extension runs on the CPU)

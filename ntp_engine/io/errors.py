@@ -13,6 +13,10 @@ class NtpInputError(ValueError):
         self.problem = " ".join(str(problem).split())  # always one line
         super().__init__(f"{self.path}: {self.problem}" if self.path else self.problem)
 
+    def __reduce__(self) -> tuple:
+        # pickled by its two fields (a Ray task's error comes back to the driver as itself)
+        return (type(self), (self.path, self.problem))
+
 
 def error_line(err: NtpInputError | OSError) -> str:
     """What a person reads, one line naming the file: the input error, or an operating-system

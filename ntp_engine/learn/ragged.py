@@ -43,6 +43,20 @@ class RaggedTraces:
         kept[1:] = torch.cumsum(keep.long(), 0)
         return RaggedTraces(self.entries[keep], kept[self.offsets])
 
+    def in_range_lengths(self) -> Tensor:
+        """``in_range_only().lengths`` without copying the entries ``(N,)``."""
+        if self.in_range is None:
+            return self.lengths
+        kept = torch.zeros(len(self.in_range) + 1, dtype=torch.int64)
+        kept[1:] = torch.cumsum(self.in_range.long(), 0)
+        return kept[self.offsets[1:]] - kept[self.offsets[:-1]]
+
+    def block(self, start: int, stop: int) -> RaggedTraces:
+        """Traces ``start:stop`` as a table of their own (entries and flags are views, not copies)."""
+        a, b = int(self.offsets[start]), int(self.offsets[stop])
+        flags = None if self.in_range is None else self.in_range[a:b]
+        return RaggedTraces(self.entries[a:b], self.offsets[start : stop + 1] - a, flags)
+
     @property
     def num_traces(self) -> int:
         """N."""

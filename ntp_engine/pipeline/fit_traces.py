@@ -1,10 +1,13 @@
 """The fit stage: every trace through the network, then the geometry fit, the highlight check and
-the RGB albedo (paper §6-7), in bounded batches.
+the RGB albedo (paper §6-7), in blocks of ``FIT_BLOCK`` texels — the unit of work, run one after
+the other in this process or as Ray tasks (``pipeline.task_pool``), with the same result — and the
+optional refinement against the photos (``refine_fit``).
 
-Convention: traces hold linear pixels scaled to the model's exposure (``pixel_scale``; undone for
-the physical albedo). Results are per trace, in the texel's geometric frame (n^, t^ as the
-lumitexel's z and x): n_loc, t_loc (N, 3), alpha (N, 2) = (alpha_x, alpha_y), flags (N,), rho_d,
-rho_s (N, 3). Traces with no entry keep the defaults (+z, +x, FALLBACK_ALPHA, zeros).
+Convention: the table holds linear pixels as captured; ``fit_blocks`` scales each block's pixels to
+the model's exposure (``pixel_scale``) before ``fit_traces``, which undoes it for the physical
+albedo. Results are per trace, in the texel's geometric frame (n^, t^ as the lumitexel's z and x):
+n_loc, t_loc (N, 3), alpha (N, 2) = (alpha_x, alpha_y), flags (N,), rho_d, rho_s (N, 3). Traces
+with no entry keep the defaults (+z, +x, FALLBACK_ALPHA, zeros).
 """
 
 from __future__ import annotations
@@ -36,6 +39,7 @@ from ..learn.inference import predict
 from ..learn.network import TraceNet
 from ..learn.ragged import RaggedTraces
 from ..scanner.scanner import Scanner
+from .task_pool import LocalPool, TaskPool
 
 # entries per trace the network reads, spread evenly over the trace: the length it was trained on,
 # and its validation loss is lowest there (2.08 at 64 views vs 2.15 at 128; docs/network.md); a
@@ -47,6 +51,52 @@ REFINE_VIEWS = 24  # entries per texel the refinement reads (spread evenly over 
 CALIBRATION_TEXELS = 512  # texels refined first to calibrate the noise model (fit.refine.calibrated_noise)
 REFINE_BATCH = 512  # texels per refinement batch: (batch, views, emitters) tensors stay ~100 MB
 REFINE_FLAGS = FLAG_SPECULAR_UNCONSTRAINED | FLAG_TANGENT_UNCONSTRAINED | FLAG_FROM_MATERIAL
+# texels per unit of work of the fit stage (a Ray task with --ray): a few seconds of work and ~10 MB
+# of traces at 60 photos; only one block's traces are in memory at a time (the table is on disk)
+FIT_BLOCK = 4096
+
+
+def fit_blocks(
+    net: TraceNet,
+    scanner: Scanner,
+    traces: RaggedTraces,
+    pixel_scale: float,
+    pool: TaskPool | None = None,
+    progress: Progress = QUIET,
+) -> dict[str, np.ndarray]:
+    """``fit_traces`` over ``traces`` (linear pixels as captured; may be memory-mapped) block by
+    block on ``pool`` (default: this process); each block's pixels are scaled by ``pixel_scale`` on
+    its own copy. The same arrays as ``fit_traces`` on the whole table, bit for bit whichever pool."""
+    N = traces.num_traces
+    starts = range(0, N, FIT_BLOCK)
+    blocks = (_own_block(traces, a, min(a + FIT_BLOCK, N)) for a in starts)
+    observed = int((traces.lengths > 0).sum())
+    bar = progress.counter("network + fit", observed, "texel")
+    out: dict[str, np.ndarray] = {}
+    for b, part in (pool or LocalPool()).map(_fit_block, blocks, shared=(net, scanner, pixel_scale)):
+        if not out:
+            out = {k: np.zeros((N, *v.shape[1:]), v.dtype) for k, v in part.items()}
+        a = starts[b]
+        for k, v in part.items():
+            out[k][a : a + len(v)] = v
+        bar.update(int((traces.lengths[a : a + FIT_BLOCK] > 0).sum()))
+    bar.close()
+    return out or fit_traces(net, scanner, traces, pixel_scale)  # no trace at all: the empty arrays
+
+
+def _own_block(traces: RaggedTraces, start: int, stop: int) -> RaggedTraces:
+    """Traces ``start:stop`` as a contiguous copy: pickled for a Ray task, a view would carry the
+    whole table's storage along, and the fit scales the copy's pixels in place."""
+    b = traces.block(start, stop)
+    flags = None if b.in_range is None else b.in_range.clone()
+    return RaggedTraces(b.entries.clone(), b.offsets.clone(), flags)
+
+
+def _fit_block(block: RaggedTraces, net: TraceNet, scanner: Scanner, pixel_scale: float) -> dict[str, np.ndarray]:
+    """One block (a Ray task's body; ``block`` is its own): pixels scaled to the model's exposure,
+    then ``fit_traces``."""
+    block.entries[:, :3] *= pixel_scale
+    return fit_traces(net, scanner, block, pixel_scale)
 
 
 def fit_traces(
@@ -121,13 +171,13 @@ def fit_traces(
 
 
 def refine_inputs(
-    traces: RaggedTraces, idx: torch.Tensor, pixel_scale: float, fit: dict[str, np.ndarray]
+    traces: RaggedTraces, idx: torch.Tensor, fit: dict[str, np.ndarray]
 ) -> tuple[torch.Tensor, torch.Tensor, Start, torch.Tensor]:
-    """What ``fit.refine.refine`` takes for the texels ``idx``: their entries (``REFINE_VIEWS``
-    spread over each trace, pixels as captured: the camera model is the scanner's), the mask, the
-    start from ``fit`` and which texels seek a lobe (those the highlight check did not flag)."""
+    """What ``fit.refine.refine`` takes for the texels ``idx`` of ``traces`` (linear pixels as
+    captured: the camera model is the scanner's): their entries (``REFINE_VIEWS`` spread over each
+    trace), the mask, the start from ``fit`` and which texels seek a lobe (those the highlight check
+    did not flag)."""
     ent, mask = traces.padded(idx, max_views=REFINE_VIEWS)
-    ent[..., :3] /= pixel_scale
     i = idx.numpy()
     return ent, mask, Start.from_fit(fit, i), torch.as_tensor(fit["flags"][i] & FLAG_NO_HIGHLIGHT == 0)
 
@@ -135,15 +185,15 @@ def refine_inputs(
 def refine_fit(
     scanner: Scanner,
     traces: RaggedTraces,
-    pixel_scale: float,
     fit: dict[str, np.ndarray],
     settings: RefineSettings | None = None,
     progress: Progress = QUIET,
 ) -> dict[str, np.ndarray]:
     """``fit_traces``'s result refined by analysis-by-synthesis (``fit.refine``) against every entry
-    of every observed trace, dark and clipped ones included; adds ``std (N, 4)``, the 1-sigma
-    uncertainties of normal (deg), tangent (deg), log alpha, log rho_s (NaN where no trace reached),
-    and ``noise_scale`` (the noise model's calibration factor, from a first pass over a sample).
+    of every observed trace (``traces``: linear pixels as captured), dark and clipped ones included;
+    adds ``std (N, 4)``, the 1-sigma uncertainties of normal (deg), tangent (deg), log alpha,
+    log rho_s (NaN where no trace reached), and ``noise_scale`` (the noise model's calibration
+    factor, from a first pass over a sample).
     Texels the network never saw (all entries out of range) start from the fallback lobe.
 
     With ``settings.materials`` (``fit.materials``), a second pass: basis materials from the texels
@@ -157,18 +207,18 @@ def refine_fit(
     if len(todo):  # the noise model, calibrated on a seeded sample of the texels
         gen = torch.Generator().manual_seed(0)
         sample = todo[torch.randperm(len(todo), generator=gen)[:CALIBRATION_TEXELS]].sort().values
-        noise = calibrated_noise(scanner, *refine_inputs(traces, sample, pixel_scale, fit), settings)
+        noise = calibrated_noise(scanner, *refine_inputs(traces, sample, fit), settings)
         settings = dataclasses.replace(settings, noise=noise)
         fit["noise_scale"] = np.array(noise.relative / RefineSettings().noise.relative)
     fit["std"] = np.full((traces.num_traces, 4), np.nan)
     fit["highlight"] = np.zeros(traces.num_traces, np.float32)
     bar = progress.counter("refine", len(todo), "texel")
     for idx in todo.split(REFINE_BATCH):
-        _store(fit, idx, refine(scanner, *refine_inputs(traces, idx, pixel_scale, fit), settings))
+        _store(fit, idx, refine(scanner, *refine_inputs(traces, idx, fit), settings))
         bar.update(len(idx))
     bar.close()
     if settings.materials:
-        _material_pass(scanner, traces, pixel_scale, fit, todo, settings, progress)
+        _material_pass(scanner, traces, fit, todo, settings, progress)
     return fit
 
 
@@ -185,7 +235,6 @@ def _store(fit: dict[str, np.ndarray], idx: torch.Tensor, r: Refined) -> None:
 def _material_pass(
     scanner: Scanner,
     traces: RaggedTraces,
-    pixel_scale: float,
     fit: dict[str, np.ndarray],
     todo: torch.Tensor,
     settings: RefineSettings,
@@ -212,7 +261,7 @@ def _material_pass(
     alpha, rho_s = torch.as_tensor(basis.alpha), torch.as_tensor(basis.rho_s)
     bar = progress.counter("materials", len(rest), "texel")
     for k in np.array_split(rest, -(-len(rest) // REFINE_BATCH)) if len(rest) else []:
-        ent, mask, start, _ = refine_inputs(traces, torch.as_tensor(i_obs[k]), pixel_scale, fit)
+        ent, mask, start, _ = refine_inputs(traces, torch.as_tensor(i_obs[k]), fit)
         c, t = material_costs(scanner, ent, mask, start, alpha, rho_s, torch.as_tensor(candidates(prior[k])), settings)
         costs[k], turns[k] = c.numpy(), t.numpy()
         bar.update(len(k))
@@ -235,7 +284,7 @@ def _material_pass(
     sel = torch.as_tensor(np.nonzero(takes)[0])
     bar = progress.counter("material lobes", len(sel), "texel")
     for idx in sel.split(REFINE_BATCH):
-        ent, mask, start, _ = refine_inputs(traces, idx, pixel_scale, fit)
+        ent, mask, start, _ = refine_inputs(traces, idx, fit)
         m = fit["material"][idx.numpy()]
         pull = LobePrior(
             torch.as_tensor(basis.alpha[m], dtype=torch.float32),

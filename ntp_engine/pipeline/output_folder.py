@@ -32,7 +32,8 @@ except ImportError:  # Windows: no advisory locks (documented above)
 
 MARKER = ".ntp"
 REPORT = "report.json"
-KINDS = ("result", "scan", "demo", "gallery", "cache")  # cache: a stage cache kept apart (--cache)
+# cache: a stage cache kept apart (--cache); collection: ntp batch's folder of results
+KINDS = ("result", "scan", "demo", "gallery", "cache", "collection")
 
 
 def check_not_inside(out: Path, inputs: tuple[Path, ...]) -> None:

@@ -46,10 +46,11 @@ from .colmap_model import model_files, read_colmap_model
 from .fit_traces import (
     ALBEDO_VIEWS,
     CALIBRATION_TEXELS,
+    FIT_BLOCK,
     NETWORK_VIEWS,
     REFINE_VIEWS,
     RHO_S_PRIOR_WEIGHT,
-    fit_traces,
+    fit_blocks,
     refine_fit,
 )
 from .output_folder import claim, publish
@@ -67,13 +68,16 @@ from .photo_selection import BLUR_MARGIN, Selection, select_photos
 from .result import write_result
 from .scan_folder import Scan, check_mesh_size, read_photo
 from .sfm import MIN_REGISTERED, SfmResult, structure_from_motion
+from .task_pool import LocalPool, RayPool, TaskPool
 from .texels import Texels, rasterize, uv_atlas
+from .threads import configured_threads
 
 DEFAULT_RESOLUTION = 1024  # texture maps are DEFAULT_RESOLUTION^2 unless asked otherwise
 MIN_RESOLUTION = 8
 # below these a run has measured too little to be a result: refused (exit 2), not written
 MIN_PHOTOS_USED = 3
 MIN_COVERAGE = 0.05  # fraction of texels with a trace
+TRACE_FILES = ("entries", "offsets", "in_range")  # the traces stage's table, one .npy each (memory-mapped)
 REFINE = RefineSettings()  # the refinement's settings when asked for (`reconstruct(refine=True)`)
 
 
@@ -302,10 +306,12 @@ def reconstruct(
     force_registration: bool = False,
     refine: bool = False,
     cache: Path | None = None,
+    ray: str | None = None,
 ) -> dict:
     """Run the pipeline on ``scan`` into ``out`` (``refine``: the analysis-by-synthesis refinement
-    after the network's fit); returns the report (also in ``out/report.json``,
-    written last). ``out`` must be absent, empty or an ntp result, outside the scan folder
+    after the network's fit; ``ray``: the fit stage's blocks as tasks on that Ray cluster,
+    ``task_pool.LOCAL`` for one on this machine — the same result); returns the report (also in
+    ``out/report.json``, written last). ``out`` must be absent, empty or an ntp result, outside the scan folder
     (``output_folder.claim``); a run that measured too little, or whose registration the photos do
     not confirm (unless ``force_registration``), is refused, the old result kept. Stages are cached
     under ``cache`` (default ``out/cache``; elsewhere, e.g. a fast local disk, claimed as an ntp
@@ -313,9 +319,10 @@ def reconstruct(
     if resolution < MIN_RESOLUTION:
         raise NtpInputError(None, f"--resolution {resolution}: need at least {MIN_RESOLUTION}")
     check_mesh_size(load_mesh(scan.mesh_path), scan.scanner, scan.mesh_path)
+    pool: TaskPool = RayPool(ray, configured_threads()) if ray else LocalPool()
     with claim(out, "result", inputs=scan.input_folders), _stage_cache(Path(out), cache, scan) as stages:
         return _reconstruct(
-            scan, Path(out), stages, resolution, model, blur_margin, progress, force_registration, refine
+            scan, Path(out), stages, resolution, model, blur_margin, progress, force_registration, refine, pool
         )
 
 
@@ -329,6 +336,7 @@ def _reconstruct(
     progress: Progress,
     force_registration: bool,
     refine: bool,
+    pool: TaskPool,
 ) -> dict:
     t_all = time.perf_counter()
     report = _Report(scan=str(scan.folder))
@@ -345,10 +353,9 @@ def _reconstruct(
     t0 = time.perf_counter()
     traces, stats, h_tr = _traces_stage(scan, cache, texels, mesh, h_atlas, poses, h_pose, progress)
     # what counts as observed: entries the fit reads — the in-range ones, or with the refinement all
-    lengths = (traces if refine else traces.in_range_only()).lengths.numpy()
+    lengths = (traces.lengths if refine else traces.in_range_lengths()).numpy()
     _check_measured(scan, stats, lengths, len(poses))
-    scale = net.exposure() / float(scan.scanner.exposure(scan.scanner.pattern))
-    traces.entries[:, :3] *= scale  # linear pixels as captured -> the model's exposure
+    scale = net.exposure() / float(scan.scanner.exposure(scan.scanner.pattern))  # captured -> the model's
     report.data["traces"] = stats
     report.timed("traces", t0)
 
@@ -361,9 +368,15 @@ def _reconstruct(
     }
 
     def fit_stage(d: Path) -> None:
-        np.savez(d / "fit.npz", **fit_traces(net, scan.scanner, traces, scale, progress=progress))
+        with pool as p:
+            np.savez(d / "fit.npz", **fit_blocks(net, scan.scanner, traces, scale, p, progress))
 
-    fit_key = {"albedo_views": ALBEDO_VIEWS, "rho_s_prior_weight": RHO_S_PRIOR_WEIGHT, "network_views": NETWORK_VIEWS}
+    fit_key = {
+        "albedo_views": ALBEDO_VIEWS,
+        "rho_s_prior_weight": RHO_S_PRIOR_WEIGHT,
+        "network_views": NETWORK_VIEWS,
+        "block": FIT_BLOCK,
+    }
     folder, h_fit = cache.get("fit", {"traces": h_tr, **model_key, **fit_key}, fit_stage)
     with np.load(folder / "fit.npz") as z:
         fitted = {k: z[k] for k in z.files}
@@ -372,7 +385,7 @@ def _reconstruct(
         t0 = time.perf_counter()
 
         def refine_stage(d: Path) -> None:
-            np.savez(d / "refined.npz", **refine_fit(scan.scanner, traces, scale, fitted, REFINE, progress))
+            np.savez(d / "refined.npz", **refine_fit(scan.scanner, traces, fitted, REFINE, progress))
 
         key = {
             "fit": h_fit,
@@ -435,11 +448,11 @@ def cached_fit(out: Path) -> tuple[RaggedTraces, dict[str, np.ndarray]]:
 
 
 def _load_traces(folder: Path) -> RaggedTraces:
-    """The traces stage's table (``traces.npz``: entries, offsets, in-range flags)."""
-    with np.load(folder / "traces.npz") as z:
-        return RaggedTraces(
-            torch.from_numpy(z["entries"]), torch.from_numpy(z["offsets"]), torch.from_numpy(z["in_range"])
-        )
+    """The traces stage's table (``TRACE_FILES``: entries, offsets, in-range flags) memory-mapped:
+    a stage reads the blocks it works on from disk, never the whole table into memory (copy on
+    write: a change stays in this process)."""
+    arrays = [torch.from_numpy(np.load(folder / f"{name}.npy", mmap_mode="c")) for name in TRACE_FILES]
+    return RaggedTraces(*arrays)
 
 
 def _check_measured(scan: Scan, stats: dict, lengths: np.ndarray, posed: int) -> None:
@@ -501,7 +514,9 @@ def _traces_stage(
             support_z=support_z,
         )
         assert tr.in_range is not None
-        np.savez(d / "traces.npz", entries=tr.entries.numpy(), offsets=tr.offsets.numpy(), in_range=tr.in_range.numpy())
+        for name, array in zip(TRACE_FILES, (tr.entries, tr.offsets, tr.in_range), strict=True):
+            np.save(d / f"{name}.npy", array.numpy())
+        del tr
         (d / "stats.json").write_text(
             json.dumps(
                 {
@@ -519,6 +534,7 @@ def _traces_stage(
         "support": scan.support_plane,
         "max_shadowed_drive": trace_assembly.MAX_SHADOWED_DRIVE,
         "out_of_range_kept": True,
+        "files": TRACE_FILES,
         "device": scanner_to_dict(scan.scanner),
     }
     folder, h_tr = cache.get("traces", key, compute)

@@ -21,6 +21,11 @@ def set_threads(n: int) -> None:
     torch.set_num_threads(n or _TORCH_DEFAULT)
 
 
+def configured_threads() -> int:
+    """The setting (0: every core), e.g. the CPUs of a local Ray instance (``task_pool.RayPool``)."""
+    return _threads
+
+
 def colmap_threads() -> int:
     """COLMAP's ``num_threads`` option for the setting (-1: every core)."""
     return _threads or -1

@@ -1,3 +1,4 @@
+import pickle
 from pathlib import Path
 
 from ntp_engine.io.errors import NtpInputError
@@ -20,3 +21,10 @@ def test_error_line_names_the_file_of_an_os_error():
     )
     assert error_line(OSError(errno.EIO, "I/O\nerror")) == "[Errno 5] I/O error"
     assert error_line(NtpInputError("a.toml", "bad")) == "a.toml: bad"
+
+
+def test_pickles_as_itself():
+    """A worker's error (Ray, multiprocessing) comes back with its file and problem."""
+    err = pickle.loads(pickle.dumps(NtpInputError("scan/scan.toml", "key 'mesh' missing")))
+    assert isinstance(err, NtpInputError) and str(err) == "scan/scan.toml: key 'mesh' missing"
+    assert pickle.loads(pickle.dumps(NtpInputError(None, "no path"))).path is None

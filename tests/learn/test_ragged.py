@@ -27,8 +27,20 @@ def test_in_range_only_keeps_the_flagged_entries_per_trace():
     keep = torch.tensor([1, 0, 1, 1, 1, 0, 0], dtype=torch.bool)
     tr = RaggedTraces(entries, torch.tensor([0, 3, 3, 7]), keep)
     only = tr.in_range_only()
-    assert only.lengths.tolist() == [2, 0, 2]
+    assert only.lengths.tolist() == [2, 0, 2] == tr.in_range_lengths().tolist()
     torch.testing.assert_close(only.entries, entries[keep])
     assert RaggedTraces(entries, torch.tensor([0, 7])).in_range_only().lengths.tolist() == [7]
     with pytest.raises(ValueError):
         RaggedTraces(entries, torch.tensor([0, 7]), keep[:3])
+
+
+def test_block_is_the_traces_of_its_range():
+    entries = torch.arange(7 * 12, dtype=torch.float32).reshape(7, 12)
+    keep = torch.tensor([1, 0, 1, 1, 1, 0, 0], dtype=torch.bool)
+    tr = RaggedTraces(entries, torch.tensor([0, 3, 3, 7]), keep)
+    b = tr.block(1, 3)
+    assert b.num_traces == 2 and b.lengths.tolist() == [0, 4]
+    torch.testing.assert_close(b.entries, entries[3:7])
+    assert b.in_range is not None and b.in_range.tolist() == [1, 1, 0, 0]
+    assert tr.block(0, 0).num_traces == 0 and len(tr.block(0, 0).entries) == 0
+    assert b.entries.data_ptr() == entries[3:].data_ptr()  # a view: a block costs no copy
