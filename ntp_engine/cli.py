@@ -15,6 +15,7 @@ from .bench import network as bench_network
 from .bench import physics as bench_physics
 from .bench import refine as bench_refine
 from .bench import registration as bench_registration
+from .bench import scale as bench_scale
 from .bench import scan as bench_scan
 from .bench import sfm as bench_sfm
 from .bench import stability as bench_stability
@@ -286,6 +287,19 @@ def _bench_scan(args: argparse.Namespace) -> int:
     return 0
 
 
+def _bench_scale(args: argparse.Namespace) -> int:
+    bench_scale.run(
+        args.out,
+        tuple(args.photos),
+        tuple(args.resolutions),
+        camera_scale=args.scale,
+        threads=args.threads,
+        json_path=args.json,
+        plot=args.plot,
+    )
+    return 0
+
+
 def _bench_blender(args: argparse.Namespace) -> int:
     # in its own process: the engine never imports bpy
     cmd = [sys.executable, "-m", "ntp_addon.bench", "--views", str(args.views), "--samples", str(args.samples)]
@@ -542,6 +556,15 @@ def _parser() -> argparse.ArgumentParser:
     bs.add_argument("--plot", type=Path, default=Path("bench_scan.png"), help="PNG of run time against error")
     bs.add_argument("--json", type=Path, default=None)
     bs.set_defaults(func=_bench_scan)
+    sc = bsub.add_parser("scale", help="time and peak memory per stage: photos x map resolution (true poses)")
+    sc.add_argument("--out", type=Path, default=Path("ntp_bench_scale"), help="folder for the scans and results")
+    sc.add_argument("--photos", type=int, nargs="+", default=list(bench_scale.PHOTOS))
+    sc.add_argument("--resolutions", type=int, nargs="+", default=list(bench_scale.RESOLUTIONS))
+    sc.add_argument("--scale", type=float, default=bench_scale.CAMERA_SCALE, help="virtual camera resolution scale")
+    sc.add_argument("--threads", type=int, default=0, help="CPU threads of each reconstruct (0: every core)")
+    sc.add_argument("--plot", type=Path, default=Path("bench_scale.png"), help="PNG: seconds and memory per stage")
+    sc.add_argument("--json", type=Path, default=None)
+    sc.set_defaults(func=_bench_scale)
     bb = bsub.add_parser("blender", help="Cycles (both materials) vs the engine's render; preview seconds")
     bb.add_argument("--views", type=int, default=3)
     bb.add_argument("--samples", type=int, default=64)

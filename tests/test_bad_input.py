@@ -310,10 +310,10 @@ def _run_ok(argv: list[str], capsys) -> tuple[list[str], dict]:
     return lines, json.loads(Path(argv[argv.index("--out") + 1], "report.json").read_text())
 
 
-@pytest.mark.parametrize("damage", ["truncated_npz", "truncated_key", "edited_npz"])
+@pytest.mark.parametrize("damage", ["truncated_npy", "truncated_key", "edited_npz"])
 def test_a_damaged_cache_entry_is_recomputed(damage, good, copies, capsys):
     scan, out = copies
-    target = {"truncated_npz": "traces/traces.npz", "truncated_key": "fit/key.json", "edited_npz": "fit/fit.npz"}
+    target = {"truncated_npy": "traces/entries.npy", "truncated_key": "fit/key.json", "edited_npz": "fit/fit.npz"}
     f = out / "cache" / target[damage]
     data = f.read_bytes()
     f.write_bytes(data[: len(data) // 2] if damage != "edited_npz" else data[:-5] + b"xxxxx")

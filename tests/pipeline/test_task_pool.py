@@ -29,7 +29,7 @@ def test_ray_pool_returns_every_result_by_index_and_a_functions_error_as_itself(
 def test_ray_pool_retries_a_task_whose_worker_is_killed(ray_local):
     killed = kill_task_once("napping")
     with RayPool() as pool:
-        ((i, pid),) = pool.map(napping, [3.0])
+        ((i, pid),) = pool.map(napping, [1.5])
     assert killed, "no worker was killed: the test did not test anything"
     assert i == 0 and pid != killed[0]  # finished by another worker
 

@@ -1,0 +1,237 @@
+"""``ntp bench scale``: time and peak memory of every stage of ``ntp reconstruct`` as scans grow —
+photos (60 / 300 / 1000) x maps (256² / 1024²) — on virtual scans of the demo asset with their true
+poses (SfM at scale is ``ntp bench sfm``'s).
+
+Each reconstruct runs as users run it, ``ntp reconstruct`` in a child process; its memory is read
+from ``/proc`` every ``SAMPLE_S`` (``RssAnon``: the process's own memory; memory-mapped trace files
+are the page cache's and are left out) and charged to the stage its progress lines say is running;
+the kernel's high-water mark (``VmHWM``, every page the process held at once) is the whole run's
+peak. Virtual scans are kept under ``OUT/scans`` and reused; results are recomputed every run.
+Writes a table, JSON and a plot (seconds per stage, peak memory per stage).
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from ..pipeline.output_folder import claim
+from ..sim.virtual_scan import ScanConfig, virtual_scan
+from . import dump_json, print_table
+
+PHOTOS = (60, 300, 1000)
+RESOLUTIONS = (256, 1024)
+# a low camera scale: the trace table (texels x the views that see them) and every stage after the
+# photos are read do not depend on the photos' pixel count, only the scan's disk size does
+CAMERA_SCALE = 0.1
+SAMPLE_S = 0.1
+STAGES = ("select", "atlas", "traces", "fit", "maps")
+# progress counter -> the stage it runs in, and the stage that follows it when it closes
+_RUNNING = {"blur check": "select", "visibility": "traces", "traces": "traces", "network + fit": "fit"}
+_AFTER = {"blur check": "atlas", "visibility": "traces", "traces": "fit", "network + fit": "maps"}
+MEMORY_GOAL_GB = 12.0  # the scale issue's goal at 1000 photos x 1024²
+
+
+def run(
+    out: Path,
+    photos: tuple[int, ...] = PHOTOS,
+    resolutions: tuple[int, ...] = RESOLUTIONS,
+    camera_scale: float = CAMERA_SCALE,
+    threads: int = 0,
+    json_path: Path | None = None,
+    plot: Path | None = None,
+) -> dict:
+    """Every (photos, resolution) cell: stage seconds and peak memory; a table, JSON, a plot."""
+    rows = []
+    with claim(out, "gallery"):
+        for n in photos:
+            scan = _scan(out / "scans" / f"p{n}", n, camera_scale)
+            for res in resolutions:
+                result = out / "results" / f"p{n}_r{res}"
+                shutil.rmtree(result, ignore_errors=True)  # the bench's own folder: time from scratch
+                rows.append({"photos": n, "resolution": res, **_measure(scan, result, res, threads)})
+                _print_row(rows[-1])
+                dump_json(json_path, {"camera_scale": camera_scale, "threads": threads, "cells": rows})  # so far
+    _table(rows)
+    if plot is not None:
+        _plot(rows, plot)
+    return {"camera_scale": camera_scale, "threads": threads, "cells": rows}
+
+
+def _scan(folder: Path, views: int, camera_scale: float) -> Path:
+    """The virtual scan with ``views`` photos (made once, reused while its settings match)."""
+    capture = folder / "ground_truth" / "capture.json"
+    if capture.is_file() and (folder / "scan.toml").is_file():
+        cfg = json.loads(capture.read_text()).get("config", {})
+        if cfg.get("views") == views and cfg.get("scale") == camera_scale:
+            return folder
+    t0 = time.perf_counter()
+    virtual_scan(folder, cfg=ScanConfig(views=views, scale=camera_scale, seed=0))
+    print(f"virtual scan: {views} photos in {time.perf_counter() - t0:.0f} s")
+    return folder
+
+
+def _measure(scan: Path, result: Path, resolution: int, threads: int) -> dict:
+    """One ``ntp reconstruct`` in a child process, sampled: seconds and peak memory per stage."""
+    result.parent.mkdir(parents=True, exist_ok=True)
+    progress = result.parent / f"{result.name}.progress.jsonl"
+    progress.unlink(missing_ok=True)
+    cmd = [
+        sys.executable,
+        "-m",
+        "ntp_engine.cli",
+        "reconstruct",
+        str(scan),
+        "--out",
+        str(result),
+        "--resolution",
+        str(resolution),
+        "--poses",
+        str(scan / "ground_truth" / "poses.json"),
+        "--threads",
+        str(threads),
+        "--quiet",
+        "--progress",
+        str(progress),
+    ]
+    peak = dict.fromkeys(STAGES, 0.0)
+    high_water = 0.0
+    t0 = time.perf_counter()
+    child = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    while child.poll() is None:
+        status = _status(child.pid)
+        if status:
+            stage = _stage(progress)
+            peak[stage] = max(peak[stage], status.get("RssAnon", 0.0))
+            high_water = max(high_water, status.get("VmHWM", 0.0))
+        time.sleep(SAMPLE_S)
+    wall = time.perf_counter() - t0
+    if child.returncode != 0:
+        raise RuntimeError(f"ntp reconstruct {scan} failed: {child.stderr.read() if child.stderr else ''}")
+    report = json.loads((result / "report.json").read_text())
+    st = report["stages"]
+    seconds = {
+        "select": st["select"],
+        "atlas": st["atlas"],
+        "traces": st["traces"],
+        "fit": st["network_and_fit"],
+        "maps": st["maps"],
+    }
+    observed = report["texels"]["observed"]
+    return {
+        "texels_observed": observed,
+        "entries": report["traces"]["entries"],
+        "table_gb": report["traces"]["entries"] * 49 / 1e9,  # 12 float32 + the in-range flag
+        "seconds": seconds,
+        "wall_s": round(wall, 1),
+        "fit_texels_per_s": round(observed / max(seconds["fit"], 1e-9)),
+        "peak_anon_gb": {k: round(v / 2**20, 3) for k, v in peak.items()},
+        "high_water_gb": round(high_water / 2**20, 3),
+    }
+
+
+def _status(pid: int) -> dict[str, float]:
+    """The child's memory figures in kB (``/proc/PID/status``); empty once it has gone."""
+    try:
+        text = Path(f"/proc/{pid}/status").read_text()
+    except OSError:
+        return {}
+    out = {}
+    for line in text.splitlines():
+        key, _, value = line.partition(":")
+        if key in ("RssAnon", "VmHWM", "VmRSS"):
+            out[key] = float(value.split()[0])
+    return out
+
+
+def _stage(progress: Path) -> str:
+    """The stage running now, from the last progress line (a closed counter: the stage after it)."""
+    try:
+        lines = progress.read_text().splitlines()
+        last = json.loads(lines[-1]) if lines else None
+    except (OSError, ValueError):
+        last = None
+    if last is None:
+        return "select"
+    name = last["stage"]
+    closed = last["total"] is not None and last["done"] >= last["total"]
+    return (_AFTER if closed else _RUNNING).get(name, "select")
+
+
+def _print_row(r: dict) -> None:
+    s = r["seconds"]
+    print(
+        f"{r['photos']} photos, {r['resolution']}²: {r['wall_s']:.0f} s "
+        f"(traces {s['traces']:.0f}, fit {s['fit']:.0f}), "
+        f"peak {r['high_water_gb']:.2f} GB, table {r['table_gb']:.2f} GB",
+        flush=True,
+    )
+
+
+def _table(rows: list[dict]) -> None:
+    print_table(
+        [
+            (
+                r["photos"],
+                f"{r['resolution']}²",
+                f"{r['entries'] / 1e6:.1f} M",
+                f"{r['table_gb']:.2f}",
+                *(f"{r['seconds'][k]:.1f}" for k in STAGES),
+                f"{r['wall_s']:.0f}",
+                r["fit_texels_per_s"],
+                *(f"{r['peak_anon_gb'][k]:.2f}" for k in ("traces", "fit")),
+                f"{r['high_water_gb']:.2f}",
+            )
+            for r in rows
+        ],
+        (
+            "photos",
+            "maps",
+            "entries",
+            "table GB",
+            *(f"{k} s" for k in STAGES),
+            "wall s",
+            "fit texels/s",
+            "traces GB",
+            "fit GB",
+            "peak GB",
+        ),
+    )
+
+
+def _plot(rows: list[dict], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (a, b) = plt.subplots(1, 2, figsize=(12, 4))
+    labels = [f"{r['photos']} photos\n{r['resolution']}²" for r in rows]
+    x = range(len(rows))
+    bottom = [0.0] * len(rows)
+    for k in STAGES:
+        v = [r["seconds"][k] / 60 for r in rows]
+        a.bar(x, v, bottom=bottom, label=k)
+        bottom = [p + q for p, q in zip(bottom, v)]
+    a.set_xticks(list(x), labels, fontsize=8)
+    a.set_ylabel("minutes (2 CPU cores)")
+    a.set_title("time per stage")
+    a.legend(fontsize=8)
+    width = 0.8 / len(STAGES)
+    for j, k in enumerate(STAGES):
+        b.bar([i + (j - 2) * width for i in x], [r["peak_anon_gb"][k] for r in rows], width, label=k)
+    b.plot(list(x), [r["high_water_gb"] for r in rows], "k_", markersize=20, label="whole run (VmHWM)")
+    b.axhline(MEMORY_GOAL_GB, color="r", ls="--", lw=1, label=f"goal {MEMORY_GOAL_GB:.0f} GB")
+    b.set_xticks(list(x), labels, fontsize=8)
+    b.set_ylabel("peak memory (GB)")
+    b.set_title("peak memory per stage")
+    b.legend(fontsize=7)
+    fig.suptitle("ntp bench scale: virtual scans of the demo asset, true poses")
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    print(f"wrote {path}")
