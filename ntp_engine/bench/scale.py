@@ -31,8 +31,20 @@ CAMERA_SCALE = 0.1
 SAMPLE_S = 0.1
 STAGES = ("select", "atlas", "traces", "fit", "maps")
 # progress counter -> the stage it runs in, and the stage that follows it when it closes
-_RUNNING = {"blur check": "select", "visibility": "traces", "traces": "traces", "network + fit": "fit"}
-_AFTER = {"blur check": "atlas", "visibility": "traces", "traces": "fit", "network + fit": "maps"}
+_RUNNING = {
+    "blur check": "select",
+    "visibility": "traces",
+    "traces": "traces",
+    "trace table": "traces",
+    "network + fit": "fit",
+}
+_AFTER = {
+    "blur check": "atlas",
+    "visibility": "traces",
+    "traces": "traces",
+    "trace table": "fit",
+    "network + fit": "maps",
+}
 MEMORY_GOAL_GB = 12.0  # the scale issue's goal at 1000 photos x 1024²
 
 

@@ -26,7 +26,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import torch
 
 from ..fit.refine import FLAG_FROM_MATERIAL, RefineSettings
 from ..fit.refine import VERSION as REFINE_VERSION
@@ -77,7 +76,6 @@ MIN_RESOLUTION = 8
 # below these a run has measured too little to be a result: refused (exit 2), not written
 MIN_PHOTOS_USED = 3
 MIN_COVERAGE = 0.05  # fraction of texels with a trace
-TRACE_FILES = ("entries", "offsets", "in_range")  # the traces stage's table, one .npy each (memory-mapped)
 REFINE = RefineSettings()  # the refinement's settings when asked for (`reconstruct(refine=True)`)
 
 
@@ -442,17 +440,9 @@ def refine_summary(fitted: dict[str, np.ndarray]) -> dict:
 def cached_fit(out: Path) -> tuple[RaggedTraces, dict[str, np.ndarray]]:
     """The traces (linear pixels as captured) and the network's fit (``fit_traces``) that a finished
     ``reconstruct`` into ``out`` keeps in its cache: what the refinement starts from."""
-    traces = _load_traces(out / "cache" / "traces")
+    traces = trace_assembly.load_table(out / "cache" / "traces")
     with np.load(out / "cache" / "fit" / "fit.npz") as z:
         return traces, {k: z[k] for k in z.files}
-
-
-def _load_traces(folder: Path) -> RaggedTraces:
-    """The traces stage's table (``TRACE_FILES``: entries, offsets, in-range flags) memory-mapped:
-    a stage reads the blocks it works on from disk, never the whole table into memory (copy on
-    write: a change stays in this process)."""
-    arrays = [torch.from_numpy(np.load(folder / f"{name}.npy", mmap_mode="c")) for name in TRACE_FILES]
-    return RaggedTraces(*arrays)
 
 
 def _check_measured(scan: Scan, stats: dict, lengths: np.ndarray, posed: int) -> None:
@@ -512,10 +502,8 @@ def _traces_stage(
             RayCaster([mesh.triangles]),
             progress=progress,
             support_z=support_z,
+            folder=d,
         )
-        assert tr.in_range is not None
-        for name, array in zip(TRACE_FILES, (tr.entries, tr.offsets, tr.in_range), strict=True):
-            np.save(d / f"{name}.npy", array.numpy())
         del tr
         (d / "stats.json").write_text(
             json.dumps(
@@ -534,8 +522,8 @@ def _traces_stage(
         "support": scan.support_plane,
         "max_shadowed_drive": trace_assembly.MAX_SHADOWED_DRIVE,
         "out_of_range_kept": True,
-        "files": TRACE_FILES,
+        "files": trace_assembly.TABLE_FILES,
         "device": scanner_to_dict(scan.scanner),
     }
     folder, h_tr = cache.get("traces", key, compute)
-    return _load_traces(folder), json.loads((folder / "stats.json").read_text()), h_tr
+    return trace_assembly.load_table(folder), json.loads((folder / "stats.json").read_text()), h_tr

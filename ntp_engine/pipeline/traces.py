@@ -9,14 +9,16 @@ outside [32, 224] (dark or near clipping) are kept too, flagged ``in_range = Fal
 the lumitexel fit skip them (``RaggedTraces.in_range_only``), the refinement models them (a noise
 floor for dark values, clipped ones as lower bounds). The entry is (linear pixel RGB *
 ``pixel_scale``, x, n^, t^) in camera j's space — the layout of ``learn.ragged.RaggedTraces``.
-Views that see no texel cost one projection only. Two passes (visibility, then fill in place) keep
-the peak memory near the table's own size (docs/performance.md).
+Views that see no texel cost one projection only. Two passes (visibility, then fill) keep the
+peak memory near the table's own size, or — the table written to disk — near one block of it
+(docs/performance.md).
 """
 
 from __future__ import annotations
 
 from collections.abc import Iterable
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -31,6 +33,10 @@ from .texels import Texels
 
 MAX_SHADOWED_DRIVE = 0.05  # fraction of the pattern's drive the support may block in a used photo
 MIN_COS_VIEW = 0.3
+TABLE_FILES = ("entries", "offsets", "in_range")  # a table on disk: one .npy each (``load_table``)
+# entries per block when a table on disk is regrouped by texel: ~400 MB of rows in memory at a time
+TABLE_BLOCK_ENTRIES = 1 << 23
+_SPILL_ENTRIES, _SPILL_IN_RANGE = ".photo-order-entries.npy", ".photo-order-in-range.npy"
 
 
 @dataclass
@@ -107,6 +113,7 @@ def assemble(
     eps: float = 2e-5,
     progress: Progress = QUIET,
     support_z: float | None = None,
+    folder: Path | None = None,
 ) -> tuple[RaggedTraces, TraceStats]:
     """Traces of all texels. ``photos``: 8-bit ``(H, W, 3)`` arrays (any iterable: they are read
     one at a time, once); ``poses``: 4x4 camera-from-world, one per photo. ``support_z``: the
@@ -114,11 +121,14 @@ def assemble(
     ``MAX_SHADOWED_DRIVE`` of the pattern's drive are below that plane is skipped — the support
     blocks their light for every point of the object, which Eq. 1 (and the network) do not model.
 
-    Two passes keep the peak memory near the table's own size: the first decides from geometry
-    alone which texels each view measures (kept as int32 indices, 4 bytes per entry against the
-    table's 48) and counts them per texel; the second reads each photo, projects its texels again
-    (the same arithmetic, so the same pixel coordinates) and writes their entries straight into
-    their final rows (texel by texel, views in photo order): no concatenation, no sort."""
+    Two passes: the first decides from geometry alone which texels each view measures (kept as
+    int32 indices, 4 bytes per entry against the table's 48) and counts them per texel; the second
+    reads each photo, projects its texels again (the same arithmetic, so the same pixel
+    coordinates) and writes their entries: without ``folder``, straight into their final rows in
+    memory (texel by texel, views in photo order; peak ~1.1x the table); with ``folder``, the table
+    is written there as ``TABLE_FILES`` and returned memory-mapped (``load_table``), the same bit
+    for bit: entries are streamed to disk in photo order, then regrouped by texel one block of
+    ``TABLE_BLOCK_ENTRIES`` at a time — the process holds the indices and one block, not the table."""
     n_tex = len(texels)
     rejected = {
         "behind_or_outside": 0,
@@ -141,12 +151,20 @@ def assemble(
         seen.append(idx.astype(np.int32) if len(idx) else None)
     offsets = np.zeros(n_tex + 1, np.int64)
     offsets[1:] = np.cumsum(counts)
-    entries = np.empty((int(offsets[-1]), 12), np.float32)
-    in_range = np.empty(int(offsets[-1]), bool)
-    cursor = offsets[:-1].copy()  # each texel's next free row
+    n_entries = int(offsets[-1])
+    if folder is None:
+        entries, in_range = np.empty((n_entries, 12), np.float32), np.empty(n_entries, bool)
+    else:  # photo order on disk: each view's entries are one contiguous, sequential write
+        entries = np.lib.format.open_memmap(folder / _SPILL_ENTRIES, "w+", np.float32, (n_entries, 12))
+        in_range = np.lib.format.open_memmap(folder / _SPILL_IN_RANGE, "w+", bool, (n_entries,))
+    cursor = offsets[:-1].copy()  # in memory: each texel's next free row
+    view_start = np.zeros(len(seen), np.int64)  # on disk: where each view's entries begin
+    written = 0
     views_used = 0
     for k, (img, pose) in enumerate(progress.track(zip(photos, poses), "traces", total=len(poses), unit="photo")):
-        visible, seen[k] = seen[k], None  # free this view's indices as its entries land
+        visible = seen[k]
+        if folder is None:
+            seen[k] = None  # free this view's indices as its entries land
         if visible is None:
             continue
         idx = visible.astype(np.int64)
@@ -157,13 +175,75 @@ def assemble(
         ok = camera.code_is_valid(codes)
         rejected["pixel_range"] += int((~ok).sum())  # kept, flagged: only the refinement reads them
         views_used += 1
-        rows = cursor[idx]
-        lin = camera.decode(scanner, torch.as_tensor(codes)).numpy() * pixel_scale
-        entries[rows, 0:3] = lin
+        if folder is None:
+            rows: np.ndarray | slice = cursor[idx]
+            cursor[idx] += 1
+        else:
+            view_start[k], rows = written, slice(written, written + len(idx))
+            written += len(idx)
+        entries[rows, 0:3] = camera.decode(scanner, torch.as_tensor(codes)).numpy() * pixel_scale
         entries[rows, 3:6] = x
         entries[rows, 6:9] = texels.normal[idx] @ R.T
         entries[rows, 9:12] = texels.tangent[idx] @ R.T
         in_range[rows] = ok
-        cursor[idx] += 1
-    traces = RaggedTraces(torch.from_numpy(entries), torch.from_numpy(offsets), torch.from_numpy(in_range))
-    return traces, TraceStats(views_used, int(in_range.sum()), int((counts > 0).sum()), rejected)
+    stats = TraceStats(views_used, int(in_range.sum()), int((counts > 0).sum()), rejected)
+    if folder is None:
+        return RaggedTraces(torch.from_numpy(entries), torch.from_numpy(offsets), torch.from_numpy(in_range)), stats
+    _by_texel(folder, seen, view_start, entries, in_range, offsets, progress)
+    del entries, in_range
+    (folder / _SPILL_ENTRIES).unlink()
+    (folder / _SPILL_IN_RANGE).unlink()
+    return load_table(folder), stats
+
+
+def _by_texel(
+    folder: Path,
+    seen: list[np.ndarray | None],
+    view_start: np.ndarray,
+    spill: np.ndarray,
+    spill_in_range: np.ndarray,
+    offsets: np.ndarray,
+    progress: Progress,
+) -> None:
+    """The photo-ordered entries regrouped by texel into ``folder``'s ``TABLE_FILES``, one block
+    of texels (<= ``TABLE_BLOCK_ENTRIES`` entries, at least one texel) at a time: each view's
+    entries of a block are one contiguous run (its texel indices are ascending)."""
+    n_tex, n_entries = len(offsets) - 1, int(offsets[-1])
+    np.save(folder / "offsets.npy", offsets)
+    entries = np.lib.format.open_memmap(folder / "entries.npy", "w+", np.float32, (n_entries, 12))
+    in_range = np.lib.format.open_memmap(folder / "in_range.npy", "w+", bool, (n_entries,))
+    bar = progress.counter("trace table", n_tex, "texel")
+    a = 0
+    while a < n_tex:
+        b = int(np.searchsorted(offsets, offsets[a] + TABLE_BLOCK_ENTRIES, side="right")) - 1
+        b = min(max(b, a + 1), n_tex)
+        base = int(offsets[a])
+        block = np.empty((int(offsets[b]) - base, 12), np.float32)
+        block_in_range = np.empty(len(block), bool)
+        cursor = offsets[a:b] - base  # each texel's next free row in the block
+        for k, idx in enumerate(seen):
+            if idx is None:
+                continue
+            lo, hi = np.searchsorted(idx, (a, b))
+            if lo == hi:
+                continue
+            t = idx[lo:hi].astype(np.int64) - a
+            rows = cursor[t]
+            block[rows] = spill[view_start[k] + lo : view_start[k] + hi]
+            block_in_range[rows] = spill_in_range[view_start[k] + lo : view_start[k] + hi]
+            cursor[t] += 1
+        entries[base : base + len(block)] = block
+        in_range[base : base + len(block)] = block_in_range
+        bar.update(b - a)
+        a = b
+    entries.flush()
+    in_range.flush()
+    bar.close()
+
+
+def load_table(folder: Path) -> RaggedTraces:
+    """A trace table written by ``assemble(folder=...)`` (``TABLE_FILES``), memory-mapped: a
+    stage reads the blocks it works on from disk, never the whole table into memory (copy on
+    write: a change stays in this process)."""
+    arrays = [torch.from_numpy(np.load(folder / f"{name}.npy", mmap_mode="c")) for name in TABLE_FILES]
+    return RaggedTraces(*arrays)

@@ -25,7 +25,9 @@ def test_the_running_stage_is_read_from_the_progress_lines(tmp_path):
         (("blur check", 3, 10), "select"),
         (("blur check", 10, 10), "atlas"),
         (("visibility", 1, 10), "traces"),
-        (("traces", 10, 10), "fit"),
+        (("traces", 10, 10), "traces"),
+        (("trace table", 4, 16), "traces"),
+        (("trace table", 16, 16), "fit"),
         (("network + fit", 5, 90), "fit"),
         (("network + fit", 90, 90), "maps"),
     ]:
