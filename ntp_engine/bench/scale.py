@@ -137,7 +137,8 @@ def _measure(scan: Path, result: Path, resolution: int, threads: int) -> dict:
     return {
         "texels_observed": observed,
         "entries": report["traces"]["entries"],
-        "table_gb": report["traces"]["entries"] * 49 / 1e9,  # 12 float32 + the in-range flag
+        # every row, in range or not: 12 float32 + the in-range flag
+        "table_gb": report["traces"].get("table_entries", report["traces"]["entries"]) * 49 / 1e9,
         "seconds": seconds,
         "wall_s": round(wall, 1),
         "fit_texels_per_s": round(observed / max(seconds["fit"], 1e-9)),

@@ -504,17 +504,18 @@ def _traces_stage(
             support_z=support_z,
             folder=d,
         )
-        del tr
         (d / "stats.json").write_text(
             json.dumps(
                 {
                     "entries": st.entries,
+                    "table_entries": int(tr.offsets[-1]),  # in range or not: the table's rows
                     "views_used": st.views_used,
                     "views_seeing_no_texel": len(names) - st.views_used,
                     "rejected": st.rejected,
                 }
             )
         )
+        del tr
 
     key = {
         "atlas": h_atlas,

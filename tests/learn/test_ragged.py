@@ -44,3 +44,18 @@ def test_block_is_the_traces_of_its_range():
     assert b.in_range is not None and b.in_range.tolist() == [1, 1, 0, 0]
     assert tr.block(0, 0).num_traces == 0 and len(tr.block(0, 0).entries) == 0
     assert b.entries.data_ptr() == entries[3:].data_ptr()  # a view: a block costs no copy
+
+
+def test_in_range_lengths_counted_in_chunks_equal_the_copy(monkeypatch):
+    """Chunks of a few entries (traces longer than a chunk, empty ones, none at all)."""
+    from ntp_engine.learn import ragged
+
+    gen = torch.Generator().manual_seed(0)
+    lengths = torch.randint(0, 12, (200,), generator=gen)
+    offsets = torch.cat([torch.zeros(1, dtype=torch.int64), lengths.cumsum(0)])
+    E = int(offsets[-1])
+    tr = RaggedTraces(torch.zeros(E, 12), offsets, torch.rand(E, generator=gen) > 0.3)
+    monkeypatch.setattr(ragged, "COUNT_CHUNK", 5)
+    assert torch.equal(tr.in_range_lengths(), tr.in_range_only().lengths)
+    empty = RaggedTraces(torch.zeros(0, 12), torch.zeros(1, dtype=torch.int64), torch.zeros(0, dtype=torch.bool))
+    assert empty.in_range_lengths().shape == (0,)
