@@ -7,8 +7,10 @@ Eq. 4); the network normalises positions itself. Entries of one trace are in pho
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -16,6 +18,18 @@ ENTRY_SIZE = 12  # pixel RGB, x, n^, t^
 # entries per step when counting over a whole table: a 1000-photo x 1024² table has 333 M, whose
 # int64 running count alone would be 2.7 GB
 COUNT_CHUNK = 1 << 24
+
+
+def spans(offsets: np.ndarray, max_entries: int) -> Iterator[tuple[int, int]]:
+    """Consecutive trace ranges ``[start, stop)`` covering every trace of the CSR ``offsets (N + 1,)``,
+    each of at most ``max_entries`` entries — or one trace, where that trace alone is longer."""
+    n = len(offsets) - 1
+    start = 0
+    while start < n:
+        stop = int(np.searchsorted(offsets, offsets[start] + max_entries, side="right")) - 1
+        stop = min(max(stop, start + 1), n)
+        yield start, stop
+        start = stop
 
 
 @dataclass
@@ -52,16 +66,12 @@ class RaggedTraces:
         if self.in_range is None:
             return self.lengths
         out = torch.zeros(self.num_traces, dtype=torch.int64)
-        start = 0
-        while start < self.num_traces:
-            stop = int(torch.searchsorted(self.offsets, self.offsets[start] + COUNT_CHUNK, right=True)) - 1
-            stop = min(max(stop, start + 1), self.num_traces)
+        for start, stop in spans(self.offsets.numpy(), COUNT_CHUNK):
             b = self.block(start, stop)
             assert b.in_range is not None
             kept = torch.zeros(len(b.in_range) + 1, dtype=torch.int64)
             kept[1:] = torch.cumsum(b.in_range, 0, dtype=torch.int64)
             out[start:stop] = kept[b.offsets[1:]] - kept[b.offsets[:-1]]
-            start = stop
         return out
 
     def block(self, start: int, stop: int) -> RaggedTraces:

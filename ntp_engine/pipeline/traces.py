@@ -26,7 +26,7 @@ import torch
 from ..io.maps import bilinear_pixels
 from ..io.progress import QUIET, Progress
 from ..io.raycast import RayCaster
-from ..learn.ragged import RaggedTraces
+from ..learn.ragged import RaggedTraces, spans
 from ..scanner import camera
 from ..scanner.scanner import Scanner
 from .texels import Texels
@@ -213,10 +213,7 @@ def _by_texel(
     entries = np.lib.format.open_memmap(folder / "entries.npy", "w+", np.float32, (n_entries, 12))
     in_range = np.lib.format.open_memmap(folder / "in_range.npy", "w+", bool, (n_entries,))
     bar = progress.counter("trace table", n_tex, "texel")
-    a = 0
-    while a < n_tex:
-        b = int(np.searchsorted(offsets, offsets[a] + TABLE_BLOCK_ENTRIES, side="right")) - 1
-        b = min(max(b, a + 1), n_tex)
+    for a, b in spans(offsets, TABLE_BLOCK_ENTRIES):
         base = int(offsets[a])
         block = np.empty((int(offsets[b]) - base, 12), np.float32)
         block_in_range = np.empty(len(block), bool)
@@ -235,7 +232,6 @@ def _by_texel(
         entries[base : base + len(block)] = block
         in_range[base : base + len(block)] = block_in_range
         bar.update(b - a)
-        a = b
     entries.flush()
     in_range.flush()
     bar.close()

@@ -1,3 +1,4 @@
+import numpy as np
 import pytest
 import torch
 
@@ -59,3 +60,12 @@ def test_in_range_lengths_counted_in_chunks_equal_the_copy(monkeypatch):
     assert torch.equal(tr.in_range_lengths(), tr.in_range_only().lengths)
     empty = RaggedTraces(torch.zeros(0, 12), torch.zeros(1, dtype=torch.int64), torch.zeros(0, dtype=torch.bool))
     assert empty.in_range_lengths().shape == (0,)
+
+
+def test_spans_cover_every_trace_within_the_budget_or_one_trace_alone():
+    from ntp_engine.learn.ragged import spans
+
+    offsets = np.array([0, 3, 3, 10, 12, 13, 20])  # lengths 3, 0, 7, 2, 1, 7
+    assert list(spans(offsets, 5)) == [(0, 2), (2, 3), (3, 5), (5, 6)]
+    assert list(spans(offsets, 100)) == [(0, 6)]
+    assert list(spans(np.zeros(1, np.int64), 5)) == []
