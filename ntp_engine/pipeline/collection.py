@@ -58,11 +58,11 @@ def reconstruct_collection(
     pool = pool or LocalPool()
     # a task pool that runs elsewhere cannot draw this process's bars
     inner = progress if isinstance(pool, LocalPool) else QUIET
+    jobs = [(scan, out / scan.resolve().name) for scan in scans]
     with claim(out, "collection", inputs=tuple(scans)):
-        outcomes = [_pending(scan, out) for scan in scans]
+        outcomes = [_outcome(scan, result, "not run yet") for scan, result in jobs]
         bar = progress.counter("scans", len(scans), "scan")
         with pool as p:
-            jobs = [(scan, out / scan.resolve().name) for scan in scans]
             cpus = max(options.threads, 1)
             for i, outcome in p.map(_reconstruct_one, jobs, shared=(options, inner), cpus=cpus):
                 outcomes[i] = outcome
@@ -72,8 +72,9 @@ def reconstruct_collection(
     return outcomes
 
 
-def _pending(scan: Path, out: Path) -> dict:
-    return {"scan": str(scan), "result": str(out / scan.resolve().name), "ok": False, "error": "not run yet"}
+def _outcome(scan: Path, result: Path, error: str | None) -> dict:
+    """A scan's entry in ``SUMMARY``, not (yet) reconstructed."""
+    return {"scan": str(scan), "result": str(result), "ok": False, "error": error}
 
 
 def _reconstruct_one(job: tuple[Path, Path], options: BatchOptions, progress: Progress) -> dict:
@@ -81,7 +82,7 @@ def _reconstruct_one(job: tuple[Path, Path], options: BatchOptions, progress: Pr
     the batch goes on."""
     scan, result = job
     t0 = time.perf_counter()
-    outcome = {"scan": str(scan), "result": str(result), "ok": False, "error": None}
+    outcome = _outcome(scan, result, None)
     try:
         set_threads(options.threads)
         rep = reconstruct(
