@@ -7,15 +7,19 @@ diffuse term predicts as rho_p * D_jp, with D_jp = sum_l A_l(x, n) P_eff[l] / pi
 (the LED array moves with the camera, so D changes from photo to photo). Under the right
 registration r_jp = log m_jp - log D_jp is the same for every photo (log rho_p) but where a highlight
 adds to it; under a wrong one p samples other surface points, or the support, shaded for another
-normal. The cost is a Cauchy loss of each r_jp about its point's median over the photos, averaged;
-it is smooth in the pose because photos are sampled bilinearly after a Gaussian blur (coarse to fine).
+normal. What Eq. 1 leaves out — light bounced off the support and the object itself, a photo's
+exposure error — varies smoothly over the object and from photo to photo: each photo gets a shading
+field linear in the surface position (per channel), eliminated like each point's albedo
+(``eliminate_nuisances``). The cost is a Cauchy loss of what remains, averaged; it is smooth in the
+pose because photos are sampled bilinearly after a Gaussian blur (coarse to fine).
 
 ``refine`` moves a similarity correction G (rotation about the object's centre, shift, scale) that
 acts on every camera at once — the SfM model's own relative poses are kept, so the photos of the
 whole sweep vote on the 7 degrees of freedom SfM cannot know (4 on a support, whose plane already
 fixed tilt and height: G turns about the vertical and scales about the object's foot) — then scores
 the result:
-``agreement`` is the fraction of observations within ``AGREE_LOG`` of their point's median.
+``agreement`` is the fraction of observations within ``AGREE_LOG`` of their point's albedo (and
+their photo's field).
 """
 
 from __future__ import annotations
@@ -45,7 +49,7 @@ FINE_POINTS = 8000  # ... and that refine the chosen one: its error is sampling 
 # minimum lies 0.20 deg off in azimuth at sigma 1 px, 0.04 deg at 0.5 px)
 BLUR_LEVELS_PX = (2.0, 1.0, 0.5)
 CAUCHY_LOG = 0.1  # scale of the robust loss on log residuals (10%)
-AGREE_LOG = 0.1  # an observation within 10% of its point's median agrees
+AGREE_LOG = 0.1  # an observation within 10% of its point's albedo and photo's field agrees
 EDGE_CLEARANCE = 2.0  # points used lie this many blur sigmas (+ 1 px) from every edge of the mesh's image
 MIN_VIEWS = 3  # a point enters the cost once this many photos see it
 MAX_ROUNDS = 5  # re-linearisations per blur level
@@ -61,7 +65,7 @@ WORK = torch.float32
 @dataclass
 class PhotometricFit:
     """How the photos agree with a registration: the mean robust cost, the fraction of observations
-    within ``AGREE_LOG`` of their point's median, and how many observations and points entered."""
+    within ``AGREE_LOG`` of their point's albedo and photo's field, and how many observations and points entered."""
 
     cost: float
     agreement: float
@@ -257,6 +261,40 @@ def _edges(hit: np.ndarray, depth: np.ndarray) -> np.ndarray:
     return edge
 
 
+def eliminate_nuisances(field: torch.Tensor, w: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+    """``x`` less its weighted least-squares fit by the nuisances of the photometric cost: a log
+    albedo per surface point and channel, and per photo and channel a shading field
+    ``sum_k b_jk field[p, k]``.
+
+    Convention: ``x (V, N, 3, C)`` log values of V photos x N points x RGB, C columns fitted alike
+    (residuals, Jacobian columns); ``w (V, N, 3)`` the weights, 0 where unobserved; ``field (N, K)``
+    the fields' basis at the points (K = 0: albedos only). The result is ``x``'s weighted residual
+    (where ``w`` is 0 it is not meaningful). The fields are known up to one field common to all
+    photos (the albedos absorb it): a tiny ridge picks one, which leaves the residual unchanged.
+    """
+    wsum = w.sum(0).clamp_min(1e-12)  # (N, 3)
+    share = w / wsum  # photo j's weight share in point p's albedo
+    xt = x - (share[..., None] * x).sum(0)  # the albedos eliminated
+    if field.shape[1] == 0:
+        return xt
+    (V, N, _), K, C = w.shape, field.shape[1], x.shape[-1]
+    # normal equations of the fields b (V K unknowns per channel) with the albedos eliminated:
+    # sum_p w_jp phi_pk phi_pl (delta_ij - share_ip), solved in float64 (V K is a few hundred)
+    wc = w.permute(2, 1, 0)  # (3, N, V)
+    A = (wc[..., None] * field[None, :, None, :]).reshape(3, N, V * K)  # rows w_jp phi_pk
+    M = -((A / wsum.T[..., None]).transpose(1, 2) @ A).double()
+    own = (wc.transpose(1, 2) @ (field[:, :, None] * field[:, None, :]).reshape(N, K * K)).reshape(3, V, K, K)
+    photo = torch.arange(V)
+    M.view(3, V, K, V, K)[:, photo, :, photo, :] += own.double().permute(1, 0, 2, 3)
+    ridge = 1e-6 * torch.diagonal(M, dim1=1, dim2=2).mean(1) + 1e-12
+    M += ridge[:, None, None] * torch.eye(V * K, dtype=torch.float64)
+    rhs = ((w[..., None] * xt).permute(2, 0, 3, 1) @ field).transpose(2, 3).reshape(3, V * K, C)
+    b = torch.linalg.solve(M, rhs.double()).to(x.dtype).reshape(3, V, K * C)
+    f = (field @ b.reshape(3 * V, K, C).transpose(0, 1).reshape(K, 3 * V * C)).reshape(N, 3, V, C)
+    f_mean = (field[None, :, :, None] * (share.permute(2, 1, 0) @ b).reshape(3, N, K, C)).sum(2)  # (3, N, C)
+    return xt - f.permute(2, 0, 1, 3) + f_mean.permute(1, 0, 2)[None]
+
+
 class PhotometricRegistration:
     """The photometric cost of a registration and its refinement (see the module docstring).
 
@@ -289,6 +327,9 @@ class PhotometricRegistration:
         if support_z is not None:
             self.pivot[2] = support_z
         self.free = np.array([support_z is None] * 2 + [True] * 3 + [support_z is None, True])
+        # each photo's shading field's basis: 1 and the point's position (see ``_eliminated``)
+        rel = (self.points - self.centre) / self.size
+        self.field = torch.as_tensor(np.concatenate([np.ones((len(rel), 1)), rel], 1), dtype=WORK)
 
     def _observations(self, poses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Which (photo, point) pairs see each other ``(V, N)`` and each
@@ -439,16 +480,15 @@ class PhotometricRegistration:
         return torch.log(m) - log_d, J, ok
 
     def _cost(self, r: torch.Tensor, ok: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, PhotometricFit]:
-        """Residuals about each point's median ``(V, N, 3)`` (0 where unused), the mask of points seen
-        often enough, and the fit."""
+        """Residuals about each point's albedo and each photo's shading field ``(V, N, 3)`` (0 where
+        unused), the mask of points seen often enough, and the fit."""
         enough = ok.sum(0) >= MIN_VIEWS
         ok = ok & enough[None, :]
         centre = torch.nanmedian(torch.where(ok[..., None], r, torch.nan), dim=0).values
-        for _ in range(3):  # from the median to the Cauchy M-estimate (IRLS): the cost's own minimiser
-            e = torch.where(ok[..., None], r - centre[None], 0.0)
-            w = ok[..., None] / (1 + (e / CAUCHY_LOG) ** 2)
-            centre = torch.where(ok.any(0)[:, None], (w * r).sum(0) / w.sum(0).clamp_min(1e-12), 0.0)
         e = torch.where(ok[..., None], r - centre[None], 0.0)
+        for _ in range(3):  # from the median to the Cauchy M-estimate (IRLS): the cost's own minimiser
+            w = ok[..., None] / (1 + (e / CAUCHY_LOG) ** 2)
+            e = torch.where(ok[..., None], eliminate_nuisances(self.field, w, r[..., None])[..., 0], 0.0)
         count = int(ok.sum())
         # nothing seen fits nothing: a pose that lost every observation never wins
         cost = float(torch.log1p((e / CAUCHY_LOG) ** 2).sum(dtype=torch.float64)) / count if count else float("inf")
@@ -514,9 +554,9 @@ class PhotometricRegistration:
         e, used, fit = self._cost(r, ok)
         for _ in range(iterations):
             w = used[..., None] / (1 + (e / CAUCHY_LOG) ** 2)  # IRLS weights (V, N, 3)
-            wsum = w.sum(0).clamp_min(1e-12)
-            Jc = J - ((w[..., None] * J).sum(0) / wsum[..., None])[None]  # minus the point's weighted mean
-            ec = r - ((w * r).sum(0) / wsum)[None]
+            # the nuisances (each point's albedo, each photo's field) eliminated from both
+            both = eliminate_nuisances(self.field, w, torch.cat([J, r[..., None]], -1))
+            Jc, ec = both[..., :7], both[..., 7]
             wJ = (w[..., None] * Jc).reshape(-1, 7)
             A = (wJ.T @ Jc.reshape(-1, 7)).double()  # 7 x 7 sums in float32, solved in float64
             b = (wJ.T @ ec.reshape(-1)).double()
