@@ -792,7 +792,7 @@ def check_registration(
 
 
 # set from the gallery (docs/pipeline.md, ntp bench registration): right registrations had sharpness
-# >= 1.48 and margin >= 1.84; wrong ones that were not a symmetry of the mesh sharpness <= 0.56
+# >= 1.01 and margin >= 0.73; wrong ones that were not a symmetry of the mesh sharpness <= 0.48
 MIN_SHARPNESS = 0.8
 MIN_MARGIN = 0.5  # the best other azimuth must fit the photos at least 50% worse
 SYMMETRY_PX = 0.25  # a turned mesh lying closer to itself than this (at the object's distance) is a symmetry
