@@ -202,7 +202,8 @@ def _train(args: argparse.Namespace) -> int:
     )
     if args.export:
         models.export(args.out / "checkpoint.pt", args.export, result)
-        print(f"exported {args.export}")
+        basis = models.write_specular_basis(args.export)
+        print(f"exported {args.export} (specular head compressed to {basis['rank']} output directions)")
         if args.export_pattern_to_device:
             print(f"wrote {write_pattern(args.device or DEFAULT_DEVICE, models.pattern_of(args.export))}")
     return 0

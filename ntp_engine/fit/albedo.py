@@ -17,8 +17,9 @@ import torch
 from torch import Tensor
 
 from ..physics.brdf import RHO_D_MAX, RHO_S_MAX
-from ..physics.confidence import confidence_from_ratios, ratios_from_lobe
-from ..physics.measurement import emitter_terms, local_emitter_geometry, specular_lobe, terms_from_lobe
+from ..physics.confidence import confidence_from_ratios, highlight_ratio
+from ..physics.measurement import emitter_terms
+from ..physics.pattern_sums import pattern_sums
 from ..scanner.scanner import Scanner
 from .geometry import FALLBACK_ALPHA, GeometryFit
 from .highlights import fall_back_where_unseen, frame_in_views, parked_positions
@@ -134,32 +135,33 @@ def highlights_and_albedo(
     prior_weight: float = 0.0,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """``flag_unseen_highlights`` then ``fit_albedo`` (the scanner's pattern, no visibility) in one pass:
-    the emitter geometry and the fitted lobe of every entry are computed once and serve both Eq. 6
-    and Eq. 1; only texels that fall back to the default lobe get their lobe evaluated again.
+    every entry's sums over the emitters (``physics.pattern_sums``: the fused loop) serve both
+    Eq. 6 and Eq. 1; only texels that fall back to the default lobe get their lobe summed again.
     Same arguments and results as the two (``geometry`` updated in place); returns
     (beta ``(N,)``, rho_d, rho_s ``(N, 3)``)."""
     dtype = pixels.dtype
     N, V = mask.shape
-    n_cam, t_cam = frame_in_views(geometry, normal_geo, tangent_geo)
-    x = parked_positions(position, mask)
-    geo = local_emitter_geometry(scanner, x.reshape(-1, 3), n_cam.reshape(-1, 3), t_cam.reshape(-1, 3))
+    n_cam, t_cam = (v.reshape(-1, 3) for v in frame_in_views(geometry, normal_geo, tangent_geo))
+    x, valid = position.reshape(-1, 3), mask.reshape(-1)
 
     def per_entry(a):
-        return a.to(dtype)[:, None].expand(N, V).reshape(-1)
+        return a.double()[:, None].expand(N, V).reshape(-1)
 
     ax, ay = per_entry(geometry.alpha_x), per_entry(geometry.alpha_y)
-    spec = specular_lobe(geo, ax, ay)  # (N V, K)
-    ratio = ratios_from_lobe(geo, spec, ax, ay, per_entry(geometry.rho_s)).reshape(N, V)
+    sums = pattern_sums(scanner, x, n_cam, t_cam, ax, ay, valid)
+    rho_s = per_entry(geometry.rho_s)
+    ratio = highlight_ratio((rho_s * sums.lobe_max)[:, None], rho_s * sums.lobe_peak).reshape(N, V)
 
     beta = confidence_from_ratios(ratio, mask)
     unseen = fall_back_where_unseen(geometry, beta)
-    redo = unseen[:, None].expand(N, V).reshape(-1).nonzero().squeeze(1)
-    if len(redo):
-        f = torch.full((len(redo),), FALLBACK_ALPHA, dtype=dtype)
-        spec[redo] = specular_lobe(geo.rows(redo), f, f)
-    a_l, s_l = terms_from_lobe(geo, spec)
-    basis_d, basis_s = _albedo_bases(
-        scanner, torch.as_tensor(scanner.pattern, dtype=dtype), a_l.reshape(N, V, -1), s_l.reshape(N, V, -1)
-    )
+    specular = sums.specular
+    redo = unseen[:, None].expand(N, V).reshape(-1) & valid
+    if redo.any():
+        f = torch.full((int(redo.sum()),), FALLBACK_ALPHA, dtype=torch.float64)
+        specular = specular.clone()
+        specular[redo] = pattern_sums(scanner, x[redo], n_cam[redo], t_cam[redo], f, f, valid[redo]).specular
+    exposure = scanner.exposure(torch.as_tensor(scanner.pattern))
+    basis_d = (exposure / math.pi * sums.diffuse).reshape(N, V, 3)
+    basis_s = (exposure * specular).reshape(N, V, 3)
     rd, rs = _albedo_ls(basis_d, basis_s, pixels, mask, geometry.rho_s, prior_weight)
-    return beta, rd.to(dtype), rs.to(dtype)
+    return beta.to(dtype), rd.to(dtype), rs.to(dtype)

@@ -3,7 +3,11 @@
 A model folder holds ``model.pt`` (float16 state dict; the lighting layer in float32),
 ``config.json`` (network config, the device it was trained for and that device's gain and exposure
 limit: the exposure its inputs are normalised to), ``pattern.csv`` (the learned pattern, float) and
-``summary.json`` (training steps, data seed, final validation losses, wall time).
+``summary.json`` (training steps, data seed, final validation losses, wall time) and, optionally,
+``specular_basis.pt``: the subspace the specular head's outputs live in (``specular_basis``), with
+which ``load`` replaces the head's last layer — the network's largest — by two thin ones
+(``TraceNet.compress_specular``: about 5x less work on that layer, outputs within
+``BASIS_TOLERANCE`` of the full layer's on synthetic traces).
 
 One home for the pattern: a network measures with the pattern it was trained with (its lighting
 layer), so a capture must have been lit by that pattern. Loading a model for a scanner whose
@@ -17,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from torch import Tensor, nn
 
 from ..io.assets import MODELS_DIR
 from ..io.atomic import atomic_path, write_text_atomic
@@ -25,10 +30,16 @@ from ..scanner.device_file import load_scanner
 from ..scanner.pattern import QUANTUM, patterns_agree
 from ..scanner.scanner import Scanner
 from .network import NetworkConfig, TraceNet
+from .synthetic import SyntheticConfig, sample_batch
 
 DEFAULT_MODEL = "compact"
 # buffers derived from the device file at load time, not stored with the weights
 DEVICE_BUFFERS = ("color_matrix", "gain", "max_exposure", "pos_matrix", "pos_center")
+SPECULAR_BASIS = "specular_basis.pt"
+# the specular basis: the fewest output directions that keep every calibration trace's log1p
+# specular lumitexel within this of the full layer's, at every light (docs/performance.md)
+BASIS_TOLERANCE = 0.01
+BASIS_TRACES = 16384  # synthetic calibration traces (64 views each) for the basis
 
 
 def resolve(name_or_path: str | Path | None) -> Path:
@@ -46,10 +57,14 @@ def resolve(name_or_path: str | Path | None) -> Path:
 
 
 def load(
-    name_or_path: str | Path | None = None, scanner: Scanner | None = None, map_location: str | torch.device = "cpu"
+    name_or_path: str | Path | None = None,
+    scanner: Scanner | None = None,
+    map_location: str | torch.device = "cpu",
+    exact: bool = False,
 ) -> tuple[TraceNet, dict]:
     """(network in eval mode, float32, metadata dict with the model's ``folder``) for measurements
-    taken by ``scanner``.
+    taken by ``scanner``; its specular head compressed to the folder's ``specular_basis.pt`` if
+    there is one, unless ``exact`` (``meta["specular_basis"]``: its rank, or None).
 
     With a ``scanner`` (a capture's device), its pattern must be the network's, to 8-bit
     quantisation (else ``NtpInputError`` naming the model's ``pattern.csv`` and the device file).
@@ -83,7 +98,84 @@ def load(
     summary = folder / "summary.json"
     meta["summary"] = json.loads(summary.read_text()) if summary.exists() else {}
     meta["folder"] = str(folder)
+    meta["specular_basis"] = None
+    if (folder / SPECULAR_BASIS).exists() and not exact:
+        try:
+            basis = torch.load(folder / SPECULAR_BASIS, map_location="cpu", weights_only=True)
+            net.compress_specular(basis["basis"].float(), basis["hidden_mean"].float())
+        except Exception as err:  # noqa: BLE001 - as for model.pt
+            first = str(err).split(". ")[0]
+            raise NtpInputError(
+                folder / SPECULAR_BASIS, f"not a specular basis ({type(err).__name__}: {first})"
+            ) from None
+        meta["specular_basis"] = int(basis["basis"].shape[1])
     return net.to(map_location).eval(), meta
+
+
+def model_files(folder: Path) -> list[Path]:
+    """The files whose content is the model's answer (cache keys hash them)."""
+    return [folder / name for name in ("config.json", "model.pt", SPECULAR_BASIS) if (folder / name).exists()]
+
+
+@torch.no_grad()
+def specular_basis(
+    net: TraceNet, scanner: Scanner, traces: int = BASIS_TRACES, tolerance: float = BASIS_TOLERANCE, seed: int = 0
+) -> dict[str, Tensor | float | int]:
+    """The subspace of the specular head's outputs on ``traces`` synthetic 64-view traces (the
+    training distribution, measured through ``net``'s sensor): the principal directions of W h
+    (W the last layer, h its input) from h's covariance, as few as keep every calibration output
+    within ``tolerance`` (log1p units, any light) of the full layer's; a fresh seeded half of
+    the traces checks it. Returns basis ``(6144, r)``, hidden_mean ``(1024,)``, r and the worst
+    error on both halves."""
+    net = net.eval()
+    last = net.specular_head[-1]
+    assert isinstance(last, nn.Linear), "the specular head is already compressed"
+    hidden: list[Tensor] = []
+    hook = last.register_forward_hook(lambda _m, inp, _out: hidden.append(inp[0].detach().double()))
+    gen = torch.Generator().manual_seed(seed)
+    try:
+        for i in range(0, traces, 256):
+            b = sample_batch(scanner, min(256, traces - i), gen, SyntheticConfig(), views=64)
+            pixel, valid = net.measure_batch(b, gen)
+            net(net.entries(pixel, b.position, b.normal_geo, b.tangent_geo), valid)
+    finally:
+        hook.remove()
+    h = torch.cat(hidden)
+    fit, check = h[: len(h) // 2], h[len(h) // 2 :]
+    mean = fit.mean(0)
+    w = last.weight.detach().double()
+    cov = (fit - mean).T @ (fit - mean) / len(fit)
+    evals, evecs = torch.linalg.eigh(cov)
+    root = evecs * evals.clamp_min(0).sqrt()  # cov = root root^T
+    u, _, _ = torch.linalg.svd(w @ root, full_matrices=False)  # output directions by variance
+
+    y_fit, y_check = ((part - mean) @ w.T for part in (fit, check))
+
+    def worst(y: Tensor, r: int) -> float:
+        p = u[:, :r]
+        return float(((y @ p) @ p.T - y).abs().max())
+
+    lo, hi = 1, u.shape[1]  # the fewest directions within the tolerance (the error falls with r)
+    while lo < hi:
+        mid = (lo + hi) // 2
+        lo, hi = (lo, mid) if worst(y_fit, mid) <= tolerance else (mid + 1, hi)
+    return {
+        "basis": u[:, :lo].float(),
+        "hidden_mean": mean.float(),
+        "rank": lo,
+        "worst_fit": worst(y_fit, lo),
+        "worst_check": worst(y_check, lo),
+    }
+
+
+def write_specular_basis(folder: Path, scanner: Scanner | None = None, **kw) -> dict:
+    """``specular_basis`` of the model in ``folder`` written to its ``specular_basis.pt``; returns
+    the rank and the errors."""
+    net, _ = load(folder, exact=True)
+    found = specular_basis(net, scanner or load_scanner(), **kw)
+    with atomic_path(folder / SPECULAR_BASIS) as tmp:
+        torch.save({"basis": found["basis"], "hidden_mean": found["hidden_mean"]}, tmp)
+    return {k: v for k, v in found.items() if k not in ("basis", "hidden_mean")}
 
 
 def check_pattern(net: TraceNet, folder: Path, scanner: Scanner) -> None:

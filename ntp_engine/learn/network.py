@@ -174,6 +174,37 @@ class TraceNet(nn.Module):
         h = self.trunk(feat)
         return self.diffuse_head(h), self.specular_head(h)
 
+    def compress_specular(self, basis: Tensor, hidden_mean: Tensor) -> None:
+        """Replace the specular head's last layer (the network's largest: 1024 -> 6144) by its
+        projection onto ``basis (6144, r)`` (orthonormal columns) about the output the hidden mean
+        ``hidden_mean (1024,)`` gives: y = y(h_mean) + B B^T W (h - h_mean), two layers of r rows.
+        Exact for outputs in the span of B (``models.specular_basis`` finds one for the trained
+        outputs); inference only — the state dict no longer matches ``model.pt``'s."""
+        last = self.specular_head[-1]
+        assert isinstance(last, nn.Linear)
+        w, b = last.weight.detach().double(), last.bias.detach().double()
+        basis, hidden_mean = basis.double(), hidden_mean.double()
+        down = nn.Linear(w.shape[1], basis.shape[1])
+        up = nn.Linear(basis.shape[1], w.shape[0])
+        with torch.no_grad():
+            down.weight.copy_(basis.T @ w)
+            down.bias.copy_(-(basis.T @ w) @ hidden_mean)
+            up.weight.copy_(basis)
+            up.bias.copy_(w @ hidden_mean + b)
+        self.specular_head[-1] = nn.Sequential(down, up).to(last.weight.device)
+
+    def forward_ragged(self, entries: Tensor, offsets: Tensor) -> tuple[Tensor, Tensor]:
+        """``forward`` on traces in CSR form, no padding: ``entries (E, 12)`` (as ``entries`` makes
+        them), ``offsets (B + 1,)`` -> diffuse ``(B, 384)``, log1p specular ``(B, 6144)``. The same
+        result (the encoder is per entry, the pooling a max); a trace with no entry pools zeros."""
+        feat = self.encoder(entries)
+        lengths = offsets[1:] - offsets[:-1]
+        trace = torch.repeat_interleave(torch.arange(len(lengths), device=feat.device), lengths)
+        pooled = torch.zeros(len(lengths), feat.shape[1], dtype=feat.dtype, device=feat.device)
+        pooled.scatter_reduce_(0, trace[:, None].expand_as(feat), feat, "amax", include_self=False)
+        h = self.trunk(pooled)
+        return self.diffuse_head(h), self.specular_head(h)
+
 
 def lumitexel_loss(
     pred_diffuse: Tensor,

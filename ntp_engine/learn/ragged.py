@@ -32,6 +32,13 @@ def spans(offsets: np.ndarray, max_entries: int) -> Iterator[tuple[int, int]]:
         start = stop
 
 
+def _spread(k: Tensor, length: Tensor, keep: Tensor) -> Tensor:
+    """The ``k``-th of ``keep`` entries spread evenly over a trace of ``length``: round(k (L - 1) /
+    (K - 1)), so the first and the last are kept (broadcasting; int64)."""
+    step = (length - 1).clamp_min(0).double() / (keep - 1).clamp_min(1).double()
+    return torch.round(k.double() * step).long()
+
+
 @dataclass
 class RaggedTraces:
     """N traces of any lengths as one ``(E, 12)`` entry table with CSR ``offsets (N + 1,)``."""
@@ -101,13 +108,20 @@ class RaggedTraces:
         mask = pos < keep[:, None]
         if len(self.entries) == 0:
             return torch.zeros(len(idx), width, ENTRY_SIZE), mask
-        if max_views is None:
-            offset = pos.expand(len(idx), width)
-        else:  # evenly spread: k * (L - 1) / (K - 1) for k < K
-            step = (lengths - 1).clamp_min(0).double() / (keep - 1).clamp_min(1).double()
-            offset = torch.round(pos.double() * step[:, None]).long()
+        offset = pos.expand(len(idx), width) if max_views is None else _spread(pos, lengths[:, None], keep[:, None])
         gather = (self.offsets[idx][:, None] + offset).clamp_max(len(self.entries) - 1)
         return torch.where(mask[..., None], self.entries[gather], torch.zeros(())), mask
+
+    def spread(self, max_views: int) -> RaggedTraces:
+        """The table with at most ``max_views`` entries per trace, the same ones ``padded`` keeps
+        (evenly spread, first and last included); ``in_range`` is not carried (read it first)."""
+        lengths = self.lengths
+        keep = lengths.clamp_max(max_views)
+        offsets = torch.zeros_like(self.offsets)
+        offsets[1:] = torch.cumsum(keep, 0)
+        trace = torch.repeat_interleave(torch.arange(len(keep)), keep)
+        k = torch.arange(int(offsets[-1])) - offsets[trace]
+        return RaggedTraces(self.entries[self.offsets[trace] + _spread(k, lengths[trace], keep[trace])], offsets)
 
     @classmethod
     def from_padded(cls, entries: Tensor, mask: Tensor) -> RaggedTraces:

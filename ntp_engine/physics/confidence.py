@@ -16,7 +16,8 @@ from .brdf import F0_DIELECTRIC, ggx_specular
 from .frame import reflect, safe_normalize
 from .measurement import EmitterGeometry, local_emitter_geometry, specular_lobe
 
-_PEAK_GRID = torch.linspace(-2.5, 2.5, 11, dtype=torch.float64)
+# the peak's search grid: half vectors (ax u, ay v, 1) for u, v on it (specular_peak)
+PEAK_GRID = torch.linspace(-2.5, 2.5, 11, dtype=torch.float64)
 
 
 def specular_peak(
@@ -27,7 +28,7 @@ def specular_peak(
     Searched over half vectors h ~ (ax u, ay v, 1), |u|, |v| <= 2.5 around the normal (the lobe's
     maximum lies there: D peaks at h = n; F, G only shift it at grazing views). 0 if wo_z <= 0.
     """
-    g = _PEAK_GRID.to(dtype=wo.dtype, device=wo.device)
+    g = PEAK_GRID.to(dtype=wo.dtype, device=wo.device)
     u, v = torch.meshgrid(g, g, indexing="ij")
     ax, ay = alpha_x[..., None], alpha_y[..., None]
     h = safe_normalize(torch.stack([ax * u.reshape(-1), ay * v.reshape(-1), torch.ones_like(ax * u.reshape(-1))], -1))

@@ -362,7 +362,7 @@ def _reconstruct(
     # the model by name and content, never by path: a moved install or copied result keeps its cache
     model_key = {
         "model": model_folder.name,
-        "weights": content_digest([model_folder / "config.json", model_folder / "model.pt"]),
+        "weights": content_digest(models.model_files(model_folder)),
     }
 
     def fit_stage(d: Path) -> None:

@@ -56,3 +56,10 @@ def test_a_view_cap_feeds_the_network_evenly_spread_entries():
         with torch.no_grad():
             _, s = net(x, torch.ones(1, len(keep), dtype=torch.bool))
         torch.testing.assert_close(capped[k], torch.expm1(s[0].clamp_min(0)), msg=f"trace {k}, {n} entries")
+
+
+def test_batches_hold_at_most_max_traces_even_when_traces_are_empty():
+    net = TraceNet(NetworkConfig(preset="small"), load_scanner()).eval()
+    empty = RaggedTraces(torch.zeros(0, 12), torch.zeros(11, dtype=torch.int64))
+    sizes = [len(idx) for idx, _, _ in predict(net, empty, max_traces=4)]
+    assert sizes == [4, 4, 2]

@@ -72,3 +72,57 @@ def test_a_scanner_lit_by_another_pattern_is_refused_naming_both_files(tmp_path)
         models.load(None, dataclasses.replace(src, pattern=np.clip(ours + 0.6 / 255, 0, 1)))
     net, _ = models.load("compare_point")  # no capture's scanner: the network's own pattern, no check
     assert float(net.pattern().sum()) == pytest.approx(3, abs=0.01)  # one LED on (frozen at 1 - 1e-6)
+
+
+def test_specular_basis_compresses_the_head_within_its_tolerance(tmp_path):
+    from ntp_engine.learn.train import TrainConfig, train
+
+    run = tmp_path / "run"
+    train(
+        run, NetworkConfig(preset="small"), TrainConfig(steps=2, batch=4, validate_every=2, val_batches=1, views_max=8)
+    )
+    folder = tmp_path / "model"
+    models.export(run / "checkpoint.pt", folder, {})
+    assert models.model_files(folder) == [folder / "config.json", folder / "model.pt"]
+    found = models.write_specular_basis(folder, traces=256, tolerance=0.02)
+    assert 1 <= found["rank"] < 256 and found["worst_fit"] <= 0.02  # fewer directions than the layer's inputs
+    assert models.model_files(folder)[-1] == folder / models.SPECULAR_BASIS  # the cache key sees it
+    full, meta_full = models.load(folder, exact=True)
+    low, meta = models.load(folder)
+    assert meta_full["specular_basis"] is None and meta["specular_basis"] == found["rank"]
+    scanner = load_scanner()
+    from ntp_engine.learn.synthetic import SyntheticConfig, sample_batch
+
+    gen = torch.Generator().manual_seed(5)  # traces the basis never saw
+    b = sample_batch(scanner, 64, gen, SyntheticConfig(), views=16)
+    with torch.no_grad():
+        pixel, valid = full.measure_batch(b, gen, noise=False)
+        x = full.entries(pixel, b.position, b.normal_geo, b.tangent_geo)
+        d_full, s_full = full(x, valid)
+        d_low, s_low = low(x, valid)
+    torch.testing.assert_close(d_low, d_full)
+    err = float((s_low - s_full).abs().max())
+    assert 0 < err < 3 * 0.02, err  # compressed, and close
+
+
+def test_full_rank_basis_is_the_layer_itself():
+    torch.manual_seed(0)
+    from ntp_engine.learn.network import TraceNet
+
+    net = TraceNet(NetworkConfig(preset="small"), load_scanner()).eval()
+    h = torch.randn(5, 256)
+    want = net.specular_head[-1](h)
+    w = net.specular_head[-1].weight.detach().double()
+    basis = torch.linalg.qr(w)[0]  # spans the layer's whole range: nothing is cut
+    net.compress_specular(basis.float(), torch.randn(256))
+    torch.testing.assert_close(net.specular_head[-1](h), want, rtol=1e-4, atol=1e-4)
+
+
+def test_a_damaged_specular_basis_is_refused_naming_the_file(tmp_path):
+    import shutil
+
+    folder = tmp_path / "compact"
+    shutil.copytree(models.resolve(None), folder)
+    (folder / models.SPECULAR_BASIS).write_bytes(b"not torch")
+    with pytest.raises(NtpInputError, match="specular_basis.pt: not a specular basis"):
+        models.load(folder)

@@ -69,3 +69,12 @@ def test_spans_cover_every_trace_within_the_budget_or_one_trace_alone():
     assert list(spans(offsets, 5)) == [(0, 2), (2, 3), (3, 5), (5, 6)]
     assert list(spans(offsets, 100)) == [(0, 6)]
     assert list(spans(np.zeros(1, np.int64), 5)) == []
+
+
+def test_spread_keeps_what_padded_keeps():
+    entries = torch.arange(20, dtype=torch.float32)[:, None].repeat(1, 12)
+    tr = RaggedTraces(entries, torch.tensor([0, 2, 2, 12, 20]))
+    sub = tr.spread(4)
+    assert sub.lengths.tolist() == [2, 0, 4, 4]
+    padded, mask = tr.padded(torch.arange(4), max_views=4)
+    torch.testing.assert_close(sub.entries, padded[mask])
