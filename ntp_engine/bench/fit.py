@@ -17,9 +17,10 @@ import torch
 from ..fit.baseline import fit_geometry_lbfgsb
 from ..fit.geometry import GeometryFit, fit_geometry, lumitexel_log_rmse
 from ..learn import models
+from ..learn.inference import predict
 from ..learn.ragged import RaggedTraces
 from ..learn.synthetic import SyntheticConfig, sample_batch
-from ..pipeline.fit_traces import fit_traces
+from ..pipeline.fit_traces import NETWORK_VIEWS, fit_traces
 from ..scanner.device_file import load_scanner
 from . import dump_json, print_table
 
@@ -106,6 +107,30 @@ def whole_fit(texels: int, seed: int, chunk: int = 256) -> dict:
         "texels_per_s": texels / total,
         "seconds": {"total": total, **seconds},
         "share": {k: v / total for k, v in seconds.items()},
+        "specular_basis": _compressed_vs_exact(net, meta, scanner, traces),
+    }
+
+
+def _compressed_vs_exact(net, meta: dict, scanner, traces: RaggedTraces) -> dict | None:
+    """The network with its compressed specular head (``models.specular_basis``) against the full
+    layer on the same traces: seconds of each (best of two, alternating) and the log1p error."""
+    if meta["specular_basis"] is None:
+        return None
+    exact, _ = models.load(meta["folder"], scanner, exact=True)
+    best = {"exact": float("inf"), "compressed": float("inf")}
+    out = {}
+    for _ in range(2):
+        for name, model in (("exact", exact), ("compressed", net)):
+            t0 = time.perf_counter()
+            out[name] = torch.cat([s for _, _, s in predict(model, traces, max_views=NETWORK_VIEWS)])
+            best[name] = min(best[name], time.perf_counter() - t0)
+    err = (torch.log1p(out["compressed"]) - torch.log1p(out["exact"])).abs()
+    return {
+        "rank": meta["specular_basis"],
+        "seconds": best,
+        "speedup": best["exact"] / best["compressed"],
+        "log1p_error_max": float(err.max()),
+        "log1p_error_mean": float(err.mean()),
     }
 
 
@@ -173,6 +198,13 @@ def run(
         f"{whole['texels']} 64-view traces: {whole['texels_per_s']:.0f} texels/s ({split}); the geometry "
         f"fit alone on the network's lumitexels: {result['noisy']['batched']['texels_per_s']:.0f} texels/s"
     )
+    sb = whole["specular_basis"]
+    if sb:
+        print(
+            f"network, specular head compressed to {sb['rank']} directions: {sb['seconds']['compressed']:.2f} s "
+            f"vs {sb['seconds']['exact']:.2f} s exact (x{sb['speedup']:.2f}); log1p lumitexel error max "
+            f"{sb['log1p_error_max']:.4f}, mean {sb['log1p_error_mean']:.5f}"
+        )
     # the issue's keys: batched/baseline with texels_per_s and lumitexel_log_rmse (exact input),
     # the noisy-input figures beside them
     for name in ("batched", "baseline"):

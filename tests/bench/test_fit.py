@@ -10,3 +10,6 @@ def test_batched_fitter_against_the_baseline_on_a_few_texels():
     assert whole["texels"] == 64 and whole["texels_per_s"] > 0
     assert all(whole["seconds"][k] > 0 for k in ("network", "geometry", "albedo"))
     assert sum(whole["share"].values()) <= 1.0 + 1e-6
+    sb = whole["specular_basis"]  # the shipped model's compressed head against its full layer
+    assert sb["rank"] < 1024 and sb["seconds"]["exact"] > 0 and sb["seconds"]["compressed"] > 0
+    assert 0 < sb["log1p_error_max"] < 0.05
