@@ -97,6 +97,7 @@ def whole_fit(texels: int, seed: int, chunk: int = 256) -> dict:
         entries.append(torch.cat([pixel, b.position, b.normal_geo, b.tangent_geo], -1))
         masks.append(valid)
     traces = RaggedTraces.from_padded(torch.cat(entries), torch.cat(masks))
+    fit_traces(net, scanner, traces.block(0, min(64, texels)), 1.0)  # warm-up (allocator, the compiled loop)
     seconds: dict[str, float] = {}
     t0 = time.perf_counter()
     fit_traces(net, scanner, traces, 1.0, seconds=seconds)

@@ -35,7 +35,7 @@ import torch
 from torch import Tensor
 
 from ..physics.brdf import ALPHA_MAX, ALPHA_MIN, RHO_S_MAX, fresnel_schlick, smith_g1
-from ..physics.frame import any_tangent, cross, frame_from_normal_tangent, safe_normalize, to_local
+from ..physics.frame import any_tangent, cross, frame_from_normal_tangent, safe_normalize
 from ..physics.lumitexel import DIFFUSE_RES, SPECULAR_RES, specular_lumitexel, texel_positions
 
 FALLBACK_ALPHA = 0.3  # isotropic roughness for texels without a usable specular lobe
@@ -84,11 +84,9 @@ def light_table(res: int, device: str, dtype: torch.dtype) -> dict[str, Tensor]:
 
 def _phi(wi: Tensor, r2: Tensor, fres: Tensor, n: Tensor, t: Tensor, ax: Tensor, ay: Tensor) -> Tensor:
     """F G1(wi) G1(wo) / (4 cos_o r^2) for lights ``(N, K)`` under the frames ``(N, 3)``."""
-    frame = frame_from_normal_tangent(n, t)
-    wi_l = to_local(wi, frame[:, None])
-    wo = torch.zeros_like(n)
-    wo[:, 2] = 1.0
-    wo_l = to_local(wo, frame)
+    frame = frame_from_normal_tangent(n, t)  # (N, 3, 3) rows t, b, n
+    wi_l = wi @ frame.transpose(1, 2)  # to_local as one batched product (N, K, 3)
+    wo_l = frame[:, :, 2]  # wo = +z in the lumitexel frame
     g = smith_g1(wi_l, ax[:, None], ay[:, None]) * smith_g1(wo_l, ax, ay)[:, None]
     cos_o = wo_l[:, 2].clamp_min(1e-4)[:, None]
     phi = fres * g / (4 * cos_o * r2)
@@ -109,9 +107,9 @@ def canonical_lobe(n: Tensor, t: Tensor, ax: Tensor, ay: Tensor) -> tuple[Tensor
 
 def _solve_lobe(y: Tensor, w: Tensor, feats: Tensor) -> tuple[Tensor, ...]:
     """Weighted LS for A (y ~ f^T a) and its GGX reading: n, t, ax, ay, rho_s, ok, a (N, 6)."""
-    fw = feats * w[..., None]
-    ata = fw.transpose(1, 2) @ feats  # (N, 6, 6)
-    atb = (fw * y[..., None]).sum(1)  # (N, 6)
+    fw = (feats * w[..., None]).transpose(1, 2)  # (N, 6, K)
+    ata = fw @ feats  # (N, 6, 6)
+    atb = (fw @ y[..., None])[..., 0]  # (N, 6)
     scale = ata.diagonal(dim1=1, dim2=2).mean(-1).clamp_min(1e-30)
     ata = ata + 1e-9 * scale[:, None, None] * torch.eye(6, dtype=y.dtype, device=y.device)
     a = torch.linalg.solve(ata, atb[..., None])[..., 0]
@@ -217,7 +215,7 @@ def _fit_chunk(m: Tensor, diffuse: Tensor | None, iterations: int, top_k: int, g
     flags = torch.zeros(N, dtype=torch.int64, device=dev)
     finite = torch.isfinite(m).all(-1)
     flags |= (~finite).long() * FLAG_NONFINITE
-    m = torch.where(torch.isfinite(m), m, torch.zeros_like(m)).clamp_min(0)
+    m = torch.nan_to_num(m, nan=0.0, posinf=0.0, neginf=0.0).clamp_min_(0)
     peak = m.amax(-1)
     flags |= ((peak <= 1e-8) & finite).long() * FLAG_ZERO
 
@@ -238,8 +236,10 @@ def _fit_chunk(m: Tensor, diffuse: Tensor | None, iterations: int, top_k: int, g
     rho = torch.ones(N, device=dev)
     a_cur = None
     for it in range(iterations):
-        mk = m.gather(1, idx)
-        wi, r2, fres, feats = tab["wi"][idx], tab["r2"][idx], tab["fresnel"][idx], tab["feats"][idx]
+        if it < 2:  # the lights change once, after the first solve
+            mk = m.gather(1, idx)
+            wi, r2, fres, feats = tab["wi"][idx], tab["r2"][idx], tab["fresnel"][idx], tab["feats"][idx]
+            feats64 = feats.double()
         phi = phi0[idx] if a_cur is None else _phi(wi, r2, fres, n, t, ax, ay)
         valid = (mk > 1e-6 * peak[:, None]) & (phi > 0)
         y = torch.where(valid, mk / phi.clamp_min(1e-30), torch.ones_like(mk)).rsqrt()
@@ -248,14 +248,14 @@ def _fit_chunk(m: Tensor, diffuse: Tensor | None, iterations: int, top_k: int, g
         if a_cur is not None:
             # ... and, away from the current fit, weights that make the weighted y residual equal
             # the true log1p residual (IRLS): far noise has a huge y residual but a small log one
-            y_model = (feats.double() @ a_cur[..., None])[..., 0].float()
+            y_model = (feats64 @ a_cur[..., None])[..., 0].float()
             m_model = phi / y_model.clamp_min(1e-12) ** 2
             r_log = torch.log1p(m_model.clamp_max(1e30)) - torch.log1p(mk)
             dy = y_model - y
             far = (dy.abs() > 1e-3 * y) & (y_model > 0)
             w = torch.where(far, (r_log / torch.where(far, dy, torch.ones_like(dy))) ** 2, w)
         w = torch.where(valid, w, torch.zeros_like(w))
-        n_new, t_new, ax_new, ay_new, rho_new, ok_new, a_new = _solve_lobe(y.double(), w.double(), feats.double())
+        n_new, t_new, ax_new, ay_new, rho_new, ok_new, a_new = _solve_lobe(y.double(), w.double(), feats64)
         n_new, t_new, ax_new, ay_new, rho_new = (v.float() for v in (n_new, t_new, ax_new, ay_new, rho_new))
         take = ok_new & (n_new[:, 2] > 0.05)
         n = torch.where(take[:, None], n_new, n)
@@ -265,7 +265,7 @@ def _fit_chunk(m: Tensor, diffuse: Tensor | None, iterations: int, top_k: int, g
         ok = ok | take
         if it == 0 and iterations > 1:  # one re-selection suffices: the lobe moves little after
             y_all = a_cur.float() @ tab["feats"].T  # (N, 6144): small where the lobe is bright
-            y_all = torch.where(y_all > 0, y_all, torch.full_like(y_all, float("inf")))
+            y_all.masked_fill_(~(y_all > 0), float("inf"))
             model_idx = y_all.topk(k, dim=-1, largest=False).indices
             idx = torch.where(ok[:, None], model_idx, idx)
     rho = rho.clamp(1e-12, RHO_S_MAX * 10)
@@ -309,7 +309,7 @@ def _lobe_to_a(n: Tensor, t: Tensor, ax: Tensor, ay: Tensor, rho: Tensor) -> Ten
 
 def _log_residual(a: Tensor, feats: Tensor, phi: Tensor, log_mk: Tensor, valid: Tensor):
     """log1p(model) - log1p(m) over K lights with the model m = Phi / (f.a)^2; also d r / d y."""
-    y = (feats * a[:, None, :]).sum(-1)
+    y = (feats @ a[:, :, None])[..., 0]
     good = valid & (y > 0)
     ys = torch.where(good, y, torch.ones_like(y))
     mm = torch.where(good, phi / (ys * ys), torch.zeros_like(y))
@@ -339,7 +339,7 @@ def _gauss_newton(m, idx, n, t, ax, ay, rho, active, steps):
         J = g[..., None] * feats
         jtj = J.transpose(1, 2) @ J
         H = jtj + lam[:, None, None] * (torch.diag_embed(jtj.diagonal(dim1=1, dim2=2)) + 1e-12 * eye)
-        step = torch.linalg.solve(H, -(J * r[..., None]).sum(1)[..., None])[..., 0]
+        step = torch.linalg.solve(H, -(J.transpose(1, 2) @ r[..., None]))[..., 0]
         n2, t2, ax2, ay2, rho2, ok2, _ = _solve_lobe_from_a(a + step)
         a2 = _lobe_to_a(n2, t2, ax2, ay2, rho2)
         phi2 = _phi(wi, r2, fres, n2, t2, ax2, ay2)
