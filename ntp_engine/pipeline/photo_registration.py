@@ -271,7 +271,9 @@ def eliminate_nuisances(field: torch.Tensor, w: torch.Tensor, x: torch.Tensor) -
     the fields' basis at the points (K = 0: albedos only). The result is ``x``'s weighted residual
     (where ``w`` is 0 it is not meaningful). The fields are known up to one field common to all
     photos (the albedos absorb it): a tiny ridge picks one, which leaves the residual unchanged.
+    Where ``w`` is 0, ``x`` is never read (it may be infinite there).
     """
+    x = torch.where(w[..., None] > 0, x, torch.zeros((), dtype=x.dtype))  # 0 * inf would be NaN
     wsum = w.sum(0).clamp_min(1e-12)  # (N, 3)
     share = w / wsum  # photo j's weight share in point p's albedo
     xt = x - (share[..., None] * x).sum(0)  # the albedos eliminated
@@ -477,11 +479,14 @@ class PhotometricRegistration:
             return torch.log(m) - log_d, None, ok
         J_px = torch.nan_to_num(self._pixel_jacobian(poses, params))  # (V, N, 2, 7)
         J = (g / m[..., None]) @ J_px - J_d  # (V, N, 3, 7)
-        return torch.log(m) - log_d, J, ok
+        return torch.log(m) - log_d, J, ok & torch.isfinite(J).all(-1).all(-1)
 
     def _cost(self, r: torch.Tensor, ok: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, PhotometricFit]:
         """Residuals about each point's albedo and each photo's shading field ``(V, N, 3)`` (0 where
         unused), the mask of points seen often enough, and the fit."""
+        # a log residual that is not finite (a point the model shades black at this pose) is no
+        # observation: left in, it would make every weight and field NaN
+        ok = ok & torch.isfinite(r).all(-1)
         enough = ok.sum(0) >= MIN_VIEWS
         ok = ok & enough[None, :]
         centre = torch.nanmedian(torch.where(ok[..., None], r, torch.nan), dim=0).values

@@ -1,6 +1,9 @@
 """Photometric registration: the correction's algebra, the photo subset, and the refinement that
 finds a known error of the poses again from the photos alone."""
 
+import math
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 import torch
@@ -64,6 +67,24 @@ def test_eliminate_nuisances_removes_albedos_and_photo_fields_and_nothing_else()
     # columns are fitted alike, one by one or together
     both = eliminate_nuisances(field, w, torch.cat([signal, 2 * signal], -1))
     assert torch.allclose(both[..., 1:], 2 * out, atol=1e-4)
+    # an unobserved value is never read, even an infinite one (0 * inf would poison every point)
+    poisoned = torch.where(seen, signal, torch.tensor(float("inf")))
+    assert torch.allclose(eliminate_nuisances(field, w, poisoned)[seen], out[seen], atol=1e-4)
+
+
+def test_a_residual_that_is_not_finite_is_no_observation():
+    # a point the model shades black at some pose has log residual +inf there: the cost leaves that
+    # observation out instead of turning every weight, field and the solve NaN
+    g = torch.Generator().manual_seed(1)
+    V, N = 8, 200
+    field = torch.cat([torch.ones(N, 1), torch.rand(N, 3, generator=g) - 0.5], 1)
+    r = 0.05 * torch.randn(V, N, 3, generator=g)
+    ok = torch.ones(V, N, dtype=torch.bool)
+    clean = PhotometricRegistration._cost(SimpleNamespace(field=field), r, ok)  # type: ignore[arg-type]
+    r[2, :40] = float("inf")
+    e, used, fit = PhotometricRegistration._cost(SimpleNamespace(field=field), r, ok)  # type: ignore[arg-type]
+    assert torch.isfinite(e).all() and math.isfinite(fit.cost)
+    assert not used[2, :40].any() and used[2, 40:].all() and fit.observations == clean[2].observations - 40
 
 
 def test_spread_keeps_the_ends_and_at_most_count():
