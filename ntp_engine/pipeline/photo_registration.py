@@ -291,7 +291,9 @@ def eliminate_nuisances(field: torch.Tensor, w: torch.Tensor, x: torch.Tensor) -
     ridge = 1e-6 * torch.diagonal(M, dim1=1, dim2=2).mean(1) + 1e-12
     M += ridge[:, None, None] * torch.eye(V * K, dtype=torch.float64)
     rhs = ((w[..., None] * xt).permute(2, 0, 3, 1) @ field).transpose(2, 3).reshape(3, V * K, C)
-    b = torch.linalg.solve(M, rhs.double()).to(x.dtype).reshape(3, V, K * C)
+    # numpy's LU, not torch's: torch 2.13's batched float64 solve of these sizes (V K >= ~160) fails
+    # with bogus pivots once torch.set_num_threads has been called (--threads; measured)
+    b = torch.from_numpy(np.linalg.solve(M.numpy(), rhs.double().numpy())).to(x.dtype).reshape(3, V, K * C)
     f = (field @ b.reshape(3 * V, K, C).transpose(0, 1).reshape(K, 3 * V * C)).reshape(N, 3, V, C)
     f_mean = (field[None, :, :, None] * (share.permute(2, 1, 0) @ b).reshape(3, N, K, C)).sum(2)  # (3, N, C)
     return xt - f.permute(2, 0, 1, 3) + f_mean.permute(1, 0, 2)[None]

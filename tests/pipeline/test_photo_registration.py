@@ -72,6 +72,24 @@ def test_eliminate_nuisances_removes_albedos_and_photo_fields_and_nothing_else()
     assert torch.allclose(eliminate_nuisances(field, w, poisoned)[seen], out[seen], atol=1e-4)
 
 
+def test_eliminate_nuisances_with_many_photos_after_threads_are_set():
+    # 48 photos x 4 field terms: a 192 x 192 system per channel, which torch's batched LU solve
+    # failed on (bogus pivots) once torch.set_num_threads had been called, as --threads does
+    g = torch.Generator().manual_seed(2)
+    V, N = 48, 400
+    field = torch.cat([torch.ones(N, 1), torch.rand(N, 3, generator=g) - 0.5], 1)
+    w = torch.rand(V, N, 3, generator=g)
+    x = torch.randn(V, N, 3, 1, generator=g)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        out = eliminate_nuisances(field, w, x)
+    finally:
+        torch.set_num_threads(threads)
+    assert torch.isfinite(out).all()
+    assert torch.einsum("vnc,nk,vncd->vkcd", w, field, out).abs().max() < 1e-3  # each photo's field removed
+
+
 def test_a_residual_that_is_not_finite_is_no_observation():
     # a point the model shades black at some pose has log residual +inf there: the cost leaves that
     # observation out instead of turning every weight, field and the solve NaN
