@@ -8,7 +8,7 @@ wheel carrying the shipped devices, the default model and the user guides (``doc
 the package — not the bench-only comparison networks nor the demo asset — plus the engine's
 dependencies for CPython 3.11 on manylinux x86-64: torch's CPU build from PyTorch's CPU index
 (``TORCH_CPU_INDEX``; PyPI's Linux torch is the CUDA build, gigabytes of nvidia wheels), scipy,
-pycolmap, xatlas, OpenImageIO, embreex, trimesh, scikit-image, pillow, tomli_w, tqdm, numba and what they
+pycolmap, xatlas, OpenImageIO, embreex, trimesh, scikit-image, pillow, tomli_w, tqdm, numba, threadpoolctl and what they
 need. numpy is left out: Blender ships it. Then ``blender_ext.py validate`` and ``build`` (from
 the bpy module's bundled ``bl_pkg``) check and zip it.
 

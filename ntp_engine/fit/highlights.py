@@ -13,7 +13,7 @@ import torch
 from torch import Tensor
 
 from ..physics.confidence import confidence
-from ..physics.frame import frame_from_normal_tangent
+from ..physics.frame import frame_from_normal_tangent, to_world
 from ..scanner.scanner import Scanner
 from .geometry import FALLBACK_ALPHA, FLAG_NO_HIGHLIGHT, GeometryFit
 
@@ -30,8 +30,8 @@ def frame_in_views(geometry: GeometryFit, normal_geo: Tensor, tangent_geo: Tenso
     """The fitted shading frame (lumitexel frame) in each view's camera space ``(N, V, 3)``."""
     dtype = normal_geo.dtype
     geo = frame_from_normal_tangent(normal_geo, tangent_geo)  # (N, V, 3, 3) rows t^, b^, n^
-    n_cam = (geo * geometry.normal.to(dtype)[:, None, :, None]).sum(-2)
-    t_cam = (geo * geometry.tangent.to(dtype)[:, None, :, None]).sum(-2)
+    n_cam = to_world(geometry.normal.to(dtype)[:, None, :], geo)
+    t_cam = to_world(geometry.tangent.to(dtype)[:, None, :], geo)
     return n_cam, t_cam
 
 

@@ -24,6 +24,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ..io.thread_pools import numba_threads_as_torch
 from ..scanner.scanner import Scanner
 from .brdf import F0_DIELECTRIC
 from .confidence import PEAK_GRID
@@ -56,9 +57,7 @@ def pattern_sums(
     geo = _emitters(scanner)
     M = len(x)
     out = np.zeros((M, 8))
-    before = numba.get_num_threads()
-    numba.set_num_threads(min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS))  # as --threads says
-    try:
+    with numba_threads_as_torch():  # as --threads says
         _pattern_sums_loop(
             np.ascontiguousarray(x.double().numpy()),
             np.ascontiguousarray(frame),
@@ -70,8 +69,6 @@ def pattern_sums(
             float(f0),
             out,
         )
-    finally:
-        numba.set_num_threads(before)
     o = torch.from_numpy(out)
     return PatternSums(o[:, 0:3], o[:, 3:6], o[:, 6], o[:, 7])
 

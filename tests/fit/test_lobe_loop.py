@@ -1,0 +1,62 @@
+import numpy as np
+import pytest
+import torch
+from lobes import exact_lobes
+
+from ntp_engine.fit.geometry import fit_geometry
+from ntp_engine.fit.lobe_loop import _eigh3, _select, _solve6
+from ntp_engine.physics.lumitexel import specular_lumitexel
+
+
+@pytest.mark.parametrize("spectrum", [(1.0, 2.0, 3.0), (1.0, 1.0, 5.0), (2.0, 2.0, 2.0), (1e-4, 1.0, 2.5e4)])
+def test_eigh3_matches_lapack_with_repeated_and_spread_eigenvalues(spectrum):
+    rng = np.random.default_rng(0)
+    q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    A = q @ np.diag(spectrum) @ q.T
+    evals, evecs = np.zeros(3), np.zeros((3, 3))
+    assert _eigh3(A.copy(), evals, evecs)
+    np.testing.assert_allclose(evals, np.linalg.eigvalsh(A), rtol=1e-10, atol=1e-12 * max(spectrum))
+    np.testing.assert_allclose(evecs.T @ evecs, np.eye(3), atol=1e-12)  # orthonormal even where repeated
+    np.testing.assert_allclose(A @ evecs, evecs * evals, atol=1e-9 * max(spectrum))
+
+
+def test_eigh3_refuses_a_matrix_that_is_not_finite():
+    A = np.eye(3)
+    A[1, 2] = A[2, 1] = np.nan
+    assert not _eigh3(A, np.zeros(3), np.zeros((3, 3)))
+
+
+def test_solve6_matches_lapack_and_refuses_a_singular_system():
+    rng = np.random.default_rng(1)
+    H, b = rng.normal(size=(6, 6)), rng.normal(size=6)
+    x = np.zeros(6)
+    assert _solve6(H.copy(), b.copy(), x)
+    np.testing.assert_allclose(x, np.linalg.solve(H, b), rtol=1e-10)
+    H[:, 3] = 0.0
+    assert not _solve6(H, b, x)
+
+
+def test_select_takes_the_k_smallest_ties_by_index():
+    values = np.array([5.0, 1.0, 3.0, 1.0, np.inf, 3.0, 0.5])
+    idx = np.zeros(4, np.int64)
+    _select(values, 4, idx)
+    assert idx.tolist() == [1, 3, 6, 2]  # below the 4th smallest (3.0) in order, then the first 3.0
+
+
+def test_each_texel_is_fitted_on_its_own():
+    """A texel's fit does not depend on the other texels of its batch (each stops on its own)."""
+    m, *_ = exact_lobes(24, seed=3)
+    noisy = torch.expm1(torch.log1p(m) + 0.05 * torch.randn(m.shape, generator=torch.Generator().manual_seed(0)))
+    together = fit_geometry(noisy.clamp_min(0))
+    for i in (0, 7, 23):
+        alone = fit_geometry(noisy[i : i + 1].clamp_min(0))
+        assert torch.equal(alone.normal[0], together.normal[i]) and torch.equal(alone.alpha_y[0], together.alpha_y[i])
+
+
+def test_sharp_lobes_converge_to_the_exact_lumitexel():
+    """Lobes at the sharp bound need many damped steps before Gauss-Newton takes over: none may stop early."""
+    m, n, t, ax, ay, rho = exact_lobes(256, seed=4)
+    ay = torch.full_like(ay, 0.0062)
+    m = specular_lumitexel(n, t, rho[:, None], ax, ay)[..., 0]
+    f = fit_geometry(m, with_error=True)
+    assert float(f.log_rmse.max()) < 1e-4
