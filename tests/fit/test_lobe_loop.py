@@ -4,7 +4,7 @@ import torch
 from lobes import exact_lobes
 
 from ntp_engine.fit.geometry import fit_geometry
-from ntp_engine.fit.lobe_loop import _eigh3, _select, _solve6
+from ntp_engine.fit.lobe_loop import _eigh3, _kth_smallest, _select, _solve6
 from ntp_engine.physics.lumitexel import specular_lumitexel
 
 
@@ -39,8 +39,17 @@ def test_solve6_matches_lapack_and_refuses_a_singular_system():
 def test_select_takes_the_k_smallest_ties_by_index():
     values = np.array([5.0, 1.0, 3.0, 1.0, np.inf, 3.0, 0.5])
     idx = np.zeros(4, np.int64)
-    _select(values, 4, idx)
+    _select(values, 4, idx, np.zeros(7))
     assert idx.tolist() == [1, 3, 6, 2]  # below the 4th smallest (3.0) in order, then the first 3.0
+
+
+@pytest.mark.parametrize("n", [1, 2, 7, 6144])
+def test_quickselect_finds_every_order_statistic_with_many_ties(n):
+    rng = np.random.default_rng(n)
+    a = rng.integers(0, max(n // 4, 2), n).astype(float)  # many repeated values
+    a[rng.random(n) < 0.1] = np.inf
+    for k in {0, n // 3, n // 2, n - 1}:
+        assert _kth_smallest(a.copy(), k) == np.sort(a)[k]
 
 
 def test_each_texel_is_fitted_on_its_own():
