@@ -246,11 +246,10 @@ def _residuals(idx, a, feats, phi, log_mk, r, g):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True, fastmath=_FAST)
-def _weighted_ls(idx, feats, y, w, a):  # pragma: no cover - compiled
-    """a = argmin sum_j w_j (f_j . a - y_j)^2 (lightly regularised as the normal equations' scale
-    asks); False where the system is singular."""
-    H = np.zeros((6, 6))
-    b = np.zeros(6)
+def _normal_equations(idx, feats, w, y, H, b):  # pragma: no cover - compiled
+    """H, b (filled) of min_a sum_j w_j (f_j . a - y_j)^2 over the lights ``idx`` (w_j = 0 skipped)."""
+    H[:] = 0.0
+    b[:] = 0.0
     for j in range(idx.shape[0]):
         if w[j] == 0.0:
             continue
@@ -260,11 +259,20 @@ def _weighted_ls(idx, feats, y, w, a):  # pragma: no cover - compiled
             b[p] += wf * y[j]
             for q in range(p, 6):
                 H[p, q] += wf * f[q]
+    for p in range(6):
+        for q in range(p):
+            H[p, q] = H[q, p]
+
+
+@numba.njit(cache=True, fastmath=_FAST)
+def _weighted_ls(idx, feats, y, w, a):  # pragma: no cover - compiled
+    """a = argmin sum_j w_j (f_j . a - y_j)^2 (lightly regularised as the normal equations' scale
+    asks); False where the system is singular."""
+    H, b = np.zeros((6, 6)), np.zeros(6)
+    _normal_equations(idx, feats, w, y, H, b)
     scale = 0.0
     for p in range(6):
         scale += H[p, p] / 6.0
-        for q in range(p):
-            H[p, q] = H[q, p]
     for p in range(6):
         H[p, p] += 1e-9 * max(scale, 1e-30)
     return _solve6(H, b, a)
@@ -359,7 +367,7 @@ def _levenberg_marquardt(m_i, idx, wi, r2, fres, feats, steps, lobe, trial, log_
     for j in range(k):
         log_mk[j] = math.log1p(m_i[idx[j]])
     a, a2, step = np.zeros(6), np.zeros(6), np.zeros(6)
-    r_new, g_new = np.empty(k), np.empty(k)
+    r_new, g_new, g2, target = np.empty(k), np.empty(k), np.empty(k), np.empty(k)
     H, b = np.zeros((6, 6)), np.zeros(6)
     JtJ = np.zeros((6, 6))
     A, evals, evecs = np.zeros((3, 3)), np.zeros(3), np.zeros((3, 3))
@@ -369,21 +377,11 @@ def _levenberg_marquardt(m_i, idx, wi, r2, fres, feats, steps, lobe, trial, log_
     lam = _LAM0
     rejects = 0
     for _ in range(steps):
-        JtJ[:] = 0.0
-        b[:] = 0.0
+        # the Gauss-Newton step: min sum_j (g_j f_j . step + r_j)^2 = sum_j g_j^2 (f_j . step + r_j / g_j)^2
         for j in range(k):
-            if g[j] == 0.0:
-                continue
-            f = feats[idx[j]]
-            gj = g[j]
-            for p in range(6):
-                jp = gj * f[p]
-                b[p] -= jp * r[j]
-                for q in range(p, 6):
-                    JtJ[p, q] += jp * gj * f[q]
-        for p in range(6):
-            for q in range(p):
-                JtJ[p, q] = JtJ[q, p]
+            g2[j] = g[j] * g[j]
+            target[j] = -r[j] / g[j] if g[j] != 0.0 else 0.0
+        _normal_equations(idx, feats, g2, target, JtJ, b)
         H[:] = JtJ
         for p in range(6):
             H[p, p] += lam * (JtJ[p, p] + 1e-12)

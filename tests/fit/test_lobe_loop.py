@@ -60,6 +60,14 @@ def test_each_texel_is_fitted_on_its_own():
     for i in (0, 7, 23):
         alone = fit_geometry(noisy[i : i + 1].clamp_min(0))
         assert torch.equal(alone.normal[0], together.normal[i]) and torch.equal(alone.alpha_y[0], together.alpha_y[i])
+    threads = torch.get_num_threads()
+    try:  # nor on how many threads share the texels
+        torch.set_num_threads(1)
+        one = fit_geometry(noisy.clamp_min(0))
+    finally:
+        torch.set_num_threads(threads)
+    assert torch.equal(one.normal, together.normal) and torch.equal(one.tangent, together.tangent)
+    assert torch.equal(one.alpha_x, together.alpha_x) and torch.equal(one.rho_s, together.rho_s)
 
 
 def test_sharp_lobes_converge_to_the_exact_lumitexel():
