@@ -16,7 +16,8 @@ pixels as captured (not scaled to a model's exposure).
 The solver: batched Levenberg-Marquardt over texels with 11 unknowns each (a frame rotation omega in
 the shading frame — omega_z turns the tangent about n, omega_x,y tilt n — two log alphas, RGB rho_d
 and rho_s), Cauchy-robust residuals, box bounds by projection with an active set, analytic
-Jacobians (rho enters linearly; the lobe's log-derivatives are closed form, ``_lobe_jacobian``).
+Jacobians (rho enters linearly; the lobe's derivatives are closed form, summed over the emitters in one
+compiled loop: ``pixel_bases``).
 Speed: the diffuse basis is linear in n (precomputed per entry), and the specular sum runs over the
 emitter blocks (``emitter_blocks``) brightest under a broadened lobe sample by sample and over the
 other blocks as one coarse emitter each. Design and measurements: docs/refinement.md.
@@ -34,7 +35,6 @@ from torch import Tensor
 
 from ..physics.brdf import ALPHA_MAX, ALPHA_MIN, RHO_D_MAX, RHO_S_MAX, fresnel_schlick
 from ..physics.frame import (
-    cross,
     frame_from_normal_tangent,
     rotation_from_vector,
     safe_normalize,
@@ -47,8 +47,9 @@ from ..scanner.scanner import Scanner
 from .albedo import bounded_ls2
 from .emitter_blocks import EmitterBlocks, emitter_blocks
 from .highlights import parked_positions
+from .pixel_bases import diffuse_basis, specular_bases
 
-VERSION = 3  # of the method: part of the pipeline's cache key (bump when results change for the same settings)
+VERSION = 4  # of the method: part of the pipeline's cache key (bump when results change for the same settings)
 CENSOR_CODE = VALID_CODE[1]  # above this an 8-bit code may be (or border) a clipped pixel: a lower bound
 EXPANDED_BLOCKS = 4  # emitter blocks per entry summed sample by sample (the rest as coarse emitters)
 SELECT_WIDEN, SELECT_FLOOR = 3.0, 0.03  # emitters are chosen under alphas x3 (at least 0.03)
@@ -200,83 +201,22 @@ class _Trace:
         return out
 
 
-class _LobeParts(NamedTuple):
-    """``_lobe``'s value and the intermediate terms its Jacobian reuses (shading-frame vectors,
-    GGX's q = |(hx/ax, hy/ay, hz)|^2, the Smith terms (alpha v)^2, Lambda and cos + Lambda)."""
-
-    lobe: Tensor
-    wi_s: Tensor
-    h_s: Tensor
-    wo_s: Tensor
-    q: Tensor
-    hx2: Tensor
-    hy2: Tensor
-    sq_i: tuple[Tensor, Tensor]
-    lam_i: Tensor
-    a_i: Tensor
-    sq_o: tuple[Tensor, Tensor]
-    lam_o: Tensor
-    a_o: Tensor
-
-
-def _lobe_parts(frame: Tensor, wi: Tensor, h: Tensor, wo: Tensor, fresnel_falloff: Tensor, alpha: Tensor) -> _LobeParts:
-    """``_lobe`` with its intermediate terms (see ``_lobe``)."""
-    f4 = frame[:, None, None]
-    wi_s, h_s, wo_s = to_local(wi, f4), to_local(h, f4), to_local(wo, frame[:, None])
-    ax, ay = alpha[:, 0, None, None], alpha[:, 1, None, None]
-    hx2, hy2 = (h_s[..., 0] / ax) ** 2, (h_s[..., 1] / ay) ** 2
-    q = hx2 + hy2 + h_s[..., 2] ** 2
-    cos_i = wi_s[..., 2].clamp_min(0.0)
-    sq_i = ((ax * wi_s[..., 0]) ** 2, (ay * wi_s[..., 1]) ** 2)
-    lam_i = torch.sqrt((sq_i[0] + sq_i[1] + wi_s[..., 2] ** 2).clamp_min(1e-20))
-    a_i = cos_i + lam_i
-    sq_o = ((ax[..., 0] * wo_s[..., 0]) ** 2, (ay[..., 0] * wo_s[..., 1]) ** 2)
-    lam_o = torch.sqrt((sq_o[0] + sq_o[1] + wo_s[..., 2] ** 2).clamp_min(1e-20))
-    a_o = wo_s[..., 2].clamp_min(0.0) + lam_o
-    seen = (wo_s[..., 2] > 0).to(wo_s.dtype) / a_o  # the view-side Smith factor, 0 below
-    lobe = cos_i * fresnel_falloff * seen[..., None] / (math.pi * ax * ay * q * q * a_i)
-    return _LobeParts(lobe, wi_s, h_s, wo_s, q, hx2, hy2, sq_i, lam_i, a_i, sq_o, lam_o, a_o)
-
-
 def _lobe(frame: Tensor, wi: Tensor, h: Tensor, wo: Tensor, fresnel_falloff: Tensor, alpha: Tensor) -> Tensor:
     """Eq. 1's specular weight per emitter, F D G / (4 cos_i cos_o) (wi.n)+ * falloff, ``(N, V, K)``,
     for shading frames ``frame (N, 3, 3)`` (rows t, b, n in the geometric frame), geometric-frame
     ``wi, h (N, V, K, 3)``, ``wo (N, V, 3)`` and ``alpha (N, 2)``. The cancelled Smith form of
-    ``physics.brdf.ggx_specular``; F depends on wi.h only, so it comes precomputed with the falloff."""
-    return _lobe_parts(frame, wi, h, wo, fresnel_falloff, alpha).lobe
-
-
-def _lobe_jacobian(
-    frame: Tensor, wi: Tensor, h: Tensor, wo: Tensor, fresnel_falloff: Tensor, alpha: Tensor
-) -> tuple[Tensor, Tensor]:
-    """``_lobe`` and d log(lobe) by (omega, log alpha_x, log alpha_y) ``(N, V, K, 5)``, omega the
-    shading-frame rotation at 0: a local vector v turns by v x omega, so d/d omega = g x v for
-    g = d log(lobe) / d v, summed over wi, h and wo."""
-    lobe, wi_s, h_s, wo_s, q, hx2, hy2, sq_i, lam_i, a_i, sq_o, lam_o, a_o = _lobe_parts(
-        frame, wi, h, wo, fresnel_falloff, alpha
-    )
-    a2 = (alpha * alpha)[:, None, None, :]  # (N, 1, 1, 2)
-    a2o = a2[:, :, 0]  # (N, 1, 2)
+    ``physics.brdf.ggx_specular`` (F depends on wi.h only, so it comes precomputed with the falloff);
+    summed over emitters with its derivatives in ``pixel_bases.specular_bases``."""
+    f4 = frame[:, None, None]
+    wi_s, h_s, wo_s = to_local(wi, f4), to_local(h, f4), to_local(wo, frame[:, None])
     ax, ay = alpha[:, 0, None, None], alpha[:, 1, None, None]
-    above_i = (wi_s[..., 2] > 0).to(wi_s.dtype)
-    # d log / d v for v = h (D), wi (cos_i / (cos_i + Lambda_i)), wo (1 / (cos_o + Lambda_o))
-    g_h = -4.0 / q[..., None] * torch.stack([h_s[..., 0] / ax**2, h_s[..., 1] / ay**2, h_s[..., 2]], -1)
-    inv_cos = above_i / wi_s[..., 2].clamp_min(1e-12)
-    g_i = (
-        -torch.stack([a2[..., 0] * wi_s[..., 0], a2[..., 1] * wi_s[..., 1], wi_s[..., 2]], -1)
-        / (a_i * lam_i)[..., None]
-    )
-    g_i[..., 2] += inv_cos - above_i / a_i
-    g_o = (
-        -torch.stack([a2o[..., 0] * wo_s[..., 0], a2o[..., 1] * wo_s[..., 1], wo_s[..., 2]], -1)
-        / (a_o * lam_o)[..., None]
-    )
-    g_o[..., 2] -= (wo_s[..., 2] > 0).to(wo_s.dtype) / a_o
-    d_omega = cross(g_i, wi_s) + cross(g_h, h_s) + cross(g_o, wo_s)[:, :, None, :]
-    # log alpha: D gives -1 + 4 (h/a)^2 / q; Lambda_i and Lambda_o give -(a v)^2 / (A Lambda)
-    d_ax = -1.0 + 4.0 * hx2 / q - sq_i[0] / (a_i * lam_i) - (sq_o[0] / (a_o * lam_o))[..., None]
-    d_ay = -1.0 + 4.0 * hy2 / q - sq_i[1] / (a_i * lam_i) - (sq_o[1] / (a_o * lam_o))[..., None]
-    return lobe, torch.cat([d_omega, d_ax[..., None], d_ay[..., None]], -1)
+    q = (h_s[..., 0] / ax) ** 2 + (h_s[..., 1] / ay) ** 2 + h_s[..., 2] ** 2
+    cos_i = wi_s[..., 2].clamp_min(0.0)
+    lam_i = torch.sqrt(((ax * wi_s[..., 0]) ** 2 + (ay * wi_s[..., 1]) ** 2 + wi_s[..., 2] ** 2).clamp_min(1e-20))
+    axo, ayo = ax[..., 0], ay[..., 0]
+    lam_o = torch.sqrt(((axo * wo_s[..., 0]) ** 2 + (ayo * wo_s[..., 1]) ** 2 + wo_s[..., 2] ** 2).clamp_min(1e-20))
+    seen = (wo_s[..., 2] > 0).to(wo_s.dtype) / (wo_s[..., 2].clamp_min(0.0) + lam_o)  # 0 below
+    return cos_i * fresnel_falloff * seen[..., None] / (math.pi * ax * ay * q * q * (cos_i + lam_i))
 
 
 class _Round:
@@ -286,9 +226,7 @@ class _Round:
     def __init__(self, tr: _Trace, frame0: Tensor, log_alpha: Tensor, specular: bool):
         self.tr, self.specular, self.frame0 = tr, specular, frame0
         # diffuse basis per channel: linear in the shading normal (emitters above F0's horizon)
-        cos = torch.einsum("nj,nvkj->nvk", frame0[:, 2], tr.wi)
-        above = (cos > 0).to(cos.dtype) * tr.falloff
-        self.diffuse = torch.einsum("nvk,kc,nvkj->nvcj", above, tr.drive, tr.wi) / math.pi  # (N, V, 3, 3)
+        self.diffuse = diffuse_basis(frame0[:, 2], tr.wi, tr.falloff, tr.drive).to(tr.wi.dtype)  # (N, V, 3, 3)
         if not specular:
             return
         if tr.blocks is None:
@@ -324,7 +262,7 @@ class _Round:
 
     def bases_and_jacobian(self, log_alpha: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """``bases`` at omega = 0 and their derivatives ``(N, V, 5, 3)`` by (omega, log alpha)
-        (analytic: see ``_lobe_jacobian``)."""
+        (analytic: ``pixel_bases.specular_bases``)."""
         frame = self.frame0
         g_s = torch.einsum("nij,nvcj->nvci", frame, self.diffuse)  # diffuse basis in the shading frame
         diffuse = g_s[..., 2]
@@ -333,10 +271,9 @@ class _Round:
         dd[:, :, 0], dd[:, :, 1] = -g_s[..., 1], g_s[..., 0]
         if not self.specular:
             return diffuse, torch.zeros_like(diffuse), dd, torch.zeros_like(dd)
-        lobe, dlog = _lobe_jacobian(frame, self.wi, self.h, self.tr.wo, self.ff, log_alpha.exp())
-        spec = torch.einsum("nvm,nvmc->nvc", lobe, self.drive)
-        ds = torch.einsum("nvm,nvmk,nvmc->nvkc", lobe, dlog, self.drive)
-        return diffuse, spec, dd, ds
+        spec, ds = specular_bases(frame, self.wi, self.h, self.tr.wo, self.ff, self.drive, log_alpha.exp(), True)
+        assert ds is not None
+        return diffuse, spec.to(diffuse.dtype), dd, ds.to(diffuse.dtype)
 
     def bases(self, omega: Tensor, log_alpha: Tensor) -> tuple[Tensor, Tensor]:
         """Unit-albedo diffuse and specular pixel bases ``(N, V, 3)`` for the rotation ``omega
@@ -345,8 +282,8 @@ class _Round:
         diffuse = (self.diffuse * frame[:, None, None, 2, :]).sum(-1)
         if not self.specular:
             return diffuse, torch.zeros_like(diffuse)
-        lobe = _lobe(frame, self.wi, self.h, self.tr.wo, self.ff, log_alpha.exp())
-        return diffuse, torch.einsum("nvm,nvmc->nvc", lobe, self.drive)
+        spec, _ = specular_bases(frame, self.wi, self.h, self.tr.wo, self.ff, self.drive, log_alpha.exp())
+        return diffuse, spec.to(diffuse.dtype)
 
 
 _LO = torch.tensor([-math.inf] * 3 + [math.log(ALPHA_MIN)] * 2 + [0.0] * 6)

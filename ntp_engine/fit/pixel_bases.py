@@ -1,0 +1,195 @@
+"""The refinement's pixel bases (``fit.refine``): Eq. 1 per entry summed over its emitters for unit
+albedos — diffuse and specular, the specular one with its derivatives — each as one compiled loop
+(numba, parallel over texels): no (texels x entries x emitters) temporaries, which made the torch
+form ~70% of the refinement's time.
+
+Convention: every vector in the texel's geometric frame; per texel n, entry v, emitter sample m:
+unit ``wi (N, V, M, 3)`` toward the emitter, ``drive`` per camera channel (exposure included; 0 for
+padding). Diffuse: ``falloff (N, V, M)`` = w_q Psi / r^2; the basis is linear in the shading normal,
+``diffuse (N, V, 3 channels, 3)`` = sum_m [wi.n0 > 0] falloff drive_c wi / pi, so a pixel is
+rho_d,c (basis_c . n) for any normal n near the ``n0`` that chose the emitters above the horizon.
+Specular: ``frame (N, 3, 3)`` rows t, b, n of the shading frame; unit ``h (N, V, M, 3)``,
+``fresnel_falloff (N, V, M)`` = F(wi.h) w_q Psi / r^2, ``drive (N, V, M, 3)``, unit ``wo (N, V, 3)``,
+``alpha (N, 2)`` = (alpha_x, alpha_y) along (t, b). The lobe toward emitter m is
+F D G / (4 cos_i cos_o) cos_i falloff in the cancelled Smith form of ``physics.brdf.ggx_specular``:
+    lobe = cos_i+ F falloff / (pi ax ay q^2 (cos_i+ + L_i) (cos_o+ + L_o)),  0 where cos_o <= 0,
+q = (h_x/ax)^2 + (h_y/ay)^2 + h_z^2 and L = |(ax v_x, ay v_y, v_z)| in the shading frame.
+Derivatives are by (omega_x, omega_y, omega_z, log alpha_x, log alpha_y), omega a rotation of the
+shading frame at 0 (a shading-frame vector v turns by v x omega, so d/d omega = g x v for
+g = d log(lobe) / d v, summed over wi, h and wo). Results in the dtype of ``wi`` (float32 or
+float64: the scipy baseline differentiates them numerically), sums in float64.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+import torch
+from torch import Tensor
+
+from ..io.thread_pools import numba_threads_as_torch
+
+N_DERIVATIVES = 5  # omega (3), log alpha_x, log alpha_y
+
+
+def _arr(t: Tensor, dtype: torch.dtype) -> np.ndarray:
+    return np.ascontiguousarray(t.detach().to(dtype).numpy())
+
+
+def diffuse_basis(normal: Tensor, wi: Tensor, falloff: Tensor, drive: Tensor) -> Tensor:
+    """The diffuse basis ``(N, V, 3, 3)`` (module docstring) for the normals ``normal (N, 3)`` that
+    decide which emitters are above the horizon, ``wi (N, V, K, 3)``, ``falloff (N, V, K)`` and one
+    drive for every entry ``(K, 3)``."""
+    N, V, K = falloff.shape
+    d = wi.dtype
+    out = _arr(torch.zeros(N, V, 3, 3, dtype=d), d)
+    with numba_threads_as_torch():
+        _diffuse_loop(_arr(normal, d), _arr(wi, d), _arr(falloff, d), _arr(drive, d), out)
+    return torch.from_numpy(out)
+
+
+def specular_bases(
+    frame: Tensor,
+    wi: Tensor,
+    h: Tensor,
+    wo: Tensor,
+    fresnel_falloff: Tensor,
+    drive: Tensor,
+    alpha: Tensor,
+    derivatives: bool = False,
+) -> tuple[Tensor, Tensor | None]:
+    """The unit-rho_s pixel basis ``(N, V, 3)`` = sum_m lobe_m drive_m, and with ``derivatives``
+    its derivatives ``(N, V, 5, 3)`` (module docstring); else None."""
+    N, V, M = fresnel_falloff.shape
+    d = wi.dtype
+    spec = np.zeros((N, V, 3), _arr(wi[:0], d).dtype)
+    ds = np.zeros((N, V, N_DERIVATIVES, 3) if derivatives else (0, 0, N_DERIVATIVES, 3), spec.dtype)
+    with numba_threads_as_torch():
+        _specular_loop(*(_arr(x, d) for x in (frame, wi, h, wo, fresnel_falloff, drive, alpha)), derivatives, spec, ds)
+    return torch.from_numpy(spec), torch.from_numpy(ds) if derivatives else None
+
+
+@numba.njit(parallel=True, fastmath=True, cache=True)
+def _diffuse_loop(normal, wi, falloff, drive, out):  # pragma: no cover - compiled
+    """Fills ``out (N, V, 3, 3)`` (see ``diffuse_basis``)."""
+    N, V, K = falloff.shape
+    for n in numba.prange(N):
+        n0, n1, n2 = float(normal[n, 0]), float(normal[n, 1]), float(normal[n, 2])
+        for v in range(V):
+            a00 = a01 = a02 = a10 = a11 = a12 = a20 = a21 = a22 = 0.0
+            for k in range(K):
+                f = falloff[n, v, k]
+                if f == 0.0:
+                    continue
+                x, y, z = wi[n, v, k, 0], wi[n, v, k, 1], wi[n, v, k, 2]
+                if n0 * x + n1 * y + n2 * z <= 0.0:
+                    continue
+                d0, d1, d2 = f * drive[k, 0], f * drive[k, 1], f * drive[k, 2]
+                a00 += d0 * x
+                a01 += d0 * y
+                a02 += d0 * z
+                a10 += d1 * x
+                a11 += d1 * y
+                a12 += d1 * z
+                a20 += d2 * x
+                a21 += d2 * y
+                a22 += d2 * z
+            c = 1.0 / math.pi
+            out[n, v, 0, 0], out[n, v, 0, 1], out[n, v, 0, 2] = a00 * c, a01 * c, a02 * c
+            out[n, v, 1, 0], out[n, v, 1, 1], out[n, v, 1, 2] = a10 * c, a11 * c, a12 * c
+            out[n, v, 2, 0], out[n, v, 2, 1], out[n, v, 2, 2] = a20 * c, a21 * c, a22 * c
+
+
+@numba.njit(parallel=True, fastmath=True, cache=True)
+def _specular_loop(frame, wi, h, wo, ff, drive, alpha, derivatives, spec, ds):  # pragma: no cover - compiled
+    """Fills ``spec (N, V, 3)`` and, with ``derivatives``, ``ds (N, V, 5, 3)`` (see the module)."""
+    N, V, M = ff.shape
+    for n in numba.prange(N):
+        ax, ay = float(alpha[n, 0]), float(alpha[n, 1])
+        ax2, ay2 = ax * ax, ay * ay
+        t0, t1, t2 = float(frame[n, 0, 0]), float(frame[n, 0, 1]), float(frame[n, 0, 2])
+        b0, b1, b2 = float(frame[n, 1, 0]), float(frame[n, 1, 1]), float(frame[n, 1, 2])
+        n0, n1, n2 = float(frame[n, 2, 0]), float(frame[n, 2, 1]), float(frame[n, 2, 2])
+        norm = 1.0 / (math.pi * ax * ay)
+        for v in range(V):
+            ox = t0 * wo[n, v, 0] + t1 * wo[n, v, 1] + t2 * wo[n, v, 2]
+            oy = b0 * wo[n, v, 0] + b1 * wo[n, v, 1] + b2 * wo[n, v, 2]
+            oz = n0 * wo[n, v, 0] + n1 * wo[n, v, 1] + n2 * wo[n, v, 2]
+            if oz <= 0.0:
+                continue  # the view-side Smith factor: no lobe seen from below
+            so0, so1 = (ax * ox) ** 2, (ay * oy) ** 2
+            lam_o = math.sqrt(max(so0 + so1 + oz * oz, 1e-20))
+            a_o = oz + lam_o
+            seen = norm / a_o
+            s0 = s1 = s2 = 0.0
+            # per-emitter sums of lobe * d log(lobe) * drive (5 derivatives x 3 channels)
+            g00 = g01 = g02 = g10 = g11 = g12 = g20 = g21 = g22 = 0.0
+            g30 = g31 = g32 = g40 = g41 = g42 = 0.0
+            for m in range(M):
+                f = ff[n, v, m]
+                if f == 0.0:
+                    continue
+                wx, wy, wz = wi[n, v, m, 0], wi[n, v, m, 1], wi[n, v, m, 2]
+                iz = n0 * wx + n1 * wy + n2 * wz
+                if iz <= 0.0:
+                    continue
+                ix = t0 * wx + t1 * wy + t2 * wz
+                iy = b0 * wx + b1 * wy + b2 * wz
+                hx_, hy_, hz_ = h[n, v, m, 0], h[n, v, m, 1], h[n, v, m, 2]
+                hx = t0 * hx_ + t1 * hy_ + t2 * hz_
+                hy = b0 * hx_ + b1 * hy_ + b2 * hz_
+                hz = n0 * hx_ + n1 * hy_ + n2 * hz_
+                hx2, hy2 = hx * hx / ax2, hy * hy / ay2
+                q = hx2 + hy2 + hz * hz
+                si0, si1 = (ax * ix) ** 2, (ay * iy) ** 2
+                lam_i = math.sqrt(max(si0 + si1 + iz * iz, 1e-20))
+                a_i = iz + lam_i
+                lobe = iz * f * seen / (q * q * a_i)
+                d0, d1, d2 = lobe * drive[n, v, m, 0], lobe * drive[n, v, m, 1], lobe * drive[n, v, m, 2]
+                s0 += d0
+                s1 += d1
+                s2 += d2
+                if not derivatives:
+                    continue
+                # g = d log(lobe) / d v for v = h (D), wi (cos_i / (cos_i + L_i)); d/d omega = g x v
+                c = -4.0 / q
+                ghx, ghy, ghz = c * hx / ax2, c * hy / ay2, c * hz
+                e = -1.0 / (a_i * lam_i)
+                gix, giy, giz = e * ax2 * ix, e * ay2 * iy, e * iz + 1.0 / max(iz, 1e-12) - 1.0 / a_i
+                w0 = (giy * iz - giz * iy) + (ghy * hz - ghz * hy)
+                w1 = (giz * ix - gix * iz) + (ghz * hx - ghx * hz)
+                w2 = (gix * iy - giy * ix) + (ghx * hy - ghy * hx)
+                la_x = -1.0 + 4.0 * hx2 / q + e * si0
+                la_y = -1.0 + 4.0 * hy2 / q + e * si1
+                g00 += w0 * d0
+                g01 += w0 * d1
+                g02 += w0 * d2
+                g10 += w1 * d0
+                g11 += w1 * d1
+                g12 += w1 * d2
+                g20 += w2 * d0
+                g21 += w2 * d1
+                g22 += w2 * d2
+                g30 += la_x * d0
+                g31 += la_x * d1
+                g32 += la_x * d2
+                g40 += la_y * d0
+                g41 += la_y * d1
+                g42 += la_y * d2
+            spec[n, v, 0], spec[n, v, 1], spec[n, v, 2] = s0, s1, s2
+            if not derivatives:
+                continue
+            # the view side (same for every emitter): g_o = d log(1 / (cos_o + L_o)) / d wo
+            e = -1.0 / (a_o * lam_o)
+            gox, goy, goz = e * ax2 * ox, e * ay2 * oy, e * oz - 1.0 / a_o
+            w0 = goy * oz - goz * oy
+            w1 = goz * ox - gox * oz
+            w2 = gox * oy - goy * ox
+            la_x, la_y = e * so0, e * so1
+            ds[n, v, 0, 0], ds[n, v, 0, 1], ds[n, v, 0, 2] = g00 + w0 * s0, g01 + w0 * s1, g02 + w0 * s2
+            ds[n, v, 1, 0], ds[n, v, 1, 1], ds[n, v, 1, 2] = g10 + w1 * s0, g11 + w1 * s1, g12 + w1 * s2
+            ds[n, v, 2, 0], ds[n, v, 2, 1], ds[n, v, 2, 2] = g20 + w2 * s0, g21 + w2 * s1, g22 + w2 * s2
+            ds[n, v, 3, 0], ds[n, v, 3, 1], ds[n, v, 3, 2] = g30 + la_x * s0, g31 + la_x * s1, g32 + la_x * s2
+            ds[n, v, 4, 0], ds[n, v, 4, 1], ds[n, v, 4, 2] = g40 + la_y * s0, g41 + la_y * s1, g42 + la_y * s2
