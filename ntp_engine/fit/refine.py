@@ -240,11 +240,14 @@ class _Round:
         rest = order[..., EXPANDED_BLOCKS:]  # (N, V, C - B) blocks kept coarse
 
         def take(a: Tensor, idx: Tensor) -> Tensor:
-            return torch.gather(a, 2, idx[..., None].expand(-1, -1, -1, a.shape[-1]))
+            """``a (N, V, K, ...)`` at ``idx (N, V, S)`` along K: one flat index_select (2x a gather)."""
+            N, V, K = a.shape[:3]
+            flat = (idx + torch.arange(N * V).view(N, V, 1) * K).flatten()
+            return a.reshape(N * V * K, -1).index_select(0, flat).view(N, V, idx.shape[2], *a.shape[3:])
 
         self.wi = torch.cat([take(tr.wi, fine), take(tr.wi_c, rest)], 2)
         self.h = torch.cat([take(tr.h, fine), take(tr.h_c, rest)], 2)
-        self.ff = torch.cat([torch.gather(tr.fresnel_falloff, 2, fine), torch.gather(tr.ff_c, 2, rest)], 2)
+        self.ff = torch.cat([take(tr.fresnel_falloff, fine), take(tr.ff_c, rest)], 2)
         self.drive = torch.cat([tr.drive[fine], tr.drive_c[rest]], 2)  # (N, V, M, 3)
 
     def rows(self, idx: Tensor) -> _Round:
