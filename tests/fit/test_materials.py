@@ -37,6 +37,22 @@ def test_clusters_separate_distinct_groups_deterministically():
     assert len(clusters(np.zeros((0, 3)))) == 0
 
 
+def test_clusters_do_not_depend_on_one_k_means_run():
+    # five overlapping groups of unequal sizes (4 units apart, spread 0.7): one k-means++ run lands
+    # in a poor local optimum for some seeds (3 or 4 groups found); the tightest of the restarts not
+    rng = np.random.default_rng(0)
+    centres = rng.normal(size=(5, 5))
+    centres *= 4.0 / np.linalg.norm(centres, axis=1, keepdims=True)
+    sizes = [2000, 1200, 600, 300, 150]
+    f = np.concatenate([c + 0.7 * rng.normal(size=(s, 5)) for c, s in zip(centres, sizes, strict=True)])
+    truth = np.repeat(np.arange(5), sizes)
+    for seed in range(8):
+        labels = clusters(f, seed=seed)
+        assert labels.max() + 1 == 5, seed
+        purity = sum(np.bincount(truth[labels == j]).max() for j in range(5)) / len(f)
+        assert purity > 0.99, (seed, purity)
+
+
 def test_lobe_materials_are_their_members_medians():
     rho_d, alpha, rho_s = _two_materials(np.random.default_rng(1))
     m = lobe_materials(rho_d, alpha, rho_s)
