@@ -184,6 +184,11 @@ class _AzimuthSearch:
         self.caster = RayCaster([mesh.triangles])
         self.up = np.tile([0.0, 0.0, 1.0], (len(B), 1))
 
+    def nearest(self, X: np.ndarray, bound: float) -> tuple[np.ndarray, np.ndarray]:
+        """Distance to and index of the nearest mesh sample for points ``X (n, 3)``; exact where
+        the distance is below ``bound``, else (inf, len(samples))."""
+        return self.tree.query(X, distance_upper_bound=bound)
+
     def place(self, X: np.ndarray, s: float, yaw: float, txy: np.ndarray) -> np.ndarray:
         """Points ``X`` scaled, turned by ``yaw`` about z and shifted: mesh frame."""
         c, sn = np.cos(yaw), np.sin(yaw)
@@ -194,7 +199,7 @@ class _AzimuthSearch:
         """Truncated quadratic (MSAC) of the object points' distances to the mesh, plus an outlier's
         cost per support point under the object; and those distances."""
         tau = self.tau
-        dist, _ = self.tree.query(self.place(self.A, s, yaw, txy))
+        dist, _ = self.nearest(self.place(self.A, s, yaw, txy), tau)  # only min(dist, tau) is used
         value = float(np.minimum(dist, tau) @ np.minimum(dist, tau))
         if len(self.B):  # support points cannot lie under the object: each one there costs an outlier
             xs = self.place(self.B, s, yaw, txy)
@@ -205,9 +210,18 @@ class _AzimuthSearch:
     def icp(self, s: float, yaw: float, txy: np.ndarray, free_yaw: bool) -> tuple[float, float, np.ndarray]:
         """Trimmed, scale-aware ICP of (s, yaw, txy); the azimuth held unless ``free_yaw``."""
         A, samples = self.A, self.samples
+        # distances are needed exactly up to the trimming threshold only; far points are what make a
+        # kd-tree query slow (every sample is about as far), so the query stops at twice the last one
+        bound = np.inf
         for _ in range(self.iterations):
-            dist, j = self.tree.query(self.place(A, s, yaw, txy))
-            kept = dist <= max(np.quantile(dist, self.keep), self.tau)
+            X = self.place(A, s, yaw, txy)
+            dist, j = self.nearest(X, bound)
+            rank = int(np.ceil((len(dist) - 1) * self.keep))  # the highest order statistic the quantile reads
+            if not np.isfinite(np.partition(dist, rank)[rank]):
+                dist, j = self.nearest(X, np.inf)
+            threshold = max(float(np.quantile(dist, self.keep)), self.tau)
+            kept = dist <= threshold
+            bound = 2.0 * threshold
             a, q = A[kept], samples[j[kept]]
             yaw_new = yaw
             if free_yaw:  # yaw from the 2D Procrustes of the xy parts
@@ -253,7 +267,7 @@ class _AzimuthSearch:
         samples' spacing, which biases point-to-point correspondences by a few tenths of a mm."""
         A = self.A
         for _ in range(self.iterations):
-            dist, j = self.tree.query(self.place(A, s, yaw, txy))
+            dist, j = self.nearest(self.place(A, s, yaw, txy), self.tau)
             kept = dist < self.tau
             if kept.sum() < 4:
                 break

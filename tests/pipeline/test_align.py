@@ -3,7 +3,14 @@
 import numpy as np
 import pytest
 
-from ntp_engine.pipeline.align import align_to_mesh, convergence_point, mesh_symmetry, ransac_plane, surface_samples
+from ntp_engine.pipeline.align import (
+    _AzimuthSearch,
+    align_to_mesh,
+    convergence_point,
+    mesh_symmetry,
+    ransac_plane,
+    surface_samples,
+)
 from ntp_engine.sim.demo_asset import dome_mesh
 from ntp_engine.sim.shapes import blob_mesh, box_mesh
 
@@ -44,8 +51,10 @@ def test_ransac_plane_ignores_outliers_and_convergence_point():
     assert np.abs(convergence_point(poses) - target).max() < 1e-9
 
 
-def test_align_recovers_a_similarity_from_support_and_few_object_points():
-    rng = np.random.default_rng(2)
+def _dome_scene(rng):
+    """An SfM-like cloud of the dome (40 object points, the support, 15 spurious points) and its
+    cameras in an unknown similarity's frame: (sfm points, sfm poses, mesh, world poses, object
+    points, scale)."""
     mesh = dome_mesh(64, 24)
     top = surface_samples(mesh, 4000, seed=3)
     obj = top[rng.choice(np.nonzero(top[:, 2] > 0.005)[0], 40, replace=False)]
@@ -69,6 +78,11 @@ def test_align_recovers_a_similarity_from_support_and_few_object_points():
         p[:3, :3] = m[:3, :3] @ R.T
         p[:3, 3] = s * m[:3, 3] - p[:3, :3] @ t
         sfm_poses.append(p)
+    return sfm_pts, sfm_poses, mesh, poses_w, obj, s
+
+
+def test_align_recovers_a_similarity_from_support_and_few_object_points():
+    sfm_pts, sfm_poses, mesh, poses_w, obj, s = _dome_scene(np.random.default_rng(2))
     al = align_to_mesh(sfm_pts, sfm_poses, mesh, working_distance=0.31)
     assert np.abs(al.apply(sfm_pts[:40]) - obj).max() < 2e-3
     scores = [v for _, v in al.candidates]
@@ -80,6 +94,19 @@ def test_align_recovers_a_similarity_from_support_and_few_object_points():
         centre_err = np.linalg.norm(back[:3, :3].T @ back[:3, 3] - m_w[:3, :3].T @ m_w[:3, 3])
         angle = np.degrees(np.arccos(np.clip((np.trace(back[:3, :3] @ m_w[:3, :3].T) - 1) / 2, -1, 1)))
         assert centre_err < 3e-3 and angle < 1.0
+
+
+def test_bounded_nearest_sample_queries_change_nothing(monkeypatch):
+    # the ICP asks the kd-tree for distances up to twice its last trimming threshold only (far
+    # points make a query slow): the alignment must equal the one with every distance exact
+    sfm_pts, sfm_poses, mesh, *_ = _dome_scene(np.random.default_rng(2))
+    sfm_pts = np.concatenate([sfm_pts, sfm_pts[:40] * 3.0])  # far outliers too
+    bounded = align_to_mesh(sfm_pts, sfm_poses, mesh, working_distance=0.31)
+    exact_query = _AzimuthSearch.nearest
+    monkeypatch.setattr(_AzimuthSearch, "nearest", lambda self, X, bound: exact_query(self, X, np.inf))
+    exact = align_to_mesh(sfm_pts, sfm_poses, mesh, working_distance=0.31)
+    assert bounded.candidates == exact.candidates and bounded.azimuth_margin == exact.azimuth_margin
+    assert np.array_equal(bounded.apply(sfm_pts), exact.apply(sfm_pts))
 
 
 def test_align_needs_points_on_the_object():
