@@ -1,5 +1,6 @@
 import torch
 
+from ntp_engine.learn import network
 from ntp_engine.learn.inference import RaggedTraces, predict, predict_all
 from ntp_engine.learn.network import NetworkConfig, TraceNet
 from ntp_engine.scanner.device_file import load_scanner
@@ -34,6 +35,25 @@ def test_ragged_prediction_matches_padded_forward_in_any_batching():
     assert (s_all >= 0).all() and torch.isfinite(d_all).all()
     seen = torch.cat([idx for idx, _, _ in predict(net, tr, max_entries=20)])
     assert sorted(seen.tolist()) == list(range(tr.num_traces))
+
+
+def test_the_encoder_pooled_in_chunks_is_the_encoder_pooled_at_once(monkeypatch):
+    # chunks that split traces (and an empty one) pool to the same features
+    torch.manual_seed(0)
+    net = TraceNet(NetworkConfig(preset="small"), load_scanner()).eval()
+    tr = _traces(n=12, seed=3)
+    x = net.entries(tr.entries[:, :3], tr.entries[:, 3:6], tr.entries[:, 6:9], tr.entries[:, 9:])
+    with torch.no_grad():
+        whole = net.forward_ragged(x, tr.offsets)
+        monkeypatch.setattr(network, "ENCODER_CHUNK", 5)
+        chunked = net.forward_ragged(x, tr.offsets)
+        empty = net.forward_ragged(x[:0], torch.zeros(3, dtype=torch.int64))
+        masked = net(x[:2].reshape(2, 1, 12), torch.zeros(2, 1, dtype=torch.bool))
+    assert len(x) > 5 and (tr.lengths == 0).any()
+    for a, b in zip(whole, chunked, strict=True):  # equal up to the matrix kernels' rounding by row count
+        torch.testing.assert_close(a, b, rtol=1e-6, atol=1e-6)
+    for a, b in zip(empty, masked, strict=True):  # traces with no entry: the network's prior
+        torch.testing.assert_close(a, b)
 
 
 def test_a_view_cap_feeds_the_network_evenly_spread_entries():
