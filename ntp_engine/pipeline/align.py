@@ -216,10 +216,11 @@ class _AzimuthSearch:
         for _ in range(self.iterations):
             X = self.place(A, s, yaw, txy)
             dist, j = self.nearest(X, bound)
-            rank = int(np.ceil((len(dist) - 1) * self.keep))  # the highest order statistic the quantile reads
-            if not np.isfinite(np.partition(dist, rank)[rank]):
+            threshold = trim_threshold(dist, self.keep, self.tau)
+            if threshold is None:  # the bound cut into the quantile: every distance exact
                 dist, j = self.nearest(X, np.inf)
-            threshold = max(float(np.quantile(dist, self.keep)), self.tau)
+                threshold = trim_threshold(dist, self.keep, self.tau)
+            assert threshold is not None
             kept = dist <= threshold
             bound = 2.0 * threshold
             a, q = A[kept], samples[j[kept]]
@@ -286,6 +287,18 @@ class _AzimuthSearch:
             if moved < 1e-10:
                 break
         return s, yaw, txy
+
+
+def trim_threshold(dist: np.ndarray, keep: float, tau: float) -> float | None:
+    """The trimmed ICP's threshold max(quantile(dist, keep), tau) for distances ``dist (n,)`` that are
+    exact below some bound and inf beyond it; None when an infinite one is among the order
+    statistics the (linear) quantile reads — positions floor((n - 1) keep) and the one after, which
+    numpy reads even at weight 0 (inf x 0 would be NaN)."""
+    n = len(dist)
+    last = min(int(np.floor((n - 1) * keep)) + 1, n - 1)
+    if not np.isfinite(np.partition(dist, last)[last]):
+        return None
+    return max(float(np.quantile(dist, keep)), tau)
 
 
 def align_to_mesh(

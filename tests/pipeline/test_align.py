@@ -10,6 +10,7 @@ from ntp_engine.pipeline.align import (
     mesh_symmetry,
     ransac_plane,
     surface_samples,
+    trim_threshold,
 )
 from ntp_engine.sim.demo_asset import dome_mesh
 from ntp_engine.sim.shapes import blob_mesh, box_mesh
@@ -107,6 +108,20 @@ def test_bounded_nearest_sample_queries_change_nothing(monkeypatch):
     exact = align_to_mesh(sfm_pts, sfm_poses, mesh, working_distance=0.31)
     assert bounded.candidates == exact.candidates and bounded.azimuth_margin == exact.azimuth_margin
     assert np.array_equal(bounded.apply(sfm_pts), exact.apply(sfm_pts))
+
+
+@pytest.mark.parametrize("n", [9, 10, 11, 40, 41])
+def test_trim_threshold_reads_only_distances_below_the_bound(n):
+    rng = np.random.default_rng(n)
+    exact = rng.uniform(0, 1, n)
+    for bound in (np.inf, 2.0, 0.7, 0.5, 0.4, 0.05):
+        cut = np.where(exact < bound, exact, np.inf)
+        t = trim_threshold(cut, 0.5, 0.01)
+        if t is not None:  # determined: the same as from the exact distances, never NaN
+            assert t == max(float(np.quantile(exact, 0.5)), 0.01)
+        else:
+            assert (exact >= bound).sum() >= n // 2  # only when the bound cut into the upper half
+    assert trim_threshold(np.where(exact < 0.05, exact, np.inf), 0.5, 0.01) is None
 
 
 def test_align_needs_points_on_the_object():
