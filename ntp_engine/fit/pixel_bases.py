@@ -44,9 +44,10 @@ def diffuse_basis(normal: Tensor, wi: Tensor, falloff: Tensor, drive: Tensor) ->
     drive for every entry ``(K, 3)``."""
     N, V, K = falloff.shape
     d = wi.dtype
-    out = _arr(torch.zeros(N, V, 3, 3, dtype=d), d)
+    wi_np = _arr(wi, d)
+    out = np.zeros((N, V, 3, 3), wi_np.dtype)
     with numba_threads_as_torch():
-        _diffuse_loop(_arr(normal, d), _arr(wi, d), _arr(falloff, d), _arr(drive, d), out)
+        _diffuse_loop(_arr(normal, d), wi_np, _arr(falloff, d), _arr(drive, d), out)
     return torch.from_numpy(out)
 
 
@@ -63,11 +64,11 @@ def specular_bases(
     """The unit-rho_s pixel basis ``(N, V, 3)`` = sum_m lobe_m drive_m, and with ``derivatives``
     its derivatives ``(N, V, 5, 3)`` (module docstring); else None."""
     N, V, M = fresnel_falloff.shape
-    d = wi.dtype
-    spec = np.zeros((N, V, 3), _arr(wi[:0], d).dtype)
+    arrays = [_arr(x, wi.dtype) for x in (frame, wi, h, wo, fresnel_falloff, drive, alpha)]
+    spec = np.zeros((N, V, 3), arrays[1].dtype)
     ds = np.zeros((N, V, N_DERIVATIVES, 3) if derivatives else (0, 0, N_DERIVATIVES, 3), spec.dtype)
     with numba_threads_as_torch():
-        _specular_loop(*(_arr(x, d) for x in (frame, wi, h, wo, fresnel_falloff, drive, alpha)), derivatives, spec, ds)
+        _specular_loop(*arrays, derivatives, spec, ds)
     return torch.from_numpy(spec), torch.from_numpy(ds) if derivatives else None
 
 

@@ -226,7 +226,7 @@ class _Round:
     def __init__(self, tr: _Trace, frame0: Tensor, log_alpha: Tensor, specular: bool):
         self.tr, self.specular, self.frame0 = tr, specular, frame0
         # diffuse basis per channel: linear in the shading normal (emitters above F0's horizon)
-        self.diffuse = diffuse_basis(frame0[:, 2], tr.wi, tr.falloff, tr.drive).to(tr.wi.dtype)  # (N, V, 3, 3)
+        self.diffuse = diffuse_basis(frame0[:, 2], tr.wi, tr.falloff, tr.drive)  # (N, V, 3, 3), wi's dtype
         if not specular:
             return
         if tr.blocks is None:
@@ -276,7 +276,7 @@ class _Round:
             return diffuse, torch.zeros_like(diffuse), dd, torch.zeros_like(dd)
         spec, ds = specular_bases(frame, self.wi, self.h, self.tr.wo, self.ff, self.drive, log_alpha.exp(), True)
         assert ds is not None
-        return diffuse, spec.to(diffuse.dtype), dd, ds.to(diffuse.dtype)
+        return diffuse, spec, dd, ds
 
     def bases(self, omega: Tensor, log_alpha: Tensor) -> tuple[Tensor, Tensor]:
         """Unit-albedo diffuse and specular pixel bases ``(N, V, 3)`` for the rotation ``omega
@@ -286,7 +286,7 @@ class _Round:
         if not self.specular:
             return diffuse, torch.zeros_like(diffuse)
         spec, _ = specular_bases(frame, self.wi, self.h, self.tr.wo, self.ff, self.drive, log_alpha.exp())
-        return diffuse, spec.to(diffuse.dtype)
+        return diffuse, spec
 
 
 _LO = torch.tensor([-math.inf] * 3 + [math.log(ALPHA_MIN)] * 2 + [0.0] * 6)

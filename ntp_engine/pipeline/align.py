@@ -197,7 +197,7 @@ class _AzimuthSearch:
 
     def score(self, s: float, yaw: float, txy: np.ndarray) -> tuple[float, np.ndarray]:
         """Truncated quadratic (MSAC) of the object points' distances to the mesh, plus an outlier's
-        cost per support point under the object; and those distances."""
+        cost per support point under the object; and those distances (exact below tau, inf beyond)."""
         tau = self.tau
         dist, _ = self.nearest(self.place(self.A, s, yaw, txy), tau)  # only min(dist, tau) is used
         value = float(np.minimum(dist, tau) @ np.minimum(dist, tau))
