@@ -207,17 +207,51 @@ def _kth_smallest(a, k):  # pragma: no cover - compiled
     return a[k]
 
 
+_SAMPLE = 64  # values sampled to bracket the k-th smallest (``_select``)
+_BRACKET = 8  # sample ranks on either side of the k-th's expected rank (~2 sigma at 64 samples)
+
+
+@numba.njit(cache=True)
+def _kth_smallest_bracketed(values, k, scratch):  # pragma: no cover - compiled
+    """The ``k``-th smallest (0-based) of ``values`` (not changed; no NaN): two bounds from a
+    strided sample, one pass counting the values below the lower and gathering those between into
+    ``scratch``, quickselect on those few (Floyd-Rivest's idea; a branch-free pass instead of a
+    quickselect over all: 3x faster on 6144 lights). Falls back to a quickselect over all where the
+    bounds miss the k-th."""
+    L = values.shape[0]
+    step = max(L // _SAMPLE, 1)
+    ns = (L + step - 1) // step
+    if ns < 4 * _BRACKET:
+        scratch[:L] = values
+        return _kth_smallest(scratch[:L], k)
+    sample = scratch[L - ns : L]  # the top of scratch; the gather below fills it from the bottom
+    for j in range(ns):
+        sample[j] = values[j * step]
+    centre = (k * ns) // L
+    lo_rank, hi_rank = centre - _BRACKET, centre + _BRACKET
+    lo = _kth_smallest(sample, lo_rank) if lo_rank >= 0 else -math.inf
+    hi = _kth_smallest(sample, hi_rank) if hi_rank < ns else math.inf
+    below, c = 0, 0
+    for li in range(L):
+        v = values[li]
+        below += v < lo
+        scratch[c] = v  # written always, kept when inside: no branch
+        c += (v >= lo) & (v <= hi)
+    if below <= k < below + c:
+        return _kth_smallest(scratch[:c], k - below)
+    scratch[:L] = values
+    return _kth_smallest(scratch[:L], k)
+
+
 @numba.njit(cache=True)
 def _select(values, k, idx, scratch):  # pragma: no cover - compiled
     """The ``k`` smallest of ``values`` (no NaN; ties at the k-th by index) into ``idx``, in index
     order; ``scratch`` is as long as ``values``."""
-    scratch[:] = values
-    thr = _kth_smallest(scratch, k - 1)
+    thr = _kth_smallest_bracketed(values, k - 1, scratch)
     j = 0
-    for li in range(values.shape[0]):
-        if values[li] < thr:
-            idx[j] = li
-            j += 1
+    for li in range(values.shape[0]):  # at most k - 1 are below: idx[j] is in bounds, no branch
+        idx[j] = li
+        j += values[li] < thr
     for li in range(values.shape[0]):
         if j == k:
             break

@@ -74,8 +74,9 @@ def pattern_sums(
 
 
 def _emitters(scanner: Scanner) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, np.ndarray, np.ndarray]:
-    """Samples ``(K, 3)``, their emitters' normals ``(K, 3)``, drive per camera channel times the
-    quadrature weight ``(K, 3)``, and Psi as (exponent, table angles in degrees, table values):
+    """Samples ``(3, K)``, their emitters' normals ``(3, K)``, drive per camera channel times the
+    quadrature weight ``(3, K)`` (rows: the loop reads each as a contiguous vector), and Psi as
+    (exponent, table angles in degrees, table values):
     exponent >= 0 for a cosine power, -1 for the table."""
     pts, wq = scanner.emitter_samples(torch.float64)
     L, Q = wq.shape
@@ -86,9 +87,9 @@ def _emitters(scanner: Scanner) -> tuple[np.ndarray, np.ndarray, np.ndarray, flo
     else:
         exponent, table = -1.0, np.asarray(scanner.angular_table, np.float64)
     return (
-        np.ascontiguousarray(pts.reshape(L * Q, 3).numpy()),
-        np.ascontiguousarray(normals),
-        np.ascontiguousarray(drive),
+        np.ascontiguousarray(pts.reshape(L * Q, 3).numpy().T),
+        np.ascontiguousarray(normals.T),
+        np.ascontiguousarray(drive.T),
         exponent,
         np.ascontiguousarray(table[:, 0]),
         np.ascontiguousarray(table[:, 1]),
@@ -96,84 +97,98 @@ def _emitters(scanner: Scanner) -> tuple[np.ndarray, np.ndarray, np.ndarray, flo
 
 
 # ---------------------------------------------------------------- the compiled loop (numba; cached on disk)
+# Written for LLVM to vectorise the loops over the K emitter samples (AVX: 4-8 samples at once):
+# no branch in their bodies (a sample below the horizon is multiplied by 0, not skipped), samples
+# as structure-of-arrays, and the two reductions that do not vectorise in one pass — the lobe's
+# maximum and Psi from a table or a power — done over per-entry buffers after it. 2-3x the speed
+# of the branchy loop it replaced (docs/performance.md, "Emitter sums").
 @numba.njit(inline="always", fastmath=True, cache=True)
-def _lobe(ix, iy, iz, ox, oy, oz, ax, ay, lo, f0):  # pragma: no cover - compiled
-    """brdf.ggx_specular for unit local wi, wo; ``lo`` = wo_z+ + |(ax ox, ay oy, oz)|."""
-    if iz <= 0.0 or oz <= 0.0:
-        return 0.0
+def _lobe_above(ix, iy, iz, ox, oy, oz, ax2, ay2, iax2, iay2, scale, f0):  # pragma: no cover - compiled
+    """brdf.ggx_specular for unit local wi, wo with wo_z > 0, 0 where wi_z <= 0; ``scale`` is
+    1 / (pi ax ay (wo_z + |(ax ox, ay oy, oz)|)), the wo side of the G1 product."""
     hx, hy, hz = ix + ox, iy + oy, iz + oz
     h2 = hx * hx + hy * hy + hz * hz
-    q = (hx / ax) ** 2 + (hy / ay) ** 2 + hz * hz  # |h|^2 times the unit h's quadratic form
-    d = (h2 / q) ** 2 / (math.pi * ax * ay)
-    c = min(max(0.5 * math.sqrt(h2), 0.0), 1.0)  # wi . h^ = |wi + wo| / 2 for unit wi, wo
-    m = 1.0 - c
+    hq = h2 / (hx * hx * iax2 + hy * hy * iay2 + hz * hz)  # 1 / the unit h's quadratic form
+    m = 1.0 - min(0.5 * math.sqrt(h2), 1.0)  # 1 - wi . h^, as |wi + wo| / 2 for unit wi, wo
     f = f0 + (1.0 - f0) * (m * m) * (m * m) * m
-    li = math.sqrt(max((ax * ix) ** 2 + (ay * iy) ** 2 + iz * iz, 1e-20))
-    return d * f / ((iz + li) * lo)
+    li = math.sqrt(max(ax2 * ix * ix + ay2 * iy * iy + iz * iz, 1e-20))
+    up = 1.0 if iz > 0.0 else 0.0
+    return up * hq * hq * scale * f / (max(iz, 0.0) + li)
 
 
 @numba.njit(parallel=True, fastmath=True, cache=True)
 def _pattern_sums_loop(
     x, frame, alpha_x, alpha_y, mask, pts, normals, drive, exponent, tab_a, tab_v, grid, f0, out
 ):  # pragma: no cover
-    """Fills ``out (M, 8)``: diffuse sums (3), specular sums (3), lobe max, lobe peak (see the caller)."""
-    M, K, G = x.shape[0], pts.shape[0], grid.shape[0]
+    """Fills ``out (M, 8)``: diffuse sums (3), specular sums (3), lobe max, lobe peak (see the caller).
+    ``pts, normals, drive`` are ``(3, K)``: one row per coordinate or channel."""
+    M, K, G = x.shape[0], pts.shape[1], grid.shape[0]
+    px, py, pz = pts[0], pts[1], pts[2]
+    qx, qy, qz = normals[0], normals[1], normals[2]
+    w0, w1, w2 = drive[0], drive[1], drive[2]
     for m in numba.prange(M):
         if not mask[m]:
             continue
         x0, x1, x2 = x[m, 0], x[m, 1], x[m, 2]
-        ax, ay = alpha_x[m], alpha_y[m]
-        # wo = -x / |x| in the local frame (rows t, b, n)
+        t0, t1, t2 = frame[m, 0, 0], frame[m, 0, 1], frame[m, 0, 2]  # rows t, b, n: camera -> local
+        b0, b1, b2 = frame[m, 1, 0], frame[m, 1, 1], frame[m, 1, 2]
+        n0, n1, n2 = frame[m, 2, 0], frame[m, 2, 1], frame[m, 2, 2]
         r = math.sqrt(x0 * x0 + x1 * x1 + x2 * x2)
-        ox = -(frame[m, 0, 0] * x0 + frame[m, 0, 1] * x1 + frame[m, 0, 2] * x2) / r
-        oy = -(frame[m, 1, 0] * x0 + frame[m, 1, 1] * x1 + frame[m, 1, 2] * x2) / r
-        oz = -(frame[m, 2, 0] * x0 + frame[m, 2, 1] * x1 + frame[m, 2, 2] * x2) / r
-        lo = max(oz, 0.0) + math.sqrt(max((ax * ox) ** 2 + (ay * oy) ** 2 + oz * oz, 1e-20))
-        d0 = d1 = d2 = s0 = s1 = s2 = 0.0
-        top = 0.0
+        ox = -(t0 * x0 + t1 * x1 + t2 * x2) / r
+        oy = -(b0 * x0 + b1 * x1 + b2 * x2) / r
+        oz = -(n0 * x0 + n1 * x1 + n2 * x2) / r
+        if oz <= 0.0:  # seen from below: no light reaches the camera, no lobe
+            continue
+        ax, ay = alpha_x[m], alpha_y[m]
+        ax2, ay2 = ax * ax, ay * ay
+        iax2, iay2 = 1.0 / ax2, 1.0 / ay2
+        scale = 1.0 / (math.pi * ax * ay * (oz + math.sqrt(max(ax2 * ox * ox + ay2 * oy * oy + oz * oz, 1e-20))))
+        buf = np.empty((3, K))
+        geo, lobe, psi = buf[0], buf[1], buf[2]  # per sample: cos_i / r^2 (0 below), lobe, Psi
         for k in range(K):
-            dx, dy, dz = pts[k, 0] - x0, pts[k, 1] - x1, pts[k, 2] - x2
+            dx, dy, dz = px[k] - x0, py[k] - x1, pz[k] - x2
             r2 = max(dx * dx + dy * dy + dz * dz, 1e-12)
             inv = 1.0 / math.sqrt(r2)
-            iz = (frame[m, 2, 0] * dx + frame[m, 2, 1] * dy + frame[m, 2, 2] * dz) * inv
-            if iz <= 0.0 or oz <= 0.0:
-                continue  # below the horizon: no light reaches, no lobe
-            ix = (frame[m, 0, 0] * dx + frame[m, 0, 1] * dy + frame[m, 0, 2] * dz) * inv
-            iy = (frame[m, 1, 0] * dx + frame[m, 1, 1] * dy + frame[m, 1, 2] * dz) * inv
-            s = _lobe(ix, iy, iz, ox, oy, oz, ax, ay, lo, f0)
-            top = max(top, s)  # Eq. 6 asks how bright the lobe gets toward a sample, lit or not
-            cos_l = -(dx * normals[k, 0] + dy * normals[k, 1] + dz * normals[k, 2]) * inv
-            if cos_l <= 0.0:
-                continue  # behind the emitter: Psi = 0
-            c = min(cos_l, 1.0)
-            if exponent == 1.0:
-                psi = c
-            elif exponent >= 0.0:
-                psi = c**exponent
-            else:  # tabulated Psi(angle in degrees), linear between entries, 0 past the last
-                ang = math.degrees(math.acos(c))
-                if ang > tab_a[-1]:
-                    continue
+            ix = (t0 * dx + t1 * dy + t2 * dz) * inv
+            iy = (b0 * dx + b1 * dy + b2 * dz) * inv
+            iz = (n0 * dx + n1 * dy + n2 * dz) * inv
+            lobe[k] = _lobe_above(ix, iy, iz, ox, oy, oz, ax2, ay2, iax2, iay2, scale, f0)
+            geo[k] = max(iz, 0.0) / r2
+            psi[k] = min(max(-(dx * qx[k] + dy * qy[k] + dz * qz[k]) * inv, 0.0), 1.0)  # cos at the emitter
+        if exponent >= 0.0 and exponent != 1.0:
+            for k in range(K):
+                psi[k] = psi[k] ** exponent if psi[k] > 0.0 else 0.0  # behind the emitter: 0, also for 0^0
+        elif exponent < 0.0:  # tabulated Psi(angle in degrees), linear between entries, 0 past the last
+            for k in range(K):
+                if psi[k] <= 0.0:
+                    continue  # behind the emitter
+                ang = math.degrees(math.acos(psi[k]))
                 j = min(max(int(np.searchsorted(tab_a, ang)), 1), len(tab_a) - 1)
                 w = min(max((ang - tab_a[j - 1]) / (tab_a[j] - tab_a[j - 1]), 0.0), 1.0)
-                psi = tab_v[j - 1] + w * (tab_v[j] - tab_v[j - 1])
-            a = psi / r2 * iz
-            d0 += a * drive[k, 0]
-            d1 += a * drive[k, 1]
-            d2 += a * drive[k, 2]
-            s0 += a * s * drive[k, 0]
-            s1 += a * s * drive[k, 1]
-            s2 += a * s * drive[k, 2]
+                psi[k] = 0.0 if ang > tab_a[-1] else tab_v[j - 1] + w * (tab_v[j] - tab_v[j - 1])
+        d0 = d1 = d2 = s0 = s1 = s2 = 0.0
+        for k in range(K):
+            a = geo[k] * psi[k]
+            d0 += a * w0[k]
+            d1 += a * w1[k]
+            d2 += a * w2[k]
+            a *= lobe[k]
+            s0 += a * w0[k]
+            s1 += a * w1[k]
+            s2 += a * w2[k]
+        top = 0.0  # Eq. 6 asks how bright the lobe gets toward a sample, lit or not
+        for k in range(K):
+            top = max(top, lobe[k])
         # the lobe's peak: confidence.specular_peak's grid of half vectors (ax u, ay v, 1)
         peak = 0.0
-        if oz > 0.0:
-            for gu in range(G):
-                for gv in range(G):
-                    hx, hy = ax * grid[gu], ay * grid[gv]
-                    hn = 1.0 / math.sqrt(hx * hx + hy * hy + 1.0)
-                    hx, hy, hz = hx * hn, hy * hn, hn
-                    dot = 2.0 * (ox * hx + oy * hy + oz * hz)
-                    peak = max(peak, _lobe(dot * hx - ox, dot * hy - oy, dot * hz - oz, ox, oy, oz, ax, ay, lo, f0))
+        for gu in range(G):
+            for gv in range(G):
+                hx, hy = ax * grid[gu], ay * grid[gv]
+                hn = 1.0 / math.sqrt(hx * hx + hy * hy + 1.0)
+                hx, hy, hz = hx * hn, hy * hn, hn
+                dot = 2.0 * (ox * hx + oy * hy + oz * hz)
+                ix, iy, iz = dot * hx - ox, dot * hy - oy, dot * hz - oz  # wo mirrored about h
+                peak = max(peak, _lobe_above(ix, iy, iz, ox, oy, oz, ax2, ay2, iax2, iay2, scale, f0))
         out[m, 0], out[m, 1], out[m, 2] = d0, d1, d2
         out[m, 3], out[m, 4], out[m, 5] = s0, s1, s2
         out[m, 6], out[m, 7] = top, peak

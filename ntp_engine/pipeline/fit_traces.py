@@ -85,11 +85,11 @@ def fit_blocks(
 
 
 def _own_block(traces: RaggedTraces, start: int, stop: int) -> RaggedTraces:
-    """Traces ``start:stop`` as a contiguous copy: pickled for a Ray task, a view would carry the
-    whole table's storage along, and the fit scales the copy's pixels in place."""
+    """Traces ``start:stop`` with their in-range entries only (all ``fit_traces`` reads) as a
+    contiguous copy: pickled for a Ray task, a view would carry the whole table's storage along, and
+    the fit scales the copy's pixels in place. One copy, not a copy and then the in-range one."""
     b = traces.block(start, stop)
-    flags = None if b.in_range is None else b.in_range.clone()
-    return RaggedTraces(b.entries.clone(), b.offsets.clone(), flags)
+    return RaggedTraces(b.entries.clone(), b.offsets.clone()) if b.in_range is None else b.in_range_only()
 
 
 def _fit_block(block: RaggedTraces, net: TraceNet, scanner: Scanner, pixel_scale: float) -> dict[str, np.ndarray]:

@@ -43,6 +43,24 @@ def test_select_takes_the_k_smallest_ties_by_index():
     assert idx.tolist() == [1, 3, 6, 2]  # below the 4th smallest (3.0) in order, then the first 3.0
 
 
+@pytest.mark.parametrize("layout", ["spread", "ties", "sample_misleads"])
+def test_select_over_a_whole_lumitexel_is_a_stable_sort(layout):
+    """The sampled bracket (``_kth_smallest_bracketed``) and its fallback where the sample misleads."""
+    rng = np.random.default_rng(5)
+    L, k = 6144, 384
+    values = {
+        "spread": rng.normal(size=L),
+        "ties": rng.integers(0, 20, L).astype(float),
+        "sample_misleads": rng.random(L),
+    }[layout]
+    values[rng.random(L) < 0.2] = np.inf
+    if layout == "sample_misleads":
+        values[:: L // 64] = -1.0  # every sampled value the smallest: the bracket misses the k-th
+    idx = np.zeros(k, np.int64)
+    _select(values, k, idx, np.zeros(L))
+    assert sorted(idx.tolist()) == sorted(np.argsort(values, kind="stable")[:k].tolist())
+
+
 @pytest.mark.parametrize("n", [1, 2, 7, 6144])
 def test_quickselect_finds_every_order_statistic_with_many_ties(n):
     rng = np.random.default_rng(n)

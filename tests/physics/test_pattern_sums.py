@@ -23,6 +23,10 @@ def _entries(M=300, seed=0):
     t = safe_normalize(torch.randn(M, 3, generator=g, dtype=F64))
     ax = torch.rand(M, generator=g, dtype=F64) * 0.494 + 0.006  # the whole alpha range
     ay = ax * (torch.rand(M, generator=g, dtype=F64) * 0.9 + 0.1)
+    # a tenth behind the emitters' plane, facing them: the samples light them from behind (Psi = 0)
+    back = torch.arange(M) % 10 == 3
+    x[back] = x[back] * torch.tensor([1.0, 1.0, 0.0], dtype=F64) - torch.tensor([0.0, 0.0, 0.02], dtype=F64)
+    n[back] = safe_normalize(n[back] * torch.tensor([1.0, 1.0, -1.0], dtype=F64))
     return x, n, t, ax, ay
 
 
@@ -34,11 +38,10 @@ def _reference(scanner, x, n, t, ax, ay):
     return a_l @ drive, s_l @ drive, spec.amax(-1), specular_peak(geo.wo_l, ax, ay)
 
 
-def _tabulated(scanner):
-    angles = np.linspace(0.0, 80.0, 9)
-    return dataclasses.replace(
-        scanner, angular_kind="table", angular_table=np.stack([angles, np.cos(np.radians(angles)) ** 1.5], 1)
-    )
+def _tabulated(scanner, last_deg=80.0):
+    angles = np.linspace(0.0, last_deg, 9)
+    values = np.cos(np.radians(angles)) ** 1.5 + 0.05  # light up to the table's end: 90 deg included
+    return dataclasses.replace(scanner, angular_kind="table", angular_table=np.stack([angles, values], 1))
 
 
 @pytest.mark.parametrize(
@@ -46,10 +49,12 @@ def _tabulated(scanner):
     [
         lambda: load_scanner(),
         lambda: dataclasses.replace(load_scanner(), angular_exponent=2.0),
+        lambda: dataclasses.replace(load_scanner(), angular_exponent=0.0),  # 0^0: still dark behind
         lambda: _tabulated(load_scanner()),
+        lambda: _tabulated(load_scanner(), last_deg=90.0),  # still dark behind
         lambda: load_scanner(DEVICES_DIR / "area_light.toml"),
     ],
-    ids=["led_array", "cosine_power", "psi_table", "area_light"],
+    ids=["led_array", "cosine_power", "uniform", "psi_table", "psi_table_to_90", "area_light"],
 )
 def test_fused_sums_equal_the_tensor_reference(device):
     scanner = device()
