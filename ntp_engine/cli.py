@@ -296,7 +296,7 @@ def _bench_scale(args: argparse.Namespace) -> int:
         camera_scale=args.scale,
         threads=args.threads,
         json_path=args.json,
-        plot=args.plot,
+        plot=args.plot if args.plot is not None else args.out / "bench_scale.png",
     )
     return 0
 
@@ -563,7 +563,7 @@ def _parser() -> argparse.ArgumentParser:
     sc.add_argument("--resolutions", type=int, nargs="+", default=list(bench_scale.RESOLUTIONS))
     sc.add_argument("--scale", type=float, default=bench_scale.CAMERA_SCALE, help="virtual camera resolution scale")
     sc.add_argument("--threads", type=int, default=0, help="CPU threads of each reconstruct (0: every core)")
-    sc.add_argument("--plot", type=Path, default=Path("bench_scale.png"), help="PNG: seconds and memory per stage")
+    sc.add_argument("--plot", type=Path, default=None, help="PNG: seconds and memory (default OUT/bench_scale.png)")
     sc.add_argument("--json", type=Path, default=None)
     sc.set_defaults(func=_bench_scale)
     bb = bsub.add_parser("blender", help="Cycles (both materials) vs the engine's render; preview seconds")

@@ -51,7 +51,22 @@ def diffuse_basis(normal: Tensor, wi: Tensor, falloff: Tensor, drive: Tensor) ->
     return torch.from_numpy(out)
 
 
-def specular_bases(
+def specular_basis(
+    frame: Tensor, wi: Tensor, h: Tensor, wo: Tensor, fresnel_falloff: Tensor, drive: Tensor, alpha: Tensor
+) -> Tensor:
+    """The unit-rho_s pixel basis ``(N, V, 3)`` = sum_m lobe_m drive_m (module docstring)."""
+    return _specular(frame, wi, h, wo, fresnel_falloff, drive, alpha, False)[0]
+
+
+def specular_basis_and_derivatives(
+    frame: Tensor, wi: Tensor, h: Tensor, wo: Tensor, fresnel_falloff: Tensor, drive: Tensor, alpha: Tensor
+) -> tuple[Tensor, Tensor]:
+    """``specular_basis`` and its derivatives ``(N, V, 5, 3)`` by (omega, log alpha_x, log alpha_y)
+    (module docstring), in one pass."""
+    return _specular(frame, wi, h, wo, fresnel_falloff, drive, alpha, True)
+
+
+def _specular(
     frame: Tensor,
     wi: Tensor,
     h: Tensor,
@@ -59,17 +74,16 @@ def specular_bases(
     fresnel_falloff: Tensor,
     drive: Tensor,
     alpha: Tensor,
-    derivatives: bool = False,
-) -> tuple[Tensor, Tensor | None]:
-    """The unit-rho_s pixel basis ``(N, V, 3)`` = sum_m lobe_m drive_m, and with ``derivatives``
-    its derivatives ``(N, V, 5, 3)`` (module docstring); else None."""
+    derivatives: bool,
+) -> tuple[Tensor, Tensor]:
+    """The compiled loop's call; the derivatives ``(0, 0, 5, 3)`` unless asked for."""
     N, V, M = fresnel_falloff.shape
     arrays = [_arr(x, wi.dtype) for x in (frame, wi, h, wo, fresnel_falloff, drive, alpha)]
     spec = np.zeros((N, V, 3), arrays[1].dtype)
     ds = np.zeros((N, V, N_DERIVATIVES, 3) if derivatives else (0, 0, N_DERIVATIVES, 3), spec.dtype)
     with numba_threads_as_torch():
         _specular_loop(*arrays, derivatives, spec, ds)
-    return torch.from_numpy(spec), torch.from_numpy(ds) if derivatives else None
+    return torch.from_numpy(spec), torch.from_numpy(ds)
 
 
 @numba.njit(parallel=True, fastmath=True, cache=True)

@@ -47,7 +47,7 @@ from ..scanner.scanner import Scanner
 from .albedo import bounded_ls2
 from .emitter_blocks import EmitterBlocks, emitter_blocks
 from .highlights import parked_positions
-from .pixel_bases import diffuse_basis, specular_bases
+from .pixel_bases import diffuse_basis, specular_basis, specular_basis_and_derivatives
 
 VERSION = 5  # of the method: part of the pipeline's cache key (bump when results change for the same settings)
 CENSOR_CODE = VALID_CODE[1]  # above this an 8-bit code may be (or border) a clipped pixel: a lower bound
@@ -206,7 +206,7 @@ def _lobe(frame: Tensor, wi: Tensor, h: Tensor, wo: Tensor, fresnel_falloff: Ten
     for shading frames ``frame (N, 3, 3)`` (rows t, b, n in the geometric frame), geometric-frame
     ``wi, h (N, V, K, 3)``, ``wo (N, V, 3)`` and ``alpha (N, 2)``. The cancelled Smith form of
     ``physics.brdf.ggx_specular`` (F depends on wi.h only, so it comes precomputed with the falloff);
-    summed over emitters with its derivatives in ``pixel_bases.specular_bases``."""
+    summed over emitters with its derivatives in ``pixel_bases.specular_basis_and_derivatives``."""
     f4 = frame[:, None, None]
     wi_s, h_s, wo_s = to_local(wi, f4), to_local(h, f4), to_local(wo, frame[:, None])
     ax, ay = alpha[:, 0, None, None], alpha[:, 1, None, None]
@@ -265,7 +265,7 @@ class _Round:
 
     def bases_and_jacobian(self, log_alpha: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """``bases`` at omega = 0 and their derivatives ``(N, V, 5, 3)`` by (omega, log alpha)
-        (analytic: ``pixel_bases.specular_bases``)."""
+        (analytic: ``pixel_bases.specular_basis_and_derivatives``)."""
         frame = self.frame0
         g_s = torch.einsum("nij,nvcj->nvci", frame, self.diffuse)  # diffuse basis in the shading frame
         diffuse = g_s[..., 2]
@@ -274,8 +274,8 @@ class _Round:
         dd[:, :, 0], dd[:, :, 1] = -g_s[..., 1], g_s[..., 0]
         if not self.specular:
             return diffuse, torch.zeros_like(diffuse), dd, torch.zeros_like(dd)
-        spec, ds = specular_bases(frame, self.wi, self.h, self.tr.wo, self.ff, self.drive, log_alpha.exp(), True)
-        assert ds is not None
+        alpha = log_alpha.exp()
+        spec, ds = specular_basis_and_derivatives(frame, self.wi, self.h, self.tr.wo, self.ff, self.drive, alpha)
         return diffuse, spec, dd, ds
 
     def bases(self, omega: Tensor, log_alpha: Tensor) -> tuple[Tensor, Tensor]:
@@ -285,8 +285,7 @@ class _Round:
         diffuse = (self.diffuse * frame[:, None, None, 2, :]).sum(-1)
         if not self.specular:
             return diffuse, torch.zeros_like(diffuse)
-        spec, _ = specular_bases(frame, self.wi, self.h, self.tr.wo, self.ff, self.drive, log_alpha.exp())
-        return diffuse, spec
+        return diffuse, specular_basis(frame, self.wi, self.h, self.tr.wo, self.ff, self.drive, log_alpha.exp())
 
 
 _LO = torch.tensor([-math.inf] * 3 + [math.log(ALPHA_MIN)] * 2 + [0.0] * 6)

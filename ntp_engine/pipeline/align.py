@@ -338,8 +338,8 @@ def align_to_mesh(
         iterations,
     )
     s, yaw, txy = search.polish(*search.search(s0))
-    best = _alignment(search, frame, s, yaw, txy)
-    final, _ = search.score(s, yaw, txy)
+    final, dist = search.score(s, yaw, txy)
+    best = _alignment(search, frame, s, yaw, txy, dist)
     best.candidates = sorted(search.candidates, key=lambda c: c[1])
     away = [v for a, v in best.candidates if azimuth_apart(a, np.degrees(yaw)) > AMBIGUOUS_DEG]
     best.azimuth_margin = float((min(away) - final) / max(final, 1e-30)) if away else float("inf")
@@ -394,9 +394,11 @@ def azimuth_apart(a_deg: float, b_deg: float) -> float:
     return abs((a_deg - b_deg + 180.0) % 360.0 - 180.0)
 
 
-def _alignment(search: _AzimuthSearch, frame: _SupportFrame, s: float, yaw: float, txy: np.ndarray) -> Alignment:
-    """The similarity of the search's (scale, azimuth, shift) and its fit to the mesh."""
-    _, dist = search.score(s, yaw, txy)
+def _alignment(
+    search: _AzimuthSearch, frame: _SupportFrame, s: float, yaw: float, txy: np.ndarray, dist: np.ndarray
+) -> Alignment:
+    """The similarity of the search's (scale, azimuth, shift) and its fit to the mesh, from the
+    score's distances ``dist`` there."""
     c, sn = np.cos(yaw), np.sin(yaw)
     R = np.array([[c, -sn, 0], [sn, c, 0], [0, 0, 1]]) @ frame.R_tilt
     t = np.array([txy[0], txy[1], frame.target[2]]) - s * R @ frame.anchor

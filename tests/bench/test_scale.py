@@ -1,16 +1,19 @@
 import json
 
 from ntp_engine.bench import scale
+from ntp_engine.cli import main
 
 
 def test_one_small_cell_times_and_measures_every_stage(tmp_path):
-    r = scale.run(tmp_path / "b", (6,), (16,), camera_scale=0.1, json_path=tmp_path / "s.json", plot=tmp_path / "p.png")
-    (cell,) = r["cells"]
+    out = tmp_path / "b"
+    argv = ["bench", "scale", "--out", str(out), "--photos", "6", "--resolutions", "16", "--scale", "0.1"]
+    assert main([*argv, "--json", str(tmp_path / "s.json")]) == 0
+    (cell,) = json.loads((tmp_path / "s.json").read_text())["cells"]
     assert cell["photos"] == 6 and cell["resolution"] == 16 and cell["entries"] > 0
     assert set(cell["seconds"]) == set(scale.STAGES) and all(v >= 0 for v in cell["seconds"].values())
     # the child's own memory is seen (torch alone is > 100 MB) and the high-water mark bounds it
     assert 0.1 < max(cell["peak_anon_gb"].values()) <= cell["high_water_gb"]
-    assert json.loads((tmp_path / "s.json").read_text())["cells"] == r["cells"] and (tmp_path / "p.png").is_file()
+    assert (out / "bench_scale.png").is_file()  # the plot goes into the bench's folder, not the cwd
 
 
 def test_the_running_stage_is_read_from_the_progress_lines(tmp_path):

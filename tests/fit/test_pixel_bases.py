@@ -7,7 +7,7 @@ import math
 import pytest
 import torch
 
-from ntp_engine.fit.pixel_bases import diffuse_basis, specular_bases
+from ntp_engine.fit.pixel_bases import diffuse_basis, specular_basis, specular_basis_and_derivatives
 from ntp_engine.fit.refine import _lobe
 from ntp_engine.physics.brdf import fresnel_schlick
 from ntp_engine.physics.frame import frame_from_normal_tangent, rotation_from_vector, safe_normalize
@@ -38,16 +38,15 @@ def _reference(frame, wi, h, wo, ff, drive, alpha, x):
 @pytest.mark.parametrize("seed", [0, 1])
 def test_bases_and_derivatives_match_the_torch_lobe(seed):
     frame, wi, h, wo, ff, drive, alpha = _case(seed)
-    spec, ds = specular_bases(frame, wi, h, wo, ff, drive, alpha, derivatives=True)
+    spec, ds = specular_basis_and_derivatives(frame, wi, h, wo, ff, drive, alpha)
     x0 = torch.zeros(len(frame), 5, dtype=torch.float64)
     ref = _reference(frame, wi, h, wo, ff, drive, alpha, x0)
     assert ref.abs().max() > 0
     assert spec.dtype == ds.dtype == torch.float64  # the scipy baseline differentiates them numerically
     torch.testing.assert_close(spec, ref, rtol=1e-9, atol=1e-12 * float(ref.abs().max()))
-    spec_only, none = specular_bases(frame, wi, h, wo, ff, drive, alpha)
-    assert none is None and torch.equal(spec_only, spec)
+    assert torch.equal(specular_basis(frame, wi, h, wo, ff, drive, alpha), spec)
     args32 = [x.float() for x in (frame, wi, h, wo, ff, drive, alpha)]
-    spec32, ds32 = specular_bases(*args32, derivatives=True)
+    spec32, ds32 = specular_basis_and_derivatives(*args32)
     assert spec32.dtype == ds32.dtype == torch.float32
     torch.testing.assert_close(spec32.double(), ref, rtol=1e-4, atol=1e-6 * float(ref.abs().max()))
     # forward-mode derivatives by each of the 5 parameters
@@ -63,12 +62,12 @@ def test_bases_and_derivatives_match_the_torch_lobe(seed):
 def test_no_light_and_views_from_below_give_zero():
     frame, wi, h, wo, ff, drive, alpha = _case(2)
     ff = torch.zeros_like(ff)
-    spec, ds = specular_bases(frame, wi, h, wo, ff, drive, alpha, derivatives=True)
+    spec, ds = specular_basis_and_derivatives(frame, wi, h, wo, ff, drive, alpha)
     assert not spec.any() and not ds.any()
     frame, wi, h, wo, ff, drive, alpha = _case(3)
     below = -wo  # every view under the shading frame's horizon... for frames near +z
     below[..., 2] = -below[..., 2].abs() - 0.5
-    spec, ds = specular_bases(frame, wi, h, safe_normalize(below), ff, drive, alpha, derivatives=True)
+    spec, ds = specular_basis_and_derivatives(frame, wi, h, safe_normalize(below), ff, drive, alpha)
     assert not spec.any() and not ds.any() and torch.isfinite(ds).all()
 
 
