@@ -33,23 +33,21 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..physics.brdf import ALPHA_MAX, ALPHA_MIN, RHO_D_MAX, RHO_S_MAX, fresnel_schlick
+from ..physics.brdf import ALPHA_MAX, ALPHA_MIN, RHO_D_MAX, RHO_S_MAX
 from ..physics.frame import (
     frame_from_normal_tangent,
     rotation_from_vector,
-    safe_normalize,
     to_local,
     turned_about_normal,
 )
-from ..physics.measurement import local_emitter_geometry
 from ..scanner.camera import VALID_CODE
 from ..scanner.scanner import Scanner
 from .albedo import bounded_ls2
 from .emitter_blocks import EmitterBlocks, emitter_blocks
 from .highlights import parked_positions
-from .pixel_bases import diffuse_basis, specular_basis, specular_basis_and_derivatives
+from .pixel_bases import diffuse_basis, emitter_directions, specular_basis, specular_basis_and_derivatives
 
-VERSION = 5  # of the method: part of the pipeline's cache key (bump when results change for the same settings)
+VERSION = 6  # of the method: part of the pipeline's cache key (bump when results change for the same settings)
 CENSOR_CODE = VALID_CODE[1]  # above this an 8-bit code may be (or border) a clipped pixel: a lower bound
 EXPANDED_BLOCKS = 4  # emitter blocks per entry summed sample by sample (the rest as coarse emitters)
 SELECT_WIDEN, SELECT_FLOOR = 3.0, 0.03  # emitters are chosen under alphas x3 (at least 0.03)
@@ -151,31 +149,24 @@ class _Trace:
         N, V, _ = entries.shape
         self.N, self.V, self.blocks = N, V, blocks
         x = parked_positions(entries[..., 3:6], mask).reshape(-1, 3)
-        n_geo, t_geo = entries[..., 6:9].reshape(-1, 3), entries[..., 9:12].reshape(-1, 3)
-        live = mask[..., None].to(x.dtype)
+        frame = frame_from_normal_tangent(entries[..., 6:9].reshape(-1, 3), entries[..., 9:12].reshape(-1, 3))
+        live = mask.reshape(-1)
         exposure = float(scanner.exposure(scanner.pattern))
 
-        def directions(dev: Scanner) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+        def directions(dev: Scanner, padding: bool) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
             """wo (N, V, 3), and per emitter sample wi, h (N, V, K, 3), falloff and F * falloff (N, V, K)."""
-            geo = local_emitter_geometry(dev, x, n_geo, t_geo)
-            K = geo.falloff.shape[1]
-            wi, wo = geo.wi_l.reshape(N, V, K, 3), geo.wo_l.reshape(N, V, 3)
-            h = safe_normalize(wi + wo[:, :, None, :])
-            falloff = geo.falloff.reshape(N, V, K) * live
-            return wo, wi, h, falloff, fresnel_schlick((wi * h).sum(-1)) * falloff
+            wo, wi, h, falloff, ff = emitter_directions(dev, x, frame, live, padding)
+            K = falloff.shape[1]
+            return wo.view(N, V, 3), wi.view(N, V, K, 3), h.view(N, V, K, 3), falloff.view(N, V, K), ff.view(N, V, K)
 
-        self.wo, wi, h, falloff, ff = directions(scanner)
-        # one padding sample (index K): any direction, no light
-        self.wi = torch.cat([wi, wi[:, :, :1]], 2)
-        self.h = torch.cat([h, h[:, :, :1]], 2)
-        self.falloff = torch.cat([falloff, torch.zeros_like(falloff[:, :, :1])], 2)
-        self.fresnel_falloff = torch.cat([ff, torch.zeros_like(ff[:, :, :1])], 2)
+        # sample index K: padding (any direction, no light)
+        self.wo, self.wi, self.h, self.falloff, self.fresnel_falloff = directions(scanner, True)
         Q = scanner.emitter_samples(x.dtype)[1].shape[1]
         p_eff = torch.as_tensor(scanner.effective_pattern(), dtype=x.dtype)
         drive = exposure * p_eff.repeat_interleave(Q, 0)  # per sample (the falloff holds w_q)
         self.drive = torch.cat([drive, torch.zeros(1, 3, dtype=x.dtype)])  # (K + 1, 3)
         if blocks is not None:
-            _, self.wi_c, self.h_c, _, self.ff_c = directions(blocks.coarse)
+            _, self.wi_c, self.h_c, _, self.ff_c = directions(blocks.coarse, False)
             self.drive_c = exposure * blocks.coarse_drive.to(x.dtype)
         y = entries[..., :3]
         self.y = torch.where(mask[..., None], y, torch.zeros_like(y))

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numba
 import numpy as np
@@ -54,7 +55,7 @@ def pattern_sums(
     """The sums of the module docstring for entries ``x, n, t (M, 3)``, alphas and ``mask (M,)``;
     ``lobe_peak`` as ``specular_peak`` (the same grid of half vectors)."""
     frame = frame_from_normal_tangent(n.double(), t.double()).numpy()
-    geo = _emitters(scanner)
+    e = emitter_arrays(scanner)
     M = len(x)
     out = np.zeros((M, 8))
     with numba_threads_as_torch():  # as --threads says
@@ -64,7 +65,12 @@ def pattern_sums(
             np.ascontiguousarray(alpha_x.double().numpy()),
             np.ascontiguousarray(alpha_y.double().numpy()),
             np.ascontiguousarray(mask.numpy().astype(np.bool_)),
-            *geo,
+            e.points,
+            e.normals,
+            e.drive,
+            e.exponent,
+            e.table_angles,
+            e.table_values,
             PEAK_GRID.numpy(),
             float(f0),
             out,
@@ -73,27 +79,55 @@ def pattern_sums(
     return PatternSums(o[:, 0:3], o[:, 3:6], o[:, 6], o[:, 7])
 
 
-def _emitters(scanner: Scanner) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, np.ndarray, np.ndarray]:
-    """Samples ``(3, K)``, their emitters' normals ``(3, K)``, drive per camera channel times the
-    quadrature weight ``(3, K)`` (rows: the loop reads each as a contiguous vector), and Psi as
-    (exponent, table angles in degrees, table values):
-    exponent >= 0 for a cosine power, -1 for the table."""
+class EmitterArrays(NamedTuple):
+    """A scanner's K emitter samples as the compiled loops read them: rows of ``(3, K)`` arrays (each
+    a contiguous vector), and Psi as ``exponent`` (>= 0: a cosine power; -1: the table)."""
+
+    points: np.ndarray  # (3, K) camera space, m
+    normals: np.ndarray  # (3, K) their emitters' unit normals
+    weights: np.ndarray  # (K,) quadrature weights
+    drive: np.ndarray  # (3, K) effective drive per camera channel times the weight
+    exponent: float
+    table_angles: np.ndarray  # (T,) degrees (the table's; unused for a power)
+    table_values: np.ndarray  # (T,)
+
+
+def emitter_arrays(scanner: Scanner) -> EmitterArrays:
+    """``scanner``'s emitter samples as ``EmitterArrays`` (float64)."""
     pts, wq = scanner.emitter_samples(torch.float64)
     L, Q = wq.shape
-    drive = np.repeat(scanner.effective_pattern(), Q, axis=0) * wq.reshape(-1, 1).numpy()
+    w = wq.reshape(-1).numpy()
+    drive = np.repeat(scanner.effective_pattern(), Q, axis=0) * w[:, None]
     normals = np.repeat(np.asarray(scanner.emitter_normals, np.float64), Q, axis=0)
     if scanner.angular_kind == "cosine":
         exponent, table = float(scanner.angular_exponent), np.zeros((2, 2))
     else:
         exponent, table = -1.0, np.asarray(scanner.angular_table, np.float64)
-    return (
+    return EmitterArrays(
         np.ascontiguousarray(pts.reshape(L * Q, 3).numpy().T),
         np.ascontiguousarray(normals.T),
+        np.ascontiguousarray(w),
         np.ascontiguousarray(drive.T),
         exponent,
         np.ascontiguousarray(table[:, 0]),
         np.ascontiguousarray(table[:, 1]),
     )
+
+
+@numba.njit(inline="always", cache=True)
+def _psi_of_cosine(c, exponent, tab_a, tab_v):  # pragma: no cover - compiled
+    """``Scanner.psi`` for one cosine ``c`` already clamped to [0, 1] (``EmitterArrays``' Psi):
+    0 behind the emitter (c = 0) for every kind, also a power's 0^0 and a table reaching 90 deg."""
+    if c <= 0.0:
+        return 0.0
+    if exponent >= 0.0:
+        return c if exponent == 1.0 else c**exponent
+    ang = math.degrees(math.acos(c))  # tabulated Psi(angle in degrees), linear between, 0 past the last
+    if ang > tab_a[-1]:
+        return 0.0
+    j = min(max(int(np.searchsorted(tab_a, ang)), 1), len(tab_a) - 1)
+    w = min(max((ang - tab_a[j - 1]) / (tab_a[j] - tab_a[j - 1]), 0.0), 1.0)
+    return tab_v[j - 1] + w * (tab_v[j] - tab_v[j - 1])
 
 
 # ---------------------------------------------------------------- the compiled loop (numba; cached on disk)
@@ -155,17 +189,9 @@ def _pattern_sums_loop(
             lobe[k] = _lobe_above(ix, iy, iz, ox, oy, oz, ax2, ay2, iax2, iay2, scale, f0)
             geo[k] = max(iz, 0.0) / r2
             psi[k] = min(max(-(dx * qx[k] + dy * qy[k] + dz * qz[k]) * inv, 0.0), 1.0)  # cos at the emitter
-        if exponent >= 0.0 and exponent != 1.0:
+        if exponent != 1.0:  # Psi other than the cosine itself: not vectorised, over the buffer
             for k in range(K):
-                psi[k] = psi[k] ** exponent if psi[k] > 0.0 else 0.0  # behind the emitter: 0, also for 0^0
-        elif exponent < 0.0:  # tabulated Psi(angle in degrees), linear between entries, 0 past the last
-            for k in range(K):
-                if psi[k] <= 0.0:
-                    continue  # behind the emitter
-                ang = math.degrees(math.acos(psi[k]))
-                j = min(max(int(np.searchsorted(tab_a, ang)), 1), len(tab_a) - 1)
-                w = min(max((ang - tab_a[j - 1]) / (tab_a[j] - tab_a[j - 1]), 0.0), 1.0)
-                psi[k] = 0.0 if ang > tab_a[-1] else tab_v[j - 1] + w * (tab_v[j] - tab_v[j - 1])
+                psi[k] = _psi_of_cosine(psi[k], exponent, tab_a, tab_v)
         d0 = d1 = d2 = s0 = s1 = s2 = 0.0
         for k in range(K):
             a = geo[k] * psi[k]

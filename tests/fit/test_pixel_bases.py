@@ -1,16 +1,25 @@
 """The compiled pixel bases equal their torch definitions (float64 references): the diffuse basis
 the horizon-clipped sum over the emitters, the specular one the torch lobe summed, its derivatives
-automatic differentiation of that."""
+automatic differentiation of that, and their per-sample inputs the emitter geometry."""
 
+import dataclasses
 import math
 
+import numpy as np
 import pytest
 import torch
 
-from ntp_engine.fit.pixel_bases import diffuse_basis, specular_basis, specular_basis_and_derivatives
+from ntp_engine.fit.pixel_bases import (
+    diffuse_basis,
+    emitter_directions,
+    specular_basis,
+    specular_basis_and_derivatives,
+)
 from ntp_engine.fit.refine import _lobe
 from ntp_engine.physics.brdf import fresnel_schlick
 from ntp_engine.physics.frame import frame_from_normal_tangent, rotation_from_vector, safe_normalize
+from ntp_engine.physics.measurement import local_emitter_geometry
+from ntp_engine.scanner.device_file import load_scanner
 
 
 def _case(seed: int, N=6, V=5, M=40):
@@ -81,3 +90,42 @@ def test_diffuse_basis_sums_the_emitters_above_the_horizon():
     torch.testing.assert_close(out, ref, rtol=1e-9, atol=1e-12 * float(ref.abs().max()))
     out32 = diffuse_basis(normal.float(), wi.float(), falloff.float(), drive_k.float())
     torch.testing.assert_close(out32.double(), ref, rtol=1e-4, atol=1e-6 * float(ref.abs().max()))
+
+
+def _tabulated(scanner):
+    angles = np.linspace(0.0, 90.0, 7)
+    values = np.cos(np.radians(angles)) ** 1.5 + 0.05  # light up to 90 deg: still dark behind
+    return dataclasses.replace(scanner, angular_kind="table", angular_table=np.stack([angles, values], 1))
+
+
+@pytest.mark.parametrize("device", [load_scanner, lambda: _tabulated(load_scanner())], ids=["led_array", "psi_table"])
+def test_emitter_directions_are_the_emitter_geometry_with_half_vectors(device):
+    scanner = device()
+    g = torch.Generator().manual_seed(4)
+    d = torch.float64
+    M = 40
+    x = torch.randn(M, 3, generator=g, dtype=d) * 0.03 + torch.tensor([0.0, 0.0, 0.12], dtype=d)
+    x[::8] = x[::8] * torch.tensor([1.0, 1.0, 0.0], dtype=d) - torch.tensor([0.0, 0.0, 0.02], dtype=d)  # behind
+    n = safe_normalize(torch.randn(M, 3, generator=g, dtype=d) * 0.5 + torch.tensor([0.0, 0.0, -1.0], dtype=d))
+    t = torch.randn(M, 3, generator=g, dtype=d)
+    live = torch.rand(M, generator=g) > 0.2
+    frame = frame_from_normal_tangent(n, t)
+    wo, wi, h, falloff, ff = emitter_directions(scanner, x, frame, live, padding=True)
+    geo = local_emitter_geometry(scanner, x, n, t)
+    K = geo.falloff.shape[1]
+    assert wi.shape == (M, K + 1, 3) and falloff.shape == (M, K + 1) and wo.dtype == torch.float64
+    want_h = safe_normalize(geo.wi_l + geo.wo_l[:, None])
+    want_f = geo.falloff * live[:, None]
+    for got, want in (
+        (wo, geo.wo_l),
+        (wi[:, :K], geo.wi_l),
+        (h[:, :K], want_h),
+        (falloff[:, :K], want_f),
+        (ff[:, :K], fresnel_schlick((geo.wi_l * want_h).sum(-1)) * want_f),
+    ):
+        torch.testing.assert_close(got, want, rtol=1e-9, atol=1e-12 * float(want.abs().max()))
+    assert (falloff[:, K] == 0).all() and (ff[:, K] == 0).all() and torch.equal(wi[:, K], wi[:, 0])
+    assert float(falloff.max()) > 0 and (falloff[~live] == 0).all()
+    wo32, wi32, _, f32, _ = emitter_directions(scanner, x.float(), frame.float(), live, padding=False)
+    assert wi32.shape == (M, K, 3) and f32.dtype == torch.float32
+    torch.testing.assert_close(f32.double(), want_f, rtol=1e-5, atol=1e-7 * float(want_f.abs().max()))
