@@ -40,7 +40,7 @@ from ..io.thread_pools import numba_threads_as_torch
 from ..physics.brdf import fresnel_schlick
 from ..physics.frame import any_tangent, cross, frame_from_normal_tangent, safe_normalize
 from ..physics.lumitexel import DIFFUSE_RES, SPECULAR_RES, specular_lumitexel, texel_positions
-from .lobe_loop import fit_lobes
+from .lobe_loop import BOUNDS, fit_lobes
 
 FALLBACK_ALPHA = 0.3  # isotropic roughness for texels without a usable specular lobe
 FLAG_NONFINITE, FLAG_ZERO, FLAG_NO_LOBE, FLAG_NO_HIGHLIGHT = 1, 2, 4, 8
@@ -148,6 +148,7 @@ def fit_geometry(
             iterations,
             min(top_k, specular.shape[1]),
             gn_steps,
+            BOUNDS,
             out,
         )
     o = torch.from_numpy(out).float()

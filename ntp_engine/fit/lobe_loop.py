@@ -22,6 +22,10 @@ import numpy as np
 
 from ..physics.brdf import ALPHA_MAX, ALPHA_MIN, RHO_S_MAX
 
+# the bounds the loop clamps to, passed as an argument: a module constant compiled into a cached loop
+# would not change with brdf.py (numba keys its disk cache on the function's own file)
+BOUNDS = np.array([ALPHA_MIN, ALPHA_MAX, RHO_S_MAX])
+
 # numba's fast-math flags without nnan/ninf: the loop relies on finiteness tests
 _FAST = {"nsz", "arcp", "contract", "afn", "reassoc"}
 # LM damping: start, bounds. Start nearly Gauss-Newton: from 1e-3, lobes at the sharp bound crept for
@@ -139,9 +143,9 @@ def _solve6(H, b, x):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True)
-def _lobe_from_a(a, lobe, A, evals, evecs):  # pragma: no cover - compiled
+def _lobe_from_a(a, lobe, A, evals, evecs, bounds):  # pragma: no cover - compiled
     """GGX reading of A's 6 entries (a00, a11, a22, a01, a02, a12) into ``lobe`` (n, t, ax, ay,
-    rho_s; alphas clamped to their bounds); False where A is not positive definite."""
+    rho_s; alphas clamped to ``bounds``' first two); False where A is not positive definite."""
     A[0, 0], A[1, 1], A[2, 2] = a[0], a[1], a[2]
     A[0, 1] = A[1, 0] = a[3]
     A[0, 2] = A[2, 0] = a[4]
@@ -153,8 +157,8 @@ def _lobe_from_a(a, lobe, A, evals, evecs):  # pragma: no cover - compiled
         lobe[k] = sign * evecs[k, 0]
         lobe[3 + k] = evecs[k, 1]
     lam0 = evals[0]
-    lobe[6] = min(max(math.sqrt(lam0 / max(evals[1], 1e-30)), ALPHA_MIN), ALPHA_MAX)
-    lobe[7] = min(max(math.sqrt(lam0 / max(evals[2], 1e-30)), ALPHA_MIN), ALPHA_MAX)
+    lobe[6] = min(max(math.sqrt(lam0 / max(evals[1], 1e-30)), bounds[0]), bounds[1])
+    lobe[7] = min(max(math.sqrt(lam0 / max(evals[2], 1e-30)), bounds[0]), bounds[1])
     lobe[8] = math.pi * lobe[6] * lobe[7] / (lam0 * lam0)
     return True
 
@@ -313,16 +317,17 @@ def _weighted_ls(idx, feats, y, w, a):  # pragma: no cover - compiled
 
 
 @numba.njit(parallel=True, cache=True)
-def fit_lobes(specular, wi, r2, fres, feats, iterations, k, gn_steps, out):  # pragma: no cover
+def fit_lobes(specular, wi, r2, fres, feats, iterations, k, gn_steps, bounds, out):  # pragma: no cover
     """Per texel of ``specular (N, L)``: the K lights, ``iterations`` IRLS solves and up to
-    ``gn_steps`` LM steps (not for a texel with a value that is not finite); fills ``out (N, 12)``
-    (module docstring). The parallel loop only hands texels out (its body compiles slowly)."""
+    ``gn_steps`` LM steps (not for a texel with a value that is not finite), alphas and rho_s
+    clamped to ``bounds`` (``BOUNDS``); fills ``out (N, 12)`` (module docstring). The parallel
+    loop only hands texels out (its body compiles slowly)."""
     for i in numba.prange(specular.shape[0]):
-        _fit_texel(specular[i], wi, r2, fres, feats, iterations, k, gn_steps, out[i])
+        _fit_texel(specular[i], wi, r2, fres, feats, iterations, k, gn_steps, bounds, out[i])
 
 
 @numba.njit(cache=True, fastmath=_FAST)
-def _fit_texel(specular, wi, r2, fres, feats, iterations, k, gn_steps, out):  # pragma: no cover
+def _fit_texel(specular, wi, r2, fres, feats, iterations, k, gn_steps, bounds, out):  # pragma: no cover
     """``fit_lobes`` for one texel: ``specular (L,)`` in, ``out (12,)`` filled."""
     L = specular.shape[0]
     m = np.empty(L)  # the texel's lumitexel, NaN/inf as 0, clipped at 0
@@ -371,7 +376,7 @@ def _fit_texel(specular, wi, r2, fres, feats, iterations, k, gn_steps, out):  # 
                     m_model = min(phi[j] / max(y_model, 1e-12) ** 2, 1e30)
                     w[j] = ((math.log1p(m_model) - math.log1p(mk[j])) / dy) ** 2
         solved = _weighted_ls(idx, feats, y, w, a_new)
-        take = solved and _lobe_from_a(a_new, trial, A, evals, evecs) and trial[2] > _MIN_NZ
+        take = solved and _lobe_from_a(a_new, trial, A, evals, evecs, bounds) and trial[2] > _MIN_NZ
         if take:
             lobe[:] = trial
         if take or (solved and not have_a):  # the first solve's A weighs the next, lobe or not
@@ -384,16 +389,18 @@ def _fit_texel(specular, wi, r2, fres, feats, iterations, k, gn_steps, out):  # 
                 yl += feats[li, 3] * a_cur[3] + feats[li, 4] * a_cur[4] + feats[li, 5] * a_cur[5]
                 values[li] = yl if yl > 0.0 else math.inf
             _select(values, k, idx, scratch)
-    lobe[8] = min(max(lobe[8], 1e-12), RHO_S_MAX * 10)
+    lobe[8] = min(max(lobe[8], 1e-12), bounds[2] * 10)
     if ok and finite and gn_steps > 0:
-        _levenberg_marquardt(m, idx, wi, r2, fres, feats, gn_steps, lobe, trial, mk, phi, y, w)
+        _levenberg_marquardt(m, idx, wi, r2, fres, feats, gn_steps, bounds, lobe, trial, mk, phi, y, w)
     for c in range(9):
         out[c] = lobe[c]
     out[9] = 1.0 if ok else 0.0
 
 
 @numba.njit(cache=True, fastmath=_FAST)
-def _levenberg_marquardt(m_i, idx, wi, r2, fres, feats, steps, lobe, trial, log_mk, phi, r, g):  # pragma: no cover
+def _levenberg_marquardt(
+    m_i, idx, wi, r2, fres, feats, steps, bounds, lobe, trial, log_mk, phi, r, g
+):  # pragma: no cover - compiled
     """LM on the log1p residual over the lights ``idx`` in A-space (Jacobian g_l f_l with Phi frozen
     within a step); a step is kept only where the true residual (new Phi, clamped alphas) falls.
     Updates ``lobe``; the other arrays are scratch of length K."""
@@ -423,7 +430,7 @@ def _levenberg_marquardt(m_i, idx, wi, r2, fres, feats, steps, lobe, trial, log_
         if _solve6(H, b, step):
             for p in range(6):
                 a2[p] = a[p] + step[p]
-            if _lobe_from_a(a2, trial, A, evals, evecs) and trial[2] > _MIN_NZ:
+            if _lobe_from_a(a2, trial, A, evals, evecs, bounds) and trial[2] > _MIN_NZ:
                 _a_from_lobe(trial, a2)
                 _phi(idx, wi, r2, fres, trial, phi)
                 cost_new = _residuals(idx, a2, feats, phi, log_mk, r_new, g_new)

@@ -3,9 +3,9 @@ import pytest
 import torch
 from lobes import exact_lobes
 
-from ntp_engine.fit.geometry import fit_geometry
-from ntp_engine.fit.lobe_loop import _eigh3, _kth_smallest, _select, _solve6
-from ntp_engine.physics.lumitexel import specular_lumitexel
+from ntp_engine.fit.geometry import fit_geometry, light_table
+from ntp_engine.fit.lobe_loop import BOUNDS, _eigh3, _kth_smallest, _select, _solve6, fit_lobes
+from ntp_engine.physics.lumitexel import SPECULAR_RES, specular_lumitexel
 
 
 @pytest.mark.parametrize("spectrum", [(1.0, 2.0, 3.0), (1.0, 1.0, 5.0), (2.0, 2.0, 2.0), (1e-4, 1.0, 2.5e4)])
@@ -95,3 +95,18 @@ def test_sharp_lobes_converge_to_the_exact_lumitexel():
     m = specular_lumitexel(n, t, rho[:, None], ax, ay)[..., 0]
     f = fit_geometry(m, with_error=True)
     assert float(f.log_rmse.max()) < 1e-4
+
+
+def test_the_loop_clamps_to_the_bounds_it_is_given():
+    """The bounds are an argument, not constants compiled into the cached loop (numba would not
+    recompile it when brdf.py changes)."""
+    m, *_ = exact_lobes(32, seed=5)
+    tab = {k: v.numpy() for k, v in light_table(SPECULAR_RES, "cpu", torch.float64).items()}
+    outs = []
+    for bounds in (BOUNDS, np.array([0.05, 0.08, 0.5])):
+        out = np.zeros((len(m), 12))
+        fit_lobes(m.float().numpy(), tab["wi"], tab["r2"], tab["fresnel"], tab["feats"], 3, 384, 10, bounds, out)
+        outs.append(out)
+    wide, narrow = outs
+    assert (wide[:, 6:8] < 0.05).any() and (wide[:, 6:8] > 0.08).any()  # the default range is used
+    assert narrow[:, 6:8].min() >= 0.05 and narrow[:, 6:8].max() <= 0.08 and narrow[:, 8].max() <= 5.0
