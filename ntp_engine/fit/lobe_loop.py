@@ -225,25 +225,23 @@ def _kth_smallest_bracketed(values, k, scratch):  # pragma: no cover - compiled
     L = values.shape[0]
     step = max(L // _SAMPLE, 1)
     ns = (L + step - 1) // step
-    if ns < 4 * _BRACKET:
-        scratch[:L] = values
-        return _kth_smallest(scratch[:L], k)
-    sample = scratch[L - ns : L]  # the top of scratch; the gather below fills it from the bottom
-    for j in range(ns):
-        sample[j] = values[j * step]
-    centre = (k * ns) // L
-    lo_rank, hi_rank = centre - _BRACKET, centre + _BRACKET
-    lo = _kth_smallest(sample, lo_rank) if lo_rank >= 0 else -math.inf
-    hi = _kth_smallest(sample, hi_rank) if hi_rank < ns else math.inf
-    below, c = 0, 0
-    for li in range(L):
-        v = values[li]
-        below += v < lo
-        scratch[c] = v  # written always, kept when inside: no branch
-        c += (v >= lo) & (v <= hi)
-    if below <= k < below + c:
-        return _kth_smallest(scratch[:c], k - below)
-    scratch[:L] = values
+    if ns >= 4 * _BRACKET:
+        sample = scratch[L - ns : L]  # the top of scratch; the gather below fills it from the bottom
+        for j in range(ns):
+            sample[j] = values[j * step]
+        centre = (k * ns) // L
+        lo_rank, hi_rank = centre - _BRACKET, centre + _BRACKET
+        lo = _kth_smallest(sample, lo_rank) if lo_rank >= 0 else -math.inf
+        hi = _kth_smallest(sample, hi_rank) if hi_rank < ns else math.inf
+        below, c = 0, 0
+        for li in range(L):
+            v = values[li]
+            below += v < lo
+            scratch[c] = v  # written always, kept when inside: no branch
+            c += (v >= lo) & (v <= hi)
+        if below <= k < below + c:
+            return _kth_smallest(scratch[:c], k - below)
+    scratch[:L] = values  # too few values to sample, or the bounds missed the k-th: all of them
     return _kth_smallest(scratch[:L], k)
 
 
