@@ -18,6 +18,37 @@ def scan24(tmp_path_factory):
 
 
 @pytest.fixture(scope="session")
+def colmap24(scan24, tmp_path_factory):
+    """pycolmap's SfM of ``scan24`` as pycolmap wrote it (binary): (model folder, the SfM result, scan)."""
+    import pycolmap
+
+    from ntp_engine.pipeline.scan_folder import load_scan
+    from ntp_engine.pipeline.sfm import structure_from_motion
+
+    scan = load_scan(scan24)
+    work = tmp_path_factory.mktemp("colmap24") / "sfm"
+    sfm = structure_from_motion(scan.photos_dir, [p.name for p in scan.photo_paths], scan.scanner, work)
+    folder = max((work / "sparse").iterdir(), key=lambda d: pycolmap.Reconstruction(str(d)).num_reg_images())
+    return folder, sfm, scan
+
+
+@pytest.fixture(scope="session")
+def colmap24_registered(scan24, colmap24, tmp_path_factory):
+    """``ntp register SCAN24 --colmap MODEL``'s result folder, made with SfM switched off (the model
+    must stand in for it); the suite's COLMAP tests read it, and re-runs on it find its cache."""
+    from ntp_engine import cli
+
+    def no_sfm(*args, **kwargs):
+        raise AssertionError("SfM ran although a COLMAP model was given")
+
+    out = tmp_path_factory.mktemp("colmap24_registered") / "rec"
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr("ntp_engine.pipeline.stages.structure_from_motion", no_sfm)
+        assert cli.main(["register", str(scan24), "--out", str(out), "--colmap", str(colmap24[0]), "--quiet"]) == 0
+    return out
+
+
+@pytest.fixture(scope="session")
 def ray_local():
     """A local Ray instance (2 CPUs) for the suite's ``--ray`` tests; ``RayPool`` reuses it."""
     ray = pytest.importorskip("ray")

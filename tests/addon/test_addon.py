@@ -506,19 +506,14 @@ def test_coverage_overlay_bakes_to_its_legend_and_gives_the_materials_back(addon
     assert [sl.material.name for sl in obj.material_slots] == own and coverage.RESTORE not in obj
 
 
-def test_colmap_model_imports_as_cameras_aligned_to_the_mesh(addon, scan24, tmp_path):
+def test_colmap_model_imports_as_cameras_aligned_to_the_mesh(addon, scan24, colmap24, colmap24_registered):
     """File → Import → COLMAP model: a model COLMAP (pycolmap) wrote for the scan's photos becomes
-    cameras in the mesh's frame (the engine aligns it and checks it against the photos)."""
-    import pycolmap
+    cameras in the mesh's frame (the engine aligns it and checks it against the photos; here into
+    the suite's result folder of that registration, so the engine finds it cached)."""
+    from ntp_engine.pipeline.scan_folder import load_poses
 
-    from ntp_engine.pipeline.scan_folder import load_poses, load_scan
-    from ntp_engine.pipeline.sfm import structure_from_motion
-
-    scan = load_scan(scan24)
-    work = tmp_path / "colmap"
-    structure_from_motion(scan.photos_dir, [p.name for p in scan.photo_paths], scan.scanner, work)
-    model = max((work / "sparse").iterdir(), key=lambda d: pycolmap.Reconstruction(str(d)).num_reg_images())
-    addon.scan_folder, addon.result_folder = str(scan24), str(tmp_path / "result")
+    model = colmap24[0]
+    addon.scan_folder, addon.result_folder = str(scan24), str(colmap24_registered)
     assert bpy.ops.import_scene.ntp_colmap(directory=str(model)) == {"FINISHED"}
     assert "COLMAP model" in addon.status
     cams = bpy.data.collections["NTP Cameras"].objects
