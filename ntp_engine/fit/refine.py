@@ -47,12 +47,14 @@ from .emitter_blocks import EmitterBlocks, emitter_blocks
 from .highlights import parked_positions
 from .pixel_bases import diffuse_basis, emitter_directions, specular_basis, specular_basis_and_derivatives
 
-VERSION = 6  # of the method: part of the pipeline's cache key (bump when results change for the same settings)
+VERSION = 7  # of the method: part of the pipeline's cache key (bump when results change for the same settings)
 CENSOR_CODE = VALID_CODE[1]  # above this an 8-bit code may be (or border) a clipped pixel: a lower bound
 EXPANDED_BLOCKS = 4  # emitter blocks per entry summed sample by sample (the rest as coarse emitters)
 SELECT_WIDEN, SELECT_FLOOR = 3.0, 0.03  # emitters are chosen under alphas x3 (at least 0.03)
 MAX_TRIES = 3  # damping increases per LM iteration before the texel waits for the next one
-NOISE_SCALE = (0.5, 10.0)  # bounds of the noise model's calibration factor (``calibrated_noise``)
+# bounds of the noise model's calibration factor (``calibrated_noise``): it inflates the model, never
+# tightens it — tighter than 1 let the data tip normals against the priors (gallery, docs/refinement.md)
+NOISE_SCALE = (1.0, 10.0)
 CONVERGED = 1e-4  # a texel whose LM step lowers its cost by less than this (relative) is done
 SHARP_START = 0.25  # the multi-start's sharper lobe: alphas times this
 ISOTROPIC_RATIO = 1.25  # alpha_x / alpha_y below this: the tangent is not constrained by the lobe
@@ -681,7 +683,8 @@ def calibrated_noise(
     """The sensor noise model scaled (within ``NOISE_SCALE``) so that a refinement of these sample
     traces leaves residuals of unit robust scale — 1.4826 x the median |normalised residual| of the
     answer over its entries is 1 when the model is right (Monte Carlo renders and unmodelled effects
-    give more): data from a noisier source then weigh against the priors as much as they deserve."""
+    give more): data from a noisier source then weigh against the priors as much as they deserve.
+    A quieter source keeps the model as it is (``NOISE_SCALE``'s floor of 1)."""
     tr = _Trace(scanner, entries, mask, settings.noise, emitter_blocks(scanner))
     r = _refine(tr, start, specular, settings)
     p = torch.cat([torch.zeros_like(r.rho_d), r.log_alpha, r.rho_d, r.rho_s], 1)

@@ -12,7 +12,9 @@ from ntp_engine.fit.refine import (
     LOBE_EVIDENCE,
     LobePrior,
     RefineSettings,
+    SensorNoise,
     Start,
+    calibrated_noise,
     lobe_evidence,
     material_costs,
     refine,
@@ -125,6 +127,20 @@ def test_matte_gets_no_spurious_lobe():
     assert ((r.highlight == 0) == (r.rho_s.mean(1) == 0)).all()  # a highlight only where a lobe is kept
     assert (r.rho_d - p["rho_d"]).abs().median() < 0.01
     assert _normal_err(r, p).median() < 0.5
+
+
+def test_calibrated_noise_inflates_the_model_only():
+    """Traces noisier than the sensor model (10% against its 3%) scale it up; quieter ones (1%) leave
+    it as it is — a tighter model let the data tip normals against the priors (docs/refinement.md)."""
+    scales = []
+    for noise in (0.01, 0.10):
+        entries, mask, p = _traces(64, 11, (0.5, 0.4, 0.3), (1.0, 1.0, 1.0), (0.15, 0.15), noise=noise)
+        sensed = calibrated_noise(
+            DEV, entries, mask, Start(*_perturbed(p, 12)), torch.ones(64, dtype=torch.bool), RefineSettings()
+        )
+        scales.append(sensed.relative / SensorNoise().relative)
+        assert sensed.read_code / SensorNoise().read_code == pytest.approx(scales[-1])
+    assert scales[0] == 1.0 and 2.0 < scales[1] < 5.0, scales
 
 
 @pytest.mark.parametrize("case", ["bounds", "no_entries", "black", "saturated"])
