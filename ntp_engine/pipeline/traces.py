@@ -4,13 +4,16 @@ For every view j and texel p: the texel's object-space point goes into camera j 
 camera-from-world, the world being the mesh's frame); the entry is kept if (1) the point is in
 front of the camera, projects inside the photo (OpenCV distortion included) and lies in the valid
 volume, (2) nothing of the mesh lies between it and the camera (Embree, from the point offset
-along its normal), (3) wo . n^ > 0.3. Entries whose bilinearly sampled 8-bit pixel has a channel
-outside [32, 224] (dark or near clipping) are kept too, flagged ``in_range = False``: the network and
-the lumitexel fit skip them (``RaggedTraces.in_range_only``), the refinement models them (a noise
-floor for dark values, clipped ones as lower bounds). The entry is (linear pixel RGB *
-``pixel_scale``, x, n^, t^) in camera j's space — the layout of ``learn.ragged.RaggedTraces``.
-Views that see no texel cost one projection only. Two passes (visibility, then fill) keep the
-peak memory near the table's own size, or — the table written to disk — near one block of it
+along its normal), (3) wo . n^ > 0.3, (4) the mesh itself blocks no more than ``MAX_SHADOWED_DRIVE``
+of the pattern's drive on its way from the emitters to the point (``EmitterShadow``: Eq. 1, the
+network and the refinement all assume every emitter above the horizon reaches it). Entries whose
+bilinearly sampled 8-bit pixel has a channel outside [32, 224] (dark or near clipping) are kept too,
+flagged ``in_range = False``: the network and the lumitexel fit skip them
+(``RaggedTraces.in_range_only``), the refinement models them (a noise floor for dark values, clipped
+ones as lower bounds). The entry is (linear pixel RGB * ``pixel_scale``, x, n^, t^) in camera j's
+space — the layout of ``learn.ragged.RaggedTraces``. Views that see no texel cost one projection
+only. Two passes (visibility, then fill) keep the peak memory near the table's own size, or — the
+table written to disk — near one block of it
 (docs/performance.md).
 """
 
@@ -23,6 +26,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ..fit.emitter_blocks import emitter_blocks
 from ..io.maps import bilinear_pixels
 from ..io.progress import QUIET, Progress
 from ..io.raycast import RayCaster
@@ -31,8 +35,9 @@ from ..scanner import camera
 from ..scanner.scanner import Scanner
 from .texels import Texels
 
-MAX_SHADOWED_DRIVE = 0.05  # fraction of the pattern's drive the support may block in a used photo
+MAX_SHADOWED_DRIVE = 0.05  # fraction of the pattern's drive the support, or the mesh, may block from a used entry
 MIN_COS_VIEW = 0.3
+SKY_RAYS = 64  # directions over a texel's hemisphere: none hitting the mesh = it cannot shadow its emitters
 TABLE_FILES = ("entries", "offsets", "in_range")  # a table on disk: one .npy each (``load_table``)
 # entries per block when a table on disk is regrouped by texel: ~400 MB of rows in memory at a time
 TABLE_BLOCK_ENTRIES = 1 << 23
@@ -67,8 +72,71 @@ class SupportShadow:
         return bool(self.drive[below].sum() > MAX_SHADOWED_DRIVE)
 
 
+class EmitterShadow:
+    """Which texels a view measures with emitters carrying more than ``MAX_SHADOWED_DRIVE`` of the
+    pattern's drive blocked by the mesh itself (a concave object shadowing its own light: a knot's
+    inner loops, a box's inside corners). Shadow rays go from the point (offset ``eps`` along its
+    normal) to each emitter block's centroid (``fit.emitter_blocks``; each sample for small
+    devices), counting blocks above the point's horizon; texels whose hemisphere is open
+    (``SKY_RAYS`` rays, none hitting the mesh) are never tested — on convex parts the test is free."""
+
+    def __init__(self, scanner: Scanner, caster: RayCaster, texels: Texels, eps: float):
+        blocks = emitter_blocks(scanner)
+        if blocks is None:
+            pts, w = scanner.emitter_samples(torch.float64)
+            drive = w.numpy() * scanner.effective_pattern().sum(1)[:, None]
+            self.points, self.drive = pts.numpy().reshape(-1, 3), drive.reshape(-1)
+        else:
+            pts, _ = blocks.coarse.emitter_samples(torch.float64)
+            self.points, self.drive = pts.numpy().reshape(-1, 3), blocks.coarse_drive.sum(1).numpy()
+        self.drive = self.drive / max(float(self.drive.sum()), 1e-300)
+        self.caster, self.eps = caster, eps
+        self.position, self.normal = texels.position, texels.normal
+        self.open = self._open_sky(texels)
+
+    def _open_sky(self, texels: Texels) -> np.ndarray:
+        """``(T,)`` True where none of ``SKY_RAYS`` directions over the texel's hemisphere (a
+        Fibonacci spiral, cosine-spread about the normal) meets the mesh."""
+        k = np.arange(SKY_RAYS) + 0.5
+        r, phi = np.sqrt(k / SKY_RAYS), np.pi * (3 - np.sqrt(5)) * k
+        local = np.stack([r * np.cos(phi), r * np.sin(phi), np.sqrt(1 - r**2)], -1)  # (S, 3), z up
+        n, t = texels.normal, texels.tangent
+        b = np.cross(n, t)
+        hit = np.zeros(len(texels), bool)
+        origin = texels.position + self.eps * n
+        for d in local:
+            ray = d[0] * t + d[1] * b + d[2] * n
+            hit |= self.caster.occluded(origin, ray, np.full(len(texels), np.inf))
+        return ~hit
+
+    def __call__(self, pose: np.ndarray, idx: np.ndarray) -> np.ndarray:
+        """``(len(idx),)`` True where view ``pose`` (camera-from-world) sees texel ``idx`` shadowed."""
+        shadowed = np.zeros(len(idx), bool)
+        test = np.nonzero(~self.open[idx])[0]
+        if len(test) == 0:
+            return shadowed
+        R, t = pose[:3, :3], pose[:3, 3]
+        emitters = (self.points - t) @ R  # world: R^T (p - t)
+        origin = self.position[idx[test]] + self.eps * self.normal[idx[test]]
+        blocked = np.zeros(len(test))
+        for e, drive in zip(emitters, self.drive, strict=True):
+            to = e - origin
+            dist = np.linalg.norm(to, axis=1)
+            to /= dist[:, None]
+            lit = (to * self.normal[idx[test]]).sum(1) > 0  # below the horizon it lights nothing anyway
+            blocked += drive * (lit & self.caster.occluded(origin, to, dist))
+        shadowed[test] = blocked > MAX_SHADOWED_DRIVE
+        return shadowed
+
+
 def _visible(
-    texels: Texels, pose: np.ndarray, scanner: Scanner, caster: RayCaster, eps: float, rejected: dict[str, int]
+    texels: Texels,
+    pose: np.ndarray,
+    scanner: Scanner,
+    caster: RayCaster,
+    eps: float,
+    rejected: dict[str, int],
+    emitter_shadow: EmitterShadow | None = None,
 ) -> np.ndarray:
     """Texels view ``pose`` measures (conditions 1-3 of the module docstring, geometry only: no
     pixel is read): their indices, ascending."""
@@ -100,7 +168,12 @@ def _visible(
     dist = np.linalg.norm(to_cam, axis=1)
     occ = caster.occluded(origin, to_cam / dist[:, None], dist - 1e-4)
     rejected["occluded"] += int(occ.sum())
-    return idx[~occ]
+    idx = idx[~occ]
+    if emitter_shadow is None or len(idx) == 0:
+        return idx
+    dark = emitter_shadow(pose, idx)
+    rejected["emitter_shadow"] += int(dark.sum())
+    return idx[~dark]
 
 
 def assemble(
@@ -137,8 +210,10 @@ def assemble(
         "grazing": 0,
         "pixel_range": 0,
         "support_shadow_views": 0,
+        "emitter_shadow": 0,
     }
     shadowed = SupportShadow(scanner, support_z) if support_z is not None else None
+    self_shadow = EmitterShadow(scanner, caster, texels, eps)
     seen: list[np.ndarray | None] = []
     counts = np.zeros(n_tex, np.int64)
     for pose in progress.track(poses, "visibility", total=len(poses), unit="photo"):
@@ -146,7 +221,7 @@ def assemble(
             rejected["support_shadow_views"] += 1
             seen.append(None)
             continue
-        idx = _visible(texels, pose, scanner, caster, eps, rejected)
+        idx = _visible(texels, pose, scanner, caster, eps, rejected, self_shadow)
         counts[idx] += 1
         seen.append(idx.astype(np.int32) if len(idx) else None)
     offsets = np.zeros(n_tex + 1, np.int64)

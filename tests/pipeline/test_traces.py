@@ -89,11 +89,12 @@ def _reference_assemble(tx, photos, poses, cam, caster):
         [],
         [],
         [],
-        dict.fromkeys(("behind_or_outside", "valid_volume", "occluded", "grazing"), 0),
+        dict.fromkeys(("behind_or_outside", "valid_volume", "occluded", "grazing", "emitter_shadow"), 0),
     )
+    shadow = tr.EmitterShadow(cam, caster, tx, 2e-5)
     for img, pose in zip(photos, poses, strict=True):
         R, t = pose[:3, :3], pose[:3, 3]
-        idx = tr._visible(tx, pose, cam, caster, 2e-5, rejected)
+        idx = tr._visible(tx, pose, cam, caster, 2e-5, rejected, shadow)
         x = tx.position[idx] @ R.T + t
         px = camera.project(cam, torch.as_tensor(x)).numpy()
         codes = bilinear_pixels(img.astype(np.float64), px[:, 1], px[:, 0])
@@ -159,3 +160,45 @@ def test_two_pass_assembly_equals_the_one_pass_table_at_a_fraction_of_its_memory
         np.testing.assert_array_equal(a.numpy(), b.numpy())
     assert disk_stats == stats
     assert disk_peak <= 0.4 * table
+
+
+def _wall(x: float = 0.02, height: float = 0.03, half: float = 0.05) -> np.ndarray:
+    """A vertical wall at ``x`` over the patch, as triangles ``(2, 3, 3)``."""
+    a, b, c, d = [x, -half, 0.0], [x, half, 0.0], [x, half, height], [x, -half, height]
+    return np.array([[a, b, c], [a, c, d]])
+
+
+def test_emitter_shadows_of_the_mesh_itself_match_shadow_rays_to_every_emitter():
+    """``EmitterShadow``: a patch beside a wall, seen from above with the LED array around the camera.
+    Texels the wall robs of > 20% of the drive (shadow rays to all 513 samples) are left out, texels
+    it robs of nothing are kept; the patch alone has an open sky everywhere and nothing is tested."""
+    from scans import flat_patch
+
+    from ntp_engine.pipeline import traces as tr
+
+    dev = load_scanner()
+    patch = flat_patch(0.08, 16)
+    tx = rasterize(patch, (32, 32))
+    pose = look_at(np.array([-0.01, 0.003, 0.15]), np.array([0.0, 0.0, 0.002]))
+    idx = np.arange(len(tx))
+    alone = tr.EmitterShadow(dev, RayCaster([patch.triangles]), tx, 2e-5)
+    assert alone.open.all() and not alone(pose, idx).any()
+
+    caster = RayCaster([patch.triangles, _wall().reshape(-1, 3, 3)])
+    shadow = tr.EmitterShadow(dev, caster, tx, 2e-5)
+    got = shadow(pose, idx)
+    # the reference: a shadow ray to every emitter sample above the texel's horizon, weighted by its drive
+    pts, w = dev.emitter_samples(torch.float64)
+    drive = (w.numpy() * dev.effective_pattern().sum(1)[:, None]).reshape(-1)
+    R, t = pose[:3, :3], pose[:3, 3]
+    emitters = (pts.numpy().reshape(-1, 3) - t) @ R
+    origin = tx.position + 2e-5 * tx.normal
+    blocked = np.zeros(len(tx))
+    for e, d in zip(emitters, drive / drive.sum(), strict=True):
+        to = e - origin
+        dist = np.linalg.norm(to, axis=1)
+        lit = (to * tx.normal).sum(1) > 0
+        blocked += d * (lit & caster.occluded(origin, to / dist[:, None], dist))
+    assert (blocked > 0.2).sum() > 20 and (blocked == 0).sum() > 20  # the scene has both
+    assert got[blocked > 0.2].all() and not got[blocked == 0].any()
+    assert not shadow.open[blocked > 0].any()  # an open sky is never shadowed
