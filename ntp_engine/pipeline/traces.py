@@ -54,16 +54,22 @@ class TraceStats:
     rejected: dict[str, int]
 
 
+def _sample_drive(scanner: Scanner) -> tuple[np.ndarray, np.ndarray]:
+    """The emitter samples ``(K, 3)`` (camera space) and their share of the pattern's drive ``(K,)``
+    (quadrature weight x drive summed over the channels; summing to 1): what a shadow test weighs."""
+    pts, w = scanner.emitter_samples(torch.float64)
+    drive = (w.numpy() * scanner.effective_pattern().sum(1)[:, None]).reshape(-1)
+    return pts.numpy().reshape(-1, 3), drive / max(drive.sum(), 1e-300)
+
+
 class SupportShadow:
     """Whether the support (the plane z = ``support_z`` under the object) blocks emitters carrying
     more than ``MAX_SHADOWED_DRIVE`` of the pattern's drive in a photo — for every point of the
     object at once, which Eq. 1 (and the network) do not model."""
 
     def __init__(self, scanner: Scanner, support_z: float):
-        pts, w = scanner.emitter_samples(torch.float64)
-        drive = w.numpy() * scanner.effective_pattern().sum(1)[:, None]  # (L, Q)
-        self.drive = drive / max(drive.sum(), 1e-300)
-        self.points, self.support_z = pts.numpy(), support_z
+        self.points, self.drive = _sample_drive(scanner)
+        self.support_z = support_z
 
     def __call__(self, camera_from_world: np.ndarray) -> bool:
         """True when the support shadows the photo taken from ``camera_from_world`` (4x4)."""
@@ -83,13 +89,11 @@ class EmitterShadow:
     def __init__(self, scanner: Scanner, caster: RayCaster, texels: Texels, eps: float):
         blocks = emitter_blocks(scanner)
         if blocks is None:
-            pts, w = scanner.emitter_samples(torch.float64)
-            drive = w.numpy() * scanner.effective_pattern().sum(1)[:, None]
-            self.points, self.drive = pts.numpy().reshape(-1, 3), drive.reshape(-1)
+            self.points, self.drive = _sample_drive(scanner)
         else:
             pts, _ = blocks.coarse.emitter_samples(torch.float64)
-            self.points, self.drive = pts.numpy().reshape(-1, 3), blocks.coarse_drive.sum(1).numpy()
-        self.drive = self.drive / max(float(self.drive.sum()), 1e-300)
+            drive = blocks.coarse_drive.sum(1).numpy()
+            self.points, self.drive = pts.numpy().reshape(-1, 3), drive / max(float(drive.sum()), 1e-300)
         self.caster, self.eps = caster, eps
         self.position, self.normal = texels.position, texels.normal
         self.open = self._open_sky(texels)
@@ -117,13 +121,14 @@ class EmitterShadow:
             return shadowed
         R, t = pose[:3, :3], pose[:3, 3]
         emitters = (self.points - t) @ R  # world: R^T (p - t)
-        origin = self.position[idx[test]] + self.eps * self.normal[idx[test]]
+        normal = self.normal[idx[test]]
+        origin = self.position[idx[test]] + self.eps * normal
         blocked = np.zeros(len(test))
         for e, drive in zip(emitters, self.drive, strict=True):
             to = e - origin
             dist = np.linalg.norm(to, axis=1)
             to /= dist[:, None]
-            lit = (to * self.normal[idx[test]]).sum(1) > 0  # below the horizon it lights nothing anyway
+            lit = (to * normal).sum(1) > 0  # below the horizon it lights nothing anyway
             blocked += drive * (lit & self.caster.occluded(origin, to, dist))
         shadowed[test] = blocked > MAX_SHADOWED_DRIVE
         return shadowed
