@@ -216,10 +216,13 @@ class _Round:
     """The model of one round: frame F0 fixed; per entry, the emitter blocks brightest under a
     broadened lobe are summed sample by sample, the others as their coarse emitters."""
 
-    def __init__(self, tr: _Trace, frame0: Tensor, log_alpha: Tensor, specular: bool):
+    def __init__(self, tr: _Trace, frame0: Tensor, log_alpha: Tensor, specular: bool, diffuse: Tensor | None = None):
         self.tr, self.specular, self.frame0 = tr, specular, frame0
-        # diffuse basis per channel: linear in the shading normal (emitters above F0's horizon)
-        self.diffuse = diffuse_basis(frame0[:, 2], tr.wi, tr.falloff, tr.drive)  # (N, V, 3, 3), wi's dtype
+        # diffuse basis per channel: linear in the shading normal (emitters above F0's horizon);
+        # ``diffuse``: given by a round of the same normal
+        if diffuse is None:
+            diffuse = diffuse_basis(frame0[:, 2], tr.wi, tr.falloff, tr.drive)  # (N, V, 3, 3), wi's dtype
+        self.diffuse = diffuse
         if not specular:
             return
         if tr.blocks is None:
@@ -431,18 +434,22 @@ def _lm_step(
     Hm = H * mf[:, :, None] * mf[:, None, :]
     gm = g * mf
     diag = Hm.diagonal(dim1=1, dim2=2)
-    p0, pending = p, torch.ones(N, dtype=torch.bool)
+    p, cost, lam = p.clone(), cost.clone(), lam.clone()
+    ids = torch.arange(N)  # the texels still waiting for an accepted step
     for _try in range(MAX_TRIES):  # a rejected step is retried with more damping (same linearisation)
-        A = Hm + torch.diag_embed(lam[:, None] * (diag + 1e-3 * diag.mean(1, keepdim=True)) + (1 - mf))
-        step = -torch.linalg.solve(A, gm[..., None])[..., 0]
-        q = torch.minimum(torch.maximum(p0 + step.to(p.dtype), lo), hi)
-        new = _cost_at(rnd, q, prior, settings)
-        better = pending & torch.isfinite(new) & (new < cost)
-        p = torch.where(better[:, None], q, p)
-        cost = torch.where(better, new, cost)
-        lam = torch.where(better, (lam * 0.3).clamp_min(1e-7), torch.where(pending, lam * 10, lam))
-        pending = pending & ~better
-        if not bool(pending.any()):
+        # only those are evaluated again: a retry on every texel made half of the model's evaluations
+        sub, sub_prior = (rnd, prior) if len(ids) == N else (rnd.rows(ids), prior.rows(ids))
+        dg = diag[ids]
+        A = Hm[ids] + torch.diag_embed(lam[ids, None] * (dg + 1e-3 * dg.mean(1, keepdim=True)) + (1 - mf[ids]))
+        step = -torch.linalg.solve(A, gm[ids, :, None])[..., 0]
+        q = torch.minimum(torch.maximum(p[ids] + step.to(p.dtype), lo), hi)
+        new = _cost_at(sub, q, sub_prior, settings)
+        better = torch.isfinite(new) & (new < cost[ids])
+        k = ids[better]
+        p[k], cost[k] = q[better], new[better]
+        lam[ids] = torch.where(better, (lam[ids] * 0.3).clamp_min(1e-7), lam[ids] * 10)
+        ids = ids[~better]
+        if len(ids) == 0:
             break
     rnd.rebase(p[:, P_OMEGA])
     p = p.clone()
@@ -521,21 +528,31 @@ def _multi_start(
     tr: _Trace, frame: Tensor, p: Tensor, prior: _Prior, free: Tensor, settings: RefineSettings
 ) -> tuple[Tensor, Tensor]:
     """Starts where the lobe is ambiguous: as given, the tangent turned 90 deg (the other axis
-    carries alpha_x), the lobe 4x sharper; one round of LM each, the cheapest kept per texel."""
+    carries alpha_x; only where the start's lobe is anisotropic — an isotropic one turned is the
+    same model, so the same answer), the lobe 4x sharper; one round of LM each, the cheapest kept
+    per texel. The three share F0's normal, so its diffuse basis."""
     N = p.shape[0]
-    quarter = torch.zeros(N, 3, dtype=p.dtype)
-    quarter[:, 2] = math.pi / 2
     sharp = p.clone()
     sharp[:, P_LOGA] = (sharp[:, P_LOGA] + math.log(SHARP_START)).clamp(math.log(ALPHA_MIN), math.log(ALPHA_MAX))
+    la = p[:, P_LOGA]
+    turned = ((la[:, 0] - la[:, 1]).abs() >= math.log(ISOTROPIC_RATIO)).nonzero().squeeze(1)
+    quarter = torch.zeros(len(turned), 3, dtype=p.dtype)
+    quarter[:, 2] = math.pi / 2
     best_cost = torch.full((N,), math.inf, dtype=p.dtype)
-    best_frame, best_p = frame, p
-    for f0, q0 in ((frame, p), (_fold(frame, quarter), p), (frame, sharp)):
-        rnd = _Round(tr, f0, q0[:, P_LOGA], True)
-        q, cost, _ = _lm(rnd, _albedo_start(rnd, q0, True), prior, free, settings.iterations, settings)
-        better = cost < best_cost
-        best_cost = torch.where(better, cost, best_cost)
-        best_frame = torch.where(better[:, None, None], rnd.frame0, best_frame)
-        best_p = torch.where(better[:, None], q, best_p)
+    best_frame, best_p = frame.clone(), p.clone()
+    every = torch.arange(N)
+    diffuse: Tensor | None = None  # the first start's, for all N
+    for at, f0, q0 in ((every, frame, p), (turned, _fold(frame[turned], quarter), p[turned]), (every, frame, sharp)):
+        if len(at) == 0:
+            continue
+        whole = len(at) == N
+        sub, sub_prior, sub_free = (tr, prior, free) if whole else (tr.rows(at), prior.rows(at), free[at])
+        rnd = _Round(sub, f0, q0[:, P_LOGA], True, None if diffuse is None else diffuse[at])
+        diffuse = rnd.diffuse if diffuse is None else diffuse
+        q, cost, _ = _lm(rnd, _albedo_start(rnd, q0, True), sub_prior, sub_free, settings.iterations, settings)
+        better = cost < best_cost[at]
+        k = at[better]
+        best_cost[k], best_frame[k], best_p[k] = cost[better], rnd.frame0[better], q[better]
     return best_frame, best_p
 
 
@@ -570,7 +587,7 @@ def _refine(tr: _Trace, start: Start, specular: Tensor, settings: RefineSettings
     highlight = torch.zeros(N, dtype=dtype)
     idx = specular.nonzero().squeeze(1)
     if len(idx):
-        sub = tr.rows(idx)
+        sub = tr if len(idx) == N else tr.rows(idx)  # idx sorted: all texels or a subset
         f, q, c, h = _solve(sub, frame[idx], p[idx], True, settings)
         peak = _highlight(sub, f, q)
         keep = (peak >= MIN_SPECULAR_SHARE) & (c < cost[idx] - lobe_evidence(sub.mask.sum((1, 2))))
