@@ -16,8 +16,10 @@ F D G / (4 cos_i cos_o) cos_i falloff in the cancelled Smith form of ``physics.b
 q = (h_x/ax)^2 + (h_y/ay)^2 + h_z^2 and L = |(ax v_x, ay v_y, v_z)| in the shading frame.
 Derivatives are by (omega_x, omega_y, omega_z, log alpha_x, log alpha_y), omega a rotation of the
 shading frame at 0 (a shading-frame vector v turns by v x omega, so d/d omega = g x v for
-g = d log(lobe) / d v, summed over wi, h and wo). Results in the dtype of ``wi`` (float32 or
-float64: the scipy baseline differentiates them numerically), sums in float64.
+g = d log(lobe) / d v, summed over wi, h and wo). ``rows (N,)``, where given: frame and alpha n
+belong to row ``rows[n]`` of the per-entry arrays (a subset of texels without copying them).
+Results in the dtype of ``wi`` (float32 or float64: the scipy baseline differentiates them
+numerically), sums in float64.
 """
 
 from __future__ import annotations
@@ -94,18 +96,32 @@ def diffuse_basis(normal: Tensor, wi: Tensor, falloff: Tensor, drive: Tensor) ->
 
 
 def specular_basis(
-    frame: Tensor, wi: Tensor, h: Tensor, wo: Tensor, fresnel_falloff: Tensor, drive: Tensor, alpha: Tensor
+    frame: Tensor,
+    wi: Tensor,
+    h: Tensor,
+    wo: Tensor,
+    fresnel_falloff: Tensor,
+    drive: Tensor,
+    alpha: Tensor,
+    rows: Tensor | None = None,
 ) -> Tensor:
     """The unit-rho_s pixel basis ``(N, V, 3)`` = sum_m lobe_m drive_m (module docstring)."""
-    return _specular(frame, wi, h, wo, fresnel_falloff, drive, alpha, False)[0]
+    return _specular(frame, wi, h, wo, fresnel_falloff, drive, alpha, rows, False)[0]
 
 
 def specular_basis_and_derivatives(
-    frame: Tensor, wi: Tensor, h: Tensor, wo: Tensor, fresnel_falloff: Tensor, drive: Tensor, alpha: Tensor
+    frame: Tensor,
+    wi: Tensor,
+    h: Tensor,
+    wo: Tensor,
+    fresnel_falloff: Tensor,
+    drive: Tensor,
+    alpha: Tensor,
+    rows: Tensor | None = None,
 ) -> tuple[Tensor, Tensor]:
     """``specular_basis`` and its derivatives ``(N, V, 5, 3)`` by (omega, log alpha_x, log alpha_y)
     (module docstring), in one pass."""
-    return _specular(frame, wi, h, wo, fresnel_falloff, drive, alpha, True)
+    return _specular(frame, wi, h, wo, fresnel_falloff, drive, alpha, rows, True)
 
 
 def _specular(
@@ -116,16 +132,48 @@ def _specular(
     fresnel_falloff: Tensor,
     drive: Tensor,
     alpha: Tensor,
+    rows: Tensor | None,
     derivatives: bool,
 ) -> tuple[Tensor, Tensor]:
     """The compiled loop's call; the derivatives ``(0, 0, 5, 3)`` unless asked for."""
-    N, V, M = fresnel_falloff.shape
+    N, V = len(frame), fresnel_falloff.shape[1]
     arrays = [_arr(x, wi.dtype) for x in (frame, wi, h, wo, fresnel_falloff, drive, alpha)]
+    row = np.arange(N, dtype=np.int64) if rows is None else np.ascontiguousarray(rows.numpy().astype(np.int64))
     spec = np.zeros((N, V, 3), arrays[1].dtype)
     ds = np.zeros((N, V, N_DERIVATIVES, 3) if derivatives else (0, 0, N_DERIVATIVES, 3), spec.dtype)
     with numba_threads_as_torch():
-        _specular_loop(*arrays, derivatives, spec, ds)
+        _specular_loop(row, *arrays, derivatives, spec, ds)
     return torch.from_numpy(spec), torch.from_numpy(ds)
+
+
+def selected_emitters(
+    order: Tensor, members: Tensor, expanded: int, fine: tuple[Tensor, ...], coarse: tuple[Tensor, ...]
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """The specular basis' per-entry emitters when blocks of samples are summed sample by sample
+    only where the lobe is: per entry, the samples of the first ``expanded`` blocks in ``order (N,
+    V, C)`` (``members (C, S)``: a block's sample indices) and the other blocks' coarse emitters,
+    in that order. ``fine`` = (wi, h ``(N, V, K, 3)``, fresnel_falloff ``(N, V, K)``, drive ``(K,
+    3)``) per sample, ``coarse`` the same per block (C). Returns wi, h, fresnel_falloff, drive with
+    M = expanded S + C - expanded emitters per entry, drive ``(N, V, M, 3)``; one compiled pass."""
+    N, V, C = order.shape
+    S = members.shape[1]
+    M = expanded * S + C - expanded
+    dt = fine[0].dtype
+    wi, h = torch.empty(N, V, M, 3, dtype=dt), torch.empty(N, V, M, 3, dtype=dt)
+    ff, drive = torch.empty(N, V, M, dtype=dt), torch.empty(N, V, M, 3, dtype=dt)
+    with numba_threads_as_torch():
+        _select_loop(
+            _arr(order, torch.int64),
+            _arr(members, torch.int64),
+            expanded,
+            *(_arr(x, dt) for x in fine),
+            *(_arr(x, dt) for x in coarse),
+            wi.numpy(),
+            h.numpy(),
+            ff.numpy(),
+            drive.numpy(),
+        )
+    return wi, h, ff, drive
 
 
 @numba.njit(parallel=True, fastmath=True, cache=True)
@@ -160,10 +208,11 @@ def _diffuse_loop(normal, wi, falloff, drive, out):  # pragma: no cover - compil
 
 
 @numba.njit(parallel=True, fastmath=True, cache=True)
-def _specular_loop(frame, wi, h, wo, ff, drive, alpha, derivatives, spec, ds):  # pragma: no cover - compiled
+def _specular_loop(rows, frame, wi, h, wo, ff, drive, alpha, derivatives, spec, ds):  # pragma: no cover - compiled
     """Fills ``spec (N, V, 3)`` and, with ``derivatives``, ``ds (N, V, 5, 3)`` (see the module)."""
-    N, V, M = ff.shape
+    N, V, M = spec.shape[0], ff.shape[1], ff.shape[2]
     for n in numba.prange(N):
+        r = rows[n]
         ax, ay = float(alpha[n, 0]), float(alpha[n, 1])
         ax2, ay2 = ax * ax, ay * ay
         t0, t1, t2 = float(frame[n, 0, 0]), float(frame[n, 0, 1]), float(frame[n, 0, 2])
@@ -171,9 +220,9 @@ def _specular_loop(frame, wi, h, wo, ff, drive, alpha, derivatives, spec, ds):  
         n0, n1, n2 = float(frame[n, 2, 0]), float(frame[n, 2, 1]), float(frame[n, 2, 2])
         norm = 1.0 / (math.pi * ax * ay)
         for v in range(V):
-            ox = t0 * wo[n, v, 0] + t1 * wo[n, v, 1] + t2 * wo[n, v, 2]
-            oy = b0 * wo[n, v, 0] + b1 * wo[n, v, 1] + b2 * wo[n, v, 2]
-            oz = n0 * wo[n, v, 0] + n1 * wo[n, v, 1] + n2 * wo[n, v, 2]
+            ox = t0 * wo[r, v, 0] + t1 * wo[r, v, 1] + t2 * wo[r, v, 2]
+            oy = b0 * wo[r, v, 0] + b1 * wo[r, v, 1] + b2 * wo[r, v, 2]
+            oz = n0 * wo[r, v, 0] + n1 * wo[r, v, 1] + n2 * wo[r, v, 2]
             if oz <= 0.0:
                 continue  # the view-side Smith factor: no lobe seen from below
             so0, so1 = (ax * ox) ** 2, (ay * oy) ** 2
@@ -185,16 +234,16 @@ def _specular_loop(frame, wi, h, wo, ff, drive, alpha, derivatives, spec, ds):  
             g00 = g01 = g02 = g10 = g11 = g12 = g20 = g21 = g22 = 0.0
             g30 = g31 = g32 = g40 = g41 = g42 = 0.0
             for m in range(M):
-                f = ff[n, v, m]
+                f = ff[r, v, m]
                 if f == 0.0:
                     continue
-                wx, wy, wz = wi[n, v, m, 0], wi[n, v, m, 1], wi[n, v, m, 2]
+                wx, wy, wz = wi[r, v, m, 0], wi[r, v, m, 1], wi[r, v, m, 2]
                 iz = n0 * wx + n1 * wy + n2 * wz
                 if iz <= 0.0:
                     continue
                 ix = t0 * wx + t1 * wy + t2 * wz
                 iy = b0 * wx + b1 * wy + b2 * wz
-                hx_, hy_, hz_ = h[n, v, m, 0], h[n, v, m, 1], h[n, v, m, 2]
+                hx_, hy_, hz_ = h[r, v, m, 0], h[r, v, m, 1], h[r, v, m, 2]
                 hx = t0 * hx_ + t1 * hy_ + t2 * hz_
                 hy = b0 * hx_ + b1 * hy_ + b2 * hz_
                 hz = n0 * hx_ + n1 * hy_ + n2 * hz_
@@ -204,7 +253,7 @@ def _specular_loop(frame, wi, h, wo, ff, drive, alpha, derivatives, spec, ds):  
                 lam_i = math.sqrt(max(si0 + si1 + iz * iz, 1e-20))
                 a_i = iz + lam_i
                 lobe = iz * f * seen / (q * q * a_i)
-                d0, d1, d2 = lobe * drive[n, v, m, 0], lobe * drive[n, v, m, 1], lobe * drive[n, v, m, 2]
+                d0, d1, d2 = lobe * drive[r, v, m, 0], lobe * drive[r, v, m, 1], lobe * drive[r, v, m, 2]
                 s0 += d0
                 s1 += d1
                 s2 += d2
@@ -250,6 +299,40 @@ def _specular_loop(frame, wi, h, wo, ff, drive, alpha, derivatives, spec, ds):  
             ds[n, v, 2, 0], ds[n, v, 2, 1], ds[n, v, 2, 2] = g20 + w2 * s0, g21 + w2 * s1, g22 + w2 * s2
             ds[n, v, 3, 0], ds[n, v, 3, 1], ds[n, v, 3, 2] = g30 + la_x * s0, g31 + la_x * s1, g32 + la_x * s2
             ds[n, v, 4, 0], ds[n, v, 4, 1], ds[n, v, 4, 2] = g40 + la_y * s0, g41 + la_y * s1, g42 + la_y * s2
+
+
+@numba.njit(parallel=True, cache=True)
+def _select_loop(
+    order, members, expanded, wi, h, ff, drive, wi_c, h_c, ff_c, drive_c, o_wi, o_h, o_ff, o_drive
+):  # pragma: no cover
+    """Fills ``o_*`` (see ``selected_emitters``)."""
+    N, V, C = order.shape
+    S = members.shape[1]
+    for n in numba.prange(N):
+        for v in range(V):
+            j = 0
+            for b in range(C):
+                c = order[n, v, b]
+                if b < expanded:
+                    for s in range(S):
+                        k = members[c, s]
+                        for i in range(3):
+                            o_wi[n, v, j, i], o_h[n, v, j, i], o_drive[n, v, j, i] = (
+                                wi[n, v, k, i],
+                                h[n, v, k, i],
+                                drive[k, i],
+                            )
+                        o_ff[n, v, j] = ff[n, v, k]
+                        j += 1
+                else:
+                    for i in range(3):
+                        o_wi[n, v, j, i], o_h[n, v, j, i], o_drive[n, v, j, i] = (
+                            wi_c[n, v, c, i],
+                            h_c[n, v, c, i],
+                            drive_c[c, i],
+                        )
+                    o_ff[n, v, j] = ff_c[n, v, c]
+                    j += 1
 
 
 @numba.njit(parallel=True, fastmath=True, cache=True)

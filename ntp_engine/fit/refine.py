@@ -45,7 +45,13 @@ from ..scanner.scanner import Scanner
 from .albedo import bounded_ls2
 from .emitter_blocks import EmitterBlocks, emitter_blocks
 from .highlights import parked_positions
-from .pixel_bases import diffuse_basis, emitter_directions, specular_basis, specular_basis_and_derivatives
+from .pixel_bases import (
+    diffuse_basis,
+    emitter_directions,
+    selected_emitters,
+    specular_basis,
+    specular_basis_and_derivatives,
+)
 
 VERSION = 7  # of the method: part of the pipeline's cache key (bump when results change for the same settings)
 CENSOR_CODE = VALID_CODE[1]  # above this an 8-bit code may be (or border) a clipped pixel: a lower bound
@@ -180,7 +186,7 @@ class _Trace:
     def light_rows(self, idx: Tensor) -> _Trace:
         """The texels ``idx`` with only what the residuals need (no per-emitter arrays)."""
         out = object.__new__(_Trace)
-        for k in ("y", "inv_sigma", "censored", "mask", "wo"):
+        for k in ("y", "inv_sigma", "censored", "mask"):
             setattr(out, k, getattr(self, k)[idx])
         out.N, out.V, out.blocks = len(idx), self.V, self.blocks
         return out
@@ -223,6 +229,7 @@ class _Round:
         if diffuse is None:
             diffuse = diffuse_basis(frame0[:, 2], tr.wi, tr.falloff, tr.drive)  # (N, V, 3, 3), wi's dtype
         self.diffuse = diffuse
+        self.wo, self.row = tr.wo, torch.arange(tr.N)  # the per-entry arrays' rows of the round's texels
         if not specular:
             return
         if tr.blocks is None:
@@ -232,27 +239,21 @@ class _Round:
         wide = (SELECT_WIDEN * log_alpha.exp()).clamp(SELECT_FLOOR, ALPHA_MAX)
         score = _lobe(frame0, tr.wi_c, tr.h_c, tr.wo, tr.ff_c, wide)  # (N, V, C)
         order = score.argsort(-1, descending=True)
-        fine = tr.blocks.members[order[..., :EXPANDED_BLOCKS]].flatten(2)  # (N, V, B S) sample indices
-        rest = order[..., EXPANDED_BLOCKS:]  # (N, V, C - B) blocks kept coarse
-
-        def take(a: Tensor, idx: Tensor) -> Tensor:
-            """``a (N, V, K, ...)`` at ``idx (N, V, S)`` along K: one flat index_select (2x a gather)."""
-            N, V, K = a.shape[:3]
-            flat = (idx + torch.arange(N * V).view(N, V, 1) * K).flatten()
-            return a.reshape(N * V * K, -1).index_select(0, flat).view(N, V, idx.shape[2], *a.shape[3:])
-
-        self.wi = torch.cat([take(tr.wi, fine), take(tr.wi_c, rest)], 2)
-        self.h = torch.cat([take(tr.h, fine), take(tr.h_c, rest)], 2)
-        self.ff = torch.cat([take(tr.fresnel_falloff, fine), take(tr.ff_c, rest)], 2)
-        self.drive = torch.cat([tr.drive[fine], tr.drive_c[rest]], 2)  # (N, V, M, 3)
+        self.wi, self.h, self.ff, self.drive = selected_emitters(
+            order,
+            tr.blocks.members,
+            EXPANDED_BLOCKS,
+            (tr.wi, tr.h, tr.fresnel_falloff, tr.drive),
+            (tr.wi_c, tr.h_c, tr.ff_c, tr.drive_c),
+        )
 
     def rows(self, idx: Tensor) -> _Round:
-        """The same round for the texels ``idx`` only (the LM drops texels that have converged)."""
+        """The same round for the texels ``idx`` only (the LM drops texels that have converged); the
+        per-entry emitters are not copied: the subset reads its rows ``row``."""
         out = object.__new__(_Round)
-        out.tr, out.specular = self.tr.light_rows(idx), self.specular
+        vars(out).update(vars(self))
+        out.tr, out.row = self.tr.light_rows(idx), self.row[idx]
         out.frame0, out.diffuse = self.frame0[idx], self.diffuse[idx]
-        if self.specular:
-            out.wi, out.h, out.ff, out.drive = self.wi[idx], self.h[idx], self.ff[idx], self.drive[idx]
         return out
 
     def rebase(self, omega: Tensor) -> None:
@@ -271,7 +272,7 @@ class _Round:
         if not self.specular:
             return diffuse, torch.zeros_like(diffuse), dd, torch.zeros_like(dd)
         alpha = log_alpha.exp()
-        spec, ds = specular_basis_and_derivatives(frame, self.wi, self.h, self.tr.wo, self.ff, self.drive, alpha)
+        spec, ds = specular_basis_and_derivatives(frame, self.wi, self.h, self.wo, self.ff, self.drive, alpha, self.row)
         return diffuse, spec, dd, ds
 
     def bases(self, omega: Tensor, log_alpha: Tensor) -> tuple[Tensor, Tensor]:
@@ -281,7 +282,8 @@ class _Round:
         diffuse = (self.diffuse * frame[:, None, None, 2, :]).sum(-1)
         if not self.specular:
             return diffuse, torch.zeros_like(diffuse)
-        return diffuse, specular_basis(frame, self.wi, self.h, self.tr.wo, self.ff, self.drive, log_alpha.exp())
+        alpha = log_alpha.exp()
+        return diffuse, specular_basis(frame, self.wi, self.h, self.wo, self.ff, self.drive, alpha, self.row)
 
 
 _LO = torch.tensor([-math.inf] * 3 + [math.log(ALPHA_MIN)] * 2 + [0.0] * 6)

@@ -12,6 +12,7 @@ import torch
 from ntp_engine.fit.pixel_bases import (
     diffuse_basis,
     emitter_directions,
+    selected_emitters,
     specular_basis,
     specular_basis_and_derivatives,
 )
@@ -66,6 +67,51 @@ def test_bases_and_derivatives_match_the_torch_lobe(seed):
         scale = float(jvp.abs().max())
         torch.testing.assert_close(ds[:, :, k], jvp, rtol=1e-8, atol=1e-11 * scale)
         torch.testing.assert_close(ds32[:, :, k].double(), jvp, rtol=1e-3, atol=1e-5 * scale)
+
+
+def test_rows_read_a_subset_without_copying_it():
+    frame, wi, h, wo, ff, drive, alpha = _case(5)
+    rows = torch.tensor([4, 1, 1, 3])  # any order, repeats allowed
+    spec, ds = specular_basis_and_derivatives(frame[rows], wi, h, wo, ff, drive, alpha[rows], rows)
+    want, want_ds = specular_basis_and_derivatives(
+        frame[rows], wi[rows], h[rows], wo[rows], ff[rows], drive[rows], alpha[rows]
+    )
+    assert torch.equal(spec, want) and torch.equal(ds, want_ds) and want.abs().max() > 0
+    assert torch.equal(specular_basis(frame[rows], wi, h, wo, ff, drive, alpha[rows], rows), want)
+
+
+def test_selected_emitters_are_the_expanded_blocks_then_the_coarse_ones():
+    g = torch.Generator().manual_seed(6)
+    N, V, K, C, S, B = 3, 4, 20, 5, 4, 2
+    members = torch.randperm(K, generator=g)[: C * S].view(C, S)
+    members[-1, -1] = K - 1  # a padding-like index: any sample
+    fine = (
+        torch.randn(N, V, K, 3, generator=g),
+        torch.randn(N, V, K, 3, generator=g),
+        torch.rand(N, V, K, generator=g),
+        torch.rand(K, 3, generator=g),
+    )
+    coarse = (
+        torch.randn(N, V, C, 3, generator=g),
+        torch.randn(N, V, C, 3, generator=g),
+        torch.rand(N, V, C, generator=g),
+        torch.rand(C, 3, generator=g),
+    )
+    order = torch.stack([torch.randperm(C, generator=g) for _ in range(N * V)]).view(N, V, C)
+    wi, h, ff, drive = selected_emitters(order, members, B, fine, coarse)
+    assert wi.shape == (N, V, B * S + C - B, 3) and drive.shape == wi.shape and ff.shape == wi.shape[:3]
+    for n in range(N):
+        for v in range(V):
+            k = members[order[n, v, :B]].flatten()
+            c = order[n, v, B:]
+            for got, f, co, per_entry in (
+                (wi, fine[0], coarse[0], True),
+                (h, fine[1], coarse[1], True),
+                (ff, fine[2], coarse[2], True),
+                (drive, fine[3], coarse[3], False),
+            ):
+                want = torch.cat([f[n, v, k], co[n, v, c]]) if per_entry else torch.cat([f[k], co[c]])
+                assert torch.equal(got[n, v], want)
 
 
 def test_no_light_and_views_from_below_give_zero():
