@@ -464,11 +464,14 @@ def _fold(frame: Tensor, omega: Tensor) -> Tensor:
     return rotation_from_vector(omega).transpose(-1, -2) @ frame
 
 
-def _albedo_start(rnd: _Round, p: Tensor, specular: bool, keep_rho_s: bool = False) -> Tensor:
+def _albedo_start(
+    rnd: _Round, p: Tensor, specular: bool, keep_rho_s: bool = False, bases: tuple[Tensor, Tensor] | None = None
+) -> Tensor:
     """p with rho_d (and rho_s unless ``keep_rho_s``) replaced by the bounded weighted least squares
-    for the round's geometry; ``specular`` False: rho_s = 0."""
+    for the round's geometry (``bases``: the round's at p, where the caller has them); ``specular``
+    False: rho_s = 0."""
     tr = rnd.tr
-    d, s = rnd.bases(p[:, P_OMEGA], p[:, P_LOGA])
+    d, s = rnd.bases(p[:, P_OMEGA], p[:, P_LOGA]) if bases is None else bases
     w = (tr.inv_sigma**2 * (tr.mask & ~tr.censored)).double()
     y = tr.y
     if not specular:
@@ -636,25 +639,28 @@ def material_costs(
     turn = torch.zeros(N, K, dtype=dtype)
     candidates = torch.ones(N, K, dtype=torch.bool) if candidates is None else candidates
 
-    def judged(tr: _Trace, f: Tensor, m: int) -> Tensor:
+    def judged(tr: _Trace, f: Tensor, m: int, diffuse: Tensor | None) -> tuple[Tensor, Tensor]:
+        """The cost under material m (0: no lobe), and the round's diffuse basis."""
         p = torch.zeros(tr.N, N_PARAMS, dtype=dtype)
         if m:
             p[:, P_LOGA] = alpha[m - 1].to(dtype).clamp(ALPHA_MIN, ALPHA_MAX).log()
             p[:, P_RHO_S] = rho_s[m - 1].to(dtype).clamp(0, RHO_S_MAX)
-        rnd = _Round(tr, f, p[:, P_LOGA], m > 0)
-        p = _albedo_start(rnd, p, m > 0, keep_rho_s=True)
-        d, s = rnd.bases(p[:, P_OMEGA], p[:, P_LOGA])
-        return torch.nan_to_num(_cost(_residuals(tr, d, s, p)[0], settings.noise.robust), nan=math.inf)
+        rnd = _Round(tr, f, p[:, P_LOGA], m > 0, diffuse)
+        bases = rnd.bases(p[:, P_OMEGA], p[:, P_LOGA])
+        p = _albedo_start(rnd, p, m > 0, keep_rho_s=True, bases=bases)
+        c = _cost(_residuals(tr, *bases, p)[0], settings.noise.robust)
+        return torch.nan_to_num(c, nan=math.inf), rnd.diffuse
 
-    cost[:, 0] = judged(tr_all, frame_all, 0)
+    # every model shares the texel's normal, so its diffuse basis
+    cost[:, 0], diffuse = judged(tr_all, frame_all, 0, None)
     for m in range(1, K + 1):
         idx = candidates[:, m - 1].nonzero().squeeze(1)
         if len(idx) == 0:
             continue
-        tr, frame = tr_all.rows(idx), frame_all[idx]
+        tr, frame, d = tr_all.rows(idx), frame_all[idx], diffuse[idx]
         anisotropic = bool(alpha[m - 1, 0] >= ISOTROPIC_RATIO * alpha[m - 1, 1])
         turns = torch.arange(TANGENT_TURNS if anisotropic else 1, dtype=dtype) * math.pi / TANGENT_TURNS
-        c = torch.stack([judged(tr, turned_about_normal(frame, a.expand(len(idx))), m) for a in turns], 1)
+        c = torch.stack([judged(tr, turned_about_normal(frame, a.expand(len(idx))), m, d)[0] for a in turns], 1)
         cost[idx, m] = math.log(len(turns)) - torch.logsumexp(-c, 1)
         turn[idx, m - 1] = turns[c.argmin(1)]
     return cost, turn
