@@ -2,7 +2,8 @@
 scanner and Cycles) x poses (true, structure from motion) — reported per material.
 
 Per run: pose error (SfM), relit SSIM under novel point lights (object pixels), seconds per stage;
-per material (``sim.evaluate.material_errors``): coverage, normal angle, tangent angle mod 180 on
+per material (``sim.evaluate.material_errors``): the share of its surface texels some photo sees
+(true poses), coverage (of those, the share some trace reached), normal angle, tangent angle mod 180 on
 anisotropic texels, |log alpha ratio|, rho_d RMSE and ratio, |log rho_s ratio|, spurious-lobe
 rate on matte. Writes ``OUT/gallery.json``, ``OUT/gallery.md`` (the tables) and
 ``OUT/gallery.png`` (error per material, a bar per scanner x poses), and prints the tables; with
@@ -38,6 +39,7 @@ from . import print_table
 SCANNERS = ("engine", "cycles")
 POSES = ("true", "sfm")
 METRICS = (
+    "seen",
     "coverage",
     "normal_deg",
     "tangent_deg",
@@ -112,7 +114,8 @@ def _evaluate(settings: GallerySettings, scan_dir: Path, poses: str, out: Path, 
     run["relit_ssim"] = relit_ssim(
         out, scan_dir / "mesh.obj", gt, lights=settings.relit_lights, scale=settings.relit_scale
     )["relit_ssim"]
-    run["materials"] = material_errors(out, gt)
+    true_poses = list(load_poses(gt / "poses.json").values())  # what the photos saw, whichever poses ran
+    run["materials"] = material_errors(out, gt, scan.scanner, true_poses)
     return run
 
 

@@ -7,7 +7,10 @@
   with exact shadows; one display transform for both (the truth's 99th percentile to 1, clip,
   gamma 2.2); SSIM averaged over the object's pixels only (the backdrop would inflate it).
 
-- per material (``material_errors``, gallery assets with ``labels.png``): coverage, normal angle,
+- per material (``material_errors``, gallery assets with ``labels.png``): **seen** (the share of the
+  material's surface texels — those the result's atlas puts on the mesh — that some photo sees: in
+  the image, facing the camera, not hidden by the mesh; ``seen_texels``, from the true poses) and
+  **coverage** (the share of the seen ones that some trace reached), normal angle,
   tangent angle mod 180 deg between the axes of the larger alpha (texels whose true anisotropy is
   >= 2:1), |log alpha ratio| of the sorted alphas (larger with larger), rho_d RMSE and ratio (mean
   reconstructed / mean true), |log rho_s ratio| (channel means), and on matte materials the
@@ -24,13 +27,17 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import torch
 from skimage.metrics import structural_similarity
 
 from ..io.images import read_image, write_png
 from ..io.maps import MAP_FILES, SVBRDFMaps, texel_uv
-from ..io.mesh import load_mesh
-from ..scanner.camera import resampled
+from ..io.mesh import Mesh, load_mesh
+from ..io.raycast import RayCaster
+from ..pipeline.texels import rasterize
+from ..scanner.camera import project, resampled
 from ..scanner.device_file import shipped_device
+from ..scanner.scanner import Scanner
 from .materials import load_labels
 from .renderer import Scene
 from .virtual_scan import ScanConfig, trajectory
@@ -97,13 +104,56 @@ def parameter_errors(rec: dict[str, np.ndarray], true: dict[str, np.ndarray], ma
     return out
 
 
-def material_errors(result: Path, truth: Path) -> list[dict]:
+def surface_texels(mesh: Mesh, shape: tuple[int, int]) -> np.ndarray:
+    """Which texels of maps of ``shape`` the atlas of ``mesh`` puts on the surface: ``(H W,)`` bool
+    in the maps' row-major order (a chart's gutter and the space between charts are not)."""
+    tex = rasterize(mesh, shape)
+    on = np.zeros(shape[0] * shape[1], bool)
+    on[tex.row * shape[1] + tex.col] = True
+    return on
+
+
+def seen_texels(mesh: Mesh, shape: tuple[int, int], scanner: Scanner, poses: list[np.ndarray]) -> np.ndarray:
+    """Which surface texels (``surface_texels``) some photo sees: the texel centre projects into the
+    image from in front of the camera at ``poses`` (camera-from-mesh, 4x4), its surface faces the
+    camera and no part of the mesh lies between. Geometry only, and none of the traces stage's own
+    thresholds (grazing views, the valid volume, shadows): the texels a scan could have measured.
+    ``(H W,)`` bool in the maps' order."""
+    tex = rasterize(mesh, shape)
+    caster = RayCaster([mesh.triangles])
+    eps = 1e-4 * float(np.ptp(mesh.vertices, 0).max())  # off the surface: the texel's own face
+    origin = tex.position + eps * tex.normal
+    seen = np.zeros(len(tex), bool)
+    for pose in poses:
+        R, t = pose[:3, :3], pose[:3, 3]
+        x = tex.position @ R.T + t
+        px = project(scanner, torch.as_tensor(x)).numpy()  # NaN behind the camera
+        inside = (px[:, 0] >= 0) & (px[:, 1] >= 0) & (px[:, 0] <= scanner.width - 1) & (px[:, 1] <= scanner.height - 1)
+        # a face turned away is hidden anyway (the offset ray meets it): the test only spares rays
+        facing = inside & ((-x * (tex.normal @ R.T)).sum(1) > 0)
+        idx = np.nonzero(facing & ~seen)[0]
+        to_cam = -R.T @ t - origin[idx]
+        dist = np.linalg.norm(to_cam, axis=1)
+        seen[idx[~caster.occluded(origin[idx], to_cam / dist[:, None], dist)]] = True
+    out = np.zeros(shape[0] * shape[1], bool)
+    out[tex.row * shape[1] + tex.col] = seen
+    return out
+
+
+def material_errors(
+    result: Path, truth: Path, scanner: Scanner | None = None, poses: list[np.ndarray] | None = None
+) -> list[dict]:
     """Errors per labelled material of a result against a gallery ground truth (module docstring):
-    one dict per material in label order."""
+    one dict per material in label order. ``seen`` and ``coverage`` count the result's surface
+    texels (its ``mesh.obj``'s atlas) and, given the ``scanner`` and the true ``poses`` of the scan,
+    those some photo sees (``seen_texels``); without them every surface texel counts as seen."""
     rec_maps = SVBRDFMaps.load(result)
     shape = rec_maps.shape
     uv = texel_uv(shape).reshape(-1, 2)
     observed = read_image(result / "confidence.exr")[..., 1].reshape(-1) > 0
+    mesh = load_mesh(result / "mesh.obj")
+    surface = surface_texels(mesh, shape)
+    seen = surface if scanner is None or poses is None else seen_texels(mesh, shape, scanner, poses)
     truth_maps = SVBRDFMaps.load(truth)
     # the truth's nearest texel: bilinear samples would blend materials (and atlas charts) at borders
     true = {k: _nearest(getattr(truth_maps, k), uv) for k in MAP_FILES}
@@ -112,12 +162,13 @@ def material_errors(result: Path, truth: Path) -> list[dict]:
     label = _nearest(labels[..., None], uv)[:, 0]
     rows = []
     for k, mat in enumerate(table):
-        member = label == k
+        member = (label == k) & surface
         sel = member & observed
         row: dict = {
             "material": mat["name"],
             "texels": int(member.sum()),
-            "coverage": float(sel.sum() / max(member.sum(), 1)),
+            "seen": float((member & seen).sum() / max(member.sum(), 1)),
+            "coverage": float((sel & seen).sum() / max((member & seen).sum(), 1)),
         }
         nan = float("nan")
         row.update(

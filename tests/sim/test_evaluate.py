@@ -7,7 +7,18 @@ from ntp_engine.io.assets import DEMO_DIR
 from ntp_engine.io.errors import NtpInputError
 from ntp_engine.io.images import write_exr
 from ntp_engine.io.maps import SVBRDFMaps
-from ntp_engine.sim.evaluate import compare_images, material_errors, pose_error, relit_ssim
+from ntp_engine.io.mesh import Mesh, load_mesh, smooth_normals
+from ntp_engine.pipeline.texels import rasterize
+from ntp_engine.scanner.camera import look_at
+from ntp_engine.scanner.device_file import load_scanner
+from ntp_engine.sim.evaluate import (
+    compare_images,
+    material_errors,
+    pose_error,
+    relit_ssim,
+    seen_texels,
+    surface_texels,
+)
 from ntp_engine.sim.gallery import build_asset
 from ntp_engine.sim.materials import load_labels
 
@@ -46,6 +57,7 @@ def _result_from_truth(tmp_path, name="vase", res=32, observed=None):
     asset = build_asset(name, tmp_path / "asset", res)
     result = tmp_path / "result"
     shutil.copytree(asset / "ground_truth", result)
+    shutil.copy(asset / "mesh.obj", result / "mesh.obj")
     conf = np.ones((res, res, 3))
     if observed is not None:
         conf[..., 1] = observed
@@ -58,7 +70,7 @@ def test_material_errors_of_the_truth_are_zero(tmp_path):
     rows = material_errors(result, truth)
     assert [r["material"] for r in rows] == ["matte_print", "plastic_glossy", "metal_brushed_dark", "lacquer_mirror"]
     for r in rows:
-        assert r["coverage"] == 1 and r["normal_deg"] < 0.5 and r["rho_d_rmse"] < 0.05
+        assert r["coverage"] == 1 and r["seen"] == 1 and r["normal_deg"] < 0.5 and r["rho_d_rmse"] < 0.05
         assert r["rho_d_ratio"] == pytest.approx(1, abs=0.05)
     matte, _, metal, mirror = rows
     assert matte["spurious_lobe"] == 0 and np.isnan(matte["log_alpha"]) and np.isnan(matte["tangent_deg"])
@@ -81,6 +93,76 @@ def test_material_errors_see_each_kind_of_error(tmp_path):
     assert matte["spurious_lobe"] == 1 and 0.4 < matte["coverage"] < 0.6
     assert matte["rho_d_ratio"] == pytest.approx(2, rel=0.05)
     assert metal["tangent_deg"] == pytest.approx(90, abs=1) and metal["log_alpha"] == pytest.approx(1, abs=0.05)
+
+
+def test_coverage_counts_the_texels_photos_see_on_the_surface(tmp_path):
+    """A texel off the atlas' charts is no texel of the object, and one no photo sees cannot be
+    measured: neither counts against coverage. Photos from one side of the box see its top and
+    that side; seen and coverage per material follow, against the texels' own normals and labels."""
+    result, truth = _result_from_truth(tmp_path, name="box")
+    mesh = load_mesh(result / "mesh.obj")
+    shape = (32, 32)
+    surface = surface_texels(mesh, shape)
+    assert 0.3 < surface.mean() < 0.95  # xatlas leaves space between charts
+    dev = load_scanner()
+    centre = mesh.vertices.mean(0)
+    poses = [look_at(centre + np.array([0.25, 0.05 * k, 0.2]), centre) for k in (-1, 0, 1)]
+    seen = seen_texels(mesh, shape, dev, poses)
+    assert not (seen & ~surface).any()
+    tex = rasterize(mesh, shape)
+    at = tex.row * shape[1] + tex.col
+    to_cam = centre + np.array([0.25, 0.0, 0.2]) - tex.position
+    facing = (tex.normal * to_cam).sum(1) > 0.3 * np.linalg.norm(to_cam, axis=1)  # clearly toward the photos
+    away = (tex.normal * to_cam).sum(1) < -0.3 * np.linalg.norm(to_cam, axis=1)
+    assert seen[at[facing]].all() and not seen[at[away]].any() and facing.any() and away.any()
+    observed = seen.reshape(shape).astype(float)  # a trace for every seen texel: full coverage
+    conf = np.ones((*shape, 3))
+    conf[..., 1] = observed
+    write_exr(result / "confidence.exr", conf)
+    rows = material_errors(result, truth, dev, poses)
+    labels = load_labels(truth)[0]
+    assert all(r["coverage"] == 1 for r in rows if r["seen"] > 0)
+    assert min(r["seen"] for r in rows) < 0.5 < max(r["seen"] for r in rows)
+    assert labels.max() == len(rows) - 1
+    conf[..., 1] = 0.0
+    conf[:16, ..., 1] = observed[:16]  # the top half of the maps only
+    write_exr(result / "confidence.exr", conf)
+    half = material_errors(result, truth, dev, poses)
+    assert all(h["seen"] == r["seen"] for h, r in zip(half, rows))
+    assert any(0 < h["coverage"] < 1 for h in half)
+    # without the photos every surface texel counts as seen
+    assert all(r["seen"] == 1 for r in material_errors(result, truth))
+
+
+def test_a_texel_hidden_by_the_mesh_is_not_seen():
+    """Two stacked squares seen from above: the upper hides part of the lower; from below, nothing
+    faces the camera."""
+    from scans import flat_patch
+
+    low = flat_patch(0.08, 8)
+    high = flat_patch(0.03, 4)
+    high.vertices[:, 2] = 0.02
+    verts = np.concatenate([low.vertices, high.vertices])
+    faces = np.concatenate([low.faces, high.faces + len(low.vertices)])
+    uv = np.concatenate([low.uv * [0.5, 1.0], 0.6 + 0.3 * high.uv])  # two charts
+    mesh = Mesh(verts, faces, uv, smooth_normals(verts, faces))
+    shape = (48, 48)
+    dev = load_scanner()
+    cam = np.array([0.004, 0.002, 0.25])  # not straight down: look_at needs an up direction
+    above = look_at(cam, np.zeros(3))
+    seen = seen_texels(mesh, shape, dev, [above])
+    tex = rasterize(mesh, shape)
+    at = tex.row * shape[1] + tex.col
+    # reference: the ray from a low texel to the camera centre meets the upper square's plane inside it
+    is_low = tex.position[:, 2] < 0.01
+    s = (0.02 - tex.position[:, 2]) / (cam[2] - tex.position[:, 2])
+    cross = tex.position[:, :2] + s[:, None] * (cam[:2] - tex.position[:, :2])
+    hidden = is_low & (np.abs(cross) < 0.015).all(1)
+    margin = is_low & (np.abs(np.abs(cross) - 0.015) < 0.002).any(1)  # at the edge: either answer
+    assert hidden.sum() > 20 and (~hidden & ~margin).sum() > 100
+    assert not seen[at[hidden & ~margin]].any() and seen[at[~hidden & ~margin]].all()
+    below = look_at(cam * [1, 1, -1], np.zeros(3))
+    assert not seen_texels(mesh, shape, dev, [below]).any()
 
 
 def test_material_errors_need_labels(tmp_path):
