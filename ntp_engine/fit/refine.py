@@ -593,12 +593,13 @@ def _refine(tr: _Trace, start: Start, specular: Tensor, settings: RefineSettings
     # stays where an entry shows it and it lowers the cost by more than ``lobe_evidence``
     out_frame, out_p, cost, H = _solve(tr, frame, p, False, settings)
     highlight = torch.zeros(N, dtype=dtype)
-    idx = specular.nonzero().squeeze(1)
+    evidence = lobe_evidence(tr.mask.sum((1, 2)))
+    idx = (specular & _lobe_can_pass(cost, evidence)).nonzero().squeeze(1)
     if len(idx):
         sub = tr if len(idx) == N else tr.rows(idx)  # idx sorted: all texels or a subset
         f, q, c, h = _solve(sub, frame[idx], p[idx], True, settings)
         peak = _highlight(sub, f, q)
-        keep = (peak >= MIN_SPECULAR_SHARE) & (c < cost[idx] - lobe_evidence(sub.mask.sum((1, 2))))
+        keep = (peak >= MIN_SPECULAR_SHARE) & (c < cost[idx] - evidence[idx])
         highlight[idx] = torch.where(keep, peak, torch.zeros_like(peak))
         k = idx[keep]
         out_frame[k], out_p[k], cost[k], H[k] = f[keep], q[keep], c[keep], h[keep]
@@ -606,6 +607,14 @@ def _refine(tr: _Trace, start: Start, specular: Tensor, settings: RefineSettings
     bad = ~(torch.isfinite(out_p).all(1) & torch.isfinite(out_frame).flatten(1).all(1) & torch.isfinite(cost))
     out_p[bad], out_frame[bad] = p[bad], frame[bad]
     return _finish(out_frame, out_p, H, cost, highlight)
+
+
+def _lobe_can_pass(diffuse_cost: Tensor, evidence: Tensor) -> Tensor:
+    """Texels ``(N,)`` whose own lobe could pass the evidence test: the full solve's cost (robust
+    data cost plus priors) is never below 0, so a lobe is kept only where the diffuse-only cost
+    exceeds the evidence — elsewhere its solve would be thrown away (on the gallery's engine scans
+    22–72% of the texels, the demo 30%), and is skipped: the same answers."""
+    return diffuse_cost > evidence
 
 
 def lobe_evidence(residuals: Tensor) -> Tensor:

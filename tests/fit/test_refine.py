@@ -129,6 +129,36 @@ def test_matte_gets_no_spurious_lobe():
     assert _normal_err(r, p).median() < 0.5
 
 
+def test_a_lobe_that_cannot_pass_the_evidence_test_is_not_solved(monkeypatch):
+    """Where the diffuse-only cost is already within the lobe evidence, no lobe can be kept (the full
+    solve's cost is never below 0), so its solve is skipped: matte and glossy texels together, the
+    answers equal to solving every one."""
+    import ntp_engine.fit.refine as rf
+
+    matte, m_mask, pm = _traces(16, 11, (0.6, 0.5, 0.4), (0.0, 0.0, 0.0), (0.3, 0.3))
+    gloss, g_mask, pg = _traces(16, 12, (0.3, 0.3, 0.3), (0.3, 0.3, 0.3), (0.1, 0.1))  # faint: near the test
+    entries, mask = torch.cat([matte, gloss]), torch.cat([m_mask, g_mask])
+    p = {k: torch.cat([pm[k], pg[k]]) for k in ("n_local", "t_local", "alpha_x", "alpha_y", "rho_d", "rho_s")}
+    n0, t0, a0, rd0, _ = _perturbed(p, 13)
+    start = Start(n0, t0, a0, rd0, torch.full((32, 3), 1.0))
+    solved = []
+    solve = rf._solve
+
+    def counting(tr, frame, q, specular, settings, prior=None):
+        if specular:
+            solved.append(tr.N)
+        return solve(tr, frame, q, specular, settings, prior)
+
+    monkeypatch.setattr(rf, "_solve", counting)
+    r = refine(DEV, entries, mask, start, torch.ones(32, dtype=torch.bool))
+    assert 0 < solved[0] < 32 and _seen(r)[16:].any() and not _seen(r)[:16].any()
+    monkeypatch.setattr(rf, "_lobe_can_pass", lambda cost, evidence: torch.ones_like(cost, dtype=torch.bool))
+    every = refine(DEV, entries, mask, start, torch.ones(32, dtype=torch.bool))
+    assert solved[-1] == 32
+    for name in ("frame", "log_alpha", "rho_d", "rho_s", "flags", "std", "cost", "highlight"):
+        torch.testing.assert_close(getattr(r, name), getattr(every, name), rtol=0, atol=0)
+
+
 def test_calibrated_noise_inflates_the_model_only():
     """Traces noisier than the sensor model (10% against its 3%) scale it up; quieter ones (1%) leave
     it as it is — a tighter model let the data tip normals against the priors (docs/refinement.md)."""
