@@ -457,8 +457,7 @@ def _lm_step(
         if len(ids) == 0:
             break
     rnd.rebase(p[:, P_OMEGA])
-    p = p.clone()
-    p[:, P_OMEGA] = 0.0
+    p[:, P_OMEGA] = 0.0  # p is this step's own copy (taken before the tries)
     return p, cost, H, lam
 
 

@@ -152,9 +152,7 @@ def _visible(
     px = np.full((n_tex, 2), -1.0)
     if front.any():
         px[front] = camera.project(scanner, torch.as_tensor(x[front])).numpy()
-    inside = (
-        front & (px[:, 0] >= 0) & (px[:, 1] >= 0) & (px[:, 0] <= scanner.width - 1) & (px[:, 1] <= scanner.height - 1)
-    )
+    inside = front & camera.in_image(scanner, px)
     rejected["behind_or_outside"] += int(n_tex - inside.sum())
     idx = np.nonzero(inside)[0]
     if len(idx) == 0:

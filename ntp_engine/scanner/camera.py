@@ -88,6 +88,12 @@ def project(scanner: Scanner, points: Tensor) -> Tensor:
     return torch.stack([K[0, 0] * xd + K[0, 1] * yd + K[0, 2], K[1, 1] * yd + K[1, 2]], -1)
 
 
+def in_image(scanner: Scanner, px: np.ndarray) -> np.ndarray:
+    """``(N,)`` True where pixel coordinates ``px (N, 2)`` (``project``'s) lie in the photo, its
+    border pixels' centres included; NaN (behind the camera) is outside."""
+    return (px[:, 0] >= 0) & (px[:, 1] >= 0) & (px[:, 0] <= scanner.width - 1) & (px[:, 1] <= scanner.height - 1)
+
+
 def project_jacobian(scanner: Scanner, points: Tensor) -> Tensor:
     """d pixel / d point ``(..., 2, 3)`` of ``project`` at camera-space ``points (..., 3)``
     (distortion included); NaN where z <= 0."""

@@ -35,7 +35,7 @@ from ..io.maps import MAP_FILES, SVBRDFMaps, texel_uv
 from ..io.mesh import Mesh, load_mesh
 from ..io.raycast import RayCaster
 from ..pipeline.texels import rasterize
-from ..scanner.camera import project, resampled
+from ..scanner.camera import in_image, project, resampled
 from ..scanner.device_file import shipped_device
 from ..scanner.scanner import Scanner
 from .materials import load_labels
@@ -128,9 +128,8 @@ def seen_texels(mesh: Mesh, shape: tuple[int, int], scanner: Scanner, poses: lis
         R, t = pose[:3, :3], pose[:3, 3]
         x = tex.position @ R.T + t
         px = project(scanner, torch.as_tensor(x)).numpy()  # NaN behind the camera
-        inside = (px[:, 0] >= 0) & (px[:, 1] >= 0) & (px[:, 0] <= scanner.width - 1) & (px[:, 1] <= scanner.height - 1)
         # a face turned away is hidden anyway (the offset ray meets it): the test only spares rays
-        facing = inside & ((-x * (tex.normal @ R.T)).sum(1) > 0)
+        facing = in_image(scanner, px) & ((-x * (tex.normal @ R.T)).sum(1) > 0)
         idx = np.nonzero(facing & ~seen)[0]
         to_cam = -R.T @ t - origin[idx]
         dist = np.linalg.norm(to_cam, axis=1)

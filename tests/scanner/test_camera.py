@@ -79,3 +79,12 @@ def test_resampled_keeps_the_field_of_view():
     x = torch.tensor([[0.02, -0.01, 0.3]], dtype=torch.float64)
     full_px, half_px = camera.project(d, x).numpy(), camera.project(half, x).numpy()
     np.testing.assert_allclose((half_px + 0.5) / 0.5 - 0.5, full_px, atol=1e-9)  # same ray, scaled pixel grid
+
+
+def test_in_image_keeps_the_border_pixel_centres_and_drops_what_lies_behind():
+    s = load_scanner()
+    w, h = s.width - 1, s.height - 1
+    px = np.array([[0, 0], [w, h], [-0.01, 5], [5, h + 0.01], [w + 1, 0], [np.nan, np.nan]], float)
+    assert camera.in_image(s, px).tolist() == [True, True, False, False, False, False]
+    behind = camera.project(s, torch.tensor([[0.0, 0.0, -0.2]], dtype=torch.float64)).numpy()
+    assert not camera.in_image(s, behind).any()
