@@ -115,8 +115,8 @@ def run(out: Path, bench: RefineBench | None = None, json_path: Path | None = No
                     picks.append(np.sort(rng.choice(cand, min(bench.per_material, len(cand)), replace=False)))
                 sel = np.concatenate(picks)
                 # the cache holds pixels as captured
-                ent, mask, start, specular = refine_inputs(traces, torch.as_tensor(sel), fit)
-                noise = rf.calibrated_noise(scan.scanner, ent, mask, start, specular, rf.RefineSettings())
+                ent, mask, start, specular, shadow = refine_inputs(traces, torch.as_tensor(sel), fit)
+                noise = rf.calibrated_noise(scan.scanner, ent, mask, start, specular, rf.RefineSettings(), shadow)
                 answers = {
                     "network + fit": (
                         fit["n_loc"][sel],
@@ -129,7 +129,7 @@ def run(out: Path, bench: RefineBench | None = None, json_path: Path | None = No
                 for label_v, st in VARIANTS:
                     st = replace(st, noise=noise)
                     t0 = time.perf_counter()
-                    r = rf.refine(scan.scanner, ent, mask, start, specular, st)
+                    r = rf.refine(scan.scanner, ent, mask, start, specular, st, shadow)
                     seconds = time.perf_counter() - t0
                     speed.append(
                         {
@@ -168,7 +168,9 @@ def run(out: Path, bench: RefineBench | None = None, json_path: Path | None = No
                                 **parameter_errors(rec, truth, mat["matte"]),
                             }
                         )
-                baseline.append(_baseline(noise, scan.scanner, ent, mask, fit, sel, specular, frame, true, bench, rng))
+                baseline.append(
+                    _baseline(noise, scan.scanner, ent, mask, shadow, fit, sel, specular, frame, true, bench, rng)
+                )
     record = {"bench": asdict(bench), "rows": rows, "speed": speed, "baseline": baseline}
     text = markdown(record)
     write_text_atomic(out / "refine.md", text)
@@ -184,6 +186,7 @@ def _baseline(
     scanner: Scanner,
     ent: torch.Tensor,
     mask: torch.Tensor,
+    shadow: torch.Tensor,
     fit: dict[str, np.ndarray],
     sel: np.ndarray,
     specular: torch.Tensor,
@@ -202,9 +205,8 @@ def _baseline(
     sub_ent, sub_mask = ent[pick].double(), mask[pick]
     idx = sel[pick]
     t0 = time.perf_counter()
-    ours = rf.refine(
-        scanner, ent[pick], mask[pick], rf.Start.from_fit(fit, idx), torch.ones(len(pick), dtype=torch.bool), st
-    )
+    lobe = torch.ones(len(pick), dtype=torch.bool)
+    ours = rf.refine(scanner, ent[pick], mask[pick], rf.Start.from_fit(fit, idx), lobe, st, shadow[pick])
     t_ours = (time.perf_counter() - t0) / len(pick)
     t0 = time.perf_counter()
     res = [
@@ -212,6 +214,7 @@ def _baseline(
             scanner,
             sub_ent[i : i + 1],
             sub_mask[i : i + 1],
+            shadow[pick[i : i + 1]],
             {k: fit[k][idx[i : i + 1]] for k in ("n_loc", "t_loc", "alpha", "rho_d", "rho_s")},
             st,
         )
@@ -241,9 +244,11 @@ def _baseline(
     }
 
 
-def _scipy_texel(scanner, ent: torch.Tensor, mask: torch.Tensor, start: dict, st: rf.RefineSettings) -> tuple:
+def _scipy_texel(
+    scanner, ent: torch.Tensor, mask: torch.Tensor, shadow: torch.Tensor, start: dict, st: rf.RefineSettings
+) -> tuple:
     """One texel by scipy least_squares on the refinement's objective with every sample exact."""
-    tr = rf._Trace(scanner, ent, mask, st.noise, None)  # no blocks: every emitter sample exact
+    tr = rf._Trace(scanner, ent, mask, st.noise, None, shadow)  # no blocks: every emitter sample exact
     frame0 = rf.frame_from_normal_tangent(torch.as_tensor(start["n_loc"]), torch.as_tensor(start["t_loc"]))
     la0 = torch.as_tensor(np.log(np.clip(start["alpha"], rf.ALPHA_MIN, rf.ALPHA_MAX)))
     rnd = rf._Round(tr, frame0, la0, True)

@@ -24,6 +24,7 @@ from ..scanner.scanner import Scanner
 
 BLOCK_SIZE = 16  # samples per block (4 x 4 LEDs on a grid)
 EXACT_UP_TO = 128  # devices with at most this many samples are always summed exactly
+SHADOW_BITS = 64  # shadow groups one entry's mask can hold (an int64's bits)
 
 
 @dataclass(frozen=True)
@@ -83,3 +84,47 @@ def emitter_blocks(scanner: Scanner, size: int = BLOCK_SIZE) -> EmitterBlocks | 
     )
     block_drive = np.stack([drive[g].sum(0) for g in groups])
     return EmitterBlocks(torch.from_numpy(members), coarse, torch.from_numpy(block_drive))
+
+
+@dataclass(frozen=True)
+class ShadowGroups:
+    """What a test of the mesh shadowing its own emitters traces: P points (camera space) — each
+    block's coarse emitter, or each sample on a device summed exactly — their share of the pattern's
+    drive (summing to 1), and each sample's group. An entry's shadow is an int64 mask, bit g set
+    where the mesh hides group g from its point: ``fits`` says whether P bits are enough."""
+
+    points: np.ndarray  # (P, 3)
+    drive: np.ndarray  # (P,)
+    group: Tensor  # (K,) int64: the group of each emitter sample
+
+    @property
+    def fits(self) -> bool:
+        """True when one int64 mask can say which of the P groups are hidden."""
+        return len(self.points) <= SHADOW_BITS
+
+    def hidden(self, shadow: Tensor) -> Tensor:
+        """Per group ``(..., P)`` bool: hidden by ``shadow (...)`` int64 masks."""
+        bit = torch.arange(len(self.points), dtype=torch.int64)
+        return (shadow[..., None] >> bit) & 1 == 1
+
+
+def sample_drive(scanner: Scanner) -> tuple[np.ndarray, np.ndarray]:
+    """The emitter samples ``(K, 3)`` (camera space) and their share of the pattern's drive ``(K,)``
+    (quadrature weight x drive summed over the channels; summing to 1): what a shadow test weighs."""
+    pts, w = scanner.emitter_samples(torch.float64)
+    drive = (w.numpy() * scanner.effective_pattern().sum(1)[:, None]).reshape(-1)
+    return pts.numpy().reshape(-1, 3), drive / max(drive.sum(), 1e-300)
+
+
+def shadow_groups(scanner: Scanner) -> ShadowGroups:
+    """The groups a shadow test traces for ``scanner`` (``ShadowGroups``)."""
+    blocks = emitter_blocks(scanner)
+    if blocks is None:
+        points, drive = sample_drive(scanner)
+        return ShadowGroups(points, drive, torch.arange(len(points)))
+    K = scanner.emitter_samples(torch.float64)[1].numel()
+    points = blocks.coarse.emitter_samples(torch.float64)[0].numpy().reshape(-1, 3)
+    drive = blocks.coarse_drive.sum(1).numpy()
+    group = torch.zeros(K + 1, dtype=torch.int64)  # index K pads the members
+    group[blocks.members] = torch.arange(blocks.count)[:, None].expand_as(blocks.members)
+    return ShadowGroups(points, drive / max(float(drive.sum()), 1e-300), group[:K])

@@ -43,7 +43,7 @@ from ..physics.frame import (
 from ..scanner.camera import VALID_CODE
 from ..scanner.scanner import Scanner
 from .albedo import bounded_ls2
-from .emitter_blocks import EmitterBlocks, emitter_blocks
+from .emitter_blocks import EmitterBlocks, emitter_blocks, shadow_groups
 from .highlights import parked_positions
 from .pixel_bases import (
     diffuse_basis,
@@ -152,10 +152,17 @@ class _Trace:
     """One chunk of traces, ready for the model: every entry's directions to each emitter sample
     (and, with ``blocks``, to each block's coarse emitter), half vectors and Fresnel-weighted falloff
     in the texel's geometric frame — none depends on the parameters (a shading frame only rotates
-    them). Sample index K is padding: it emits nothing."""
+    them). Sample index K is padding: it emits nothing. ``shadow (N, V)``: the emitter groups the
+    mesh hides from each entry (``learn.ragged``), whose falloff is 0."""
 
     def __init__(
-        self, scanner: Scanner, entries: Tensor, mask: Tensor, noise: SensorNoise, blocks: EmitterBlocks | None
+        self,
+        scanner: Scanner,
+        entries: Tensor,
+        mask: Tensor,
+        noise: SensorNoise,
+        blocks: EmitterBlocks | None,
+        shadow: Tensor | None = None,
     ):
         N, V, _ = entries.shape
         self.N, self.V, self.blocks = N, V, blocks
@@ -179,6 +186,14 @@ class _Trace:
         if blocks is not None:
             _, self.wi_c, self.h_c, _, self.ff_c = directions(blocks.coarse, False)
             self.drive_c = exposure * blocks.coarse_drive.to(x.dtype)
+        if shadow is not None and bool((shadow != 0).any()):
+            groups = shadow_groups(scanner)
+            hidden = groups.hidden(shadow)  # (N, V, P)
+            lit = ~hidden.gather(-1, groups.group.expand(N, V, -1))  # per emitter sample (N, V, K)
+            lit = torch.cat([lit, torch.ones(N, V, 1, dtype=torch.bool)], -1).to(x.dtype)  # padding
+            self.falloff, self.fresnel_falloff = self.falloff * lit, self.fresnel_falloff * lit
+            if blocks is not None:  # the groups are the blocks: their coarse emitters too
+                self.ff_c = self.ff_c * (~hidden).to(x.dtype)
         y = entries[..., :3]
         self.y = torch.where(mask[..., None], y, torch.zeros_like(y))
         code = 255.0 * self.y
@@ -570,13 +585,16 @@ def refine(
     start: Start,
     specular: Tensor,
     settings: RefineSettings | None = None,
+    shadow: Tensor | None = None,
 ) -> Refined:
-    """Refine N texels from ``start``. ``entries (N, V, 12)`` as captured with ``mask (N, V)``;
+    """Refine N texels from ``start``. ``entries (N, V, 12)`` as captured with ``mask (N, V)`` and
+    ``shadow (N, V)`` (the emitter groups the mesh hides from each entry: ``learn.ragged``);
     ``specular (N,)``: texels whose lobe is solved. A texel without one, or whose solved lobe no
     entry shows (below ``MIN_SPECULAR_SHARE`` of every pixel), gets a diffuse-only solve from its
     start and rho_s = 0, its lobe flagged unconstrained. Never NaN: a failed solve keeps the start."""
     settings = settings or RefineSettings()
-    return _refine(_Trace(scanner, entries, mask, settings.noise, emitter_blocks(scanner)), start, specular, settings)
+    tr = _Trace(scanner, entries, mask, settings.noise, emitter_blocks(scanner), shadow)
+    return _refine(tr, start, specular, settings)
 
 
 def _refine(tr: _Trace, start: Start, specular: Tensor, settings: RefineSettings) -> Refined:
@@ -631,6 +649,7 @@ def material_costs(
     rho_s: Tensor,
     candidates: Tensor | None = None,
     settings: RefineSettings | None = None,
+    shadow: Tensor | None = None,
 ) -> tuple[Tensor, Tensor]:
     """How well K basis materials' lobes (``alpha (K, 2)``, ``rho_s (K, 3)``) explain N traces:
     the robust data cost ``(N, 1 + K)`` of each texel's trace under no lobe (column 0) and under each
@@ -642,7 +661,7 @@ def material_costs(
     would let a lobe hide in the noise by choosing where to point). Columns are comparable: each
     model has the same free rho_d."""
     settings = settings or RefineSettings()
-    tr_all = _Trace(scanner, entries, mask, settings.noise, emitter_blocks(scanner))
+    tr_all = _Trace(scanner, entries, mask, settings.noise, emitter_blocks(scanner), shadow)
     dtype = tr_all.y.dtype
     N, K = tr_all.N, alpha.shape[0]
     frame_all = frame_from_normal_tangent(start.normal.to(dtype), start.tangent.to(dtype))
@@ -684,6 +703,7 @@ def refine_toward(
     start: Start,
     prior: LobePrior,
     settings: RefineSettings | None = None,
+    shadow: Tensor | None = None,
 ) -> Refined:
     """Refine N texels that take their lobe from a basis material: from ``start`` (the material's
     lobe with the texel's own frame, rho_d), with alphas and rho_s pulled to ``prior`` by its
@@ -691,7 +711,7 @@ def refine_toward(
     ``FLAG_FROM_MATERIAL``, and ``FLAG_SPECULAR_UNCONSTRAINED`` where none does: its parameters are
     then the material's; its uncertainty the prior's). Never NaN: a failed solve keeps the start."""
     settings = settings or RefineSettings()
-    tr = _Trace(scanner, entries, mask, settings.noise, emitter_blocks(scanner))
+    tr = _Trace(scanner, entries, mask, settings.noise, emitter_blocks(scanner), shadow)
     dtype = tr.y.dtype
     N = tr.N
     frame = frame_from_normal_tangent(start.normal.to(dtype), start.tangent.to(dtype))
@@ -714,14 +734,20 @@ def refine_toward(
 
 
 def calibrated_noise(
-    scanner: Scanner, entries: Tensor, mask: Tensor, start: Start, specular: Tensor, settings: RefineSettings
+    scanner: Scanner,
+    entries: Tensor,
+    mask: Tensor,
+    start: Start,
+    specular: Tensor,
+    settings: RefineSettings,
+    shadow: Tensor | None = None,
 ) -> SensorNoise:
     """The sensor noise model scaled (within ``NOISE_SCALE``) so that a refinement of these sample
     traces leaves residuals of unit robust scale — 1.4826 x the median |normalised residual| of the
     answer over its entries is 1 when the model is right (Monte Carlo renders and unmodelled effects
     give more): data from a noisier source then weigh against the priors as much as they deserve.
     A quieter source keeps the model as it is (``NOISE_SCALE``'s floor of 1)."""
-    tr = _Trace(scanner, entries, mask, settings.noise, emitter_blocks(scanner))
+    tr = _Trace(scanner, entries, mask, settings.noise, emitter_blocks(scanner), shadow)
     r = _refine(tr, start, specular, settings)
     p = torch.cat([torch.zeros_like(r.rho_d), r.log_alpha, r.rho_d, r.rho_s], 1)
     res, active = _residuals(tr, *_predict(tr, r.frame, p), p)

@@ -2,7 +2,10 @@
 
 Trace k is ``entries[offsets[k]:offsets[k+1]]``. An entry is (linear pixel RGB, position in camera
 space in metres, geometric normal n^, geometric tangent t^), in the camera space of its view (paper
-Eq. 4); the network normalises positions itself. Entries of one trace are in photo order.
+Eq. 4); the network normalises positions itself. Entries of one trace are in photo order. Optional
+per-entry columns: ``in_range`` (the 8-bit code was in the valid range and the mesh hides too little
+of the pattern for the network) and ``shadow`` (int64 masks: the emitter groups of
+``fit.emitter_blocks.shadow_groups`` the mesh hides from the entry's point, bit g = group g).
 """
 
 from __future__ import annotations
@@ -45,7 +48,8 @@ class RaggedTraces:
 
     entries: Tensor  # (E, 12) float32
     offsets: Tensor  # (N + 1,) int64, offsets[0] = 0, offsets[-1] = E
-    in_range: Tensor | None = None  # (E,) bool: the 8-bit code is in VALID_CODE (None: all are)
+    in_range: Tensor | None = None  # (E,) bool: what the network may read (None: every entry)
+    shadow: Tensor | None = None  # (E,) int64: emitter groups the mesh hides (None: none)
 
     def __post_init__(self):
         if self.entries.ndim != 2 or self.entries.shape[1] != ENTRY_SIZE:
@@ -56,10 +60,13 @@ class RaggedTraces:
             raise ValueError("offsets must not decrease")
         if self.in_range is not None and self.in_range.shape != (len(self.entries),):
             raise ValueError("in_range must hold one flag per entry")
+        if self.shadow is not None and self.shadow.shape != (len(self.entries),):
+            raise ValueError("shadow must hold one mask per entry")
 
     def in_range_only(self) -> RaggedTraces:
         """The traces with only their in-range entries (what the network and the lumitexel fit
-        use); the refinement also reads the dark and clipped ones."""
+        use; no ``shadow``: theirs hide too little to count); the refinement also reads the dark,
+        clipped and shadowed ones."""
         if self.in_range is None:
             return self
         keep = self.in_range
@@ -82,10 +89,11 @@ class RaggedTraces:
         return out
 
     def block(self, start: int, stop: int) -> RaggedTraces:
-        """Traces ``start:stop`` as a table of their own (entries and flags are views, not copies)."""
+        """Traces ``start:stop`` as a table of their own (entries and columns are views, not copies)."""
         a, b = int(self.offsets[start]), int(self.offsets[stop])
         flags = None if self.in_range is None else self.in_range[a:b]
-        return RaggedTraces(self.entries[a:b], self.offsets[start : stop + 1] - a, flags)
+        shadow = None if self.shadow is None else self.shadow[a:b]
+        return RaggedTraces(self.entries[a:b], self.offsets[start : stop + 1] - a, flags, shadow)
 
     @property
     def num_traces(self) -> int:
@@ -101,20 +109,33 @@ class RaggedTraces:
         """Traces ``idx (n,)`` as padded entries ``(n, V, 12)`` (zeros past each length, V the
         longest of them, at least 1) and their mask ``(n, V)``. ``max_views`` keeps at most that
         many entries per trace, spread evenly over it (first and last included)."""
+        gather, mask = self._padded_rows(idx, max_views)
+        if len(self.entries) == 0:
+            return torch.zeros(*mask.shape, ENTRY_SIZE), mask
+        return torch.where(mask[..., None], self.entries[gather], torch.zeros(())), mask
+
+    def padded_shadow(self, idx: Tensor, max_views: int | None = None) -> Tensor:
+        """The ``shadow`` masks ``(n, V)`` of the entries ``padded`` returns (0 past each length, and
+        everywhere without a ``shadow`` column)."""
+        gather, mask = self._padded_rows(idx, max_views)
+        if self.shadow is None or len(self.entries) == 0:
+            return torch.zeros(mask.shape, dtype=torch.int64)
+        return torch.where(mask, self.shadow[gather], torch.zeros((), dtype=torch.int64))
+
+    def _padded_rows(self, idx: Tensor, max_views: int | None) -> tuple[Tensor, Tensor]:
+        """The table rows ``(n, V)`` of ``padded``'s entries (clamped into the table) and its mask."""
         lengths = self.lengths[idx]
         keep = lengths if max_views is None else lengths.clamp_max(max_views)
         width = max(int(keep.max()) if len(idx) else 0, 1)
         pos = torch.arange(width)[None, :]
         mask = pos < keep[:, None]
-        if len(self.entries) == 0:
-            return torch.zeros(len(idx), width, ENTRY_SIZE), mask
         offset = pos.expand(len(idx), width) if max_views is None else _spread(pos, lengths[:, None], keep[:, None])
-        gather = (self.offsets[idx][:, None] + offset).clamp_max(len(self.entries) - 1)
-        return torch.where(mask[..., None], self.entries[gather], torch.zeros(())), mask
+        gather = (self.offsets[idx][:, None] + offset).clamp(0, max(len(self.entries) - 1, 0))
+        return gather, mask
 
     def spread(self, max_views: int) -> RaggedTraces:
         """The table with at most ``max_views`` entries per trace, the same ones ``padded`` keeps
-        (evenly spread, first and last included); ``in_range`` is not carried (read it first)."""
+        (evenly spread, first and last included); ``in_range`` and ``shadow`` are not carried (read them first)."""
         lengths = self.lengths
         keep = lengths.clamp_max(max_views)
         offsets = torch.zeros_like(self.offsets)

@@ -172,14 +172,16 @@ def fit_traces(
 
 def refine_inputs(
     traces: RaggedTraces, idx: torch.Tensor, fit: dict[str, np.ndarray]
-) -> tuple[torch.Tensor, torch.Tensor, Start, torch.Tensor]:
+) -> tuple[torch.Tensor, torch.Tensor, Start, torch.Tensor, torch.Tensor]:
     """What ``fit.refine.refine`` takes for the texels ``idx`` of ``traces`` (linear pixels as
     captured: the camera model is the scanner's): their entries (``REFINE_VIEWS`` spread over each
-    trace), the mask, the start from ``fit`` and which texels seek a lobe (those the highlight check
-    did not flag)."""
+    trace), the mask, the start from ``fit``, which texels seek a lobe (those the highlight check
+    did not flag) and the entries' shadow masks."""
     ent, mask = traces.padded(idx, max_views=REFINE_VIEWS)
+    shadow = traces.padded_shadow(idx, max_views=REFINE_VIEWS)
     i = idx.numpy()
-    return ent, mask, Start.from_fit(fit, i), torch.as_tensor(fit["flags"][i] & FLAG_NO_HIGHLIGHT == 0)
+    specular = torch.as_tensor(fit["flags"][i] & FLAG_NO_HIGHLIGHT == 0)
+    return ent, mask, Start.from_fit(fit, i), specular, shadow
 
 
 def refine_fit(
@@ -207,14 +209,16 @@ def refine_fit(
     if len(todo):  # the noise model, calibrated on a seeded sample of the texels
         gen = torch.Generator().manual_seed(0)
         sample = todo[torch.randperm(len(todo), generator=gen)[:CALIBRATION_TEXELS]].sort().values
-        noise = calibrated_noise(scanner, *refine_inputs(traces, sample, fit), settings)
+        ent, mask, start, specular, shadow = refine_inputs(traces, sample, fit)
+        noise = calibrated_noise(scanner, ent, mask, start, specular, settings, shadow)
         settings = dataclasses.replace(settings, noise=noise)
         fit["noise_scale"] = np.array(noise.relative / RefineSettings().noise.relative)
     fit["std"] = np.full((traces.num_traces, 4), np.nan)
     fit["highlight"] = np.zeros(traces.num_traces, np.float32)
     bar = progress.counter("refine", len(todo), "texel")
     for idx in todo.split(REFINE_BATCH):
-        _store(fit, idx, refine(scanner, *refine_inputs(traces, idx, fit), settings))
+        ent, mask, start, specular, shadow = refine_inputs(traces, idx, fit)
+        _store(fit, idx, refine(scanner, ent, mask, start, specular, settings, shadow))
         bar.update(len(idx))
     bar.close()
     if settings.materials:
@@ -261,8 +265,9 @@ def _material_pass(
     alpha, rho_s = torch.as_tensor(basis.alpha), torch.as_tensor(basis.rho_s)
     bar = progress.counter("materials", len(rest), "texel")
     for k in np.array_split(rest, -(-len(rest) // REFINE_BATCH)) if len(rest) else []:
-        ent, mask, start, _ = refine_inputs(traces, torch.as_tensor(i_obs[k]), fit)
-        c, t = material_costs(scanner, ent, mask, start, alpha, rho_s, torch.as_tensor(candidates(prior[k])), settings)
+        ent, mask, start, _, shadow = refine_inputs(traces, torch.as_tensor(i_obs[k]), fit)
+        maybe = torch.as_tensor(candidates(prior[k]))
+        c, t = material_costs(scanner, ent, mask, start, alpha, rho_s, maybe, settings, shadow)
         costs[k], turns[k] = c.numpy(), t.numpy()
         bar.update(len(k))
     bar.close()
@@ -284,7 +289,7 @@ def _material_pass(
     sel = torch.as_tensor(np.nonzero(takes)[0])
     bar = progress.counter("material lobes", len(sel), "texel")
     for idx in sel.split(REFINE_BATCH):
-        ent, mask, start, _ = refine_inputs(traces, idx, fit)
+        ent, mask, start, _, shadow = refine_inputs(traces, idx, fit)
         m = fit["material"][idx.numpy()]
         pull = LobePrior(
             torch.as_tensor(basis.alpha[m], dtype=torch.float32),
@@ -292,6 +297,6 @@ def _material_pass(
             torch.as_tensor(basis.log_alpha_sigma[m], dtype=torch.float32),
             torch.as_tensor(basis.rho_s_sigma[m], dtype=torch.float32),
         )
-        _store(fit, idx, refine_toward(scanner, ent, mask, start, pull, settings))
+        _store(fit, idx, refine_toward(scanner, ent, mask, start, pull, settings, shadow))
         bar.update(len(idx))
     bar.close()

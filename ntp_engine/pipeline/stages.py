@@ -522,7 +522,7 @@ def _traces_stage(
         "poses": h_pose,
         "support": scan.support_plane,
         "max_shadowed_drive": trace_assembly.MAX_SHADOWED_DRIVE,
-        "emitter_shadows": trace_assembly.SKY_RAYS,  # entries the mesh shadows are left out
+        "emitter_shadows": trace_assembly.SKY_RAYS,  # entries the mesh shadows: kept with their masks
         "out_of_range_kept": True,
         "files": trace_assembly.TABLE_FILES,
         "device": scanner_to_dict(scan.scanner),

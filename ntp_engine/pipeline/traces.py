@@ -4,9 +4,11 @@ For every view j and texel p: the texel's object-space point goes into camera j 
 camera-from-world, the world being the mesh's frame); the entry is kept if (1) the point is in
 front of the camera, projects inside the photo (OpenCV distortion included) and lies in the valid
 volume, (2) nothing of the mesh lies between it and the camera (Embree, from the point offset
-along its normal), (3) wo . n^ > 0.3, (4) the mesh itself blocks no more than ``MAX_SHADOWED_DRIVE``
-of the pattern's drive on its way from the emitters to the point (``EmitterShadow``: Eq. 1, the
-network and the refinement all assume every emitter above the horizon reaches it). Entries whose
+along its normal), (3) wo . n^ > 0.3. (4) Which emitter groups the mesh itself hides from the
+point (``EmitterShadow``) is the entry's ``shadow`` mask; where they carry more than
+``MAX_SHADOWED_DRIVE`` of the pattern's drive the entry is flagged ``in_range = False`` (Eq. 1 as
+the network learnt it assumes every emitter above the horizon reaches the point; the refinement
+models the mask) — or, on a device with more groups than a mask holds, left out. Entries whose
 bilinearly sampled 8-bit pixel has a channel outside [32, 224] (dark or near clipping) are kept too,
 flagged ``in_range = False``: the network and the lumitexel fit skip them
 (``RaggedTraces.in_range_only``), the refinement models them (a noise floor for dark values, clipped
@@ -26,7 +28,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..fit.emitter_blocks import emitter_blocks
+from ..fit.emitter_blocks import sample_drive, shadow_groups
 from ..io.maps import bilinear_pixels
 from ..io.progress import QUIET, Progress
 from ..io.raycast import RayCaster
@@ -38,10 +40,15 @@ from .texels import Texels
 MAX_SHADOWED_DRIVE = 0.05  # fraction of the pattern's drive the support, or the mesh, may block from a used entry
 MIN_COS_VIEW = 0.3
 SKY_RAYS = 64  # directions over a texel's hemisphere: none hitting the mesh = it cannot shadow its emitters
-TABLE_FILES = ("entries", "offsets", "in_range")  # a table on disk: one .npy each (``load_table``)
+TABLE_FILES = ("entries", "offsets", "in_range", "shadow")  # a table on disk: one .npy each (``load_table``)
+# the per-entry columns: dtype and shape after the entry axis
+_COLUMNS: dict[str, tuple[type, tuple[int, ...]]] = {
+    "entries": (np.float32, (12,)),
+    "in_range": (np.bool_, ()),
+    "shadow": (np.int64, ()),
+}
 # entries per block when a table on disk is regrouped by texel: ~400 MB of rows in memory at a time
 TABLE_BLOCK_ENTRIES = 1 << 23
-_SPILL_ENTRIES, _SPILL_IN_RANGE = ".photo-order-entries.npy", ".photo-order-in-range.npy"
 
 
 @dataclass
@@ -54,21 +61,13 @@ class TraceStats:
     rejected: dict[str, int]
 
 
-def _sample_drive(scanner: Scanner) -> tuple[np.ndarray, np.ndarray]:
-    """The emitter samples ``(K, 3)`` (camera space) and their share of the pattern's drive ``(K,)``
-    (quadrature weight x drive summed over the channels; summing to 1): what a shadow test weighs."""
-    pts, w = scanner.emitter_samples(torch.float64)
-    drive = (w.numpy() * scanner.effective_pattern().sum(1)[:, None]).reshape(-1)
-    return pts.numpy().reshape(-1, 3), drive / max(drive.sum(), 1e-300)
-
-
 class SupportShadow:
     """Whether the support (the plane z = ``support_z`` under the object) blocks emitters carrying
     more than ``MAX_SHADOWED_DRIVE`` of the pattern's drive in a photo — for every point of the
     object at once, which Eq. 1 (and the network) do not model."""
 
     def __init__(self, scanner: Scanner, support_z: float):
-        self.points, self.drive = _sample_drive(scanner)
+        self.points, self.drive = sample_drive(scanner)
         self.support_z = support_z
 
     def __call__(self, camera_from_world: np.ndarray) -> bool:
@@ -79,21 +78,15 @@ class SupportShadow:
 
 
 class EmitterShadow:
-    """Which texels a view measures with emitters carrying more than ``MAX_SHADOWED_DRIVE`` of the
-    pattern's drive blocked by the mesh itself (a concave object shadowing its own light: a knot's
-    inner loops, a box's inside corners). Shadow rays go from the point (offset ``eps`` along its
-    normal) to each emitter block's centroid (``fit.emitter_blocks``; each sample for small
-    devices), counting blocks above the point's horizon; texels whose hemisphere is open
-    (``SKY_RAYS`` rays, none hitting the mesh) are never tested — on convex parts the test is free."""
+    """Which emitters the mesh itself hides from a texel in a view (a concave object shadowing its
+    own light: a knot's inner loops, a box's inside corners): one shadow ray from the point (offset
+    ``eps`` along its normal) to each group of ``fit.emitter_blocks.shadow_groups`` (a block's
+    coarse emitter; each sample on small devices) above the point's horizon. Texels whose
+    hemisphere is open (``SKY_RAYS`` rays, none hitting the mesh) are never tested — on convex
+    parts the test is free."""
 
     def __init__(self, scanner: Scanner, caster: RayCaster, texels: Texels, eps: float):
-        blocks = emitter_blocks(scanner)
-        if blocks is None:
-            self.points, self.drive = _sample_drive(scanner)
-        else:
-            pts, _ = blocks.coarse.emitter_samples(torch.float64)
-            drive = blocks.coarse_drive.sum(1).numpy()
-            self.points, self.drive = pts.numpy().reshape(-1, 3), drive / max(float(drive.sum()), 1e-300)
+        self.groups = shadow_groups(scanner)
         self.caster, self.eps = caster, eps
         self.position, self.normal = texels.position, texels.normal
         self.open = self._open_sky(texels)
@@ -113,25 +106,38 @@ class EmitterShadow:
             hit |= self.caster.occluded(origin, ray, np.full(len(texels), np.inf))
         return ~hit
 
-    def __call__(self, pose: np.ndarray, idx: np.ndarray) -> np.ndarray:
-        """``(len(idx),)`` True where view ``pose`` (camera-from-world) sees texel ``idx`` shadowed."""
-        shadowed = np.zeros(len(idx), bool)
+    def __call__(self, pose: np.ndarray, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        """For view ``pose`` (camera-from-world) and texels ``idx``: the share of the pattern's drive
+        the mesh hides ``(len(idx),)``, and which groups it hides, one int64 mask per texel (bit g:
+        group g; None when the groups do not fit a mask or none is hidden)."""
+        blocked = np.zeros(len(idx))
         test = np.nonzero(~self.open[idx])[0]
         if len(test) == 0:
-            return shadowed
+            return blocked, None
         R, t = pose[:3, :3], pose[:3, 3]
-        emitters = (self.points - t) @ R  # world: R^T (p - t)
+        emitters = (self.groups.points - t) @ R  # world: R^T (p - t)
         normal = self.normal[idx[test]]
         origin = self.position[idx[test]] + self.eps * normal
-        blocked = np.zeros(len(test))
-        for e, drive in zip(emitters, self.drive, strict=True):
+        mask = np.zeros(len(test), np.int64)
+        for g, (e, drive) in enumerate(zip(emitters, self.groups.drive, strict=True)):
             to = e - origin
             dist = np.linalg.norm(to, axis=1)
             to /= dist[:, None]
             lit = (to * normal).sum(1) > 0  # below the horizon it lights nothing anyway
-            blocked += drive * (lit & self.caster.occluded(origin, to, dist))
-        shadowed[test] = blocked > MAX_SHADOWED_DRIVE
-        return shadowed
+            hidden = lit & self.caster.occluded(origin, to, dist)
+            blocked[test] += drive * hidden
+            if self.groups.fits:
+                mask |= hidden.astype(np.int64) << g
+        if not self.groups.fits or not mask.any():
+            return blocked, None
+        out = np.zeros(len(idx), np.int64)
+        out[test] = mask
+        return blocked, out
+
+    def shadowed(self, masks: np.ndarray) -> np.ndarray:
+        """``(E,)`` True where the groups ``masks (E,)`` hide more than ``MAX_SHADOWED_DRIVE`` of the drive."""
+        hidden = self.groups.hidden(torch.from_numpy(masks)).numpy()
+        return (hidden * self.groups.drive).sum(-1) > MAX_SHADOWED_DRIVE
 
 
 def _visible(
@@ -142,9 +148,10 @@ def _visible(
     eps: float,
     rejected: dict[str, int],
     emitter_shadow: EmitterShadow | None = None,
-) -> np.ndarray:
-    """Texels view ``pose`` measures (conditions 1-3 of the module docstring, geometry only: no
-    pixel is read): their indices, ascending."""
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """Texels view ``pose`` measures (conditions 1-4 of the module docstring, geometry only: no
+    pixel is read): their indices, ascending, and the emitter groups the mesh hides from each (int64
+    masks, ``EmitterShadow``; None: none hidden)."""
     n_tex = len(texels)
     R, t = pose[:3, :3], pose[:3, 3]
     x = texels.position @ R.T + t
@@ -156,7 +163,7 @@ def _visible(
     rejected["behind_or_outside"] += int(n_tex - inside.sum())
     idx = np.nonzero(inside)[0]
     if len(idx) == 0:
-        return idx
+        return idx, None
     in_box = scanner.in_valid_volume(torch.as_tensor(x[idx])).numpy()
     rejected["valid_volume"] += int((~in_box).sum())
     idx = idx[in_box]
@@ -165,7 +172,7 @@ def _visible(
     rejected["grazing"] += int((~facing).sum())
     idx = idx[facing]
     if len(idx) == 0:
-        return idx
+        return idx, None
     origin = texels.position[idx] + eps * texels.normal[idx]
     to_cam = -R.T @ t - origin
     dist = np.linalg.norm(to_cam, axis=1)
@@ -173,10 +180,13 @@ def _visible(
     rejected["occluded"] += int(occ.sum())
     idx = idx[~occ]
     if emitter_shadow is None or len(idx) == 0:
-        return idx
-    dark = emitter_shadow(pose, idx)
+        return idx, None
+    blocked, hidden = emitter_shadow(pose, idx)
+    dark = blocked > MAX_SHADOWED_DRIVE
     rejected["emitter_shadow"] += int(dark.sum())
-    return idx[~dark]
+    if hidden is None:  # no masks (too many groups for one): the shadowed entries are left out
+        return idx[~dark], None
+    return idx, hidden  # kept with their masks, flagged out of range (the refinement models them)
 
 
 def assemble(
@@ -218,29 +228,31 @@ def assemble(
     shadowed = SupportShadow(scanner, support_z) if support_z is not None else None
     self_shadow = EmitterShadow(scanner, caster, texels, eps)
     seen: list[np.ndarray | None] = []
+    hidden: list[np.ndarray | None] = []  # per view: the emitter groups the mesh hides, per entry
     counts = np.zeros(n_tex, np.int64)
     for pose in progress.track(poses, "visibility", total=len(poses), unit="photo"):
         if shadowed is not None and shadowed(pose):
             rejected["support_shadow_views"] += 1
             seen.append(None)
+            hidden.append(None)
             continue
-        idx = _visible(texels, pose, scanner, caster, eps, rejected, self_shadow)
+        idx, masks = _visible(texels, pose, scanner, caster, eps, rejected, self_shadow)
         counts[idx] += 1
         seen.append(idx.astype(np.int32) if len(idx) else None)
+        hidden.append(masks)
     offsets = np.zeros(n_tex + 1, np.int64)
     offsets[1:] = np.cumsum(counts)
     n_entries = int(offsets[-1])
-    if folder is None:
-        entries, in_range = np.empty((n_entries, 12), np.float32), np.empty(n_entries, bool)
-    else:  # photo order on disk: each view's entries are one contiguous, sequential write
-        entries = np.lib.format.open_memmap(folder / _SPILL_ENTRIES, "w+", np.float32, (n_entries, 12))
-        in_range = np.lib.format.open_memmap(folder / _SPILL_IN_RANGE, "w+", bool, (n_entries,))
+    # photo order on disk: each view's entries are one contiguous, sequential write
+    table = {k: _column(None if folder is None else folder / f".photo-order-{k}.npy", k, n_entries) for k in _COLUMNS}
+    entries, in_range, shadow = table["entries"], table["in_range"], table["shadow"]
     cursor = offsets[:-1].copy()  # in memory: each texel's next free row
     view_start = np.zeros(len(seen), np.int64)  # on disk: where each view's entries begin
     written = 0
     views_used = 0
     for k, (img, pose) in enumerate(progress.track(zip(photos, poses), "traces", total=len(poses), unit="photo")):
-        visible = seen[k]
+        visible, masks = seen[k], hidden[k]
+        hidden[k] = None
         if folder is None:
             seen[k] = None  # free this view's indices as its entries land
         if visible is None:
@@ -263,38 +275,48 @@ def assemble(
         entries[rows, 3:6] = x
         entries[rows, 6:9] = texels.normal[idx] @ R.T
         entries[rows, 9:12] = texels.tangent[idx] @ R.T
-        in_range[rows] = ok
+        if masks is None:
+            in_range[rows], shadow[rows] = ok, 0
+        else:  # entries the mesh shadows: out of range for the network, which assumes every emitter
+            in_range[rows] = ok & ~self_shadow.shadowed(masks)
+            shadow[rows] = masks
     stats = TraceStats(views_used, int(in_range.sum()), int((counts > 0).sum()), rejected)
     if folder is None:
-        return RaggedTraces(torch.from_numpy(entries), torch.from_numpy(offsets), torch.from_numpy(in_range)), stats
-    _by_texel(folder, seen, view_start, entries, in_range, offsets, progress)
-    del entries, in_range
-    (folder / _SPILL_ENTRIES).unlink()
-    (folder / _SPILL_IN_RANGE).unlink()
+        return RaggedTraces(*(torch.from_numpy(a) for a in (entries, offsets, in_range, shadow))), stats
+    del entries, in_range, shadow
+    _by_texel(folder, seen, view_start, table, offsets, progress)
+    del table
+    for name in _COLUMNS:
+        (folder / f".photo-order-{name}.npy").unlink()
     return load_table(folder), stats
+
+
+def _column(path: Path | None, name: str, n_entries: int) -> np.ndarray:
+    """An empty per-entry column ``name`` of the table (``_COLUMNS``): in memory, or memory-mapped at ``path``."""
+    dtype, tail = _COLUMNS[name]
+    if path is None:
+        return np.empty((n_entries, *tail), dtype)
+    return np.lib.format.open_memmap(path, "w+", dtype, (n_entries, *tail))
 
 
 def _by_texel(
     folder: Path,
     seen: list[np.ndarray | None],
     view_start: np.ndarray,
-    spill: np.ndarray,
-    spill_in_range: np.ndarray,
+    spill: dict[str, np.ndarray],
     offsets: np.ndarray,
     progress: Progress,
 ) -> None:
-    """The photo-ordered entries regrouped by texel into ``folder``'s ``TABLE_FILES``, one block
-    of texels (<= ``TABLE_BLOCK_ENTRIES`` entries, at least one texel) at a time: each view's
-    entries of a block are one contiguous run (its texel indices are ascending)."""
+    """The photo-ordered columns ``spill`` (``_COLUMNS``) regrouped by texel into ``folder``'s
+    ``TABLE_FILES``, one block of texels (<= ``TABLE_BLOCK_ENTRIES`` entries, at least one texel)
+    at a time: each view's entries of a block are one contiguous run (its texel indices ascend)."""
     n_tex, n_entries = len(offsets) - 1, int(offsets[-1])
     np.save(folder / "offsets.npy", offsets)
-    entries = np.lib.format.open_memmap(folder / "entries.npy", "w+", np.float32, (n_entries, 12))
-    in_range = np.lib.format.open_memmap(folder / "in_range.npy", "w+", bool, (n_entries,))
+    out = {k: _column(folder / f"{k}.npy", k, n_entries) for k in _COLUMNS}
     bar = progress.counter("trace table", n_tex, "texel")
     for a, b in spans(offsets, TABLE_BLOCK_ENTRIES):
         base = int(offsets[a])
-        block = np.empty((int(offsets[b]) - base, 12), np.float32)
-        block_in_range = np.empty(len(block), bool)
+        block = {k: _column(None, k, int(offsets[b]) - base) for k in _COLUMNS}
         cursor = offsets[a:b] - base  # each texel's next free row in the block
         for k, idx in enumerate(seen):
             if idx is None:
@@ -304,14 +326,14 @@ def _by_texel(
                 continue
             t = idx[lo:hi].astype(np.int64) - a
             rows = cursor[t]
-            block[rows] = spill[view_start[k] + lo : view_start[k] + hi]
-            block_in_range[rows] = spill_in_range[view_start[k] + lo : view_start[k] + hi]
+            for name, column in block.items():
+                column[rows] = spill[name][view_start[k] + lo : view_start[k] + hi]
             cursor[t] += 1
-        entries[base : base + len(block)] = block
-        in_range[base : base + len(block)] = block_in_range
+        for name, column in block.items():
+            out[name][base : base + len(column)] = column
         bar.update(b - a)
-    entries.flush()
-    in_range.flush()
+    for column in out.values():
+        column.flush()  # type: ignore[attr-defined]
     bar.close()
 
 

@@ -78,3 +78,22 @@ def test_spread_keeps_what_padded_keeps():
     assert sub.lengths.tolist() == [2, 0, 4, 4]
     padded, mask = tr.padded(torch.arange(4), max_views=4)
     torch.testing.assert_close(sub.entries, padded[mask])
+
+
+def test_padded_shadow_masks_are_those_of_the_padded_entries():
+    """``padded_shadow`` reads the rows ``padded`` reads (spread, zeros past a trace's length);
+    ``block`` carries the column, ``in_range_only`` drops it; without one every mask is 0."""
+    entries = torch.arange(20, dtype=torch.float32)[:, None].repeat(1, 12)
+    shadow = torch.arange(20, dtype=torch.int64) << 40  # high bits too
+    tr = RaggedTraces(entries, torch.tensor([0, 2, 2, 12, 20]), shadow=shadow)
+    idx = torch.tensor([2, 0, 1])
+    padded, mask = tr.padded(idx, max_views=4)
+    masks = tr.padded_shadow(idx, max_views=4)
+    assert masks.shape == mask.shape and (masks[~mask] == 0).all()
+    assert torch.equal(masks[mask], padded[mask][:, 0].long() << 40)
+    b = tr.block(2, 4)
+    assert b.shadow is not None and torch.equal(b.shadow, shadow[2:])
+    assert RaggedTraces(entries, tr.offsets, shadow > 0, shadow).in_range_only().shadow is None
+    assert not RaggedTraces(entries, tr.offsets).padded_shadow(idx).any()
+    with pytest.raises(ValueError):
+        RaggedTraces(entries, tr.offsets, shadow=shadow[:3])

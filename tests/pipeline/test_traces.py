@@ -1,10 +1,11 @@
 import numpy as np
 import torch
 
+from ntp_engine.fit.emitter_blocks import shadow_groups
 from ntp_engine.io.raycast import RayCaster
 from ntp_engine.physics.measurement import measurement_rgb
 from ntp_engine.pipeline.texels import rasterize
-from ntp_engine.pipeline.traces import MIN_COS_VIEW, assemble
+from ntp_engine.pipeline.traces import MAX_SHADOWED_DRIVE, MIN_COS_VIEW, assemble
 from ntp_engine.scanner.camera import look_at, resampled
 from ntp_engine.scanner.device_file import load_scanner
 from ntp_engine.sim.renderer import Scene
@@ -28,13 +29,17 @@ def test_traces_from_a_virtual_scan_match_the_renderer_and_respect_the_filters()
     assert ((wo * e[:, 6:9]).sum(1) > MIN_COS_VIEW).all()
     assert dev.in_valid_volume(torch.as_tensor(e[:, 3:6])).all()
     codes = 255 * e[:, :3] * cfg.exposure
-    in_range = ((codes >= 32) & (codes <= 224)).all(1)
+    code_ok = ((codes >= 32) & (codes <= 224)).all(1)
+    # entries the scene shadows (the backdrop hides the low texels' lower emitters): kept, flagged
+    groups = shadow_groups(cam)
+    assert traces.shadow is not None and traces.in_range is not None
+    dark = (groups.hidden(traces.shadow).numpy() * groups.drive).sum(1) > MAX_SHADOWED_DRIVE
+    assert dark.sum() == stats.rejected["emitter_shadow"] > 0
     edge = ((np.abs(codes - 32) < 1e-3) | (np.abs(codes - 224) < 1e-3)).any(1)  # float32 entries
-    assert traces.in_range is not None
-    np.testing.assert_array_equal(traces.in_range.numpy()[~edge], in_range[~edge])
+    np.testing.assert_array_equal(traces.in_range.numpy()[~edge], (code_ok & ~dark)[~edge])
     in_range = traces.in_range.numpy()
     assert 0 < (~in_range).sum() and stats.entries == in_range.sum()
-    assert stats.rejected["pixel_range"] == (~in_range).sum()
+    assert abs(stats.rejected["pixel_range"] - (~code_ok).sum()) <= edge.sum()
     only = traces.in_range_only()
     assert len(only.entries) == in_range.sum() and (only.lengths <= traces.lengths).all()
     # the entry's pixel is the scene's radiance at that surface point (bilinear + 8-bit aside)
@@ -85,7 +90,8 @@ def _reference_assemble(tx, photos, poses, cam, caster):
     from ntp_engine.pipeline import traces as tr
     from ntp_engine.scanner import camera
 
-    keys, rows, flags, rejected = (
+    keys, rows, flags, masks, rejected = (
+        [],
         [],
         [],
         [],
@@ -94,17 +100,20 @@ def _reference_assemble(tx, photos, poses, cam, caster):
     shadow = tr.EmitterShadow(cam, caster, tx, 2e-5)
     for img, pose in zip(photos, poses, strict=True):
         R, t = pose[:3, :3], pose[:3, 3]
-        idx = tr._visible(tx, pose, cam, caster, 2e-5, rejected, shadow)
+        idx, hidden = tr._visible(tx, pose, cam, caster, 2e-5, rejected, shadow)
+        hidden = np.zeros(len(idx), np.int64) if hidden is None else hidden
         x = tx.position[idx] @ R.T + t
         px = camera.project(cam, torch.as_tensor(x)).numpy()
         codes = bilinear_pixels(img.astype(np.float64), px[:, 1], px[:, 0])
         lin = camera.decode(cam, torch.as_tensor(codes)).numpy()
         rows.append(np.concatenate([lin, x, tx.normal[idx] @ R.T, tx.tangent[idx] @ R.T], 1).astype(np.float32))
         keys.append(idx)
-        flags.append(camera.code_is_valid(codes))
+        flags.append(camera.code_is_valid(codes) & ~shadow.shadowed(hidden))
+        masks.append(hidden)
     key = np.concatenate(keys)
     order = np.argsort(key, kind="stable")
-    return np.concatenate(rows)[order], np.bincount(key, minlength=len(tx)), np.concatenate(flags)[order]
+    counts = np.bincount(key, minlength=len(tx))
+    return np.concatenate(rows)[order], counts, np.concatenate(flags)[order], np.concatenate(masks)[order]
 
 
 def test_two_pass_assembly_equals_the_one_pass_table_at_a_fraction_of_its_memory(tmp_path, monkeypatch):
@@ -130,10 +139,10 @@ def test_two_pass_assembly_equals_the_one_pass_table_at_a_fraction_of_its_memory
         tracemalloc.reset_peak()
         traces, stats = assemble(tx, photos, poses, cam, caster)
         peak = tracemalloc.get_traced_memory()[1] - base
-        table = traces.entries.numpy().nbytes + traces.in_range.numpy().nbytes + traces.offsets.numpy().nbytes
+        table = sum(a.numpy().nbytes for a in (traces.entries, traces.in_range, traces.shadow, traces.offsets))
         tracemalloc.reset_peak()
         base = tracemalloc.get_traced_memory()[0]
-        entries, counts, in_range = _reference_assemble(tx, photos, poses, cam, caster)
+        entries, counts, in_range, masks = _reference_assemble(tx, photos, poses, cam, caster)
         one_pass = tracemalloc.get_traced_memory()[1] - base
         monkeypatch.setattr(tr, "TABLE_BLOCK_ENTRIES", 150)
         tracemalloc.reset_peak()
@@ -146,6 +155,7 @@ def test_two_pass_assembly_equals_the_one_pass_table_at_a_fraction_of_its_memory
     assert len(entries) > 50 * len(tx)  # long traces: the table, not per-view temporaries, dominates
     np.testing.assert_array_equal(traces.lengths.numpy(), counts)
     np.testing.assert_array_equal(traces.in_range.numpy(), in_range)
+    np.testing.assert_array_equal(traces.shadow.numpy(), masks)
     np.testing.assert_allclose(traces.entries.numpy(), entries, rtol=1e-6, atol=1e-9)
     assert stats.entries == in_range.sum() and 0 < stats.views_used <= len(poses)
     assert peak <= 1.2 * table < one_pass
@@ -156,6 +166,7 @@ def test_two_pass_assembly_equals_the_one_pass_table_at_a_fraction_of_its_memory
         (on_disk.entries, traces.entries),
         (on_disk.offsets, traces.offsets),
         (on_disk.in_range, traces.in_range),
+        (on_disk.shadow, traces.shadow),
     ):
         np.testing.assert_array_equal(a.numpy(), b.numpy())
     assert disk_stats == stats
@@ -170,8 +181,9 @@ def _wall(x: float = 0.02, height: float = 0.03, half: float = 0.05) -> np.ndarr
 
 def test_emitter_shadows_of_the_mesh_itself_match_shadow_rays_to_every_emitter():
     """``EmitterShadow``: a patch beside a wall, seen from above with the LED array around the camera.
-    Texels the wall robs of > 20% of the drive (shadow rays to all 513 samples) are left out, texels
-    it robs of nothing are kept; the patch alone has an open sky everywhere and nothing is tested."""
+    Texels the wall robs of > 20% of the drive (shadow rays to all 513 samples) are shadowed, texels
+    it robs of nothing are not; the masks say which blocks (their drive is the share hidden); the
+    patch alone has an open sky everywhere and nothing is tested."""
     from scans import flat_patch
 
     from ntp_engine.pipeline import traces as tr
@@ -182,11 +194,18 @@ def test_emitter_shadows_of_the_mesh_itself_match_shadow_rays_to_every_emitter()
     pose = look_at(np.array([-0.01, 0.003, 0.15]), np.array([0.0, 0.0, 0.002]))
     idx = np.arange(len(tx))
     alone = tr.EmitterShadow(dev, RayCaster([patch.triangles]), tx, 2e-5)
-    assert alone.open.all() and not alone(pose, idx).any()
+    blocked_alone, masks_alone = alone(pose, idx)
+    assert alone.open.all() and not blocked_alone.any() and masks_alone is None
 
     caster = RayCaster([patch.triangles, _wall().reshape(-1, 3, 3)])
     shadow = tr.EmitterShadow(dev, caster, tx, 2e-5)
-    got = shadow(pose, idx)
+    share, masks = shadow(pose, idx)
+    got = share > MAX_SHADOWED_DRIVE
+    assert masks is not None
+    np.testing.assert_array_equal(shadow.shadowed(masks), got)
+    np.testing.assert_allclose(
+        (shadow.groups.hidden(torch.as_tensor(masks)).numpy() * shadow.groups.drive).sum(1), share
+    )
     # the reference: a shadow ray to every emitter sample above the texel's horizon, weighted by its drive
     pts, w = dev.emitter_samples(torch.float64)
     drive = (w.numpy() * dev.effective_pattern().sum(1)[:, None]).reshape(-1)
