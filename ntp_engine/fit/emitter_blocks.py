@@ -107,6 +107,10 @@ class ShadowGroups:
         bit = torch.arange(len(self.points), dtype=torch.int64)
         return (shadow[..., None] >> bit) & 1 == 1
 
+    def share(self, shadow: Tensor) -> Tensor:
+        """The share ``(...)`` of the pattern's drive (float64) that ``shadow (...)`` masks hide."""
+        return (self.hidden(shadow).double() * torch.from_numpy(self.drive)).sum(-1)
+
 
 def sample_drive(scanner: Scanner) -> tuple[np.ndarray, np.ndarray]:
     """The emitter samples ``(K, 3)`` (camera space) and their share of the pattern's drive ``(K,)``

@@ -10,7 +10,7 @@ of the pattern for the network) and ``shadow`` (int64 masks: the emitter groups 
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -109,29 +109,44 @@ class RaggedTraces:
         """Traces ``idx (n,)`` as padded entries ``(n, V, 12)`` (zeros past each length, V the
         longest of them, at least 1) and their mask ``(n, V)``. ``max_views`` keeps at most that
         many entries per trace, spread evenly over it (first and last included)."""
-        gather, mask = self._padded_rows(idx, max_views)
-        if len(self.entries) == 0:
-            return torch.zeros(*mask.shape, ENTRY_SIZE), mask
-        return torch.where(mask[..., None], self.entries[gather], torch.zeros(())), mask
+        rows, mask = self.padded_rows(idx, max_views)
+        return self.entries_at(rows, mask), mask
 
-    def padded_shadow(self, idx: Tensor, max_views: int | None = None) -> Tensor:
-        """The ``shadow`` masks ``(n, V)`` of the entries ``padded`` returns (0 past each length, and
-        everywhere without a ``shadow`` column)."""
-        gather, mask = self._padded_rows(idx, max_views)
-        if self.shadow is None or len(self.entries) == 0:
-            return torch.zeros(mask.shape, dtype=torch.int64)
-        return torch.where(mask, self.shadow[gather], torch.zeros((), dtype=torch.int64))
-
-    def _padded_rows(self, idx: Tensor, max_views: int | None) -> tuple[Tensor, Tensor]:
-        """The table rows ``(n, V)`` of ``padded``'s entries (clamped into the table) and its mask."""
+    def padded_rows(
+        self, idx: Tensor, max_views: int | None = None, usable: Callable[[Tensor, Tensor], Tensor] | None = None
+    ) -> tuple[Tensor, Tensor]:
+        """The table rows ``(n, V)`` of ``padded``'s entries (clamped into the table past each
+        length) and their mask. ``usable``: given the rows ``(n, W)`` of every entry of the traces and
+        their mask, which entries may be kept ``(n, W)`` — the spread then runs over those alone."""
+        if usable is not None:
+            rows, mask = self.padded_rows(idx)
+            ok = usable(rows, mask) & mask
+            order = torch.argsort((~ok).to(torch.int8), dim=1, stable=True)  # usable first, in trace order
+            count = ok.sum(1)
+            keep = count if max_views is None else count.clamp_max(max_views)
+            pos = torch.arange(max(int(keep.max()) if len(idx) else 0, 1))[None, :]
+            k = _spread(pos, count[:, None], keep[:, None]).clamp_max(rows.shape[1] - 1)
+            return rows.gather(1, order.gather(1, k)), pos < keep[:, None]
         lengths = self.lengths[idx]
         keep = lengths if max_views is None else lengths.clamp_max(max_views)
         width = max(int(keep.max()) if len(idx) else 0, 1)
         pos = torch.arange(width)[None, :]
         mask = pos < keep[:, None]
         offset = pos.expand(len(idx), width) if max_views is None else _spread(pos, lengths[:, None], keep[:, None])
-        gather = (self.offsets[idx][:, None] + offset).clamp(0, max(len(self.entries) - 1, 0))
-        return gather, mask
+        return (self.offsets[idx][:, None] + offset).clamp(0, max(len(self.entries) - 1, 0)), mask
+
+    def entries_at(self, rows: Tensor, mask: Tensor) -> Tensor:
+        """The entries ``(n, V, 12)`` at ``rows (n, V)`` where ``mask``, zeros elsewhere."""
+        if len(self.entries) == 0:
+            return torch.zeros(*mask.shape, ENTRY_SIZE)
+        return torch.where(mask[..., None], self.entries[rows], torch.zeros(()))
+
+    def shadow_at(self, rows: Tensor, mask: Tensor) -> Tensor:
+        """The ``shadow`` masks ``(n, V)`` at ``rows`` where ``mask``, 0 elsewhere (and everywhere
+        without a ``shadow`` column)."""
+        if self.shadow is None or len(self.entries) == 0:
+            return torch.zeros(mask.shape, dtype=torch.int64)
+        return torch.where(mask, self.shadow[rows], torch.zeros((), dtype=torch.int64))
 
     def spread(self, max_views: int) -> RaggedTraces:
         """The table with at most ``max_views`` entries per trace, the same ones ``padded`` keeps

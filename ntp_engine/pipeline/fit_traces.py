@@ -14,11 +14,13 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from typing import NamedTuple
 
 import numpy as np
 import torch
 
 from ..fit.albedo import highlights_and_albedo
+from ..fit.emitter_blocks import shadow_groups
 from ..fit.geometry import FALLBACK_ALPHA, FLAG_NO_HIGHLIGHT, fit_geometry
 from ..fit.materials import candidates, class_costs, lobe_materials
 from ..fit.refine import (
@@ -40,6 +42,7 @@ from ..learn.network import TraceNet
 from ..learn.ragged import RaggedTraces
 from ..scanner.scanner import Scanner
 from .task_pool import LocalPool, TaskPool
+from .traces import shadowed
 
 # entries per trace the network reads, spread evenly over the trace: the length it was trained on,
 # and its validation loss is lowest there (2.08 at 64 views vs 2.15 at 128; docs/network.md); a
@@ -48,9 +51,12 @@ NETWORK_VIEWS = 64
 ALBEDO_VIEWS = 16  # entries per texel for the beta check and the albedo LS (Eq. 1 per entry and emitter)
 RHO_S_PRIOR_WEIGHT = 1.0  # the network's rho_s counts as one view in the albedo LS (fit._albedo_ls)
 REFINE_VIEWS = 24  # entries per texel the refinement reads (spread evenly over the trace)
+# a texel with this many entries its mesh does not shadow refines on those alone (``refine_inputs``)
+MIN_LIT_ENTRIES = 1
 CALIBRATION_TEXELS = 512  # texels refined first to calibrate the noise model (fit.refine.calibrated_noise)
 REFINE_BATCH = 512  # texels per refinement batch: (batch, views, emitters) tensors stay ~100 MB
-REFINE_FLAGS = FLAG_SPECULAR_UNCONSTRAINED | FLAG_TANGENT_UNCONSTRAINED | FLAG_FROM_MATERIAL
+FLAG_IN_SHADOW = 128  # refined on entries the mesh shadows (too few others: ``refine_inputs``)
+REFINE_FLAGS = FLAG_SPECULAR_UNCONSTRAINED | FLAG_TANGENT_UNCONSTRAINED | FLAG_FROM_MATERIAL | FLAG_IN_SHADOW
 # texels per unit of work of the fit stage (a Ray task with --ray): a few seconds of work and ~10 MB
 # of traces at 60 photos; only one block's traces are in memory at a time (the table is on disk)
 FIT_BLOCK = 4096
@@ -170,18 +176,41 @@ def fit_traces(
     }
 
 
+class RefineInputs(NamedTuple):
+    """What ``fit.refine`` takes for n texels (``refine_inputs``)."""
+
+    entries: torch.Tensor  # (n, V, 12) linear pixels as captured
+    mask: torch.Tensor  # (n, V)
+    start: Start
+    specular: torch.Tensor  # (n,) texels that seek a lobe
+    shadow: torch.Tensor  # (n, V) int64 emitter groups the mesh hides from each entry
+    in_shadow: torch.Tensor  # (n,) texels that read entries the mesh shadows (``MIN_LIT_ENTRIES``)
+
+
 def refine_inputs(
-    traces: RaggedTraces, idx: torch.Tensor, fit: dict[str, np.ndarray]
-) -> tuple[torch.Tensor, torch.Tensor, Start, torch.Tensor, torch.Tensor]:
+    scanner: Scanner, traces: RaggedTraces, idx: torch.Tensor, fit: dict[str, np.ndarray]
+) -> RefineInputs:
     """What ``fit.refine.refine`` takes for the texels ``idx`` of ``traces`` (linear pixels as
     captured: the camera model is the scanner's): their entries (``REFINE_VIEWS`` spread over each
-    trace), the mask, the start from ``fit``, which texels seek a lobe (those the highlight check
-    did not flag) and the entries' shadow masks."""
-    ent, mask = traces.padded(idx, max_views=REFINE_VIEWS)
-    shadow = traces.padded_shadow(idx, max_views=REFINE_VIEWS)
+    trace), the start from ``fit``, which texels seek a lobe (those the highlight check did not
+    flag). Entries the mesh shadows (``traces.shadowed``) are read only by texels with fewer than
+    ``MIN_LIT_ENTRIES`` others (``in_shadow``): their model is coarser (whole emitter blocks hidden
+    or not; no light the mesh reflects into its own shadows) — on the knot reading them everywhere
+    cost the Cycles scan's normals 0.3-0.7 deg (docs/accuracy.md)."""
+    groups = shadow_groups(scanner)
+    few = torch.zeros(len(idx), dtype=torch.bool)
+
+    def usable(rows: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        lit = mask & ~shadowed(groups, traces.shadow_at(rows, mask))
+        few[:] = lit.sum(1) < MIN_LIT_ENTRIES
+        return torch.where(few[:, None], mask, lit)
+
+    rows, mask = traces.padded_rows(idx, REFINE_VIEWS, None if traces.shadow is None else usable)
     i = idx.numpy()
     specular = torch.as_tensor(fit["flags"][i] & FLAG_NO_HIGHLIGHT == 0)
-    return ent, mask, Start.from_fit(fit, i), specular, shadow
+    shadow = traces.shadow_at(rows, mask)
+    in_shadow = few & (shadowed(groups, shadow) & mask).any(1)
+    return RefineInputs(traces.entries_at(rows, mask), mask, Start.from_fit(fit, i), specular, shadow, in_shadow)
 
 
 def refine_fit(
@@ -209,16 +238,17 @@ def refine_fit(
     if len(todo):  # the noise model, calibrated on a seeded sample of the texels
         gen = torch.Generator().manual_seed(0)
         sample = todo[torch.randperm(len(todo), generator=gen)[:CALIBRATION_TEXELS]].sort().values
-        ent, mask, start, specular, shadow = refine_inputs(traces, sample, fit)
-        noise = calibrated_noise(scanner, ent, mask, start, specular, settings, shadow)
+        inp = refine_inputs(scanner, traces, sample, fit)
+        noise = calibrated_noise(scanner, inp.entries, inp.mask, inp.start, inp.specular, settings, inp.shadow)
         settings = dataclasses.replace(settings, noise=noise)
         fit["noise_scale"] = np.array(noise.relative / RefineSettings().noise.relative)
     fit["std"] = np.full((traces.num_traces, 4), np.nan)
     fit["highlight"] = np.zeros(traces.num_traces, np.float32)
     bar = progress.counter("refine", len(todo), "texel")
     for idx in todo.split(REFINE_BATCH):
-        ent, mask, start, specular, shadow = refine_inputs(traces, idx, fit)
-        _store(fit, idx, refine(scanner, ent, mask, start, specular, settings, shadow))
+        inp = refine_inputs(scanner, traces, idx, fit)
+        r = refine(scanner, inp.entries, inp.mask, inp.start, inp.specular, settings, inp.shadow)
+        _store(fit, idx, r, inp.in_shadow)
         bar.update(len(idx))
     bar.close()
     if settings.materials:
@@ -226,12 +256,12 @@ def refine_fit(
     return fit
 
 
-def _store(fit: dict[str, np.ndarray], idx: torch.Tensor, r: Refined) -> None:
+def _store(fit: dict[str, np.ndarray], idx: torch.Tensor, r: Refined, in_shadow: torch.Tensor) -> None:
     i = idx.numpy()
     fit["n_loc"][i], fit["t_loc"][i] = r.frame[:, 2].numpy(), r.frame[:, 0].numpy()
     fit["alpha"][i] = r.log_alpha.exp().numpy()
     fit["rho_d"][i], fit["rho_s"][i] = r.rho_d.numpy(), r.rho_s.numpy()
-    fit["flags"][i] = (fit["flags"][i] & ~REFINE_FLAGS) | r.flags.numpy()
+    fit["flags"][i] = (fit["flags"][i] & ~REFINE_FLAGS) | r.flags.numpy() | in_shadow.numpy() * FLAG_IN_SHADOW
     fit["std"][i] = r.std.numpy()
     fit["highlight"][i] = r.highlight.numpy()
 
@@ -251,7 +281,10 @@ def _material_pass(
     i_obs = todo.numpy()
     own = np.zeros(N, bool)
     own[i_obs] = fit["flags"][i_obs] & FLAG_SPECULAR_UNCONSTRAINED == 0
-    basis = lobe_materials(fit["rho_d"][own], fit["alpha"][own], fit["rho_s"][own], fit["highlight"][own])
+    # the basis from lobes measured in full light: a lobe read through the mesh's shadows is coarser
+    # (on the knot's Cycles scan those lobes moved the clusters enough to lose the glossy plastic's)
+    lit = own & (fit["flags"] & FLAG_IN_SHADOW == 0)
+    basis = lobe_materials(fit["rho_d"][lit], fit["alpha"][lit], fit["rho_s"][lit], fit["highlight"][lit])
     if len(basis) == 0:  # too few texels kept a lobe to make a material of: all matte
         fit["material"][i_obs] = -1
         fit.update(basis.to_arrays())
@@ -265,9 +298,9 @@ def _material_pass(
     alpha, rho_s = torch.as_tensor(basis.alpha), torch.as_tensor(basis.rho_s)
     bar = progress.counter("materials", len(rest), "texel")
     for k in np.array_split(rest, -(-len(rest) // REFINE_BATCH)) if len(rest) else []:
-        ent, mask, start, _, shadow = refine_inputs(traces, torch.as_tensor(i_obs[k]), fit)
+        inp = refine_inputs(scanner, traces, torch.as_tensor(i_obs[k]), fit)
         maybe = torch.as_tensor(candidates(prior[k]))
-        c, t = material_costs(scanner, ent, mask, start, alpha, rho_s, maybe, settings, shadow)
+        c, t = material_costs(scanner, inp.entries, inp.mask, inp.start, alpha, rho_s, maybe, settings, inp.shadow)
         costs[k], turns[k] = c.numpy(), t.numpy()
         bar.update(len(k))
     bar.close()
@@ -289,7 +322,7 @@ def _material_pass(
     sel = torch.as_tensor(np.nonzero(takes)[0])
     bar = progress.counter("material lobes", len(sel), "texel")
     for idx in sel.split(REFINE_BATCH):
-        ent, mask, start, _, shadow = refine_inputs(traces, idx, fit)
+        inp = refine_inputs(scanner, traces, idx, fit)
         m = fit["material"][idx.numpy()]
         pull = LobePrior(
             torch.as_tensor(basis.alpha[m], dtype=torch.float32),
@@ -297,6 +330,7 @@ def _material_pass(
             torch.as_tensor(basis.log_alpha_sigma[m], dtype=torch.float32),
             torch.as_tensor(basis.rho_s_sigma[m], dtype=torch.float32),
         )
-        _store(fit, idx, refine_toward(scanner, ent, mask, start, pull, settings, shadow))
+        r = refine_toward(scanner, inp.entries, inp.mask, inp.start, pull, settings, inp.shadow)
+        _store(fit, idx, r, inp.in_shadow)
         bar.update(len(idx))
     bar.close()

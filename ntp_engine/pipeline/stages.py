@@ -46,6 +46,7 @@ from .fit_traces import (
     ALBEDO_VIEWS,
     CALIBRATION_TEXELS,
     FIT_BLOCK,
+    MIN_LIT_ENTRIES,
     NETWORK_VIEWS,
     REFINE_VIEWS,
     RHO_S_PRIOR_WEIGHT,
@@ -389,6 +390,7 @@ def _reconstruct(
             "fit": h_fit,
             "settings": dataclasses.asdict(REFINE),
             "views": REFINE_VIEWS,
+            "min_lit_entries": MIN_LIT_ENTRIES,
             "version": REFINE_VERSION,
             "calibration_texels": CALIBRATION_TEXELS,
         }

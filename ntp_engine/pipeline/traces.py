@@ -27,8 +27,9 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from torch import Tensor
 
-from ..fit.emitter_blocks import sample_drive, shadow_groups
+from ..fit.emitter_blocks import ShadowGroups, sample_drive, shadow_groups
 from ..io.maps import bilinear_pixels
 from ..io.progress import QUIET, Progress
 from ..io.raycast import RayCaster
@@ -134,10 +135,12 @@ class EmitterShadow:
         out[test] = mask
         return blocked, out
 
-    def shadowed(self, masks: np.ndarray) -> np.ndarray:
-        """``(E,)`` True where the groups ``masks (E,)`` hide more than ``MAX_SHADOWED_DRIVE`` of the drive."""
-        hidden = self.groups.hidden(torch.from_numpy(masks)).numpy()
-        return (hidden * self.groups.drive).sum(-1) > MAX_SHADOWED_DRIVE
+
+def shadowed(groups: ShadowGroups, shadow: Tensor) -> Tensor:
+    """``(...)`` True where the emitter groups ``shadow (...)`` hides carry more than
+    ``MAX_SHADOWED_DRIVE`` of the pattern's drive: too much for the network, which assumes every
+    emitter above the horizon reaches the point."""
+    return groups.share(shadow) > MAX_SHADOWED_DRIVE
 
 
 def _visible(
@@ -225,13 +228,13 @@ def assemble(
         "support_shadow_views": 0,
         "emitter_shadow": 0,
     }
-    shadowed = SupportShadow(scanner, support_z) if support_z is not None else None
+    support_shadow = SupportShadow(scanner, support_z) if support_z is not None else None
     self_shadow = EmitterShadow(scanner, caster, texels, eps)
     seen: list[np.ndarray | None] = []
     hidden: list[np.ndarray | None] = []  # per view: the emitter groups the mesh hides, per entry
     counts = np.zeros(n_tex, np.int64)
     for pose in progress.track(poses, "visibility", total=len(poses), unit="photo"):
-        if shadowed is not None and shadowed(pose):
+        if support_shadow is not None and support_shadow(pose):
             rejected["support_shadow_views"] += 1
             seen.append(None)
             hidden.append(None)
@@ -278,7 +281,7 @@ def assemble(
         if masks is None:
             in_range[rows], shadow[rows] = ok, 0
         else:  # entries the mesh shadows: out of range for the network, which assumes every emitter
-            in_range[rows] = ok & ~self_shadow.shadowed(masks)
+            in_range[rows] = ok & ~shadowed(self_shadow.groups, torch.from_numpy(masks)).numpy()
             shadow[rows] = masks
     stats = TraceStats(views_used, int(in_range.sum()), int((counts > 0).sum()), rejected)
     if folder is None:

@@ -80,20 +80,34 @@ def test_spread_keeps_what_padded_keeps():
     torch.testing.assert_close(sub.entries, padded[mask])
 
 
-def test_padded_shadow_masks_are_those_of_the_padded_entries():
-    """``padded_shadow`` reads the rows ``padded`` reads (spread, zeros past a trace's length);
+def test_shadow_masks_are_those_of_the_padded_entries():
+    """``shadow_at`` reads the rows ``padded`` reads (spread, zeros past a trace's length);
     ``block`` carries the column, ``in_range_only`` drops it; without one every mask is 0."""
     entries = torch.arange(20, dtype=torch.float32)[:, None].repeat(1, 12)
     shadow = torch.arange(20, dtype=torch.int64) << 40  # high bits too
     tr = RaggedTraces(entries, torch.tensor([0, 2, 2, 12, 20]), shadow=shadow)
     idx = torch.tensor([2, 0, 1])
     padded, mask = tr.padded(idx, max_views=4)
-    masks = tr.padded_shadow(idx, max_views=4)
+    masks = tr.shadow_at(*tr.padded_rows(idx, max_views=4))
     assert masks.shape == mask.shape and (masks[~mask] == 0).all()
     assert torch.equal(masks[mask], padded[mask][:, 0].long() << 40)
     b = tr.block(2, 4)
     assert b.shadow is not None and torch.equal(b.shadow, shadow[2:])
     assert RaggedTraces(entries, tr.offsets, shadow > 0, shadow).in_range_only().shadow is None
-    assert not RaggedTraces(entries, tr.offsets).padded_shadow(idx).any()
+    assert not RaggedTraces(entries, tr.offsets).shadow_at(*tr.padded_rows(idx)).any()
     with pytest.raises(ValueError):
         RaggedTraces(entries, tr.offsets, shadow=shadow[:3])
+
+
+def test_padded_rows_spread_over_the_usable_entries_only():
+    """With ``usable``, the spread runs over the entries it allows, in trace order; a trace with
+    none keeps none."""
+    entries = torch.arange(20, dtype=torch.float32)[:, None].repeat(1, 12)
+    tr = RaggedTraces(entries, torch.tensor([0, 2, 2, 12, 20]))
+    odd = lambda rows, mask: rows % 2 == 1  # noqa: E731
+    rows, mask = tr.padded_rows(torch.tensor([2, 0, 1, 3]), max_views=3, usable=odd)
+    got = [rows[i][mask[i]].tolist() for i in range(4)]
+    assert got == [[3, 7, 11], [1], [], [13, 17, 19]]  # of 5 odd rows: 1st, 3rd, 5th; of 4: 1st, 3rd, 4th
+    all_rows, all_mask = tr.padded_rows(torch.tensor([2, 3]), max_views=3, usable=lambda r, m: m)
+    plain_rows, plain_mask = tr.padded_rows(torch.tensor([2, 3]), max_views=3)
+    assert torch.equal(all_rows[all_mask], plain_rows[plain_mask])

@@ -53,3 +53,36 @@ def test_blocks_give_the_whole_tables_answer_from_unscaled_pixels(monkeypatch):
     assert set(blocks) == set(whole)
     for k in whole:  # float32 network batches of other sizes: equal to rounding
         np.testing.assert_allclose(blocks[k], whole[k], rtol=1e-3, atol=1e-3, err_msg=k)
+
+
+def test_refine_inputs_read_shadowed_entries_only_where_too_few_others_are_left():
+    """A texel with at least ``MIN_LIT_ENTRIES`` entries its mesh does not shadow (over
+    ``MAX_SHADOWED_DRIVE`` of the drive hidden) is refined on those alone; one with fewer reads its
+    shadowed entries too, with their masks."""
+    from ntp_engine.fit.emitter_blocks import shadow_groups
+    from ntp_engine.pipeline.fit_traces import MIN_LIT_ENTRIES, REFINE_VIEWS, refine_inputs
+
+    dev = load_scanner()
+    half = (1 << (len(shadow_groups(dev).points) // 2)) - 1  # half the groups hidden: shadowed
+    # entries of each trace not shadowed: plenty, too few, none, none at all
+    lit = [set(range(0, 40, 2)), set(range(MIN_LIT_ENTRIES - 1)), set(), set()]
+    lengths = [40, 30, 5, 0]
+    table = [
+        torch.tensor([0 if k in lit[i] else half for k in range(n)], dtype=torch.int64) for i, n in enumerate(lengths)
+    ]
+    shadow = torch.cat(table)
+    offsets = torch.tensor([0, *np.cumsum(lengths)])
+    entries = torch.zeros(int(offsets[-1]), 12)
+    entries[:, 0] = torch.cat([torch.arange(n, dtype=torch.float32) for n in lengths])  # entry number in its trace
+    traces = RaggedTraces(entries, offsets, shadow == 0, shadow)
+    N = len(lengths)
+    fit = {"n_loc": np.tile([0, 0, 1.0], (N, 1)), "t_loc": np.tile([1.0, 0, 0], (N, 1)), "alpha": np.full((N, 2), 0.1)}
+    fit |= {"rho_d": np.full((N, 3), 0.5), "rho_s": np.zeros((N, 3)), "flags": np.zeros(N, np.int64)}
+    ent, mask, _, _, masks, in_shadow = refine_inputs(dev, traces, torch.arange(N), fit)
+    assert in_shadow.tolist() == [len(lit[0]) < MIN_LIT_ENTRIES, len(lit[1]) < MIN_LIT_ENTRIES, True, False]
+    for i, n in enumerate(lengths):
+        got = ent[i, mask[i], 0].long()
+        usable = lit[i] if len(lit[i]) >= MIN_LIT_ENTRIES else set(range(n))
+        assert len(got) == min(len(usable), REFINE_VIEWS) and set(got.tolist()) <= usable
+        assert torch.equal(masks[i, mask[i]], table[i][got])
+    assert len(lit[0]) >= MIN_LIT_ENTRIES and mask[2].sum() == 5  # both cases are there

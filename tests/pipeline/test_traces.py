@@ -33,7 +33,7 @@ def test_traces_from_a_virtual_scan_match_the_renderer_and_respect_the_filters()
     # entries the scene shadows (the backdrop hides the low texels' lower emitters): kept, flagged
     groups = shadow_groups(cam)
     assert traces.shadow is not None and traces.in_range is not None
-    dark = (groups.hidden(traces.shadow).numpy() * groups.drive).sum(1) > MAX_SHADOWED_DRIVE
+    dark = (groups.share(traces.shadow) > MAX_SHADOWED_DRIVE).numpy()
     assert dark.sum() == stats.rejected["emitter_shadow"] > 0
     edge = ((np.abs(codes - 32) < 1e-3) | (np.abs(codes - 224) < 1e-3)).any(1)  # float32 entries
     np.testing.assert_array_equal(traces.in_range.numpy()[~edge], (code_ok & ~dark)[~edge])
@@ -108,7 +108,7 @@ def _reference_assemble(tx, photos, poses, cam, caster):
         lin = camera.decode(cam, torch.as_tensor(codes)).numpy()
         rows.append(np.concatenate([lin, x, tx.normal[idx] @ R.T, tx.tangent[idx] @ R.T], 1).astype(np.float32))
         keys.append(idx)
-        flags.append(camera.code_is_valid(codes) & ~shadow.shadowed(hidden))
+        flags.append(camera.code_is_valid(codes) & ~tr.shadowed(shadow.groups, torch.as_tensor(hidden)).numpy())
         masks.append(hidden)
     key = np.concatenate(keys)
     order = np.argsort(key, kind="stable")
@@ -202,7 +202,7 @@ def test_emitter_shadows_of_the_mesh_itself_match_shadow_rays_to_every_emitter()
     share, masks = shadow(pose, idx)
     got = share > MAX_SHADOWED_DRIVE
     assert masks is not None
-    np.testing.assert_array_equal(shadow.shadowed(masks), got)
+    np.testing.assert_array_equal(tr.shadowed(shadow.groups, torch.as_tensor(masks)).numpy(), got)
     np.testing.assert_allclose(
         (shadow.groups.hidden(torch.as_tensor(masks)).numpy() * shadow.groups.drive).sum(1), share
     )
