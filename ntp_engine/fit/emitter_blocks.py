@@ -25,6 +25,7 @@ from ..scanner.scanner import Scanner
 BLOCK_SIZE = 16  # samples per block (4 x 4 LEDs on a grid)
 EXACT_UP_TO = 128  # devices with at most this many samples are always summed exactly
 SHADOW_BITS = 64  # shadow groups one entry's mask can hold (an int64's bits)
+SHADOW_SPLITS = 2  # shadow groups per emitter block: a block's halves are hidden or not as their centres
 
 
 @dataclass(frozen=True)
@@ -88,14 +89,17 @@ def emitter_blocks(scanner: Scanner, size: int = BLOCK_SIZE) -> EmitterBlocks | 
 
 @dataclass(frozen=True)
 class ShadowGroups:
-    """What a test of the mesh shadowing its own emitters traces: P points (camera space) — each
-    block's coarse emitter, or each sample on a device summed exactly — their share of the pattern's
-    drive (summing to 1), and each sample's group. An entry's shadow is an int64 mask, bit g set
-    where the mesh hides group g from its point: ``fits`` says whether P bits are enough."""
+    """What a test of the mesh shadowing its own emitters traces: P groups of emitter samples — each
+    block's halves (``SHADOW_SPLITS``; whole blocks where the halves would not fit a mask), or each
+    sample on a device summed exactly — as points (camera space, the drive-weighted centroid), their
+    share of the pattern's drive (summing to 1), each sample's group and each group's block. An
+    entry's shadow is an int64 mask, bit g set where the mesh hides group g from its point: ``fits``
+    says whether P bits are enough."""
 
     points: np.ndarray  # (P, 3)
     drive: np.ndarray  # (P,)
     group: Tensor  # (K,) int64: the group of each emitter sample
+    block: Tensor | None  # (P,) int64: the emitter block of each group (None: no blocks)
 
     @property
     def fits(self) -> bool:
@@ -111,6 +115,16 @@ class ShadowGroups:
         """The share ``(...)`` of the pattern's drive (float64) that ``shadow (...)`` masks hide."""
         return (self.hidden(shadow).double() * torch.from_numpy(self.drive)).sum(-1)
 
+    def block_visibility(self, shadow: Tensor, dtype: torch.dtype) -> Tensor:
+        """Per emitter block ``(..., C)``: the share of its drive ``shadow (...)`` leaves visible."""
+        assert self.block is not None
+        C = int(self.block.max()) + 1
+        drive = torch.from_numpy(self.drive).to(dtype)
+        hidden = torch.zeros(*shadow.shape, C, dtype=dtype)
+        hidden.index_add_(-1, self.block, self.hidden(shadow).to(dtype) * drive)
+        total = torch.zeros(C, dtype=dtype).index_add_(0, self.block, drive)
+        return 1 - hidden / total.clamp_min(1e-30)
+
 
 def sample_drive(scanner: Scanner) -> tuple[np.ndarray, np.ndarray]:
     """The emitter samples ``(K, 3)`` (camera space) and their share of the pattern's drive ``(K,)``
@@ -121,14 +135,22 @@ def sample_drive(scanner: Scanner) -> tuple[np.ndarray, np.ndarray]:
 
 
 def shadow_groups(scanner: Scanner) -> ShadowGroups:
-    """The groups a shadow test traces for ``scanner`` (``ShadowGroups``)."""
+    """The groups a shadow test traces for ``scanner`` (``ShadowGroups``): a block's samples are
+    ordered along its rows (``emitter_blocks``), so its halves are 4 x 2 LED halves of a 4 x 4 square."""
+    pts, drive = sample_drive(scanner)
     blocks = emitter_blocks(scanner)
+    K = len(pts)
     if blocks is None:
-        points, drive = sample_drive(scanner)
-        return ShadowGroups(points, drive, torch.arange(len(points)))
-    K = scanner.emitter_samples(torch.float64)[1].numel()
-    points = blocks.coarse.emitter_samples(torch.float64)[0].numpy().reshape(-1, 3)
-    drive = blocks.coarse_drive.sum(1).numpy()
-    group = torch.zeros(K + 1, dtype=torch.int64)  # index K pads the members
-    group[blocks.members] = torch.arange(blocks.count)[:, None].expand_as(blocks.members)
-    return ShadowGroups(points, drive / max(float(drive.sum()), 1e-300), group[:K])
+        return ShadowGroups(pts, drive, torch.arange(K), None)
+    parts = SHADOW_SPLITS if blocks.count * SHADOW_SPLITS <= SHADOW_BITS else 1
+    group, block = np.zeros(K, np.int64), list[int]()
+    for c, members in enumerate(blocks.members.numpy()):
+        for part in np.array_split(members[members < K], parts):  # index K pads the members
+            group[part] = len(block)
+            block.append(c)
+    P = len(block)
+    share = np.bincount(group, weights=drive, minlength=P)
+    w = np.where(share[group] > 0, drive, 1.0)  # a group that emits nothing: its plain centroid
+    sums = np.stack([np.bincount(group, weights=w * pts[:, i], minlength=P) for i in range(3)], 1)
+    points = sums / np.bincount(group, weights=w, minlength=P)[:, None]
+    return ShadowGroups(points, share, torch.from_numpy(group), torch.tensor(block))

@@ -192,8 +192,8 @@ class _Trace:
             lit = ~hidden.gather(-1, groups.group.expand(N, V, -1))  # per emitter sample (N, V, K)
             lit = torch.cat([lit, torch.ones(N, V, 1, dtype=torch.bool)], -1).to(x.dtype)  # padding
             self.falloff, self.fresnel_falloff = self.falloff * lit, self.fresnel_falloff * lit
-            if blocks is not None:  # the groups are the blocks: their coarse emitters too
-                self.ff_c = self.ff_c * (~hidden).to(x.dtype)
+            if blocks is not None:  # a block's coarse emitter carries the drive of its visible groups
+                self.ff_c = self.ff_c * groups.block_visibility(shadow, x.dtype)
         y = entries[..., :3]
         self.y = torch.where(mask[..., None], y, torch.zeros_like(y))
         code = 255.0 * self.y

@@ -27,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..fit.emitter_blocks import SHADOW_SPLITS
 from ..fit.refine import FLAG_FROM_MATERIAL, RefineSettings
 from ..fit.refine import VERSION as REFINE_VERSION
 from ..io.atomic import atomic_path, temp_dir, write_text_atomic
@@ -525,6 +526,7 @@ def _traces_stage(
         "support": scan.support_plane,
         "max_shadowed_drive": trace_assembly.MAX_SHADOWED_DRIVE,
         "emitter_shadows": trace_assembly.SKY_RAYS,  # entries the mesh shadows: kept with their masks
+        "shadow_splits": SHADOW_SPLITS,
         "out_of_range_kept": True,
         "files": trace_assembly.TABLE_FILES,
         "device": scanner_to_dict(scan.scanner),

@@ -51,3 +51,32 @@ def test_coarse_emitters_match_a_broad_lobe_not_a_sharp_one():
         coarse = _specular_pixel(dev, blocks, x, n, t, alpha, True)
         rel = float((coarse - exact).abs().sum() / exact.abs().sum())
         assert lo <= rel < hi, (alpha, rel)
+
+
+def test_shadow_groups_are_halves_of_the_blocks_and_weigh_what_they_hide():
+    """64 groups on the LED grid: each block's two 4 x 2 halves (1 x 3 cm), partitioning the LEDs;
+    drive shares summing to 1; a block's visibility is the share of its drive its visible halves
+    carry. The point light (summed exactly) has one group per sample and no blocks."""
+    from ntp_engine.fit.emitter_blocks import SHADOW_BITS, shadow_groups
+
+    dev = load_scanner()
+    g = shadow_groups(dev)
+    b = emitter_blocks(dev)
+    assert b is not None and g.block is not None and g.fits and len(g.points) == 64 == SHADOW_BITS
+    assert torch.equal(torch.bincount(g.group), torch.full((64,), 8))  # 8 LEDs a group
+    assert torch.equal(g.block[g.group][b.members], torch.arange(32)[:, None].expand(32, 16))  # within its block
+    pos = dev.emitter_positions
+    for k in range(64):
+        p = pos[g.group.numpy() == k]
+        span = np.linalg.norm(p[:, None] - p[None], axis=-1).max()
+        np.testing.assert_allclose(span, np.hypot(0.01, 0.03), atol=1e-9)  # a 2 x 4 LED strip at 1 cm pitch
+    np.testing.assert_allclose(g.drive.sum(), 1.0)
+    one_half = torch.tensor(1 << 6)  # group 6 hidden
+    vis = g.block_visibility(one_half, torch.float64)
+    c = int(g.block[6])
+    block_share = g.drive[(g.block == c).numpy()].sum()
+    np.testing.assert_allclose(vis[c].item(), 1 - g.drive[6] / block_share)
+    assert (vis[torch.arange(32) != c] == 1).all()
+    np.testing.assert_allclose(g.share(one_half).item(), g.drive[6])
+    point = shadow_groups(shipped_device("point_light.toml"))
+    assert point.block is None and len(point.points) == len(point.group)

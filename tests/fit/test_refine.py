@@ -106,9 +106,10 @@ def test_emitters_the_mesh_hides_are_modelled():
     """Entries whose point the mesh hides from 40% of the emitter blocks (each entry its own): with
     their shadow masks the refinement recovers the lobe and the albedo; read as lit by every
     emitter, the normal tips and the albedo is off."""
-    P = len(shadow_groups(DEV).points)
-    hidden = torch.rand(48, 24, P, generator=torch.Generator().manual_seed(7)) < 0.4
-    shadow = (hidden.long() << torch.arange(P)).sum(-1)
+    groups = shadow_groups(DEV)
+    blocks = torch.rand(48, 24, int(groups.block.max()) + 1, generator=torch.Generator().manual_seed(7)) < 0.4
+    hidden = blocks[..., groups.block]  # every group of a hidden block
+    shadow = (hidden.long() << torch.arange(len(groups.points))).sum(-1)
     entries, mask, p = _traces(48, 1, (0.3, 0.25, 0.2), (3.0, 3.0, 3.0), (0.2, 0.04), hidden=hidden)
     start, lobe = Start(*_perturbed(p, 2)), torch.ones(48, dtype=torch.bool)
     r = refine(DEV, entries, mask, start, lobe, shadow=shadow)
