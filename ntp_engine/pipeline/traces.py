@@ -81,8 +81,8 @@ class SupportShadow:
 class EmitterShadow:
     """Which emitters the mesh itself hides from a texel in a view (a concave object shadowing its
     own light: a knot's inner loops, a box's inside corners): one shadow ray from the point (offset
-    ``eps`` along its normal) to each group of ``fit.emitter_blocks.shadow_groups`` (a block's
-    coarse emitter; each sample on small devices) above the point's horizon. Texels whose
+    ``eps`` along its normal) to each group of ``fit.emitter_blocks.shadow_groups`` (half an
+    emitter block; each sample on small devices) above the point's horizon. Texels whose
     hemisphere is open (``SKY_RAYS`` rays, none hitting the mesh) are never tested — on convex
     parts the test is free."""
 
@@ -151,10 +151,10 @@ def _visible(
     eps: float,
     rejected: dict[str, int],
     emitter_shadow: EmitterShadow | None = None,
-) -> tuple[np.ndarray, np.ndarray | None]:
-    """Texels view ``pose`` measures (conditions 1-4 of the module docstring, geometry only: no
-    pixel is read): their indices, ascending, and the emitter groups the mesh hides from each (int64
-    masks, ``EmitterShadow``; None: none hidden)."""
+) -> np.ndarray:
+    """Texels view ``pose`` measures (conditions 1-3 of the module docstring, and 4 where
+    ``emitter_shadow`` is given: entries it shadows left out; geometry only: no pixel is read):
+    their indices, ascending."""
     n_tex = len(texels)
     R, t = pose[:3, :3], pose[:3, 3]
     x = texels.position @ R.T + t
@@ -166,7 +166,7 @@ def _visible(
     rejected["behind_or_outside"] += int(n_tex - inside.sum())
     idx = np.nonzero(inside)[0]
     if len(idx) == 0:
-        return idx, None
+        return idx
     in_box = scanner.in_valid_volume(torch.as_tensor(x[idx])).numpy()
     rejected["valid_volume"] += int((~in_box).sum())
     idx = idx[in_box]
@@ -175,7 +175,7 @@ def _visible(
     rejected["grazing"] += int((~facing).sum())
     idx = idx[facing]
     if len(idx) == 0:
-        return idx, None
+        return idx
     origin = texels.position[idx] + eps * texels.normal[idx]
     to_cam = -R.T @ t - origin
     dist = np.linalg.norm(to_cam, axis=1)
@@ -183,13 +183,10 @@ def _visible(
     rejected["occluded"] += int(occ.sum())
     idx = idx[~occ]
     if emitter_shadow is None or len(idx) == 0:
-        return idx, None
-    blocked, hidden = emitter_shadow(pose, idx)
-    dark = blocked > MAX_SHADOWED_DRIVE
+        return idx
+    dark = emitter_shadow(pose, idx)[0] > MAX_SHADOWED_DRIVE
     rejected["emitter_shadow"] += int(dark.sum())
-    if hidden is None:  # no masks (too many groups for one): the shadowed entries are left out
-        return idx[~dark], None
-    return idx, hidden  # kept with their masks, flagged out of range (the refinement models them)
+    return idx[~dark]
 
 
 def assemble(
@@ -230,19 +227,19 @@ def assemble(
     }
     support_shadow = SupportShadow(scanner, support_z) if support_z is not None else None
     self_shadow = EmitterShadow(scanner, caster, texels, eps)
+    # entries the mesh shadows are kept with their masks, found in the second pass; on a device
+    # with more groups than a mask holds, this pass leaves them out
+    drops = None if self_shadow.groups.fits else self_shadow
     seen: list[np.ndarray | None] = []
-    hidden: list[np.ndarray | None] = []  # per view: the emitter groups the mesh hides, per entry
     counts = np.zeros(n_tex, np.int64)
     for pose in progress.track(poses, "visibility", total=len(poses), unit="photo"):
         if support_shadow is not None and support_shadow(pose):
             rejected["support_shadow_views"] += 1
             seen.append(None)
-            hidden.append(None)
             continue
-        idx, masks = _visible(texels, pose, scanner, caster, eps, rejected, self_shadow)
+        idx = _visible(texels, pose, scanner, caster, eps, rejected, drops)
         counts[idx] += 1
         seen.append(idx.astype(np.int32) if len(idx) else None)
-        hidden.append(masks)
     offsets = np.zeros(n_tex + 1, np.int64)
     offsets[1:] = np.cumsum(counts)
     n_entries = int(offsets[-1])
@@ -254,8 +251,7 @@ def assemble(
     written = 0
     views_used = 0
     for k, (img, pose) in enumerate(progress.track(zip(photos, poses), "traces", total=len(poses), unit="photo")):
-        visible, masks = seen[k], hidden[k]
-        hidden[k] = None
+        visible = seen[k]
         if folder is None:
             seen[k] = None  # free this view's indices as its entries land
         if visible is None:
@@ -278,11 +274,13 @@ def assemble(
         entries[rows, 3:6] = x
         entries[rows, 6:9] = texels.normal[idx] @ R.T
         entries[rows, 9:12] = texels.tangent[idx] @ R.T
+        masks = self_shadow(pose, idx)[1] if drops is None else None
         if masks is None:
             in_range[rows], shadow[rows] = ok, 0
-        else:  # entries the mesh shadows: out of range for the network, which assumes every emitter
-            in_range[rows] = ok & ~shadowed(self_shadow.groups, torch.from_numpy(masks)).numpy()
-            shadow[rows] = masks
+        else:  # entries the mesh shadows: out of range for the network, their masks for the refinement
+            dark = shadowed(self_shadow.groups, torch.from_numpy(masks)).numpy()
+            rejected["emitter_shadow"] += int(dark.sum())
+            in_range[rows], shadow[rows] = ok & ~dark, masks
     stats = TraceStats(views_used, int(in_range.sum()), int((counts > 0).sum()), rejected)
     if folder is None:
         return RaggedTraces(*(torch.from_numpy(a) for a in (entries, offsets, in_range, shadow))), stats
