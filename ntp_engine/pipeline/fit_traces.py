@@ -42,7 +42,7 @@ from ..learn.network import TraceNet
 from ..learn.ragged import RaggedTraces
 from ..scanner.scanner import Scanner
 from .task_pool import LocalPool, TaskPool
-from .traces import shadowed
+from .traces import grazing, shadowed
 
 # entries per trace the network reads, spread evenly over the trace: the length it was trained on,
 # and its validation loss is lowest there (2.08 at 64 views vs 2.15 at 128; docs/network.md); a
@@ -51,12 +51,13 @@ NETWORK_VIEWS = 64
 ALBEDO_VIEWS = 16  # entries per texel for the beta check and the albedo LS (Eq. 1 per entry and emitter)
 RHO_S_PRIOR_WEIGHT = 1.0  # the network's rho_s counts as one view in the albedo LS (fit._albedo_ls)
 REFINE_VIEWS = 24  # entries per texel the refinement reads (spread evenly over the trace)
-# a texel with this many entries its mesh does not shadow refines on those alone (``refine_inputs``)
-MIN_LIT_ENTRIES = 1
+# a texel with this many clear entries (neither shadowed by its mesh nor grazing) refines on those
+# alone; with fewer it reads its marginal ones too (``refine_inputs``)
+MIN_CLEAR_ENTRIES = 1
 CALIBRATION_TEXELS = 512  # texels refined first to calibrate the noise model (fit.refine.calibrated_noise)
 REFINE_BATCH = 512  # texels per refinement batch: (batch, views, emitters) tensors stay ~100 MB
-FLAG_IN_SHADOW = 128  # refined on entries the mesh shadows (too few others: ``refine_inputs``)
-REFINE_FLAGS = FLAG_SPECULAR_UNCONSTRAINED | FLAG_TANGENT_UNCONSTRAINED | FLAG_FROM_MATERIAL | FLAG_IN_SHADOW
+FLAG_MARGINAL = 128  # refined on entries the mesh shadows or sees at grazing angles (too few others)
+REFINE_FLAGS = FLAG_SPECULAR_UNCONSTRAINED | FLAG_TANGENT_UNCONSTRAINED | FLAG_FROM_MATERIAL | FLAG_MARGINAL
 # texels per unit of work of the fit stage (a Ray task with --ray): a few seconds of work and ~10 MB
 # of traces at 60 photos; only one block's traces are in memory at a time (the table is on disk)
 FIT_BLOCK = 4096
@@ -184,7 +185,7 @@ class RefineInputs(NamedTuple):
     start: Start
     specular: torch.Tensor  # (n,) texels that seek a lobe
     shadow: torch.Tensor  # (n, V) int64 emitter groups the mesh hides from each entry
-    in_shadow: torch.Tensor  # (n,) texels that read entries the mesh shadows (``MIN_LIT_ENTRIES``)
+    marginal: torch.Tensor  # (n,) texels that read shadowed or grazing entries (``MIN_CLEAR_ENTRIES``)
 
 
 def refine_inputs(
@@ -193,24 +194,29 @@ def refine_inputs(
     """What ``fit.refine.refine`` takes for the texels ``idx`` of ``traces`` (linear pixels as
     captured: the camera model is the scanner's): their entries (``REFINE_VIEWS`` spread over each
     trace), the start from ``fit``, which texels seek a lobe (those the highlight check did not
-    flag). Entries the mesh shadows (``traces.shadowed``) are read only by texels with fewer than
-    ``MIN_LIT_ENTRIES`` others (``in_shadow``): their model is coarser (whole emitter blocks hidden
-    or not; no light the mesh reflects into its own shadows) — on the knot reading them everywhere
-    cost the Cycles scan's normals 0.3-0.7 deg (docs/accuracy.md)."""
+    flag). Marginal entries — the mesh shadows them (``traces.shadowed``) or sees them at grazing
+    angles (``traces.grazing``) — are read only by texels with fewer than ``MIN_CLEAR_ENTRIES``
+    others (``marginal``): their model is coarser (half emitter blocks hidden or not, no light the
+    mesh reflects into its own shadows; a grazing pixel spans a strip of surface) — on the knot
+    reading shadowed entries everywhere cost the Cycles scan's normals 0.3-0.7 deg, on the gallery
+    grazing ones its relit SSIM (docs/accuracy.md)."""
     groups = shadow_groups(scanner)
     few = torch.zeros(len(idx), dtype=torch.bool)
 
-    def usable(rows: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-        lit = mask & ~shadowed(groups, traces.shadow_at(rows, mask))
-        few[:] = lit.sum(1) < MIN_LIT_ENTRIES
-        return torch.where(few[:, None], mask, lit)
+    def marginal_entries(rows: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        return mask & (shadowed(groups, traces.shadow_at(rows, mask)) | grazing(traces.entries_at(rows, mask)))
 
-    rows, mask = traces.padded_rows(idx, REFINE_VIEWS, None if traces.shadow is None else usable)
+    def usable(rows: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        clear = mask & ~marginal_entries(rows, mask)
+        few[:] = clear.sum(1) < MIN_CLEAR_ENTRIES
+        return torch.where(few[:, None], mask, clear)
+
+    rows, mask = traces.padded_rows(idx, REFINE_VIEWS, usable)
     i = idx.numpy()
     specular = torch.as_tensor(fit["flags"][i] & FLAG_NO_HIGHLIGHT == 0)
-    shadow = traces.shadow_at(rows, mask)
-    in_shadow = few & (shadowed(groups, shadow) & mask).any(1)
-    return RefineInputs(traces.entries_at(rows, mask), mask, Start.from_fit(fit, i), specular, shadow, in_shadow)
+    marginal = few & marginal_entries(rows, mask).any(1)
+    start = Start.from_fit(fit, i)
+    return RefineInputs(traces.entries_at(rows, mask), mask, start, specular, traces.shadow_at(rows, mask), marginal)
 
 
 def refine_fit(
@@ -248,7 +254,7 @@ def refine_fit(
     for idx in todo.split(REFINE_BATCH):
         inp = refine_inputs(scanner, traces, idx, fit)
         r = refine(scanner, inp.entries, inp.mask, inp.start, inp.specular, settings, inp.shadow)
-        _store(fit, idx, r, inp.in_shadow)
+        _store(fit, idx, r, inp.marginal)
         bar.update(len(idx))
     bar.close()
     if settings.materials:
@@ -256,12 +262,12 @@ def refine_fit(
     return fit
 
 
-def _store(fit: dict[str, np.ndarray], idx: torch.Tensor, r: Refined, in_shadow: torch.Tensor) -> None:
+def _store(fit: dict[str, np.ndarray], idx: torch.Tensor, r: Refined, marginal: torch.Tensor) -> None:
     i = idx.numpy()
     fit["n_loc"][i], fit["t_loc"][i] = r.frame[:, 2].numpy(), r.frame[:, 0].numpy()
     fit["alpha"][i] = r.log_alpha.exp().numpy()
     fit["rho_d"][i], fit["rho_s"][i] = r.rho_d.numpy(), r.rho_s.numpy()
-    fit["flags"][i] = (fit["flags"][i] & ~REFINE_FLAGS) | r.flags.numpy() | in_shadow.numpy() * FLAG_IN_SHADOW
+    fit["flags"][i] = (fit["flags"][i] & ~REFINE_FLAGS) | r.flags.numpy() | marginal.numpy() * FLAG_MARGINAL
     fit["std"][i] = r.std.numpy()
     fit["highlight"][i] = r.highlight.numpy()
 
@@ -283,7 +289,7 @@ def _material_pass(
     own[i_obs] = fit["flags"][i_obs] & FLAG_SPECULAR_UNCONSTRAINED == 0
     # the basis from lobes measured in full light: a lobe read through the mesh's shadows is coarser
     # (on the knot's Cycles scan those lobes moved the clusters enough to lose the glossy plastic's)
-    lit = own & (fit["flags"] & FLAG_IN_SHADOW == 0)
+    lit = own & (fit["flags"] & FLAG_MARGINAL == 0)
     basis = lobe_materials(fit["rho_d"][lit], fit["alpha"][lit], fit["rho_s"][lit], fit["highlight"][lit])
     if len(basis) == 0:  # too few texels kept a lobe to make a material of: all matte
         fit["material"][i_obs] = -1
@@ -331,6 +337,6 @@ def _material_pass(
             torch.as_tensor(basis.rho_s_sigma[m], dtype=torch.float32),
         )
         r = refine_toward(scanner, inp.entries, inp.mask, inp.start, pull, settings, inp.shadow)
-        _store(fit, idx, r, inp.in_shadow)
+        _store(fit, idx, r, inp.marginal)
         bar.update(len(idx))
     bar.close()

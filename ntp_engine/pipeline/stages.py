@@ -47,7 +47,7 @@ from .fit_traces import (
     ALBEDO_VIEWS,
     CALIBRATION_TEXELS,
     FIT_BLOCK,
-    MIN_LIT_ENTRIES,
+    MIN_CLEAR_ENTRIES,
     NETWORK_VIEWS,
     REFINE_VIEWS,
     RHO_S_PRIOR_WEIGHT,
@@ -391,7 +391,7 @@ def _reconstruct(
             "fit": h_fit,
             "settings": dataclasses.asdict(REFINE),
             "views": REFINE_VIEWS,
-            "min_lit_entries": MIN_LIT_ENTRIES,
+            "min_clear_entries": MIN_CLEAR_ENTRIES,
             "version": REFINE_VERSION,
             "calibration_texels": CALIBRATION_TEXELS,
         }
@@ -527,6 +527,7 @@ def _traces_stage(
         "max_shadowed_drive": trace_assembly.MAX_SHADOWED_DRIVE,
         "emitter_shadows": trace_assembly.SKY_RAYS,  # entries the mesh shadows: kept with their masks
         "shadow_splits": SHADOW_SPLITS,
+        "min_cos_grazing": trace_assembly.MIN_COS_GRAZING,  # grazing entries: kept, flagged
         "out_of_range_kept": True,
         "files": trace_assembly.TABLE_FILES,
         "device": scanner_to_dict(scan.scanner),

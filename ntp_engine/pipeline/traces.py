@@ -4,12 +4,13 @@ For every view j and texel p: the texel's object-space point goes into camera j 
 camera-from-world, the world being the mesh's frame); the entry is kept if (1) the point is in
 front of the camera, projects inside the photo (OpenCV distortion included) and lies in the valid
 volume, (2) nothing of the mesh lies between it and the camera (Embree, from the point offset
-along its normal), (3) wo . n^ > 0.3. (4) Which emitter groups the mesh itself hides from the
-point (``EmitterShadow``) is the entry's ``shadow`` mask; where they carry more than
-``MAX_SHADOWED_DRIVE`` of the pattern's drive the entry is flagged ``in_range = False`` (Eq. 1 as
-the network learnt it assumes every emitter above the horizon reaches the point; the refinement
-models the mask) — or, on a device with more groups than a mask holds, left out. Entries whose
-bilinearly sampled 8-bit pixel has a channel outside [32, 224] (dark or near clipping) are kept too,
+along its normal), (3) wo . n^ > 0.15 — flagged ``in_range = False`` up to 0.3 (``grazing``).
+(4) Which emitter groups the mesh itself hides from the point (``EmitterShadow``) is the entry's
+``shadow`` mask; where they carry more than ``MAX_SHADOWED_DRIVE`` of the pattern's drive the entry
+is flagged ``in_range = False`` (Eq. 1 as the network learnt it assumes every emitter above the
+horizon reaches the point; the refinement models the mask) — or, on a device with more groups
+than a mask holds, left out. Entries whose bilinearly sampled 8-bit pixel has a channel outside
+[32, 224] (dark or near clipping) are kept too,
 flagged ``in_range = False``: the network and the lumitexel fit skip them
 (``RaggedTraces.in_range_only``), the refinement models them (a noise floor for dark values, clipped
 ones as lower bounds). The entry is (linear pixel RGB * ``pixel_scale``, x, n^, t^) in camera j's
@@ -39,7 +40,11 @@ from ..scanner.scanner import Scanner
 from .texels import Texels
 
 MAX_SHADOWED_DRIVE = 0.05  # fraction of the pattern's drive the support, or the mesh, may block from a used entry
-MIN_COS_VIEW = 0.3
+MIN_COS_VIEW = 0.3  # wo . n^ above this: an entry the network reads
+# wo . n^ in (MIN_COS_GRAZING, MIN_COS_VIEW]: kept, flagged out of range, and read by the refinement
+# only for texels with no other entry (``pipeline.fit_traces.refine_inputs``): at grazing angles a
+# pixel spans a strip of surface, which Eq. 1 for one texel does not describe (docs/accuracy.md)
+MIN_COS_GRAZING = 0.15
 SKY_RAYS = 64  # directions over a texel's hemisphere: none hitting the mesh = it cannot shadow its emitters
 TABLE_FILES = ("entries", "offsets", "in_range", "shadow")  # a table on disk: one .npy each (``load_table``)
 # the per-entry columns: dtype and shape after the entry axis
@@ -136,6 +141,13 @@ class EmitterShadow:
         return blocked, out
 
 
+def grazing(entries: Tensor) -> Tensor:
+    """``(...)`` True where entries ``(..., 12)`` see their point at ``wo . n^ <= MIN_COS_VIEW``
+    (camera space: wo = -x / |x|): kept for the refinement, too grazing for the network."""
+    x, n = entries[..., 3:6], entries[..., 6:9]
+    return -(x * n).sum(-1) <= MIN_COS_VIEW * x.norm(dim=-1)
+
+
 def shadowed(groups: ShadowGroups, shadow: Tensor) -> Tensor:
     """``(...)`` True where the emitter groups ``shadow (...)`` hides carry more than
     ``MAX_SHADOWED_DRIVE`` of the pattern's drive: too much for the network, which assumes every
@@ -171,7 +183,7 @@ def _visible(
     rejected["valid_volume"] += int((~in_box).sum())
     idx = idx[in_box]
     wo = -x[idx] / np.linalg.norm(x[idx], axis=1, keepdims=True)
-    facing = (wo * (texels.normal[idx] @ R.T)).sum(1) > MIN_COS_VIEW
+    facing = (wo * (texels.normal[idx] @ R.T)).sum(1) > MIN_COS_GRAZING
     rejected["grazing"] += int((~facing).sum())
     idx = idx[facing]
     if len(idx) == 0:
@@ -221,6 +233,7 @@ def assemble(
         "valid_volume": 0,
         "occluded": 0,
         "grazing": 0,
+        "grazing_flagged": 0,
         "pixel_range": 0,
         "support_shadow_views": 0,
         "emitter_shadow": 0,
@@ -274,6 +287,9 @@ def assemble(
         entries[rows, 3:6] = x
         entries[rows, 6:9] = texels.normal[idx] @ R.T
         entries[rows, 9:12] = texels.tangent[idx] @ R.T
+        steep = ~grazing(torch.from_numpy(entries[rows])).numpy()
+        rejected["grazing_flagged"] += int((~steep).sum())  # kept, flagged: as the dark ones
+        ok &= steep
         masks = self_shadow(pose, idx)[1] if drops is None else None
         if masks is None:
             in_range[rows], shadow[rows] = ok, 0

@@ -55,34 +55,39 @@ def test_blocks_give_the_whole_tables_answer_from_unscaled_pixels(monkeypatch):
         np.testing.assert_allclose(blocks[k], whole[k], rtol=1e-3, atol=1e-3, err_msg=k)
 
 
-def test_refine_inputs_read_shadowed_entries_only_where_too_few_others_are_left():
-    """A texel with at least ``MIN_LIT_ENTRIES`` entries its mesh does not shadow (over
-    ``MAX_SHADOWED_DRIVE`` of the drive hidden) is refined on those alone; one with fewer reads its
-    shadowed entries too, with their masks."""
+def test_refine_inputs_read_marginal_entries_only_where_too_few_others_are_left():
+    """A texel with at least ``MIN_CLEAR_ENTRIES`` clear entries — neither shadowed by its mesh
+    (over ``MAX_SHADOWED_DRIVE`` of the drive hidden) nor grazing (wo . n^ <= ``MIN_COS_VIEW``) —
+    is refined on those alone; one with fewer reads its marginal entries too, with their masks,
+    and is flagged ``marginal``."""
     from ntp_engine.fit.emitter_blocks import shadow_groups
-    from ntp_engine.pipeline.fit_traces import MIN_LIT_ENTRIES, REFINE_VIEWS, refine_inputs
+    from ntp_engine.pipeline.fit_traces import MIN_CLEAR_ENTRIES, REFINE_VIEWS, refine_inputs
 
     dev = load_scanner()
     half = (1 << (len(shadow_groups(dev).points) // 2)) - 1  # half the groups hidden: shadowed
-    # entries of each trace not shadowed: plenty, too few, none, none at all
-    lit = [set(range(0, 40, 2)), set(range(MIN_LIT_ENTRIES - 1)), set(), set()]
-    lengths = [40, 30, 5, 0]
-    table = [
-        torch.tensor([0 if k in lit[i] else half for k in range(n)], dtype=torch.int64) for i, n in enumerate(lengths)
-    ]
+    # kinds of each trace's entries (c clear, s shadowed, g grazing): plenty clear, too few, none, no entries
+    kinds = ["csg" * 13 + "c", "c" * (MIN_CLEAR_ENTRIES - 1) + "sg" * 15, "sgsgs", ""]
+    table = [torch.tensor([half if k == "s" else 0 for k in t], dtype=torch.int64) for t in kinds]
     shadow = torch.cat(table)
+    lengths = [len(t) for t in kinds]
     offsets = torch.tensor([0, *np.cumsum(lengths)])
     entries = torch.zeros(int(offsets[-1]), 12)
     entries[:, 0] = torch.cat([torch.arange(n, dtype=torch.float32) for n in lengths])  # entry number in its trace
-    traces = RaggedTraces(entries, offsets, shadow == 0, shadow)
-    N = len(lengths)
+    entries[:, 5] = 0.3  # the point 0.3 m in front of the camera
+    tilt = torch.tensor([k == "g" for t in kinds for k in t])
+    cos = torch.where(tilt, 0.2, 1.0)  # wo . n^: 0.2 grazing, else facing the camera
+    entries[:, 6], entries[:, 8] = (1 - cos**2).sqrt(), -cos
+    traces = RaggedTraces(entries, offsets, (shadow == 0) & ~tilt, shadow)
+    N = len(kinds)
     fit = {"n_loc": np.tile([0, 0, 1.0], (N, 1)), "t_loc": np.tile([1.0, 0, 0], (N, 1)), "alpha": np.full((N, 2), 0.1)}
     fit |= {"rho_d": np.full((N, 3), 0.5), "rho_s": np.zeros((N, 3)), "flags": np.zeros(N, np.int64)}
-    ent, mask, _, _, masks, in_shadow = refine_inputs(dev, traces, torch.arange(N), fit)
-    assert in_shadow.tolist() == [len(lit[0]) < MIN_LIT_ENTRIES, len(lit[1]) < MIN_LIT_ENTRIES, True, False]
+    ent, mask, _, _, masks, marginal = refine_inputs(dev, traces, torch.arange(N), fit)
+    clear = [{k for k, c in enumerate(t) if c == "c"} for t in kinds]
+    few = [len(c) < MIN_CLEAR_ENTRIES for c in clear]
+    assert marginal.tolist() == [few[0], few[1], True, False]
     for i, n in enumerate(lengths):
         got = ent[i, mask[i], 0].long()
-        usable = lit[i] if len(lit[i]) >= MIN_LIT_ENTRIES else set(range(n))
+        usable = set(range(n)) if few[i] else clear[i]
         assert len(got) == min(len(usable), REFINE_VIEWS) and set(got.tolist()) <= usable
         assert torch.equal(masks[i, mask[i]], table[i][got])
-    assert len(lit[0]) >= MIN_LIT_ENTRIES and mask[2].sum() == 5  # both cases are there
+    assert not few[0] and few[1] and mask[2].sum() == 5  # both cases are there

@@ -5,7 +5,7 @@ from ntp_engine.fit.emitter_blocks import shadow_groups
 from ntp_engine.io.raycast import RayCaster
 from ntp_engine.physics.measurement import measurement_rgb
 from ntp_engine.pipeline.texels import rasterize
-from ntp_engine.pipeline.traces import MAX_SHADOWED_DRIVE, MIN_COS_VIEW, assemble
+from ntp_engine.pipeline.traces import MAX_SHADOWED_DRIVE, MIN_COS_GRAZING, MIN_COS_VIEW, assemble
 from ntp_engine.scanner.camera import look_at, resampled
 from ntp_engine.scanner.device_file import load_scanner
 from ntp_engine.sim.renderer import Scene
@@ -26,7 +26,8 @@ def test_traces_from_a_virtual_scan_match_the_renderer_and_respect_the_filters()
     e = traces.entries.double().numpy()
     # filters: facing the camera, inside the valid volume; dark and near-clipped entries kept, flagged
     wo = -e[:, 3:6] / np.linalg.norm(e[:, 3:6], axis=1, keepdims=True)
-    assert ((wo * e[:, 6:9]).sum(1) > MIN_COS_VIEW).all()
+    cos = (wo * e[:, 6:9]).sum(1)
+    assert (cos > MIN_COS_GRAZING).all() and stats.rejected["grazing_flagged"] == (cos <= MIN_COS_VIEW).sum() > 0
     assert dev.in_valid_volume(torch.as_tensor(e[:, 3:6])).all()
     codes = 255 * e[:, :3] * cfg.exposure
     code_ok = ((codes >= 32) & (codes <= 224)).all(1)
@@ -36,7 +37,8 @@ def test_traces_from_a_virtual_scan_match_the_renderer_and_respect_the_filters()
     dark = (groups.share(traces.shadow) > MAX_SHADOWED_DRIVE).numpy()
     assert dark.sum() == stats.rejected["emitter_shadow"] > 0
     edge = ((np.abs(codes - 32) < 1e-3) | (np.abs(codes - 224) < 1e-3)).any(1)  # float32 entries
-    np.testing.assert_array_equal(traces.in_range.numpy()[~edge], (code_ok & ~dark)[~edge])
+    steep = cos > MIN_COS_VIEW
+    np.testing.assert_array_equal(traces.in_range.numpy()[~edge], (code_ok & ~dark & steep)[~edge])
     in_range = traces.in_range.numpy()
     assert 0 < (~in_range).sum() and stats.entries == in_range.sum()
     assert abs(stats.rejected["pixel_range"] - (~code_ok).sum()) <= edge.sum()
@@ -95,7 +97,9 @@ def _reference_assemble(tx, photos, poses, cam, caster):
         [],
         [],
         [],
-        dict.fromkeys(("behind_or_outside", "valid_volume", "occluded", "grazing", "emitter_shadow"), 0),
+        dict.fromkeys(
+            ("behind_or_outside", "valid_volume", "occluded", "grazing", "emitter_shadow", "grazing_flagged"), 0
+        ),
     )
     shadow = tr.EmitterShadow(cam, caster, tx, 2e-5)
     for img, pose in zip(photos, poses, strict=True):
@@ -108,8 +112,9 @@ def _reference_assemble(tx, photos, poses, cam, caster):
         codes = bilinear_pixels(img.astype(np.float64), px[:, 1], px[:, 0])
         lin = camera.decode(cam, torch.as_tensor(codes)).numpy()
         rows.append(np.concatenate([lin, x, tx.normal[idx] @ R.T, tx.tangent[idx] @ R.T], 1).astype(np.float32))
+        steep = ~tr.grazing(torch.from_numpy(rows[-1])).numpy()
         keys.append(idx)
-        flags.append(camera.code_is_valid(codes) & ~tr.shadowed(shadow.groups, torch.as_tensor(hidden)).numpy())
+        flags.append(camera.code_is_valid(codes) & steep & ~tr.shadowed(shadow.groups, torch.as_tensor(hidden)).numpy())
         masks.append(hidden)
     key = np.concatenate(keys)
     order = np.argsort(key, kind="stable")
