@@ -4,7 +4,7 @@ For every view j and texel p: the texel's object-space point goes into camera j 
 camera-from-world, the world being the mesh's frame); the entry is kept if (1) the point is in
 front of the camera, projects inside the photo (OpenCV distortion included) and lies in the valid
 volume, (2) nothing of the mesh lies between it and the camera (Embree, from the point offset
-along its normal), (3) wo . n^ > 0.15 — flagged ``in_range = False`` up to 0.3 (``grazing``).
+along its normal), (3) wo . n^ > 0.2 — flagged ``in_range = False`` up to 0.3 (``grazing``).
 (4) Which emitter groups the mesh itself hides from the point (``EmitterShadow``) is the entry's
 ``shadow`` mask; where they carry more than ``MAX_SHADOWED_DRIVE`` of the pattern's drive the entry
 is flagged ``in_range = False`` (Eq. 1 as the network learnt it assumes every emitter above the
@@ -43,8 +43,9 @@ MAX_SHADOWED_DRIVE = 0.05  # fraction of the pattern's drive the support, or the
 MIN_COS_VIEW = 0.3  # wo . n^ above this: an entry the network reads
 # wo . n^ in (MIN_COS_GRAZING, MIN_COS_VIEW]: kept, flagged out of range, and read by the refinement
 # only for texels with no other entry (``pipeline.fit_traces.refine_inputs``): at grazing angles a
-# pixel spans a strip of surface, which Eq. 1 for one texel does not describe (docs/accuracy.md)
-MIN_COS_GRAZING = 0.15
+# pixel spans a strip of surface, which Eq. 1 for one texel does not describe; 0.2 rather than 0.15
+# halves what the gained texels cost the knot's albedo (docs/accuracy.md, "Grazing entries")
+MIN_COS_GRAZING = 0.2
 SKY_RAYS = 64  # directions over a texel's hemisphere: none hitting the mesh = it cannot shadow its emitters
 TABLE_FILES = ("entries", "offsets", "in_range", "shadow")  # a table on disk: one .npy each (``load_table``)
 # the per-entry columns: dtype and shape after the entry axis
