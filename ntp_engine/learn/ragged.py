@@ -10,7 +10,7 @@ of the pattern for the network) and ``shadow`` (int64 masks: the emitter groups 
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -33,6 +33,18 @@ def spans(offsets: np.ndarray, max_entries: int) -> Iterator[tuple[int, int]]:
         stop = min(max(stop, start + 1), n)
         yield start, stop
         start = stop
+
+
+def spread_rows(rows: Tensor, usable: Tensor, max_views: int | None = None) -> tuple[Tensor, Tensor]:
+    """``padded_rows``'s selection over the ``usable (n, W)`` entries of ``rows (n, W)`` alone: at
+    most ``max_views`` of them per trace, spread evenly (first and last included), in trace order;
+    the rows ``(n, V)`` and their mask."""
+    order = torch.argsort((~usable).to(torch.int8), dim=1, stable=True)  # usable first, in trace order
+    count = usable.sum(1)
+    keep = count if max_views is None else count.clamp_max(max_views)
+    pos = torch.arange(max(int(keep.max()) if len(rows) else 0, 1))[None, :]
+    k = _spread(pos, count[:, None], keep[:, None]).clamp_max(rows.shape[1] - 1)
+    return rows.gather(1, order.gather(1, k)), pos < keep[:, None]
 
 
 def _spread(k: Tensor, length: Tensor, keep: Tensor) -> Tensor:
@@ -112,21 +124,9 @@ class RaggedTraces:
         rows, mask = self.padded_rows(idx, max_views)
         return self.entries_at(rows, mask), mask
 
-    def padded_rows(
-        self, idx: Tensor, max_views: int | None = None, usable: Callable[[Tensor, Tensor], Tensor] | None = None
-    ) -> tuple[Tensor, Tensor]:
+    def padded_rows(self, idx: Tensor, max_views: int | None = None) -> tuple[Tensor, Tensor]:
         """The table rows ``(n, V)`` of ``padded``'s entries (clamped into the table past each
-        length) and their mask. ``usable``: given the rows ``(n, W)`` of every entry of the traces and
-        their mask, which entries may be kept ``(n, W)`` — the spread then runs over those alone."""
-        if usable is not None:
-            rows, mask = self.padded_rows(idx)
-            ok = usable(rows, mask) & mask
-            order = torch.argsort((~ok).to(torch.int8), dim=1, stable=True)  # usable first, in trace order
-            count = ok.sum(1)
-            keep = count if max_views is None else count.clamp_max(max_views)
-            pos = torch.arange(max(int(keep.max()) if len(idx) else 0, 1))[None, :]
-            k = _spread(pos, count[:, None], keep[:, None]).clamp_max(rows.shape[1] - 1)
-            return rows.gather(1, order.gather(1, k)), pos < keep[:, None]
+        length) and their mask."""
         lengths = self.lengths[idx]
         keep = lengths if max_views is None else lengths.clamp_max(max_views)
         width = max(int(keep.max()) if len(idx) else 0, 1)

@@ -39,7 +39,7 @@ from ..fit.refine import (
 from ..io.progress import QUIET, Progress
 from ..learn.inference import predict
 from ..learn.network import TraceNet
-from ..learn.ragged import RaggedTraces
+from ..learn.ragged import RaggedTraces, spread_rows
 from ..scanner.scanner import Scanner
 from .task_pool import LocalPool, TaskPool
 from .traces import grazing, shadowed
@@ -201,20 +201,14 @@ def refine_inputs(
     reading shadowed entries everywhere cost the Cycles scan's normals 0.3-0.7 deg, on the gallery
     grazing ones its relit SSIM (docs/accuracy.md)."""
     groups = shadow_groups(scanner)
-    few = torch.zeros(len(idx), dtype=torch.bool)
-
-    def marginal_entries(rows: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-        return mask & (shadowed(groups, traces.shadow_at(rows, mask)) | grazing(traces.entries_at(rows, mask)))
-
-    def usable(rows: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-        clear = mask & ~marginal_entries(rows, mask)
-        few[:] = clear.sum(1) < MIN_CLEAR_ENTRIES
-        return torch.where(few[:, None], mask, clear)
-
-    rows, mask = traces.padded_rows(idx, REFINE_VIEWS, usable)
+    rows, mask = traces.padded_rows(idx)  # every entry of each trace
+    marginal_entry = mask & (shadowed(groups, traces.shadow_at(rows, mask)) | grazing(traces.entries_at(rows, mask)))
+    clear = mask & ~marginal_entry
+    few = clear.sum(1) < MIN_CLEAR_ENTRIES
+    marginal = few & marginal_entry.any(1)
+    rows, mask = spread_rows(rows, torch.where(few[:, None], mask, clear), REFINE_VIEWS)
     i = idx.numpy()
     specular = torch.as_tensor(fit["flags"][i] & FLAG_NO_HIGHLIGHT == 0)
-    marginal = few & marginal_entries(rows, mask).any(1)
     start = Start.from_fit(fit, i)
     return RefineInputs(traces.entries_at(rows, mask), mask, start, specular, traces.shadow_at(rows, mask), marginal)
 
@@ -287,10 +281,11 @@ def _material_pass(
     i_obs = todo.numpy()
     own = np.zeros(N, bool)
     own[i_obs] = fit["flags"][i_obs] & FLAG_SPECULAR_UNCONSTRAINED == 0
-    # the basis from lobes measured in full light: a lobe read through the mesh's shadows is coarser
-    # (on the knot's Cycles scan those lobes moved the clusters enough to lose the glossy plastic's)
-    lit = own & (fit["flags"] & FLAG_MARGINAL == 0)
-    basis = lobe_materials(fit["rho_d"][lit], fit["alpha"][lit], fit["rho_s"][lit], fit["highlight"][lit])
+    # the basis from lobes measured on clear entries: a lobe read through the mesh's shadows (or at
+    # grazing angles) is coarser — on the knot's Cycles scan those moved the clusters enough to lose
+    # the glossy plastic's lobe
+    clear = own & (fit["flags"] & FLAG_MARGINAL == 0)
+    basis = lobe_materials(fit["rho_d"][clear], fit["alpha"][clear], fit["rho_s"][clear], fit["highlight"][clear])
     if len(basis) == 0:  # too few texels kept a lobe to make a material of: all matte
         fit["material"][i_obs] = -1
         fit.update(basis.to_arrays())

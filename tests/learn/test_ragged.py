@@ -99,15 +99,18 @@ def test_shadow_masks_are_those_of_the_padded_entries():
         RaggedTraces(entries, tr.offsets, shadow=shadow[:3])
 
 
-def test_padded_rows_spread_over_the_usable_entries_only():
-    """With ``usable``, the spread runs over the entries it allows, in trace order; a trace with
-    none keeps none."""
+def test_spread_rows_run_over_the_usable_entries_only():
+    """``spread_rows`` spreads over the entries ``usable`` allows, in trace order; a trace with
+    none keeps none; with every entry usable it is ``padded_rows``'s own spread."""
+    from ntp_engine.learn.ragged import spread_rows
+
     entries = torch.arange(20, dtype=torch.float32)[:, None].repeat(1, 12)
     tr = RaggedTraces(entries, torch.tensor([0, 2, 2, 12, 20]))
-    odd = lambda rows, mask: rows % 2 == 1  # noqa: E731
-    rows, mask = tr.padded_rows(torch.tensor([2, 0, 1, 3]), max_views=3, usable=odd)
-    got = [rows[i][mask[i]].tolist() for i in range(4)]
+    every, mask = tr.padded_rows(torch.tensor([2, 0, 1, 3]))
+    rows, keep = spread_rows(every, mask & (every % 2 == 1), max_views=3)
+    got = [rows[i][keep[i]].tolist() for i in range(4)]
     assert got == [[3, 7, 11], [1], [], [13, 17, 19]]  # of 5 odd rows: 1st, 3rd, 5th; of 4: 1st, 3rd, 4th
-    all_rows, all_mask = tr.padded_rows(torch.tensor([2, 3]), max_views=3, usable=lambda r, m: m)
+    every, mask = tr.padded_rows(torch.tensor([2, 3]))
+    all_rows, all_mask = spread_rows(every, mask, max_views=3)
     plain_rows, plain_mask = tr.padded_rows(torch.tensor([2, 3]), max_views=3)
     assert torch.equal(all_rows[all_mask], plain_rows[plain_mask])
