@@ -528,6 +528,7 @@ def _traces_stage(
         "emitter_shadows": trace_assembly.SKY_RAYS,  # entries the mesh shadows: kept with their masks
         "shadow_splits": SHADOW_SPLITS,
         "min_cos_grazing": trace_assembly.MIN_COS_GRAZING,  # grazing entries: kept, flagged
+        "max_tap_tilt_deg": trace_assembly.MAX_TAP_TILT_DEG,  # pixels that see another surface: not read
         "out_of_range_kept": True,
         "files": trace_assembly.TABLE_FILES,
         "device": scanner_to_dict(scan.scanner),

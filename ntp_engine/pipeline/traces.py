@@ -9,8 +9,11 @@ along its normal), (3) wo . n^ > 0.2 — flagged ``in_range = False`` up to 0.3 
 ``shadow`` mask; where they carry more than ``MAX_SHADOWED_DRIVE`` of the pattern's drive the entry
 is flagged ``in_range = False`` (Eq. 1 as the network learnt it assumes every emitter above the
 horizon reaches the point; the refinement models the mask) — or, on a device with more groups
-than a mask holds, left out. Entries whose bilinearly sampled 8-bit pixel has a channel outside
-[32, 224] (dark or near clipping) are kept too,
+than a mask holds, left out. (5) The entry's pixel is a bilinear sample of four pixels; those whose
+centres see another surface (``pixel_taps``: nothing, or a point off the entry's tangent plane — a
+silhouette, an occluding edge, another loop of the mesh behind) are not read, their weights going
+to the others; an entry none of whose four pixels sees its surface is left out. Entries whose
+bilinearly sampled 8-bit pixel has a channel outside [32, 224] (dark or near clipping) are kept too,
 flagged ``in_range = False``: the network and the lumitexel fit skip them
 (``RaggedTraces.in_range_only``), the refinement models them (a noise floor for dark values, clipped
 ones as lower bounds). The entry is (linear pixel RGB * ``pixel_scale``, x, n^, t^) in camera j's
@@ -46,6 +49,13 @@ MIN_COS_VIEW = 0.3  # wo . n^ above this: an entry the network reads
 # pixel spans a strip of surface, which Eq. 1 for one texel does not describe; 0.2 rather than 0.15
 # halves what the gained texels cost the knot's albedo (docs/accuracy.md, "Grazing entries")
 MIN_COS_GRAZING = 0.2
+# a bilinear tap whose pixel centre's ray hits the mesh at a point seen from the entry's point more
+# than this far off its tangent plane sees another surface (chord angle, degrees): on one smooth
+# surface the chord across a pixel's footprint tilts by half the normal's turn (a few degrees at the
+# gallery's pixel sizes), to another surface by far more; at 20 and 30 the knot's grazing entries lose
+# the same taps (docs/accuracy.md, "Pixels that see another surface")
+MAX_TAP_TILT_DEG = 20.0
+TAP_TOLERANCE = 1e-6  # metres off the plane always accepted: the hit's float32 rounding
 SKY_RAYS = 64  # directions over a texel's hemisphere: none hitting the mesh = it cannot shadow its emitters
 TABLE_FILES = ("entries", "offsets", "in_range", "shadow")  # a table on disk: one .npy each (``load_table``)
 # the per-entry columns: dtype and shape after the entry axis
@@ -142,6 +152,34 @@ class EmitterShadow:
         return blocked, out
 
 
+def pixel_taps(
+    scanner: Scanner, caster: RayCaster, pose: np.ndarray, px: np.ndarray, position: np.ndarray, normal: np.ndarray
+) -> np.ndarray:
+    """Which of the four pixels a bilinear sample at ``px (N, 2)`` (x = column, y = row) blends
+    see the entry's own surface: ``(N, 4)`` bool in ``io.maps.bilinear_pixels``' order (r0c0, r0c1,
+    r1c0, r1c1, clamped to the image). Each distinct pixel's centre ray is cast once (Embree,
+    camera at ``pose``, camera-from-world); a tap sees the surface of the point ``position (N, 3)``
+    with unit ``normal (N, 3)`` (world) when its ray hits the mesh within ``MAX_TAP_TILT_DEG`` of
+    the point's tangent plane as seen from the point (or within ``TAP_TOLERANCE``); no hit is
+    another surface (the background)."""
+    h, w = scanner.height, scanner.width
+    c, r = np.clip(px[:, 0], 0, w - 1), np.clip(px[:, 1], 0, h - 1)
+    r0, c0 = np.floor(r).astype(np.int64), np.floor(c).astype(np.int64)
+    r1, c1 = np.minimum(r0 + 1, h - 1), np.minimum(c0 + 1, w - 1)
+    pixel = np.stack([r0 * w + c0, r0 * w + c1, r1 * w + c0, r1 * w + c1], 1)
+    unique, inverse = np.unique(pixel, return_inverse=True)  # neighbouring entries share pixels
+    R, t = pose[:3, :3], pose[:3, 3]
+    d = camera.pixel_directions(scanner, unique % w, unique // w) @ R  # world: R^T d
+    centre = -R.T @ t
+    hits = caster.intersect(np.broadcast_to(centre, d.shape), d)
+    missed = (hits.geom < 0) | ~np.isfinite(hits.t)
+    hit = centre + d * np.where(missed, 0.0, hits.t)[:, None]
+    chord = hit[inverse.reshape(pixel.shape)] - position[:, None]  # (N, 4, 3)
+    off = np.abs(np.einsum("nkc,nc->nk", chord, normal))
+    flat = off <= np.sin(np.radians(MAX_TAP_TILT_DEG)) * np.linalg.norm(chord, axis=-1) + TAP_TOLERANCE
+    return flat & ~missed[inverse.reshape(pixel.shape)]
+
+
 def grazing(entries: Tensor) -> Tensor:
     """``(...)`` True where entries ``(..., 12)`` see their point at ``wo . n^ <= MIN_COS_VIEW``
     (camera space: wo = -x / |x|): kept for the refinement, too grazing for the network."""
@@ -164,10 +202,10 @@ def _visible(
     eps: float,
     rejected: dict[str, int],
     emitter_shadow: EmitterShadow | None = None,
-) -> np.ndarray:
-    """Texels view ``pose`` measures (conditions 1-3 of the module docstring, and 4 where
+) -> tuple[np.ndarray, np.ndarray]:
+    """Texels view ``pose`` measures (conditions 1-3 and 5 of the module docstring, and 4 where
     ``emitter_shadow`` is given: entries it shadows left out; geometry only: no pixel is read):
-    their indices, ascending."""
+    their indices, ascending, and which of their pixel taps see them ``(len, 4)`` (``pixel_taps``)."""
     n_tex = len(texels)
     R, t = pose[:3, :3], pose[:3, 3]
     x = texels.position @ R.T + t
@@ -178,8 +216,9 @@ def _visible(
     inside = front & camera.in_image(scanner, px)
     rejected["behind_or_outside"] += int(n_tex - inside.sum())
     idx = np.nonzero(inside)[0]
+    none = np.zeros((0, 4), bool)
     if len(idx) == 0:
-        return idx
+        return idx, none
     in_box = scanner.in_valid_volume(torch.as_tensor(x[idx])).numpy()
     rejected["valid_volume"] += int((~in_box).sum())
     idx = idx[in_box]
@@ -188,18 +227,24 @@ def _visible(
     rejected["grazing"] += int((~facing).sum())
     idx = idx[facing]
     if len(idx) == 0:
-        return idx
+        return idx, none
     origin = texels.position[idx] + eps * texels.normal[idx]
     to_cam = -R.T @ t - origin
     dist = np.linalg.norm(to_cam, axis=1)
     occ = caster.occluded(origin, to_cam / dist[:, None], dist - 1e-4)
     rejected["occluded"] += int(occ.sum())
     idx = idx[~occ]
+    if len(idx) == 0:
+        return idx, none
+    taps = pixel_taps(scanner, caster, pose, px[idx], texels.position[idx], texels.normal[idx])
+    some = taps.any(1)
+    rejected["mixed_pixel"] += int((~some).sum())
+    idx, taps = idx[some], taps[some]
     if emitter_shadow is None or len(idx) == 0:
-        return idx
+        return idx, taps
     dark = emitter_shadow(pose, idx)[0] > MAX_SHADOWED_DRIVE
     rejected["emitter_shadow"] += int(dark.sum())
-    return idx[~dark]
+    return idx[~dark], taps[~dark]
 
 
 def assemble(
@@ -235,6 +280,8 @@ def assemble(
         "occluded": 0,
         "grazing": 0,
         "grazing_flagged": 0,
+        "mixed_pixel": 0,
+        "mixed_pixel_resampled": 0,
         "pixel_range": 0,
         "support_shadow_views": 0,
         "emitter_shadow": 0,
@@ -245,15 +292,24 @@ def assemble(
     # with more groups than a mask holds, this pass leaves them out
     drops = None if self_shadow.groups.fits else self_shadow
     seen: list[np.ndarray | None] = []
+    partial: list[tuple[np.ndarray, np.ndarray]] = []  # per view: which taps see another surface (``_pack_taps``)
     counts = np.zeros(n_tex, np.int64)
     for pose in progress.track(poses, "visibility", total=len(poses), unit="photo"):
         if support_shadow is not None and support_shadow(pose):
             rejected["support_shadow_views"] += 1
             seen.append(None)
+            partial.append(_pack_taps(np.zeros((0, 4), bool)))
             continue
-        idx = _visible(texels, pose, scanner, caster, eps, rejected, drops)
+        idx, taps = _visible(texels, pose, scanner, caster, eps, rejected, drops)
         counts[idx] += 1
         seen.append(idx.astype(np.int32) if len(idx) else None)
+        rejected["mixed_pixel_resampled"] += int((~taps.all(1)).sum())  # kept: read from the pixels that see it
+        partial.append(_pack_taps(taps))
+    # one array for all views before the table is allocated (not ~200 bytes of array per view)
+    tap_start = np.zeros(len(partial) + 1, np.int64)
+    tap_start[1:] = np.cumsum([len(r) for r, _ in partial])
+    tap_rows, tap_bits = (np.concatenate([p[i] for p in partial]) for i in (0, 1))
+    del partial
     offsets = np.zeros(n_tex + 1, np.int64)
     offsets[1:] = np.cumsum(counts)
     n_entries = int(offsets[-1])
@@ -274,7 +330,9 @@ def assemble(
         R, t = pose[:3, :3], pose[:3, 3]
         x = texels.position[idx] @ R.T + t
         px = camera.project(scanner, torch.as_tensor(x)).numpy()
-        codes = bilinear_pixels(img.astype(np.float64), px[:, 1], px[:, 0])
+        view_taps = slice(tap_start[k], tap_start[k + 1])
+        read = _unpack_taps(tap_rows[view_taps], tap_bits[view_taps], len(idx))
+        codes = bilinear_pixels(img.astype(np.float64), px[:, 1], px[:, 0], read)
         ok = camera.code_is_valid(codes)
         rejected["pixel_range"] += int((~ok).sum())  # kept, flagged: only the refinement reads them
         views_used += 1
@@ -307,6 +365,24 @@ def assemble(
     for name in _COLUMNS:
         (folder / f".photo-order-{name}.npy").unlink()
     return load_table(folder), stats
+
+
+def _pack_taps(taps: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A view's ``pixel_taps (N, 4)`` as the first pass keeps them till the second: the entries
+    with a tap to skip (on real scans the few at silhouettes and edges) as int32 positions, and one
+    byte each (bit k: tap k)."""
+    bits = (taps << np.arange(4)).sum(1).astype(np.uint8)
+    some = np.nonzero(bits != 15)[0]
+    return some.astype(np.int32), bits[some]
+
+
+def _unpack_taps(rows: np.ndarray, bits: np.ndarray, n: int) -> np.ndarray | None:
+    """``_pack_taps``' inverse for a view of ``n`` entries: ``(n, 4)`` bool, None where every tap is read."""
+    if len(rows) == 0:
+        return None
+    taps = np.ones((n, 4), bool)
+    taps[rows] = (bits[:, None] >> np.arange(4)) & 1 == 1
+    return taps
 
 
 def _column(path: Path | None, name: str, n_entries: int) -> np.ndarray:

@@ -117,13 +117,21 @@ def project_jacobian(scanner: Scanner, points: Tensor) -> Tensor:
     return kk @ dd @ dn
 
 
-def pixel_rays(scanner: Scanner) -> np.ndarray:
-    """Unit camera-space ray directions ``(H, W, 3)`` through every pixel centre (distortion undone)."""
+def pixel_directions(scanner: Scanner, cols: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """Unit camera-space ray directions ``(..., 3)`` through pixel coordinates ``cols, rows (...)``
+    (``project``'s: x = column, y = row; distortion undone): ``project`` of any point on the ray
+    gives them back."""
     K = scanner.K
-    rows, cols = np.meshgrid(np.arange(scanner.height), np.arange(scanner.width), indexing="ij")
-    x, y = undistort(scanner, (cols - K[0, 2]) / K[0, 0], (rows - K[1, 2]) / K[1, 1])
+    yd = (rows - K[1, 2]) / K[1, 1]
+    x, y = undistort(scanner, (cols - K[0, 2] - K[0, 1] * yd) / K[0, 0], yd)
     d = np.stack([x, y, np.ones_like(x)], -1)
     return d / np.linalg.norm(d, axis=-1, keepdims=True)
+
+
+def pixel_rays(scanner: Scanner) -> np.ndarray:
+    """Unit camera-space ray directions ``(H, W, 3)`` through every pixel centre (distortion undone)."""
+    rows, cols = np.meshgrid(np.arange(scanner.height), np.arange(scanner.width), indexing="ij")
+    return pixel_directions(scanner, cols, rows)
 
 
 def look_at(position: np.ndarray, target: np.ndarray) -> np.ndarray:

@@ -45,3 +45,32 @@ def test_bad_map_folders_name_the_file(tmp_path):
     (tmp_path / "tangent.exr").unlink()
     with pytest.raises(NtpInputError, match="tangent.exr: map file missing"):
         SVBRDFMaps.load(tmp_path)
+
+
+def test_bilinear_samples_skip_the_pixels_they_are_told_not_to_read():
+    from ntp_engine.io.maps import bilinear_pixels
+
+    rng = np.random.default_rng(0)
+    img = rng.uniform(0, 1, (6, 7, 3))
+    r, c = rng.uniform(0, 5, 40), rng.uniform(0, 6, 40)
+    plain = bilinear_pixels(img, r, c)
+    np.testing.assert_array_equal(bilinear_pixels(img, r, c, np.ones((40, 4), bool)), plain)
+    taps = rng.uniform(size=(40, 4)) < 0.6
+    taps[np.arange(40), rng.integers(0, 4, 40)] = True  # each sample reads one pixel at least
+    r0, c0 = np.floor(r).astype(int), np.floor(c).astype(int)
+    corners = [(r0, c0), (r0, c0 + 1), (r0 + 1, c0), (r0 + 1, c0 + 1)]  # r0c0, r0c1, r1c0, r1c1
+    got = np.empty_like(plain)
+    for i in range(40):  # a skipped pixel is never read: poisoned, one sample at a time
+        poisoned = img.copy()
+        for k, (rows, cols) in enumerate(corners):
+            if not taps[i, k]:
+                poisoned[rows[i], cols[i]] = 1e9  # read at any weight (>= 1e-6), it would show
+        got[i] = bilinear_pixels(poisoned, r[i : i + 1], c[i : i + 1], taps[i : i + 1])[0]
+    # the reference: the bilinear weights of the pixels read, normalised
+    fr, fc = r - r0, c - c0
+    w = np.stack([(1 - fr) * (1 - fc), (1 - fr) * fc, fr * (1 - fc), fr * fc], 1)
+    w = np.maximum(w, 1e-6) * taps
+    ref = sum(w[:, k, None] * img[rows, cols] for k, (rows, cols) in enumerate(corners)) / w.sum(1, keepdims=True)
+    np.testing.assert_allclose(got, ref, rtol=1e-12)
+    flat = np.full((6, 7, 1), 0.25)  # weights still sum to 1
+    np.testing.assert_allclose(bilinear_pixels(flat, r, c, taps), 0.25, rtol=1e-12)

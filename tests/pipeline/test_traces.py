@@ -98,18 +98,27 @@ def _reference_assemble(tx, photos, poses, cam, caster):
         [],
         [],
         dict.fromkeys(
-            ("behind_or_outside", "valid_volume", "occluded", "grazing", "emitter_shadow", "grazing_flagged"), 0
+            (
+                "behind_or_outside",
+                "valid_volume",
+                "occluded",
+                "grazing",
+                "emitter_shadow",
+                "grazing_flagged",
+                "mixed_pixel",
+            ),
+            0,
         ),
     )
     shadow = tr.EmitterShadow(cam, caster, tx, 2e-5)
     for img, pose in zip(photos, poses, strict=True):
         R, t = pose[:3, :3], pose[:3, 3]
-        idx = tr._visible(tx, pose, cam, caster, 2e-5, rejected)
+        idx, taps = tr._visible(tx, pose, cam, caster, 2e-5, rejected)
         hidden = shadow(pose, idx)[1] if len(idx) else None
         hidden = np.zeros(len(idx), np.int64) if hidden is None else hidden
         x = tx.position[idx] @ R.T + t
         px = camera.project(cam, torch.as_tensor(x)).numpy()
-        codes = bilinear_pixels(img.astype(np.float64), px[:, 1], px[:, 0])
+        codes = bilinear_pixels(img.astype(np.float64), px[:, 1], px[:, 0], taps)
         lin = camera.decode(cam, torch.as_tensor(codes)).numpy()
         rows.append(np.concatenate([lin, x, tx.normal[idx] @ R.T, tx.tangent[idx] @ R.T], 1).astype(np.float32))
         steep = ~tr.grazing(torch.from_numpy(rows[-1])).numpy()
@@ -228,3 +237,122 @@ def test_emitter_shadows_of_the_mesh_itself_match_shadow_rays_to_every_emitter()
     assert (blocked > 0.2).sum() > 20 and (blocked == 0).sum() > 20  # the scene has both
     assert got[blocked > 0.2].all() and not got[blocked == 0].any()
     assert not shadow.open[blocked > 0].any()  # an open sky is never shadowed
+
+
+def _square(centre: tuple[float, float, float], half: float) -> np.ndarray:
+    """A horizontal square (normal +z) as triangles ``(2, 3, 3)``."""
+    x, y, z = centre
+    a, b, c, d = [x - half, y - half, z], [x + half, y - half, z], [x + half, y + half, z], [x - half, y + half, z]
+    return np.array([[a, b, c], [a, c, d]])
+
+
+def test_pixel_taps_read_only_pixels_that_see_the_entry_s_own_surface():
+    """A card 2 cm above a table, seen obliquely: a point's tap is read exactly when the ray through
+    that pixel's centre hits the plane the point lies on (the card's edge, the table's border and
+    the tilt limit against a sloped plane)."""
+    from ntp_engine.pipeline import traces as tr
+    from ntp_engine.scanner import camera
+
+    cam = resampled(load_scanner(), 0.3)
+    table, card = _square((0.0, 0.0, 0.0), 0.05), _square((0.01, 0.0, 0.02), 0.015)
+    caster = RayCaster([table, card])
+    pose = look_at(np.array([-0.12, 0.05, 0.2]), np.array([0.0, 0.0, 0.01]))
+    rng = np.random.default_rng(0)
+    xy = rng.uniform(-0.06, 0.06, (4000, 2))
+    on_card = (np.abs(xy[:, 0] - 0.01) < 0.015) & (np.abs(xy[:, 1]) < 0.015) & (rng.uniform(size=4000) < 0.5)
+    position = np.column_stack([xy, np.where(on_card, 0.02, 0.0)])
+    normal = np.tile([0.0, 0.0, 1.0], (4000, 1))
+    R, t = pose[:3, :3], pose[:3, 3]
+    px = camera.project(cam, torch.as_tensor(position @ R.T + t)).numpy()
+    inside = camera.in_image(cam, px)
+    position, normal, px, on_card = position[inside], normal[inside], px[inside], on_card[inside]
+    taps = tr.pixel_taps(cam, caster, pose, px, position, normal)
+    # the reference: which plane each tap pixel's centre ray hits
+    r0, c0 = np.floor(px[:, 1]).astype(int), np.floor(px[:, 0]).astype(int)
+    centre = -R.T @ t
+    own = np.where(on_card, 1, 0)
+    for k, (dr, dc) in enumerate(((0, 0), (0, 1), (1, 0), (1, 1))):
+        d = camera.pixel_directions(cam, np.minimum(c0 + dc, cam.width - 1), np.minimum(r0 + dr, cam.height - 1)) @ R
+        hit = caster.intersect(np.broadcast_to(centre, d.shape), d).geom
+        np.testing.assert_array_equal(taps[:, k], hit == own)
+    assert 50 < (~taps).any(1).sum() < 0.5 * len(taps)  # edges of the card and the table: both there
+    assert ((~taps).any(1) & on_card).any() and ((~taps).any(1) & ~on_card).any()
+    # the tilt limit: judged against a normal turned 10 deg past it (about y), many taps on the
+    # point's own plane are another surface
+    tilt = np.radians(tr.MAX_TAP_TILT_DEG + 10)
+    turned = tr.pixel_taps(cam, caster, pose, px, position, np.tile([np.sin(tilt), 0.0, np.cos(tilt)], (len(px), 1)))
+    assert (taps & ~turned).sum() > 0.2 * taps.sum()
+
+
+def _card_on_table():
+    """A matte table (flat, rho_d 0.2, UVs u < 0.5) with a matte card 2 cm above it (rho_d 0.8,
+    UVs u >= 0.5): one mesh and its maps."""
+    from scans import flat_patch
+
+    from ntp_engine.io.maps import SVBRDFMaps
+    from ntp_engine.io.mesh import Mesh
+
+    table, card = flat_patch(0.08, 8), flat_patch(0.03, 4)
+    card_v = card.vertices + [0.01, 0.0, 0.02]
+    v = np.concatenate([table.vertices, card_v])
+    f = np.concatenate([table.faces, card.faces + len(table.vertices)])
+    uv = np.concatenate([table.uv * [0.5, 1.0], card.uv * [0.5, 1.0] + [0.5, 0.0]])
+    mesh = Mesh(v, f, uv, np.concatenate([table.normals, card.normals]))
+    rd = np.where(np.arange(8)[None, :, None] < 4, 0.2, 0.8) * np.ones((8, 8, 3))
+    full = lambda val: np.broadcast_to(np.asarray(val, float), (8, 8, len(val))).copy()
+    return mesh, SVBRDFMaps(rd, full([0.0, 0.0, 0.0]), full([0, 0, 1.0]), full([1.0, 0, 0]), full([0.3, 0.3]))
+
+
+def test_entries_at_the_card_s_edge_read_only_the_pixels_that_see_their_own_surface(monkeypatch):
+    """A photo of the card over the table: entries whose bilinear sample would blend the card with
+    the table (or the backdrop) match Eq. 1 at their own point once the pixels of the other surface
+    are skipped; read plainly, they are off by the albedos' difference."""
+    from ntp_engine.pipeline import traces as tr
+
+    mesh, maps = _card_on_table()
+    dev = load_scanner()
+    cfg = ScanConfig(views=1, scale=0.3, noise_sigma=0.0, read_noise=0.0)
+    scene = Scene(mesh, maps, dev, exposure=cfg.exposure)
+    cam = resampled(dev, cfg.scale)
+    poses = [look_at(np.array([-0.17, 0.07, 0.24]), np.array([0.0, 0.0, 0.01]))]  # in the valid volume
+    photos = [take_photo(scene, p, cam, cfg, np.random.default_rng(1)) for p in poses]
+    tx = rasterize(mesh, (64, 64))
+    caster = RayCaster([mesh.triangles])  # as the pipeline's: the mesh alone
+    traces, stats = assemble(tx, photos, poses, cam, caster, pixel_scale=1.0 / cfg.exposure)
+    monkeypatch.setattr(tr, "pixel_taps", lambda s, c, pose, px, *a: np.ones((len(px), 4), bool))
+    plain, _ = assemble(tx, photos, poses, cam, caster, pixel_scale=1.0 / cfg.exposure)
+    assert stats.rejected["mixed_pixel"] == 0  # the same entries: each sees its surface in a pixel
+    e, e_plain = traces.entries.double().numpy(), plain.entries.double().numpy()
+    np.testing.assert_array_equal(e[:, 3:], e_plain[:, 3:])
+    k = np.repeat(np.arange(len(tx)), traces.lengths.numpy())
+    m = maps.sample(np.stack([(tx.col + 0.5) / 64, 1 - (tx.row + 0.5) / 64], 1)[k])
+    R = poses[0][:3, :3]
+    T = lambda a: torch.as_tensor(np.ascontiguousarray(a))
+    ref = measurement_rgb(
+        dev,
+        T(e[:, 3:6]),
+        T(m["normal"] @ R.T),
+        T(m["tangent"] @ R.T),
+        T(m["diffuse_albedo"]),
+        T(m["specular_albedo"]),
+        T(m["roughness"][:, 0]),
+        T(m["roughness"][:, 1]),
+    ).numpy()
+    ref *= dev.exposure(dev.pattern)
+    # Eq. 1 without shadows is the reference: entries the card shadows, or clipped ones, do not count
+    usable = (traces.shadow.numpy() == 0) & camera_codes_in_range(e[:, :3] * cfg.exposure)
+    resampled_rows = usable & (np.abs(e[:, :3] - e_plain[:, :3]).max(1) > 0)
+    assert resampled_rows.sum() > 20 and stats.rejected["mixed_pixel_resampled"] >= resampled_rows.sum()
+    rel = lambda x: np.abs(x[resampled_rows, :3] - ref[resampled_rows]).max(1) / ref[resampled_rows].max(1)
+    got, blended = rel(e), rel(e_plain)
+    print(
+        f"{resampled_rows.sum()} entries resampled, rel. error median / max {np.median(got):.3f} / {got.max():.3f}"
+        f" (read plainly {np.median(blended):.3f} / {blended.max():.3f})"
+    )
+    assert np.median(got) < 0.01 and got.max() < 0.05 and np.median(blended) > 0.03 and blended.max() > 0.2
+
+
+def camera_codes_in_range(codes01: np.ndarray) -> np.ndarray:
+    """``(N,)`` True where 8-bit codes ``255 * codes01 (N, 3)`` lie in the network's [32, 224]."""
+    codes = 255 * codes01
+    return ((codes >= 32) & (codes <= 224)).all(1)

@@ -54,6 +54,12 @@ def test_pixel_rays_invert_the_projection_with_distortion():
     px = camera.project(d, torch.as_tensor(rays.reshape(-1, 3))).numpy()
     rows, cols = np.meshgrid(np.arange(d.height), np.arange(d.width), indexing="ij")
     np.testing.assert_allclose(px, np.stack([cols, rows], -1).reshape(-1, 2), atol=1e-6)
+    # any pixel coordinates, a skewed sensor included
+    d.K = d.K.copy()
+    d.K[0, 1] = 0.7
+    at = np.random.default_rng(0).uniform(0, [d.width - 1, d.height - 1], (50, 2))
+    dirs = camera.pixel_directions(d, at[:, 0], at[:, 1])
+    np.testing.assert_allclose(camera.project(d, torch.as_tensor(0.3 * dirs)).numpy(), at, atol=1e-6)
 
 
 def test_valid_codes_need_every_channel_in_range():
