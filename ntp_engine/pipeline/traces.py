@@ -160,24 +160,33 @@ def pixel_taps(
     r1c0, r1c1, clamped to the image). Each distinct pixel's centre ray is cast once (Embree,
     camera at ``pose``, camera-from-world); a tap sees the surface of the point ``position (N, 3)``
     with unit ``normal (N, 3)`` (world) when its ray hits the mesh within ``MAX_TAP_TILT_DEG`` of
-    the point's tangent plane as seen from the point (or within ``TAP_TOLERANCE``); no hit is
-    another surface (the background)."""
+    the point's tangent plane as seen from the point (or within ``TAP_TOLERANCE`` of it); no hit
+    is another surface (the background)."""
     h, w = scanner.height, scanner.width
     c, r = np.clip(px[:, 0], 0, w - 1), np.clip(px[:, 1], 0, h - 1)
     r0, c0 = np.floor(r).astype(np.int64), np.floor(c).astype(np.int64)
     r1, c1 = np.minimum(r0 + 1, h - 1), np.minimum(c0 + 1, w - 1)
     pixel = np.stack([r0 * w + c0, r0 * w + c1, r1 * w + c0, r1 * w + c1], 1)
-    unique, inverse = np.unique(pixel, return_inverse=True)  # neighbouring entries share pixels
+    # neighbouring entries share pixels: each distinct one once (a lookup over the image, not a sort)
+    used = np.zeros(h * w, bool)
+    used[pixel] = True
+    unique = np.flatnonzero(used)
+    lookup = np.empty(h * w, np.int64)
+    lookup[unique] = np.arange(len(unique))
+    inverse = lookup[pixel]
     R, t = pose[:3, :3], pose[:3, 3]
     d = camera.pixel_directions(scanner, unique % w, unique // w) @ R  # world: R^T d
     centre = -R.T @ t
     hits = caster.intersect(np.broadcast_to(centre, d.shape), d)
     missed = (hits.geom < 0) | ~np.isfinite(hits.t)
     hit = centre + d * np.where(missed, 0.0, hits.t)[:, None]
-    chord = hit[inverse.reshape(pixel.shape)] - position[:, None]  # (N, 4, 3)
-    off = np.abs(np.einsum("nkc,nc->nk", chord, normal))
-    flat = off <= np.sin(np.radians(MAX_TAP_TILT_DEG)) * np.linalg.norm(chord, axis=-1) + TAP_TOLERANCE
-    return flat & ~missed[inverse.reshape(pixel.shape)]
+    chord = hit[inverse] - position[:, None]  # (N, 4, 3)
+    off = np.einsum("nkc,nc->nk", chord, normal)
+    # within the tilt limit (squared: no square roots), or within the tolerance
+    flat = (off**2 <= np.sin(np.radians(MAX_TAP_TILT_DEG)) ** 2 * np.einsum("nkc,nkc->nk", chord, chord)) | (
+        np.abs(off) <= TAP_TOLERANCE
+    )
+    return flat & ~missed[inverse]
 
 
 def grazing(entries: Tensor) -> Tensor:
