@@ -6,10 +6,27 @@ from ntp_engine.io.raycast import RayCaster
 from ntp_engine.physics.measurement import measurement_rgb
 from ntp_engine.pipeline.texels import rasterize
 from ntp_engine.pipeline.traces import MAX_SHADOWED_DRIVE, MIN_COS_GRAZING, MIN_COS_VIEW, assemble
-from ntp_engine.scanner.camera import look_at, resampled
+from ntp_engine.scanner.camera import code_is_valid, look_at, resampled
 from ntp_engine.scanner.device_file import load_scanner
 from ntp_engine.sim.renderer import Scene
 from ntp_engine.sim.virtual_scan import ScanConfig, load_asset, take_photo, trajectory
+
+
+def _eq1_pixels(dev, entries: np.ndarray, R: np.ndarray, m: dict[str, np.ndarray]) -> np.ndarray:
+    """Eq. 1's linear pixels ``(N, 3)`` (after exposure) for entries ``(N, 12)`` whose points carry
+    the object-space maps' values ``m``, seen by cameras with rotations ``R (N, 3, 3)``."""
+    T = lambda a: torch.as_tensor(np.ascontiguousarray(a))
+    ref = measurement_rgb(
+        dev,
+        T(entries[:, 3:6]),
+        T(np.einsum("nij,nj->ni", R, m["normal"])),
+        T(np.einsum("nij,nj->ni", R, m["tangent"])),
+        T(m["diffuse_albedo"]),
+        T(m["specular_albedo"]),
+        T(m["roughness"][:, 0]),
+        T(m["roughness"][:, 1]),
+    ).numpy()
+    return ref * dev.exposure(dev.pattern)
 
 
 def test_traces_from_a_virtual_scan_match_the_renderer_and_respect_the_filters():
@@ -52,19 +69,7 @@ def test_traces_from_a_virtual_scan_match_the_renderer_and_respect_the_filters()
         int(np.argmin([np.abs((p[:3, :3] @ tx.position[k] + p[:3, 3]) - e[i, 3:6]).sum() for p in poses]))
         for i, k in zip(range(len(e)), texel_of_entry)
     ]
-    R = np.stack([poses[v][:3, :3] for v in view_of])
-    T = lambda a: torch.as_tensor(np.ascontiguousarray(a))
-    ref = measurement_rgb(
-        dev,
-        T(e[:, 3:6]),
-        T(np.einsum("nij,nj->ni", R, m["normal"])),
-        T(np.einsum("nij,nj->ni", R, m["tangent"])),
-        T(m["diffuse_albedo"]),
-        T(m["specular_albedo"]),
-        T(m["roughness"][:, 0]),
-        T(m["roughness"][:, 1]),
-    ).numpy()
-    ref *= dev.exposure(dev.pattern)
+    ref = _eq1_pixels(dev, e, np.stack([poses[v][:3, :3] for v in view_of]), m)
     rel = np.abs(e[:, :3] - ref).max(1) / ref.max(1)
     assert np.median(rel) < 0.03
 
@@ -326,21 +331,9 @@ def test_entries_at_the_card_s_edge_read_only_the_pixels_that_see_their_own_surf
     np.testing.assert_array_equal(e[:, 3:], e_plain[:, 3:])
     k = np.repeat(np.arange(len(tx)), traces.lengths.numpy())
     m = maps.sample(np.stack([(tx.col + 0.5) / 64, 1 - (tx.row + 0.5) / 64], 1)[k])
-    R = poses[0][:3, :3]
-    T = lambda a: torch.as_tensor(np.ascontiguousarray(a))
-    ref = measurement_rgb(
-        dev,
-        T(e[:, 3:6]),
-        T(m["normal"] @ R.T),
-        T(m["tangent"] @ R.T),
-        T(m["diffuse_albedo"]),
-        T(m["specular_albedo"]),
-        T(m["roughness"][:, 0]),
-        T(m["roughness"][:, 1]),
-    ).numpy()
-    ref *= dev.exposure(dev.pattern)
+    ref = _eq1_pixels(dev, e, np.broadcast_to(poses[0][:3, :3], (len(e), 3, 3)), m)
     # Eq. 1 without shadows is the reference: entries the card shadows, or clipped ones, do not count
-    usable = (traces.shadow.numpy() == 0) & camera_codes_in_range(e[:, :3] * cfg.exposure)
+    usable = (traces.shadow.numpy() == 0) & code_is_valid(255 * e[:, :3] * cfg.exposure)
     resampled_rows = usable & (np.abs(e[:, :3] - e_plain[:, :3]).max(1) > 0)
     assert resampled_rows.sum() > 20 and stats.rejected["mixed_pixel_resampled"] >= resampled_rows.sum()
     rel = lambda x: np.abs(x[resampled_rows, :3] - ref[resampled_rows]).max(1) / ref[resampled_rows].max(1)
@@ -350,9 +343,3 @@ def test_entries_at_the_card_s_edge_read_only_the_pixels_that_see_their_own_surf
         f" (read plainly {np.median(blended):.3f} / {blended.max():.3f})"
     )
     assert np.median(got) < 0.01 and got.max() < 0.05 and np.median(blended) > 0.03 and blended.max() > 0.2
-
-
-def camera_codes_in_range(codes01: np.ndarray) -> np.ndarray:
-    """``(N,)`` True where 8-bit codes ``255 * codes01 (N, 3)`` lie in the network's [32, 224]."""
-    codes = 255 * codes01
-    return ((codes >= 32) & (codes <= 224)).all(1)
