@@ -110,19 +110,28 @@ def bilinear(img: np.ndarray, uv: np.ndarray) -> np.ndarray:
     return bilinear_pixels(img, r, c)
 
 
-def bilinear_pixels(img: np.ndarray, r: np.ndarray, c: np.ndarray, taps: np.ndarray | None = None) -> np.ndarray:
-    """Bilinear samples ``(N, C)`` of an ``(H, W, C)`` image at continuous (row, col) pixel
-    coordinates, pixel centres at integers, clamped to the image. ``taps (N, 4)`` bool, optional:
-    which of the four pixels (r0c0, r0c1, r1c0, r1c1; r0 = floor(r)) a sample may read — the
-    others' weights go to them in proportion to their own (each at least ``1e-6``, so a sample on
-    an excluded pixel's centre still reads its neighbours); each row needs one True."""
-    h, w = img.shape[:2]
+def bilinear_corners(
+    h: int, w: int, r: np.ndarray, c: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The four pixels a bilinear sample of an ``(h, w)`` image at continuous (row, col) ``r, c (N,)``
+    reads (pixel centres at integers, clamped to the image): their rows and columns ``(N, 4)`` in
+    the order r0c0, r0c1, r1c0, r1c1 (r0 = floor(r)), and the fractions ``fr, fc (N, 1)`` past r0, c0."""
     r = np.clip(r, 0, h - 1)
     c = np.clip(c, 0, w - 1)
     r0, c0 = np.floor(r).astype(np.int64), np.floor(c).astype(np.int64)
     r1, c1 = np.minimum(r0 + 1, h - 1), np.minimum(c0 + 1, w - 1)
-    fr, fc = (r - r0)[:, None], (c - c0)[:, None]
-    out = (1 - fr) * ((1 - fc) * img[r0, c0] + fc * img[r0, c1]) + fr * ((1 - fc) * img[r1, c0] + fc * img[r1, c1])
+    return np.stack([r0, r0, r1, r1], 1), np.stack([c0, c1, c0, c1], 1), (r - r0)[:, None], (c - c0)[:, None]
+
+
+def bilinear_pixels(img: np.ndarray, r: np.ndarray, c: np.ndarray, taps: np.ndarray | None = None) -> np.ndarray:
+    """Bilinear samples ``(N, C)`` of an ``(H, W, C)`` image at continuous (row, col) pixel
+    coordinates, pixel centres at integers, clamped to the image. ``taps (N, 4)`` bool, optional:
+    which of the four pixels (``bilinear_corners``' order) a sample may read — the others' weights
+    go to them in proportion to their own (each at least ``1e-6``, so a sample on an excluded
+    pixel's centre still reads its neighbours); each row needs one True."""
+    rows, cols, fr, fc = bilinear_corners(img.shape[0], img.shape[1], r, c)
+    v = [img[rows[:, k], cols[:, k]] for k in range(4)]
+    out = (1 - fr) * ((1 - fc) * v[0] + fc * v[1]) + fr * ((1 - fc) * v[2] + fc * v[3])
     if taps is None:
         return out
     some = np.nonzero(~taps.all(1))[0]
@@ -130,8 +139,7 @@ def bilinear_pixels(img: np.ndarray, r: np.ndarray, c: np.ndarray, taps: np.ndar
     wt = np.concatenate([(1 - fr) * (1 - fc), (1 - fr) * fc, fr * (1 - fc), fr * fc], 1)
     wt = np.maximum(wt, 1e-6) * taps[some]
     wt /= wt.sum(1, keepdims=True)
-    corners = (img[r0[some], c0[some]], img[r0[some], c1[some]], img[r1[some], c0[some]], img[r1[some], c1[some]])
-    out[some] = sum(wt[:, k : k + 1] * v for k, v in enumerate(corners))
+    out[some] = sum(wt[:, k : k + 1] * v[k][some] for k in range(4))
     return out
 
 

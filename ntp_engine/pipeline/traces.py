@@ -34,7 +34,7 @@ import torch
 from torch import Tensor
 
 from ..fit.emitter_blocks import ShadowGroups, sample_drive, shadow_groups
-from ..io.maps import bilinear_pixels
+from ..io.maps import bilinear_corners, bilinear_pixels
 from ..io.progress import QUIET, Progress
 from ..io.raycast import RayCaster
 from ..learn.ragged import RaggedTraces, spans
@@ -52,8 +52,9 @@ MIN_COS_GRAZING = 0.2
 # a bilinear tap whose pixel centre's ray hits the mesh at a point seen from the entry's point more
 # than this far off its tangent plane sees another surface (chord angle, degrees): on one smooth
 # surface the chord across a pixel's footprint tilts by half the normal's turn (a few degrees at the
-# gallery's pixel sizes), to another surface by far more; at 20 and 30 the knot's grazing entries lose
-# the same taps (docs/accuracy.md, "Pixels that see another surface")
+# gallery's pixel sizes), to another surface by far more; at 20 and 30 nearly the same of the knot's
+# grazing entries have a tap off their surface (7,832 and 7,818; docs/accuracy.md, "Pixels that see
+# another surface")
 MAX_TAP_TILT_DEG = 20.0
 TAP_TOLERANCE = 1e-6  # metres off the plane always accepted: the hit's float32 rounding
 SKY_RAYS = 64  # directions over a texel's hemisphere: none hitting the mesh = it cannot shadow its emitters
@@ -156,17 +157,14 @@ def pixel_taps(
     scanner: Scanner, caster: RayCaster, pose: np.ndarray, px: np.ndarray, position: np.ndarray, normal: np.ndarray
 ) -> np.ndarray:
     """Which of the four pixels a bilinear sample at ``px (N, 2)`` (x = column, y = row) blends
-    see the entry's own surface: ``(N, 4)`` bool in ``io.maps.bilinear_pixels``' order (r0c0, r0c1,
-    r1c0, r1c1, clamped to the image). Each distinct pixel's centre ray is cast once (Embree,
-    camera at ``pose``, camera-from-world); a tap sees the surface of the point ``position (N, 3)``
-    with unit ``normal (N, 3)`` (world) when its ray hits the mesh within ``MAX_TAP_TILT_DEG`` of
-    the point's tangent plane as seen from the point (or within ``TAP_TOLERANCE`` of it); no hit
-    is another surface (the background)."""
+    see the entry's own surface: ``(N, 4)`` bool in ``io.maps.bilinear_corners``' order. Each
+    distinct pixel's centre ray is cast once (Embree, camera at ``pose``, camera-from-world); a tap
+    sees the surface of the point ``position (N, 3)`` with unit ``normal (N, 3)`` (world) when its
+    ray hits the mesh within ``MAX_TAP_TILT_DEG`` of the point's tangent plane as seen from the
+    point (or within ``TAP_TOLERANCE`` of it); no hit is another surface (the background)."""
     h, w = scanner.height, scanner.width
-    c, r = np.clip(px[:, 0], 0, w - 1), np.clip(px[:, 1], 0, h - 1)
-    r0, c0 = np.floor(r).astype(np.int64), np.floor(c).astype(np.int64)
-    r1, c1 = np.minimum(r0 + 1, h - 1), np.minimum(c0 + 1, w - 1)
-    pixel = np.stack([r0 * w + c0, r0 * w + c1, r1 * w + c0, r1 * w + c1], 1)
+    rows, cols, _, _ = bilinear_corners(h, w, px[:, 1], px[:, 0])
+    pixel = rows * w + cols  # (N, 4)
     # neighbouring entries share pixels: each distinct one once (a lookup over the image, not a sort)
     used = np.zeros(h * w, bool)
     used[pixel] = True
