@@ -34,9 +34,9 @@ COLOUR_SCALE, LOG_ALPHA_SCALE, LOG_RHO_S_SCALE = 0.25, 0.5, 0.5
 COLOUR_FLOOR = 0.02  # added to rho_d before logs: dark albedos differ by their noise, not their ratio
 # spreads are floored: a material's members are a sample, and the prior must let a texel's data speak
 MIN_COLOUR_SIGMA, MIN_LOG_ALPHA_SIGMA, MIN_RHO_S_SIGMA = 0.1, 0.25, 0.25  # rho_s: relative
-MATTE_SHARE = 0.5  # prior share of the broad matte class (the lobe materials share the rest by their members)
+MATTE_SHARE = 0.5  # prior share of the broad matte class (the lobe materials share the rest by their weights)
 MATTE_COLOUR_SIGMA = 1.0  # the broad matte class's colour spread (log rho_d): any colour
-MIN_HIGHLIGHT = 0.4  # a material's members' lobes make this share of some pixel (median) or more
+MIN_HIGHLIGHT = 0.4  # a lobe that made this share of some pixel or more showed a highlight (material_weight)
 CANDIDATE_MARGIN = math.log(1000.0)  # lobe materials this much less likely by colour than the best are not judged
 
 
@@ -50,7 +50,7 @@ class BasisMaterials:
     colour_sigma: np.ndarray  # (K,) of log(rho_d + COLOUR_FLOOR), per channel
     log_alpha_sigma: np.ndarray  # (K,)
     rho_s_sigma: np.ndarray  # (K,) linear units
-    share: np.ndarray  # (K,) prior share: (1 - MATTE_SHARE) x members / all lobe texels
+    share: np.ndarray  # (K,) prior share: (1 - MATTE_SHARE) x material_weight / all lobe texels
 
     def __len__(self) -> int:
         return len(self.share)
@@ -131,15 +131,26 @@ def _merge_small(features: np.ndarray, labels: np.ndarray) -> np.ndarray:
     return np.unique(np.where(np.isin(labels, big), labels, nearest), return_inverse=True)[1]
 
 
+def material_weight(highlight: np.ndarray) -> float:
+    """How many texels a cluster counts as, from its members' ``highlight (m,)``: f the share of them
+    whose lobe made ``MIN_HIGHLIGHT`` or more of some pixel, the weight is m f^2 — the members that
+    showed a highlight (m f), weighed by how likely the cluster is a material at all (f). A
+    cluster's weight moves smoothly as its members' highlights do: a yes-or-no rule on the median
+    highlight flipped whole materials in or out when a scan's lobes moved by a little (docs/accuracy.md)."""
+    f = float((highlight >= MIN_HIGHLIGHT).mean()) if len(highlight) else 0.0
+    return len(highlight) * f * f
+
+
 def lobe_materials(
     rho_d: np.ndarray, alpha: np.ndarray, rho_s: np.ndarray, highlight: np.ndarray | None = None
 ) -> BasisMaterials:
     """Lobe materials from the texels whose own trace kept a lobe: their rho_d, alpha, rho_s
     ``(n, 3), (n, 2), (n, 3)`` and ``highlight (n,)`` (the largest share of a pixel their lobe made,
-    ``refine.Refined.highlight``; default 1); shares: (1 - ``MATTE_SHARE``) x members / n. A cluster whose
-    members' median highlight is below ``MIN_HIGHLIGHT`` is no material: its lobes are small
-    corrections to a bright diffuse (pixels that blend two albedos, shadow edges), not a
-    highlight the photos showed."""
+    ``refine.Refined.highlight``; default 1). A cluster most of whose lobes are small corrections
+    to a bright diffuse (pixels that blend two albedos, shadow edges) is no material; one whose
+    lobes made highlights is. Between the two, a cluster counts by degree (``material_weight``):
+    its prior share is (1 - ``MATTE_SHARE``) x weight / n, and under ``MIN_MEMBERS`` of weight
+    it is none."""
     if len(rho_d) < MIN_MEMBERS:
         return BasisMaterials.empty()
     f = np.concatenate(
@@ -155,7 +166,8 @@ def lobe_materials(
     rows = []
     for k in range(int(labels.max()) + 1):
         m = labels == k
-        if np.median(highlight[m]) < MIN_HIGHLIGHT:
+        weight = material_weight(highlight[m])
+        if weight < MIN_MEMBERS:
             continue
         la, rs = np.log(alpha[m]), rho_s[m]
         rs_mean = float(np.median(rs.mean(1)))
@@ -167,7 +179,7 @@ def lobe_materials(
                 max(_mad(_log_colour(rho_d[m])), MIN_COLOUR_SIGMA),
                 max(_mad(la), MIN_LOG_ALPHA_SIGMA),
                 max(_mad(rs.mean(1)), MIN_RHO_S_SIGMA * rs_mean),
-                (1 - MATTE_SHARE) * m.sum() / len(rho_d),
+                (1 - MATTE_SHARE) * weight / len(rho_d),
             )
         )
     if not rows:
