@@ -36,7 +36,10 @@ COLOUR_FLOOR = 0.02  # added to rho_d before logs: dark albedos differ by their 
 MIN_COLOUR_SIGMA, MIN_LOG_ALPHA_SIGMA, MIN_RHO_S_SIGMA = 0.1, 0.25, 0.25  # rho_s: relative
 MATTE_SHARE = 0.5  # prior share of the broad matte class (the lobe materials share the rest by their weights)
 MATTE_COLOUR_SIGMA = 1.0  # the broad matte class's colour spread (log rho_d): any colour
-MIN_HIGHLIGHT = 0.4  # a lobe that made this share of some pixel or more showed a highlight (material_weight)
+MIN_HIGHLIGHT = 0.4  # a lobe that made this share of some pixel or more showed itself (material_weight)
+DIELECTRIC_RHO_S = (
+    1.5  # rho_s of a dielectric's lobe at most (Schlick F0 <= 0.06, IOR <= ~1.65): it shows itself faintly
+)
 CANDIDATE_MARGIN = math.log(1000.0)  # lobe materials this much less likely by colour than the best are not judged
 
 
@@ -131,13 +134,18 @@ def _merge_small(features: np.ndarray, labels: np.ndarray) -> np.ndarray:
     return np.unique(np.where(np.isin(labels, big), labels, nearest), return_inverse=True)[1]
 
 
-def material_weight(highlight: np.ndarray) -> float:
-    """How many texels a cluster counts as, from its members' ``highlight (m,)``: f the share of them
-    whose lobe made ``MIN_HIGHLIGHT`` or more of some pixel, the weight is m f^2 — the members that
-    showed a highlight (m f), weighed by how likely the cluster is a material at all (f). A
-    cluster's weight moves smoothly as its members' highlights do: a yes-or-no rule on the median
-    highlight flipped whole materials in or out when a scan's lobes moved by a little (docs/accuracy.md)."""
-    f = float((highlight >= MIN_HIGHLIGHT).mean()) if len(highlight) else 0.0
+def material_weight(highlight: np.ndarray, rho_s: np.ndarray) -> float:
+    """How many texels a cluster counts as, from its members' ``highlight (m,)`` and ``rho_s (m, 3)``.
+    A member's lobe *showed itself* if it made ``MIN_HIGHLIGHT`` or more of some pixel, or is of
+    dielectric strength (mean rho_s <= ``DIELECTRIC_RHO_S``: such a lobe makes a small share of a
+    pixel over a diffuse unless it is sharp, the rough plastics' 12-15%; the spurious lobes that fit
+    blended or shadowed pixels are metal-strong, rho_s 5-10). With f the share of members whose lobe
+    showed itself, the weight is m f^2: those members (m f), weighed by how likely the cluster is a
+    material at all (f). It moves smoothly as the members' lobes do: a yes-or-no rule on the median
+    highlight flipped whole materials in or out when a scan's lobes moved a little (docs/accuracy.md)."""
+    if len(highlight) == 0:
+        return 0.0
+    f = float(((highlight >= MIN_HIGHLIGHT) | (rho_s.mean(1) <= DIELECTRIC_RHO_S)).mean())
     return len(highlight) * f * f
 
 
@@ -146,9 +154,9 @@ def lobe_materials(
 ) -> BasisMaterials:
     """Lobe materials from the texels whose own trace kept a lobe: their rho_d, alpha, rho_s
     ``(n, 3), (n, 2), (n, 3)`` and ``highlight (n,)`` (the largest share of a pixel their lobe made,
-    ``refine.Refined.highlight``; default 1). A cluster most of whose lobes are small corrections
-    to a bright diffuse (pixels that blend two albedos, shadow edges) is no material; one whose
-    lobes made highlights is. Between the two, a cluster counts by degree (``material_weight``):
+    ``refine.Refined.highlight``; default 1). A cluster most of whose lobes are small metal-strong
+    corrections to a bright diffuse (pixels that blend two albedos, shadow edges) is no material;
+    one whose lobes showed themselves is. Between the two, a cluster counts by degree (``material_weight``):
     its prior share is (1 - ``MATTE_SHARE``) x weight / n, and under ``MIN_MEMBERS`` of weight
     it is none."""
     if len(rho_d) < MIN_MEMBERS:
@@ -166,7 +174,7 @@ def lobe_materials(
     rows = []
     for k in range(int(labels.max()) + 1):
         m = labels == k
-        weight = material_weight(highlight[m])
+        weight = material_weight(highlight[m], rho_s[m])
         if weight < MIN_MEMBERS:
             continue
         la, rs = np.log(alpha[m]), rho_s[m]

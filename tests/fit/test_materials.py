@@ -66,37 +66,40 @@ def test_lobe_materials_are_their_members_medians():
     for a, b in zip(back.to_arrays().values(), m.to_arrays().values(), strict=True):
         np.testing.assert_array_equal(a, b)
     assert len(lobe_materials(rho_d[:3], alpha[:3], rho_s[:3])) == 0  # too few to be a material
-    # lobes that never made much of a pixel (corrections to a bright diffuse) make no material
-    faint = np.r_[np.full(200, 0.9), np.full(200, 0.1)]
+    # metal-strong lobes that never made much of a pixel (corrections to a bright diffuse) make no
+    # material; a dielectric's lobe (the grey, rho_s 1) is faint by nature and makes one
+    faint = np.full(400, 0.1)
     only = lobe_materials(rho_d, alpha, rho_s, faint)
     assert len(only) == 1
-    np.testing.assert_allclose(only.rho_d[0], np.median(rho_d[:200], 0))
+    np.testing.assert_allclose(only.rho_d[0], np.median(rho_d[200:], 0))
 
 
-def test_a_cluster_counts_as_a_material_by_how_many_of_its_lobes_made_a_highlight():
-    rho_d, alpha, rho_s = _two_materials(np.random.default_rng(2))
+def test_a_cluster_counts_as_a_material_by_how_many_of_its_lobes_showed_themselves():
+    rho_d, alpha, rho_s = _two_materials(np.random.default_rng(2))  # blue: rho_s 3, grey: rho_s 1
 
-    def shares(frac_blue: float, frac_grey: float) -> np.ndarray:
-        """The two materials' shares (blue, grey) when that share of each one's lobes made a highlight."""
-        hl = np.r_[
-            np.where(np.arange(200) < frac_blue * 200, 0.9, 0.1), np.where(np.arange(200) < frac_grey * 200, 0.9, 0.1)
-        ]
+    def shares(frac_blue: float) -> np.ndarray:
+        """The two materials' shares (blue, grey) when that share of the blue's lobes (metal-strong)
+        made a highlight; none of the grey's (a dielectric's: rho_s 1) did."""
+        hl = np.r_[np.where(np.arange(200) < frac_blue * 200, 0.9, 0.1), np.full(200, 0.1)]
         m = lobe_materials(rho_d, alpha, rho_s, hl)
         out = np.zeros(2)
         out[(m.alpha[:, 0] > 0.1).astype(int)] = m.share  # blue alpha 0.05, grey 0.3
         return out
 
     full = (1 - MATTE_SHARE) / 2
-    np.testing.assert_allclose(shares(1, 1), [full, full])
-    # by degree: the weight is members x f^2, f the share of them that made a highlight
-    np.testing.assert_allclose(shares(1, 0.5), [full, full / 4])
-    assert material_weight(np.r_[np.full(30, 0.9), np.full(70, 0.1)]) == 100 * 0.3**2
+    np.testing.assert_allclose(shares(1), [full, full])
+    # by degree: the weight is members x f^2, f the share of them that showed themselves
+    np.testing.assert_allclose(shares(0.5), [full / 4, full])
+    faint, metal, dielectric = np.full((100, 3), 5.0), np.r_[np.full(30, 0.9), np.full(70, 0.1)], np.ones((100, 3))
+    assert material_weight(metal, faint) == 100 * 0.3**2
+    assert material_weight(metal, dielectric) == 100
+    assert material_weight(metal[:0], faint[:0]) == 0
     # no step at a median of MIN_HIGHLIGHT: 49% and 51% of the lobes highlighted weigh nearly the same
-    lo, hi = shares(1, 0.49)[1], shares(1, 0.51)[1]
+    lo, hi = shares(0.49)[0], shares(0.51)[0]
     assert 0 < lo < hi < 1.1 * lo
-    # a cluster whose lobes made no highlight (or too few to weigh MIN_MEMBERS texels) is none
-    assert shares(1, 0)[1] == 0 and shares(1, 0.25)[1] == 0  # 200 x 0.25^2 = 12.5 < 16
-    assert len(lobe_materials(rho_d, alpha, rho_s, np.full(400, 0.1))) == 0
+    # a cluster few of whose lobes showed themselves (weighing under MIN_MEMBERS texels) is none
+    assert shares(0)[0] == 0 and shares(0.25)[0] == 0  # 200 x 0.25^2 = 12.5 < 16
+    assert shares(0.3)[0] > 0  # 18
 
 
 def test_class_costs_follow_colour_and_share():
