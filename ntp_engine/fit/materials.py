@@ -37,9 +37,8 @@ MIN_COLOUR_SIGMA, MIN_LOG_ALPHA_SIGMA, MIN_RHO_S_SIGMA = 0.1, 0.25, 0.25  # rho_
 MATTE_SHARE = 0.5  # prior share of the broad matte class (the lobe materials share the rest by their weights)
 MATTE_COLOUR_SIGMA = 1.0  # the broad matte class's colour spread (log rho_d): any colour
 MIN_HIGHLIGHT = 0.4  # a lobe that made this share of some pixel or more showed itself (material_weight)
-DIELECTRIC_RHO_S = (
-    1.5  # rho_s of a dielectric's lobe at most (Schlick F0 <= 0.06, IOR <= ~1.65): it shows itself faintly
-)
+# rho_s of a dielectric's lobe at most (Schlick F0 <= 0.06, IOR <= ~1.65): such a lobe shows itself faintly
+DIELECTRIC_RHO_S = 1.5
 CANDIDATE_MARGIN = math.log(1000.0)  # lobe materials this much less likely by colour than the best are not judged
 
 
