@@ -54,7 +54,7 @@ from .pixel_bases import (
     specular_basis_and_derivatives,
 )
 
-VERSION = 14  # of the method: part of the pipeline's cache key (bump when results change for the same settings)
+VERSION = 15  # of the method: part of the pipeline's cache key (bump when results change for the same settings)
 CENSOR_CODE = VALID_CODE[1]  # above this an 8-bit code may be (or border) a clipped pixel: a lower bound
 EXPANDED_BLOCKS = 4  # emitter blocks per entry summed sample by sample (the rest as coarse emitters)
 SELECT_WIDEN, SELECT_FLOOR = 3.0, 0.03  # emitters are chosen under alphas x3 (at least 0.03)
@@ -712,6 +712,7 @@ def material_costs(
     candidates: Tensor | None = None,
     settings: RefineSettings | None = None,
     shadow: Tensor | None = None,
+    turn_prior: tuple[Tensor, Tensor] | None = None,
 ) -> tuple[Tensor, Tensor]:
     """How well K basis materials' lobes (``alpha (K, 2)``, ``rho_s (K, 3)``) explain N traces:
     the robust data cost ``(N, 1 + K)`` of each texel's trace under no lobe (column 0) and under each
@@ -720,8 +721,12 @@ def material_costs(
     the normal from ``start``'s tangent) that fits best. An anisotropic lobe at the texel's start
     tangent is a guess (a UV direction), so it is tried at ``TANGENT_TURNS`` turns over 180 deg and
     its cost is the negative log of their mean likelihood (uniform over turns; the cheapest alone
-    would let a lobe hide in the noise by choosing where to point). Columns are comparable: each
-    model has the same free rho_d."""
+    would let a lobe hide in the noise by choosing where to point). ``turn_prior`` = (turn, agree)
+    ``(N, K)``: where the texel's neighbours say material k points (``fit.tangent_field``) — that
+    turn is tried too and weighs ``agree`` in the mean, the others ``(1 - agree) / TANGENT_TURNS``
+    (agree 0: uniform; the turns stay anchored at the start tangent, a UV direction, which is the
+    better guess where neighbours disagree). Columns are comparable: each model has the same free
+    rho_d."""
     settings = settings or RefineSettings()
     tr_all = _Trace(scanner, entries, mask, settings.noise, emitter_blocks(scanner), shadow)
     dtype = tr_all.y.dtype
@@ -751,10 +756,17 @@ def material_costs(
             continue
         tr, frame, d = tr_all.rows(idx), frame_all[idx], diffuse[idx]
         anisotropic = bool(alpha[m - 1, 0] >= ISOTROPIC_RATIO * alpha[m - 1, 1])
-        turns = torch.arange(TANGENT_TURNS if anisotropic else 1, dtype=dtype) * math.pi / TANGENT_TURNS
-        c = torch.stack([judged(tr, turned_about_normal(frame, a.expand(len(idx))), m, d)[0] for a in turns], 1)
-        cost[idx, m] = math.log(len(turns)) - torch.logsumexp(-c, 1)
-        turn[idx, m - 1] = turns[c.argmin(1)]
+        n = TANGENT_TURNS if anisotropic else 1
+        angles = (torch.arange(n, dtype=dtype) * math.pi / TANGENT_TURNS).expand(len(idx), n)
+        weight = torch.full((len(idx), n), 1.0 / n, dtype=dtype)
+        if anisotropic and turn_prior is not None:  # the neighbours' turn as one more, weighing agree
+            agree = turn_prior[1][idx, m - 1].to(dtype).clamp(0, 1)[:, None]
+            angles = torch.cat([angles, turn_prior[0][idx, m - 1].to(dtype)[:, None]], 1)
+            weight = torch.cat([weight * (1 - agree), agree], 1)
+        c = torch.stack([judged(tr, turned_about_normal(frame, a), m, d)[0] for a in angles.unbind(1)], 1)
+        score = torch.log(weight) - c  # log of each turn's share of the likelihood (a weight of 0: none)
+        cost[idx, m] = -torch.logsumexp(score, 1)
+        turn[idx, m - 1] = angles.gather(1, score.argmax(1, keepdim=True))[:, 0]
     return cost, turn
 
 

@@ -36,12 +36,14 @@ from ..fit.refine import (
     refine,
     refine_toward,
 )
+from ..fit.tangent_field import neighbour_turns
 from ..io.progress import QUIET, Progress
 from ..learn.inference import predict
 from ..learn.network import TraceNet
 from ..learn.ragged import RaggedTraces, spread_rows
 from ..scanner.scanner import Scanner
 from .task_pool import LocalPool, TaskPool
+from .texels import Texels
 from .traces import grazing, shadowed
 
 # entries per trace the network reads, spread evenly over the trace: the length it was trained on,
@@ -219,6 +221,7 @@ def refine_fit(
     fit: dict[str, np.ndarray],
     settings: RefineSettings | None = None,
     progress: Progress = QUIET,
+    texels: Texels | None = None,
 ) -> dict[str, np.ndarray]:
     """``fit_traces``'s result refined by analysis-by-synthesis (``fit.refine``) against every entry
     of every observed trace (``traces``: linear pixels as captured), dark and clipped ones included;
@@ -231,7 +234,9 @@ def refine_fit(
     whose own traces kept a lobe, every observed texel assigned one or the matte class
     (``material (N,)``: -1 matte, -2 unobserved; the table as ``material_*`` arrays), and the
     texels without a lobe of their own that belong to a lobe material refined toward its lobe, from
-    the tangent turn its trace liked best (``fit.refine.material_costs``)."""
+    the tangent turn its trace liked best (``fit.refine.material_costs``) — with ``texels`` (the
+    atlas the traces were assembled for, trace i = texel i), weighing most the turn its neighbours
+    of the material point along (``fit.tangent_field``)."""
     fit = {k: v.copy() for k, v in fit.items()}
     todo = (traces.lengths > 0).nonzero().squeeze(1)
     settings = settings or RefineSettings()
@@ -252,8 +257,32 @@ def refine_fit(
         bar.update(len(idx))
     bar.close()
     if settings.materials:
-        _material_pass(scanner, traces, fit, todo, settings, progress)
+        _material_pass(scanner, traces, fit, todo, settings, progress, texels)
     return fit
+
+
+def _neighbour_turns(
+    texels: Texels | None,
+    fit: dict[str, np.ndarray],
+    i_obs: np.ndarray,
+    label: np.ndarray,
+    own: np.ndarray,
+    rest: np.ndarray,
+    K: int,
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """Per texel of ``rest`` (rows of ``i_obs``) and lobe material: the turn its neighbours of that
+    material with an anisotropic lobe of their own point along, and how well they agree ``(R, K)``
+    each (``fit.tangent_field``); None without ``texels``."""
+    if texels is None:
+        return None
+    turn, agree = np.zeros((len(rest), K)), np.zeros((len(rest), K))
+    constrained = own & (fit["flags"][i_obs] & FLAG_TANGENT_UNCONSTRAINED == 0)
+    for m in range(K):
+        source = i_obs[constrained & (label == m)]
+        turn[:, m], agree[:, m] = neighbour_turns(
+            texels.position, texels.normal, texels.tangent, fit["t_loc"], source, i_obs[rest]
+        )
+    return turn, agree
 
 
 def _store(fit: dict[str, np.ndarray], idx: torch.Tensor, r: Refined, marginal: torch.Tensor) -> None:
@@ -273,6 +302,7 @@ def _material_pass(
     todo: torch.Tensor,
     settings: RefineSettings,
     progress: Progress,
+    texels: Texels | None = None,
 ) -> None:
     """Basis materials from the first pass, assignment, and the texels that take a lobe from theirs
     refined toward it (``refine_fit``); updates ``fit`` in place."""
@@ -297,16 +327,21 @@ def _material_pass(
     costs = np.full((len(i_obs), 1 + len(basis)), np.inf)
     turns = np.zeros((len(i_obs), len(basis)))
     alpha, rho_s = torch.as_tensor(basis.alpha), torch.as_tensor(basis.rho_s)
+    label = np.full(len(i_obs), -1)
+    label[own[i_obs]] = np.argmin(prior[own[i_obs]], 1) - 1  # a texel with its own lobe: by its colour
+    field = _neighbour_turns(texels, fit, i_obs, label, own[i_obs], rest, len(basis))
     bar = progress.counter("materials", len(rest), "texel")
-    for k in np.array_split(rest, -(-len(rest) // REFINE_BATCH)) if len(rest) else []:
-        inp = refine_inputs(scanner, traces, torch.as_tensor(i_obs[k]), fit)
-        maybe = torch.as_tensor(candidates(prior[k]))
-        c, t = material_costs(scanner, inp.entries, inp.mask, inp.start, alpha, rho_s, maybe, settings, inp.shadow)
-        costs[k], turns[k] = c.numpy(), t.numpy()
+    for k in np.array_split(np.arange(len(rest)), -(-len(rest) // REFINE_BATCH)) if len(rest) else []:
+        inp = refine_inputs(scanner, traces, torch.as_tensor(i_obs[rest[k]]), fit)
+        maybe = torch.as_tensor(candidates(prior[rest[k]]))
+        near = None if field is None else (torch.as_tensor(field[0][k]), torch.as_tensor(field[1][k]))
+        c, t = material_costs(
+            scanner, inp.entries, inp.mask, inp.start, alpha, rho_s, maybe, settings, inp.shadow, near
+        )
+        costs[rest[k]], turns[rest[k]] = c.numpy(), t.numpy()
         bar.update(len(k))
     bar.close()
-    label = np.argmin(costs + prior, 1) - 1  # -1: matte
-    label[own[i_obs]] = np.argmin(prior[own[i_obs]], 1) - 1  # a texel with its own lobe: by its colour
+    label[rest] = np.argmin(costs[rest] + prior[rest], 1) - 1  # -1: matte
     fit["material"][i_obs] = label
     fit.update(basis.to_arrays())
     # texels without a lobe of their own in a lobe material: toward its lobe

@@ -385,7 +385,7 @@ def _reconstruct(
         t0 = time.perf_counter()
 
         def refine_stage(d: Path) -> None:
-            np.savez(d / "refined.npz", **refine_fit(scan.scanner, traces, fitted, REFINE, progress))
+            np.savez(d / "refined.npz", **refine_fit(scan.scanner, traces, fitted, REFINE, progress, texels))
 
         key = {
             "fit": h_fit,

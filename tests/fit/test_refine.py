@@ -24,7 +24,7 @@ from ntp_engine.fit.refine import (
     refine_toward,
 )
 from ntp_engine.learn.synthetic import SyntheticConfig, sample_batch
-from ntp_engine.physics.frame import cross, rotation_from_vector, safe_normalize
+from ntp_engine.physics.frame import cross, rotation_from_vector, safe_normalize, turned_about_normal
 from ntp_engine.physics.measurement import emitter_terms, measure_terms
 from ntp_engine.scanner.device_file import load_scanner
 
@@ -278,6 +278,31 @@ def test_material_costs_pick_the_lobe_and_its_tangent():
     assert (cost[shows].argmin(1) == 1).all()
     assert ((turn[shows, 0] - math.pi / 2).abs() < 0.01).float().mean() > 0.9
     assert (turn[:, 1] == 0).all()  # an isotropic lobe is not turned
+
+
+def test_material_costs_try_the_turn_the_neighbours_point_along():
+    """Judged from a start tangent 110 deg off (between the 4 turns, 90 and 135): told by its
+    neighbours (``fit.tangent_field``) where the lobe points, a texel tries that turn too and, where
+    they agree, takes it — at the cost of that turn alone, not the mean over turns; neighbours that
+    do not agree (0) leave the answer as without them."""
+    entries, mask, p = _traces(48, 11, (0.3, 0.25, 0.2), (3.0, 3.0, 3.0), (0.2, 0.04))
+    off = torch.full((48,), -math.radians(110.0))
+    t0 = turned_about_normal(torch.stack([p["t_local"], cross(p["n_local"], p["t_local"]), p["n_local"]], 1), off)[:, 0]
+    start = Start(p["n_local"], t0, torch.full((48, 2), 0.3), p["rho_d"], torch.zeros(48, 3))
+    alpha, rho_s = torch.tensor([[0.2, 0.04]]), torch.tensor([[3.0] * 3])
+    uniform, turn_u = material_costs(DEV, entries, mask, start, alpha, rho_s)
+    told = torch.full((48, 1), math.radians(110.0))
+    cost, turn = material_costs(DEV, entries, mask, start, alpha, rho_s, turn_prior=(told, torch.ones(48, 1)))
+    shows = uniform[:, 0] - uniform[:, 1] > 10
+    assert shows.float().mean() > 0.4
+    torch.testing.assert_close(turn[:, 0], told[:, 0].to(turn.dtype))
+    assert (cost[shows, 1] < uniform[shows, 1]).float().mean() > 0.9
+    assert ((turn_u[shows, 0] - math.radians(90.0)).abs() < 1e-6).float().mean() + (
+        (turn_u[shows, 0] - math.radians(135.0)).abs() < 1e-6
+    ).float().mean() > 0.9  # without them: the nearest of the 4 turns
+    none = material_costs(DEV, entries, mask, start, alpha, rho_s, turn_prior=(told, torch.zeros(48, 1)))
+    torch.testing.assert_close(none[0], uniform)
+    torch.testing.assert_close(none[1], turn_u)
 
 
 def test_refine_toward_keeps_a_material_lobe_the_trace_misses():
