@@ -23,6 +23,11 @@ REACH = 10.0  # a source's weight falls as a Gaussian of this many texel spacing
 DOUBT = 0.25  # added to the sources' weights (a source in the texel's plane weighs 1): one source is not many
 
 
+def texel_spacing(position: np.ndarray) -> float:
+    """The median distance (m) from each of ``position (N, 3)`` to its nearest other (0 for one)."""
+    return float(np.median(cKDTree(position).query(position, k=2)[0][:, 1])) if len(position) > 1 else 0.0
+
+
 def _object_axes(t_loc: np.ndarray, normal: np.ndarray, tangent: np.ndarray) -> np.ndarray:
     """Local axes ``(N, 3)`` (geometric frame) in object space."""
     bitangent = np.cross(normal, tangent)
@@ -36,24 +41,24 @@ def neighbour_turns(
     t_loc: np.ndarray,
     source: np.ndarray,
     target: np.ndarray,
+    spacing: float | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """For the texels ``target (M,)`` (indices): the turn ``(M,)`` from their own ``t_loc`` to the
     axis their ``NEIGHBOURS`` nearest ``source (S,)`` texels point along (each projected into the
     target's tangent plane and weighed by that projection's squared length and a Gaussian of its
     distance, sigma ``REACH`` texel spacings; axial mean), and how much to trust it ``(M,)``: the
     resultant of the doubled angles, weighed so, over the projections' weights plus ``DOUBT`` — 1
-    for near sources along one axis, toward 0 for far or disagreeing ones (0 and turn 0: none)."""
+    for near sources along one axis, toward 0 for far or disagreeing ones (0 and turn 0: none).
+    ``spacing``: ``texel_spacing(position)``, computed here unless given."""
     M = len(target)
     turn, agree = np.zeros(M), np.zeros(M)
     if M == 0 or len(source) == 0:
         return turn, agree
-    spacing = float(np.median(cKDTree(position).query(position, k=2)[0][:, 1])) if len(position) > 1 else 0.0
+    spacing = texel_spacing(position) if spacing is None else spacing
     axes = _object_axes(t_loc[source], normal[source], tangent[source])
     dist, near = cKDTree(position[source]).query(position[target], k=min(NEIGHBOURS, len(source)))
-    dist, near = dist.reshape(M, -1), near.reshape(M, -1)
-    within = np.isfinite(dist)
-    near = np.where(within, near, 0)
-    fall = np.exp(-0.5 * (np.where(within, dist, 0.0) / (REACH * max(spacing, 1e-9))) ** 2)
+    dist, near = dist.reshape(M, -1), near.reshape(M, -1)  # no distance bound: all finite
+    fall = np.exp(-0.5 * (dist / (REACH * max(spacing, 1e-9))) ** 2)
     a = axes[near]  # (M, k, 3)
     n_t, t_t = normal[target][:, None], tangent[target][:, None]
     b_t = np.cross(n_t, t_t)
@@ -61,7 +66,7 @@ def neighbour_turns(
     psi = np.arctan2(y, x)
     own = t_loc[target]
     psi0 = np.arctan2(own[:, 1], own[:, 0])[:, None]
-    size = within * (x * x + y * y)  # an axis nearly along the target's normal says little
+    size = x * x + y * y  # an axis nearly along the target's normal says little
     w = size * fall
     c, s = (w * np.cos(2 * (psi - psi0))).sum(1), (w * np.sin(2 * (psi - psi0))).sum(1)
     count = size.sum(1)

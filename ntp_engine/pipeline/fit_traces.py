@@ -36,7 +36,7 @@ from ..fit.refine import (
     refine,
     refine_toward,
 )
-from ..fit.tangent_field import neighbour_turns
+from ..fit.tangent_field import neighbour_turns, texel_spacing
 from ..io.progress import QUIET, Progress
 from ..learn.inference import predict
 from ..learn.network import TraceNet
@@ -277,10 +277,11 @@ def _neighbour_turns(
         return None
     turn, agree = np.zeros((len(rest), K)), np.zeros((len(rest), K))
     constrained = own & (fit["flags"][i_obs] & FLAG_TANGENT_UNCONSTRAINED == 0)
+    spacing = texel_spacing(texels.position)  # once for all materials
     for m in range(K):
         source = i_obs[constrained & (label == m)]
         turn[:, m], agree[:, m] = neighbour_turns(
-            texels.position, texels.normal, texels.tangent, fit["t_loc"], source, i_obs[rest]
+            texels.position, texels.normal, texels.tangent, fit["t_loc"], source, i_obs[rest], spacing
         )
     return turn, agree
 
