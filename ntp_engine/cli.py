@@ -24,7 +24,7 @@ from .io.errors import NtpInputError, error_line
 from .io.progress import Progress
 from .learn import models
 from .learn.network import NetworkConfig
-from .learn.train import TrainConfig, train
+from .learn.train import LR_SCHEDULES, TrainConfig, train
 from .pipeline.collection import SUMMARY, BatchOptions, reconstruct_collection
 from .pipeline.photo_selection import BLUR_MARGIN
 from .pipeline.scan_folder import Scan, load_scan
@@ -192,6 +192,7 @@ def _train(args: argparse.Namespace) -> int:
         validate_every=args.validate_every,
         sweep_fraction=args.sweep_fraction,
         pattern_init=args.pattern_init,
+        lr_schedule=args.lr_schedule,
     )
     result = train(
         args.out, ncfg, tcfg, args.device, resume=args.resume, init_from=args.init_from, progress=_progress(args)
@@ -230,6 +231,7 @@ def _bench_gallery(args: argparse.Namespace) -> int:
         resolution=args.resolution,
         samples=args.samples,
         refine=args.refine or None,
+        model=args.model,
     )
     bench_gallery.run(args.out, settings, json_path=args.json, progress=_progress(args))
     return 0
@@ -437,6 +439,12 @@ def _parser() -> argparse.ArgumentParser:
     tr.add_argument("--batch", type=int, default=64)
     tr.add_argument("--lr", type=float, default=3e-4)
     tr.add_argument(
+        "--lr-schedule",
+        choices=list(LR_SCHEDULES),
+        default="constant",
+        help="cosine: every learning rate falls to 0 at --steps (from the step the run starts at)",
+    )
+    tr.add_argument(
         "--pattern-lr",
         type=float,
         default=None,
@@ -448,7 +456,8 @@ def _parser() -> argparse.ArgumentParser:
         "--init-from",
         type=Path,
         default=None,
-        help="start a new run from another run's weights and step (the pattern setting may differ)",
+        help="start a new run from another run's (or a model folder's, e.g. assets/models/compact) weights and "
+        "step (the pattern setting may differ)",
     )
     tr.add_argument(
         "--sweep-fraction",
@@ -503,6 +512,11 @@ def _parser() -> argparse.ArgumentParser:
     bg.add_argument("--resolution", type=int, default=None)
     bg.add_argument("--samples", type=int, default=None, help="Cycles samples per pixel")
     bg.add_argument("--refine", action="store_true", help=REFINE_HELP + " (results and tables *-refined)")
+    bg.add_argument(
+        "--model",
+        default=None,
+        help="trace network: a shipped name or a model folder (results and tables *-model-NAME; default: compact)",
+    )
     bg.add_argument("--json", type=Path, default=None)
     _quiet_and_progress(bg)
     bg.set_defaults(func=_bench_gallery)

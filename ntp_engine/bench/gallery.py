@@ -7,7 +7,8 @@ per material (``sim.evaluate.material_errors``): the share of its surface texels
 anisotropic texels, |log alpha ratio|, rho_d RMSE and ratio, |log rho_s ratio|, spurious-lobe
 rate on matte. Writes ``OUT/gallery.json``, ``OUT/gallery.md`` (the tables) and
 ``OUT/gallery.png`` (error per material, a bar per scanner x poses), and prints the tables; with
-``refine`` (``--refine``) the results and files are ``*-refined`` beside them, from the same scans.
+``refine`` (``--refine``) the results and files are ``*-refined`` beside them, from the same scans,
+and with another trace network (``model``, ``--model``) ``*-model-NAME``.
 
 Everything is cached under ``OUT`` (assets, scans keyed by their settings and asset content,
 Cycles renders, pipeline stages), so a re-run after an interruption resumes.
@@ -67,6 +68,7 @@ class GallerySettings:
     relit_scale: float = 0.125
     seed: int = 0
     refine: bool = False  # the analysis-by-synthesis refinement after the network's fit
+    model: str | None = None  # the trace network (a shipped name or a model folder; None: the default)
 
 
 DEFAULT = GallerySettings()
@@ -102,7 +104,9 @@ def _evaluate(settings: GallerySettings, scan_dir: Path, poses: str, out: Path, 
     scan = load_scan(scan_dir, gt / "poses.json" if poses == "true" else None)
     t0 = time.perf_counter()
     try:
-        rep = reconstruct(scan, out, resolution=settings.resolution, progress=progress, refine=settings.refine)
+        rep = reconstruct(
+            scan, out, resolution=settings.resolution, model=settings.model, progress=progress, refine=settings.refine
+        )
     except NtpInputError as err:  # registration can fail on a hard object: that is a result too
         return {"failed": str(err), "seconds_reconstruct": time.perf_counter() - t0}
     seconds = time.perf_counter() - t0
@@ -171,8 +175,10 @@ def run(
 
 
 def _suffix(settings: GallerySettings) -> str:
-    """Results and tables with the refinement sit beside those without (same scans)."""
-    return "-refined" if settings.refine else ""
+    """Results and tables with another network or the refinement sit beside the default's (same
+    scans): ``-model-<folder name>``, then ``-refined``."""
+    model = f"-model-{Path(settings.model).name}" if settings.model else ""
+    return model + ("-refined" if settings.refine else "")
 
 
 def _f(x: float | None, digits: int = 3) -> str:

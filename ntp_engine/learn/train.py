@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import csv
 import json
+import math
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -47,6 +48,22 @@ class TrainConfig:
     views_max: int = 64
     sweep_fraction: float = 0.5  # traces whose views come from a correlated hand-held sweep
     pattern_init: str | None = None  # a learned pattern's start (a frozen-pattern name or file); None: 0.5
+    lr_schedule: str = "constant"  # "cosine": every rate falls to 0 at ``steps`` (a settled last checkpoint)
+    schedule_start: int = 0  # the step the run began at (a warm start's), where the cosine starts
+
+
+LR_SCHEDULES = ("constant", "cosine")
+
+
+def lr_factor(tcfg: TrainConfig, step: int) -> float:
+    """The multiplier on every learning rate before ``step``'s update: 1 for a constant schedule;
+    for a cosine one 0.5 (1 + cos(pi f)), f the fraction of the run from ``schedule_start`` to
+    ``steps`` done (1 at the start, 0 at the last step)."""
+    if tcfg.lr_schedule == "constant":
+        return 1.0
+    span = max(tcfg.steps - tcfg.schedule_start, 1)
+    f = min(max((step - tcfg.schedule_start) / span, 0.0), 1.0)
+    return 0.5 * (1.0 + math.cos(math.pi * f))
 
 
 def _step_generator(seed: int, step: int, device) -> torch.Generator:
@@ -130,28 +147,52 @@ def _load_state(model: TraceNet, state: dict) -> None:
     model.load_state_dict({"max_exposure": model.max_exposure.clone(), **state})
 
 
-def _warm_start(model: TraceNet, ncfg: NetworkConfig, source: Path, torch_device) -> tuple[int, int]:
-    """Load another run's weights into ``model`` (same preset, any pattern setting); returns that
-    run's (step, data seed) so the new run continues its data stream. The new run's pattern starts
-    at the source's pattern scaled to a maximum of 0.5: auto-exposure measures a scaled pattern
-    identically (while its exposure stays under the device's limit: full-on at 0.5 needs 2x), and
-    at 0.5 the sigmoid's gradient is largest (a full-on source, frozen at 1, would otherwise never
-    move). A frozen new pattern keeps its own value. The optimiser starts afresh."""
+def _source_checkpoint(source: Path, torch_device) -> tuple[Path, dict]:
+    """(path, checkpoint-like dict with ``network``, ``model``, ``step``, ``train.seed``) of a run
+    folder, a checkpoint file, or an exported model folder (``config.json`` + float16 ``model.pt``;
+    its step and data seed from ``summary.json``), so a shipped model can be trained on."""
+    if source.is_dir() and (source / "model.pt").is_file() and not (source / "checkpoint.pt").exists():
+        try:
+            meta = json.loads((source / "config.json").read_text(encoding="utf-8"))
+            summary = json.loads((source / "summary.json").read_text(encoding="utf-8"))
+            state = torch.load(source / "model.pt", map_location=torch_device, weights_only=True)
+            ck = {
+                "network": meta["network"],
+                "model": {k: v.float() if v.is_floating_point() else v for k, v in state.items()},
+                "step": int(summary["steps"]),
+                "train": {"seed": int(summary["data_seed"])},
+            }
+        except (OSError, ValueError, KeyError, TypeError) as err:
+            raise NtpInputError(source, f"not a model folder to start from ({type(err).__name__}: {err})") from None
+        return source / "model.pt", ck
     path = source / "checkpoint.pt" if source.is_dir() else source
     if not path.is_file():
         raise NtpInputError(path, "no checkpoint to start from")
-    ck = torch.load(path, map_location=torch_device, weights_only=False)
+    return path, torch.load(path, map_location=torch_device, weights_only=False)
+
+
+def _warm_start(model: TraceNet, ncfg: NetworkConfig, source: Path, torch_device) -> tuple[int, int]:
+    """Load another run's (or a model folder's) weights into ``model`` (same preset, any pattern
+    setting); returns its (step, data seed) so the new run continues its data stream. A learned new
+    pattern starts at the source's: as it was where the source learned it too (so the device file
+    written from it stays the one the network reads), scaled to a maximum of 0.5 where the source's
+    was frozen — auto-exposure measures a scaled pattern identically (while its exposure stays
+    under the device's limit: full-on at 0.5 needs 2x), and at 0.5 the sigmoid's gradient is
+    largest (a full-on source, frozen at 1, would otherwise never move). A frozen new pattern keeps
+    its own value. The optimiser starts afresh."""
+    path, ck = _source_checkpoint(source, torch_device)
     other = {k: v for k, v in ck["network"].items() if k != "frozen_pattern"}
     if other != {k: v for k, v in ncfg.to_dict().items() if k != "frozen_pattern"}:
         raise NtpInputError(path, "trained with a different network config (only the pattern may differ)")
     own = model.pattern_logits.detach().clone()
-    _load_state(model, ck["model"])
-    if ncfg.frozen_pattern is None:
-        p = torch.sigmoid(ck["model"]["pattern_logits"].double())
-        model.set_pattern((0.5 * p / p.max().clamp_min(1e-12)).cpu().numpy())
-    else:  # a frozen pattern keeps its own value
+    device_buffers = {k: v for k, v in model.state_dict().items() if k not in ck["model"]}
+    _load_state(model, {**device_buffers, **ck["model"]})
+    if ncfg.frozen_pattern is not None:  # a frozen pattern keeps its own value
         with torch.no_grad():
             model.pattern_logits.copy_(own)
+    elif ck["network"].get("frozen_pattern") is not None:
+        p = torch.sigmoid(ck["model"]["pattern_logits"].double())
+        model.set_pattern((0.5 * p / p.max().clamp_min(1e-12)).cpu().numpy())
     return int(ck["step"]), int(ck["train"]["seed"])
 
 
@@ -166,6 +207,8 @@ def train(
 ) -> dict:
     """Train into ``out`` (see the module docstring). ``init_from``: a run folder or checkpoint whose
     weights and step start this new run (``_warm_start``); ignored when resuming."""
+    if tcfg.lr_schedule not in LR_SCHEDULES:
+        raise ValueError(f"lr_schedule {tcfg.lr_schedule!r}: expected one of {LR_SCHEDULES}")
     out.mkdir(parents=True, exist_ok=True)
     torch_device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
     scanner = load_scanner(device_path)
@@ -184,6 +227,7 @@ def train(
     else:
         if init_from is not None:
             step, tcfg.seed = _warm_start(model, ncfg, Path(init_from), torch_device)
+            tcfg.schedule_start = step
             print(f"starting from {init_from} at step {step}")
         if tcfg.pattern_init is not None and ncfg.frozen_pattern is None:
             # kept off 0 and 1, where the sigmoid's gradient vanishes
@@ -195,12 +239,16 @@ def train(
     running, count = 0.0, 0
     last: dict = {}
     t_last = time.perf_counter()
+    # the schedule scales the configured rates (a resumed optimiser holds the last scaled ones)
+    base_lrs = [tcfg.lr, tcfg.pattern_lr][: len(opt.param_groups)]
     with _Log(out / "log.csv") as log, progress.counter("train", tcfg.steps, "step") as bar:
         bar.update(step)
         while step < tcfg.steps:
             gen = _step_generator(tcfg.seed, step, torch_device)
             batch = sample_batch(scanner, tcfg.batch, gen, scfg, device=torch_device)
             loss, _, _, _ = batch_loss(model, batch, gen)
+            for group, base in zip(opt.param_groups, base_lrs, strict=True):
+                group["lr"] = base * lr_factor(tcfg, step)
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()
@@ -257,6 +305,7 @@ def _resume(
         )
     opt.load_state_dict(_match_optimizer_order(ck["optimizer"], opt))
     tcfg.seed = ck["train"]["seed"]
+    tcfg.schedule_start = ck["train"].get("schedule_start", 0)
     return ck["step"], ck.get("elapsed_s", 0.0)
 
 

@@ -1,3 +1,5 @@
+import math
+
 import pytest
 import torch
 
@@ -103,3 +105,51 @@ def test_tiny_overfit_drives_the_loss_down():
         opt.step()
         losses.append(loss.item())
     assert losses[-1] < 0.1 * losses[0], (losses[0], losses[-1])
+
+
+def test_cosine_schedule_falls_from_the_run_start_to_zero_at_the_last_step(tmp_path):
+    from ntp_engine.learn.train import TrainConfig, lr_factor, train
+
+    flat = TrainConfig(steps=100)
+    assert lr_factor(flat, 0) == lr_factor(flat, 99) == 1.0
+    cos = TrainConfig(steps=300, lr_schedule="cosine", schedule_start=100)
+    assert lr_factor(cos, 100) == 1.0 and abs(lr_factor(cos, 200) - 0.5) < 1e-12 and lr_factor(cos, 300) < 1e-12
+    assert lr_factor(cos, 50) == 1.0 and lr_factor(cos, 400) == 0.0  # clamped outside the run
+    run = tmp_path / "run"
+    tc = dict(batch=4, validate_every=4, val_batches=1, views_max=8, pattern_lr=0.05, lr_schedule="cosine")
+    train(run, NetworkConfig(preset="small"), TrainConfig(steps=2, **tc))
+    ck = torch.load(run / "checkpoint.pt", weights_only=False)
+    # the last update (step 1 of 2) ran at half of each group's configured rate
+    torch.testing.assert_close([g["lr"] for g in ck["optimizer"]["param_groups"]], [1.5e-4, 0.025])
+    # resumed, the schedule scales the configured rates, not the last scaled ones the optimiser saved
+    train(run, NetworkConfig(preset="small"), TrainConfig(steps=4, **tc), resume=True)
+    ck = torch.load(run / "checkpoint.pt", weights_only=False)
+    expected = 0.5 * (1 + math.cos(math.pi * 3 / 4))
+    torch.testing.assert_close([g["lr"] for g in ck["optimizer"]["param_groups"]], [3e-4 * expected, 0.05 * expected])
+    with pytest.raises(ValueError, match="lr_schedule"):
+        train(tmp_path / "bad", NetworkConfig(preset="small"), TrainConfig(steps=1, lr_schedule="linear"))
+
+
+def test_a_model_folder_is_trained_on_with_its_own_pattern_step_and_data(tmp_path):
+    import json
+
+    from ntp_engine.learn import models
+    from ntp_engine.learn.train import TrainConfig, train
+
+    tc = dict(batch=4, validate_every=2, val_batches=1, views_max=8)
+    src = tmp_path / "src"
+    train(src, NetworkConfig(preset="small"), TrainConfig(steps=2, pattern_lr=0.5, seed=7, **tc))
+    models.export(src / "checkpoint.pt", tmp_path / "model", {"history": "test"})
+    dst = tmp_path / "dst"
+    start = tmp_path / "model"
+    train(dst, NetworkConfig(preset="small"), TrainConfig(steps=3, lr=1e-12, pattern_lr=0.0, **tc), init_from=start)
+    a, b = (torch.load(r / "checkpoint.pt", weights_only=False) for r in (src, dst))
+    assert b["step"] == 3 and b["train"]["seed"] == 7 and b["train"]["schedule_start"] == 2
+    # the learned pattern goes on exactly where the source left it (not rescaled), so the device
+    # file written from the source still matches; the float16 weights came along
+    assert torch.equal(b["model"]["pattern_logits"], a["model"]["pattern_logits"])
+    w = "diffuse_head.0.weight"
+    torch.testing.assert_close(b["model"][w], a["model"][w].half().float(), atol=1e-9, rtol=0)
+    (tmp_path / "model" / "summary.json").write_text(json.dumps({"history": "no steps"}))
+    with pytest.raises(NtpInputError, match="not a model folder"):
+        train(tmp_path / "x", NetworkConfig(preset="small"), TrainConfig(steps=3, **tc), init_from=tmp_path / "model")
