@@ -240,7 +240,7 @@ def train(
     last: dict = {}
     t_last = time.perf_counter()
     # the schedule scales the configured rates (a resumed optimiser holds the last scaled ones)
-    base_lrs = [tcfg.lr, tcfg.pattern_lr][: len(opt.param_groups)]
+    base_lrs = [tcfg.lr] if len(opt.param_groups) == 1 else [tcfg.lr, float(tcfg.pattern_lr or 0.0)]
     with _Log(out / "log.csv") as log, progress.counter("train", tcfg.steps, "step") as bar:
         bar.update(step)
         while step < tcfg.steps:
