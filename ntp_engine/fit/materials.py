@@ -10,7 +10,10 @@ mixture model): the data cost of its trace under each material's lobe or none
 members' spread, the matte class's a broad one — minus the log of the class's share. So a texel
 whose trace cannot tell (its entries miss the lobe) joins the lobe material of its colour, one of
 another colour stays matte, and where the trace tells, it decides. Only the lobe materials whose
-colour cost is within ``CANDIDATE_MARGIN`` of the texel's best are judged by its trace.
+colour cost is within ``CANDIDATE_MARGIN`` of the texel's best are judged by its trace. The matte
+class's share is the object's own (``estimated_matte_share``: the mixture's maximum likelihood,
+by EM from ``MATTE_SHARE``): an object with little matte surface gives a texel that cannot tell
+to its colour's lobe material, one with much keeps it matte.
 
 Convention: rho_d, rho_s linear RGB ``(N, 3)``; alpha ``(N, 2)`` with alpha_x >= alpha_y (the
 refinement's canonical lobe); costs in half chi-square units like the refinement's.
@@ -36,6 +39,9 @@ COLOUR_FLOOR = 0.02  # added to rho_d before logs: dark albedos differ by their 
 MIN_COLOUR_SIGMA, MIN_LOG_ALPHA_SIGMA, MIN_RHO_S_SIGMA = 0.1, 0.25, 0.25  # rho_s: relative
 MATTE_SHARE = 0.5  # prior share of the broad matte class (the lobe materials share the rest by their weights)
 MATTE_COLOUR_SIGMA = 1.0  # the broad matte class's colour spread (log rho_d): any colour
+MATTE_SHARE_RANGE = (0.05, 0.95)  # the estimated matte share stays inside: neither class is ruled out
+SHARE_EM_ITERATIONS = 500  # at most; a texel that cannot tell follows the prior, so EM creeps
+SHARE_EM_TOLERANCE = 1e-5
 MIN_HIGHLIGHT = 0.4  # a lobe that made this share of some pixel or more showed itself (material_weight)
 # rho_s of a dielectric's lobe at most (Schlick F0 <= 0.06, IOR <= ~1.65): such a lobe shows itself faintly
 DIELECTRIC_RHO_S = 1.5
@@ -201,15 +207,50 @@ def _colour_costs(rho_d: np.ndarray, materials: BasisMaterials) -> np.ndarray:
 
 
 # the broad matte class's colour cost, at its expected value (any colour being as likely)
-_BROAD = 1.5 + 3 * math.log(MATTE_COLOUR_SIGMA) - math.log(MATTE_SHARE)
+_BROAD_COLOUR = 1.5 + 3 * math.log(MATTE_COLOUR_SIGMA)
 
 
-def class_costs(rho_d: np.ndarray, materials: BasisMaterials) -> np.ndarray:
+def colour_costs(rho_d: np.ndarray, materials: BasisMaterials) -> np.ndarray:
+    """Negative log density ``(N, 1 + K)`` of each texel's ``rho_d (N, 3)`` under the broad matte
+    class (column 0) and each lobe material, without the classes' shares."""
+    return np.concatenate([np.full((len(rho_d), 1), _BROAD_COLOUR), _colour_costs(rho_d, materials)], 1)
+
+
+def class_shares(materials: BasisMaterials, matte_share: float = MATTE_SHARE) -> np.ndarray:
+    """Prior shares ``(1 + K,)``: the matte class's, then the lobe materials' — theirs
+    (``materials.share``, made at ``MATTE_SHARE``) scaled to the rest, (1 - matte_share) / (1 -
+    ``MATTE_SHARE``); they need not sum to 1 (a cluster that is no material keeps its part)."""
+    return np.concatenate([[matte_share], materials.share * ((1 - matte_share) / (1 - MATTE_SHARE))])
+
+
+def class_costs(rho_d: np.ndarray, materials: BasisMaterials, matte_share: float = MATTE_SHARE) -> np.ndarray:
     """Prior cost ``(N, 1 + K)`` of each texel's ``rho_d (N, 3)`` under the broad matte class
     (column 0) and each lobe material: the colour's negative log density minus the log of the
-    class's share."""
-    lobe = _colour_costs(rho_d, materials) - np.log(materials.share)[None]
-    return np.concatenate([np.full((len(rho_d), 1), _BROAD), lobe], 1)
+    class's share (``class_shares``)."""
+    return colour_costs(rho_d, materials) - np.log(class_shares(materials, matte_share))[None]
+
+
+def estimated_matte_share(costs: np.ndarray, materials: BasisMaterials) -> float:
+    """The matte class's share that makes the texels' ``costs (N, 1 + K)`` likeliest — each texel's
+    negative log likelihood under matte (column 0) and each lobe material without the shares (its
+    colour, plus its trace's cost where judged; inf: ruled out) — with the lobe materials' relative
+    shares kept (``class_shares``). EM from ``MATTE_SHARE``: a share is the mean of the texels'
+    posteriors under it. Clipped to ``MATTE_SHARE_RANGE``; ``MATTE_SHARE`` without a texel that
+    could be either."""
+    c = costs[np.isfinite(costs).any(1)]
+    if len(c) == 0:
+        return MATTE_SHARE
+    c = np.exp(-(c - c.min(1, keepdims=True)))  # likelihoods, each row's best 1
+    matte, lobe = c[:, 0], c[:, 1:] @ class_shares(materials, 0.0)[1:]
+    share = MATTE_SHARE
+    for _ in range(SHARE_EM_ITERATIONS):
+        posterior = share * matte / np.maximum(share * matte + (1 - share) * lobe, 1e-300)
+        new = float(posterior.mean())
+        done = abs(new - share) < SHARE_EM_TOLERANCE
+        share = new
+        if done:
+            break
+    return float(np.clip(share, *MATTE_SHARE_RANGE))
 
 
 def candidates(prior: np.ndarray) -> np.ndarray:

@@ -22,7 +22,7 @@ import torch
 from ..fit.albedo import highlights_and_albedo
 from ..fit.emitter_blocks import shadow_groups
 from ..fit.geometry import FALLBACK_ALPHA, FLAG_NO_HIGHLIGHT, fit_geometry
-from ..fit.materials import candidates, class_costs, lobe_materials
+from ..fit.materials import candidates, class_costs, colour_costs, estimated_matte_share, lobe_materials
 from ..fit.refine import (
     FLAG_FROM_MATERIAL,
     FLAG_SPECULAR_UNCONSTRAINED,
@@ -342,6 +342,14 @@ def _material_pass(
         costs[rest[k]], turns[rest[k]] = c.numpy(), t.numpy()
         bar.update(len(k))
     bar.close()
+    # the matte share is this object's: the likeliest given every texel's colour and, where judged,
+    # its trace (a texel with its own lobe is no matte one) — the prior above only chose candidates
+    likelihood = colour_costs(fit["rho_d"][i_obs], basis)
+    likelihood[rest] += costs[rest]
+    likelihood[own[i_obs], 0] = np.inf
+    matte_share = estimated_matte_share(likelihood, basis)
+    fit["material_matte_share"] = np.array(matte_share)
+    prior = class_costs(fit["rho_d"][i_obs], basis, matte_share)
     label[rest] = np.argmin(costs[rest] + prior[rest], 1) - 1  # -1: matte
     fit["material"][i_obs] = label
     fit.update(basis.to_arrays())

@@ -436,6 +436,8 @@ def refine_summary(fitted: dict[str, np.ndarray]) -> dict:
         out["noise_scale"] = float(fitted["noise_scale"])
     if "material" in fitted:
         out["basis_materials"] = int(len(fitted["material_share"]))
+        if "material_matte_share" in fitted:  # the matte class's share estimated on this object
+            out["matte_share"] = round(float(fitted["material_matte_share"]), 4)
         out["texels_lobe_from_material"] = int((fitted["flags"] & FLAG_FROM_MATERIAL != 0).sum())
     return out
 

@@ -5,10 +5,12 @@ import numpy as np
 
 from ntp_engine.fit.materials import (
     MATTE_SHARE,
+    MATTE_SHARE_RANGE,
     BasisMaterials,
     candidates,
     class_costs,
     clusters,
+    estimated_matte_share,
     lobe_materials,
     material_weight,
 )
@@ -118,3 +120,28 @@ def test_class_costs_follow_colour_and_share():
     assert cand.shape == (3, 2) and cand[0, blue] and not cand[0, 1 - blue] and cand[1, 1 - blue]
     assert class_costs(probe, BasisMaterials.empty()).shape == (3, 1)
     assert candidates(class_costs(probe, BasisMaterials.empty())).shape == (3, 0)
+
+
+def test_the_matte_share_is_the_objects_own():
+    one = BasisMaterials(
+        np.full((1, 3), 0.2),
+        np.full((1, 2), 0.1),
+        np.ones((1, 3)),
+        np.full(1, 0.1),
+        np.full(1, 0.25),
+        np.full(1, 0.25),
+        np.array([1 - MATTE_SHARE]),
+    )
+    # 30% of the texels' traces say matte, 20% kept a lobe of their own, half cannot tell: the
+    # likeliest share is 0.3 / 0.5 (those that cannot tell follow the prior, whatever it is)
+    costs = np.concatenate([np.tile([0.0, 10.0], (300, 1)), np.tile([np.inf, 0.0], (200, 1)), np.zeros((500, 2))])
+    assert abs(estimated_matte_share(costs, one) - 0.6) < 0.01
+    # a glossy object whose texels never say matte: the share falls to its floor, not 0
+    assert estimated_matte_share(costs[300:], one) == MATTE_SHARE_RANGE[0]
+    assert estimated_matte_share(costs[:300], one) == MATTE_SHARE_RANGE[1]
+    assert estimated_matte_share(np.full((4, 2), np.inf), one) == MATTE_SHARE  # nobody could be either
+    # a lower matte share moves a texel that cannot tell to its colour's lobe material
+    grey = np.array([[0.2, 0.2, 0.2]])
+    assert np.argmin(class_costs(grey, one)[0]) == 1
+    far = np.array([[0.265, 0.265, 0.265]])  # 2.5 sigma off the material's colour
+    assert np.argmin(class_costs(far, one, 0.5)[0]) == 0 and np.argmin(class_costs(far, one, 0.05)[0]) == 1
