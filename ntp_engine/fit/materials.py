@@ -37,7 +37,7 @@ COLOUR_SCALE, LOG_ALPHA_SCALE, LOG_RHO_S_SCALE = 0.25, 0.5, 0.5
 COLOUR_FLOOR = 0.02  # added to rho_d before logs: dark albedos differ by their noise, not their ratio
 # spreads are floored: a material's members are a sample, and the prior must let a texel's data speak
 MIN_COLOUR_SIGMA, MIN_LOG_ALPHA_SIGMA, MIN_RHO_S_SIGMA = 0.1, 0.25, 0.25  # rho_s: relative
-MATTE_SHARE = 0.5  # prior share of the broad matte class (the lobe materials share the rest by their weights)
+MATTE_SHARE = 0.5  # the broad matte class's share where the object estimates none (estimated_matte_share's start)
 MATTE_COLOUR_SIGMA = 1.0  # the broad matte class's colour spread (log rho_d): any colour
 MATTE_SHARE_RANGE = (0.05, 0.95)  # the estimated matte share stays inside: neither class is ruled out
 SHARE_EM_ITERATIONS = 500  # at most; a texel that cannot tell follows the prior, so EM creeps
