@@ -83,6 +83,23 @@ def _mlp(widths: list[int], dropout: float, last_plain: bool) -> nn.Sequential:
     return nn.Sequential(*layers)
 
 
+class ChunkedLinear(nn.Linear):
+    """``nn.Linear`` whose product is summed over fixed input chunks of ``CHUNK`` in a fixed order.
+    A wide-in, narrow-out product (the compressed specular head's 1024 -> r) is split over its inputs
+    by the BLAS when it has several threads, so its float32 sums — and every map after them — would
+    depend on the thread count (seen on AVX-512 machines: 1 vs 2 threads differ by 1e-5); chunks this
+    small are not split, and a block of the fit gives the same bits in any process (a Ray worker too)."""
+
+    CHUNK = 256
+
+    def forward(self, x: Tensor) -> Tensor:
+        """``x (..., in_features)`` -> ``(..., out_features)``, as ``nn.Linear``."""
+        out = self.bias.expand(*x.shape[:-1], -1)
+        for a in range(0, self.in_features, self.CHUNK):
+            out = out + x[..., a : a + self.CHUNK] @ self.weight[:, a : a + self.CHUNK].T
+        return out
+
+
 class TraceNet(nn.Module):
     """The trace network: lighting-pattern layer and sensor model (training), PointNet encoder, heads."""
 
@@ -187,7 +204,7 @@ class TraceNet(nn.Module):
         assert isinstance(last, nn.Linear)
         w, b = last.weight.detach().double(), last.bias.detach().double()
         basis, hidden_mean = basis.double(), hidden_mean.double()
-        down = nn.Linear(w.shape[1], basis.shape[1])
+        down = ChunkedLinear(w.shape[1], basis.shape[1])
         up = nn.Linear(basis.shape[1], w.shape[0])
         with torch.no_grad():
             down.weight.copy_(basis.T @ w)

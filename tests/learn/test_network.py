@@ -120,3 +120,25 @@ def test_factorised_batch_measures_like_the_full_physical_lumitexel():
     ay = b.params["alpha_y"][:, None].expand(4, 5)
     ref = physical_lumitexel(dev, b.position, n_cam, t_cam, b.rho_d_view, b.rho_s_view, ax, ay)
     torch.testing.assert_close(b.m_phys, ref, rtol=2e-4, atol=1e-6)
+
+
+def test_chunked_linear_is_linear_and_the_same_bits_with_any_thread_count():
+    from ntp_engine.learn.network import ChunkedLinear
+
+    torch.manual_seed(0)
+    layer = ChunkedLinear(1024, 128)  # the compressed specular head's shape, which BLAS splits by threads
+    plain = torch.nn.Linear(1024, 128)
+    plain.load_state_dict(layer.state_dict())
+    x = torch.randn(2048, 1024)
+    threads = torch.get_num_threads()
+    try:
+        with torch.no_grad():
+            torch.set_num_threads(1)
+            one = layer(x)
+            torch.set_num_threads(2)
+            two = layer(x)
+            torch.testing.assert_close(two, plain(x), rtol=1e-5, atol=1e-5)
+    finally:
+        torch.set_num_threads(threads)
+    assert torch.equal(one, two)
+    assert layer(x[:3, None]).shape == (3, 1, 128)  # any leading shape
