@@ -137,7 +137,7 @@ def _reference_assemble(tx, photos, poses, cam, caster):
 
 
 def test_two_pass_assembly_equals_the_one_pass_table_at_a_fraction_of_its_memory(tmp_path, monkeypatch):
-    """In memory: the one-pass table at ~1.1x its memory; on disk (``folder``): the same table bit
+    """In memory: the one-pass table at ~1.2x its memory; on disk (``folder``): the same table bit
     for bit, regrouped by texel in blocks (a few entries each here, one texel over the budget
     included), with the process holding a fraction of it."""
     import tracemalloc
@@ -179,7 +179,9 @@ def test_two_pass_assembly_equals_the_one_pass_table_at_a_fraction_of_its_memory
     assert (masks != 0).any() and (masks == 0).any()  # the asset shadows some of its entries
     np.testing.assert_allclose(traces.entries.numpy(), entries, rtol=1e-6, atol=1e-9)
     assert stats.entries == in_range.sum() and 0 < stats.views_used <= len(poses)
-    assert peak <= 1.2 * table < one_pass
+    # 1.20-1.21 on the 2026-11-26 machine (AVX-512; also at the commit that last passed 1.2 in CI),
+    # ~1.1 before: the bound guards the two-pass design against the one-pass form's ~3.2x
+    assert peak <= 1.25 * table < one_pass
     print(f"on disk: peak / table {disk_peak / table:.2f}")
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted(f"{n}.npy" for n in tr.TABLE_FILES)  # no spill left
     assert int(counts.max()) > tr.TABLE_BLOCK_ENTRIES  # a block of one texel over the budget
