@@ -26,6 +26,7 @@ from ..physics.confidence import confidence_from_ratios
 from ..scanner.device_file import load_scanner
 from ..scanner.pattern import named_pattern
 from ..scanner.scanner import Scanner
+from .models import DEVICE_BUFFERS
 from .network import NetworkConfig, TraceNet, lumitexel_loss, num_parameters
 from .synthetic import SyntheticConfig, TraceBatch, sample_batch
 
@@ -142,9 +143,11 @@ def _match_optimizer_order(state: dict, opt: torch.optim.Optimizer) -> dict:
 
 
 def _load_state(model: TraceNet, state: dict) -> None:
-    """A checkpoint's weights and buffers into ``model``; a run from before the exposure limit has no
-    ``max_exposure`` and keeps the model's (the device's)."""
-    model.load_state_dict({"max_exposure": model.max_exposure.clone(), **state})
+    """A checkpoint's weights and buffers into ``model``; a device buffer the state lacks keeps the
+    model's (the device's): an exported model folder has none, a run from before the exposure limit
+    no ``max_exposure``. A missing weight is still an error."""
+    own = model.state_dict()
+    model.load_state_dict({**{k: own[k] for k in DEVICE_BUFFERS}, **state})
 
 
 def _source_checkpoint(source: Path, torch_device) -> tuple[Path, dict]:
@@ -185,8 +188,7 @@ def _warm_start(model: TraceNet, ncfg: NetworkConfig, source: Path, torch_device
     if other != {k: v for k, v in ncfg.to_dict().items() if k != "frozen_pattern"}:
         raise NtpInputError(path, "trained with a different network config (only the pattern may differ)")
     own = model.pattern_logits.detach().clone()
-    device_buffers = {k: v for k, v in model.state_dict().items() if k not in ck["model"]}
-    _load_state(model, {**device_buffers, **ck["model"]})
+    _load_state(model, ck["model"])
     if ncfg.frozen_pattern is not None:  # a frozen pattern keeps its own value
         with torch.no_grad():
             model.pattern_logits.copy_(own)

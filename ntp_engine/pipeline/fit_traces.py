@@ -22,7 +22,7 @@ import torch
 from ..fit.albedo import highlights_and_albedo
 from ..fit.emitter_blocks import shadow_groups
 from ..fit.geometry import FALLBACK_ALPHA, FLAG_NO_HIGHLIGHT, fit_geometry
-from ..fit.materials import candidates, class_costs, colour_costs, estimated_matte_share, lobe_materials
+from ..fit.materials import candidates, class_shares, colour_costs, estimated_matte_share, lobe_materials
 from ..fit.refine import (
     FLAG_FROM_MATERIAL,
     FLAG_SPECULAR_UNCONSTRAINED,
@@ -323,7 +323,8 @@ def _material_pass(
         return
     # the texels without a lobe of their own: their traces judge their colour's lobe materials and
     # no lobe; the colours weigh in where the traces cannot tell
-    prior = class_costs(fit["rho_d"][i_obs], basis)
+    colour = colour_costs(fit["rho_d"][i_obs], basis)
+    prior = colour - np.log(class_shares(basis))
     rest = np.nonzero(~own[i_obs])[0]
     costs = np.full((len(i_obs), 1 + len(basis)), np.inf)
     turns = np.zeros((len(i_obs), len(basis)))
@@ -344,12 +345,12 @@ def _material_pass(
     bar.close()
     # the matte share is this object's: the likeliest given every texel's colour and, where judged,
     # its trace (a texel with its own lobe is no matte one) — the prior above only chose candidates
-    likelihood = colour_costs(fit["rho_d"][i_obs], basis)
+    likelihood = colour.copy()
     likelihood[rest] += costs[rest]
     likelihood[own[i_obs], 0] = np.inf
     matte_share = estimated_matte_share(likelihood, basis)
     fit["material_matte_share"] = np.array(matte_share)
-    prior = class_costs(fit["rho_d"][i_obs], basis, matte_share)
+    prior = colour - np.log(class_shares(basis, matte_share))
     label[rest] = np.argmin(costs[rest] + prior[rest], 1) - 1  # -1: matte
     fit["material"][i_obs] = label
     fit.update(basis.to_arrays())
