@@ -12,7 +12,12 @@ same maps.
   grazing, the diffuse is dimmed by the specular layer.
 - ``NTP Accurate``: Diffuse BSDF (rho_d) + Glossy BSDF (GGX) whose colour is rho_s times Schlick's
   Fresnel with F0 = 0.04 on n.v (the engine uses w_i.h; equal at the mirror peak); the object-space
-  normal and tangent maps through Vector Transform nodes; any alpha ratio up to 10^4.
+  normal and tangent maps through Vector Transform nodes; any alpha ratio up to 10^4. Built
+  ``colocated`` (the Cycles scanner's photos: every light next to the camera), the colour is
+  rho_s F0: there w_i.h is ~1 for every light, so Schlick's term vanishes (``ntp_engine.sim.cycles_scan``
+  bounds it), while n.v is small on every surface seen edge-on — Schlick on n.v made a broad lobe's
+  grazing views up to 5x too bright (docs/virtual-scanner.md). No Cycles node puts a Fresnel on
+  w_i.h under a Glossy BSDF's 10^4 anisotropy (the Metallic BSDF caps it at 10:1).
 
 All inputs are read and derived before any datablock is created: a bad result folder raises
 ``NtpInputError`` naming the file, and nothing half-built is left behind.
@@ -227,7 +232,7 @@ def _principled(ri: ResultInputs, name: str) -> bpy.types.Material:
     return mat
 
 
-def _accurate(ri: ResultInputs, name: str) -> bpy.types.Material:
+def _accurate(ri: ResultInputs, name: str, colocated: bool = False) -> bpy.types.Material:
     g = ri.glossy
     mat = bpy.data.materials.get(name) or bpy.data.materials.new(name)
     T = _Tree(mat)
@@ -271,6 +276,14 @@ def _accurate(ri: ResultInputs, name: str) -> bpy.types.Material:
         glossy,
         "Anisotropy",
     )
+    spec_file = _file_image(ri.folder / "specular_albedo.exr", LINEAR, f"{name} specular albedo")
+    spec = T.image(spec_file, -1, 0, "specular albedo")
+    scale = T.node("ShaderNodeVectorMath", 0, 0, "rho_s x Fresnel", operation="SCALE")
+    T.link(spec, "Color", scale, 0)
+    T.link(scale, "Vector", glossy, "Color")
+    if colocated:  # lights beside the camera: w_i.h ~ 1, F = F0 (module docstring)
+        scale.inputs["Scale"].default_value = F0_DIELECTRIC
+        return mat
     # colour = rho_s * (0.04 + 0.96 (1 - n.v)^5)
     lw = T.node("ShaderNodeLayerWeight", -2, 1, "Schlick: 1 - n.v")
     lw.inputs["Blend"].default_value = 0.5
@@ -281,12 +294,7 @@ def _accurate(ri: ResultInputs, name: str) -> bpy.types.Material:
     fr.inputs[1].default_value, fr.inputs[2].default_value = 1 - F0_DIELECTRIC, F0_DIELECTRIC
     T.link(lw, "Facing", pw, 0)
     T.link(pw, 0, fr, 0)
-    spec_file = _file_image(ri.folder / "specular_albedo.exr", LINEAR, f"{name} specular albedo")
-    spec = T.image(spec_file, -1, 0, "specular albedo")
-    scale = T.node("ShaderNodeVectorMath", 0, 0, "rho_s x Fresnel", operation="SCALE")
-    T.link(spec, "Color", scale, 0)
     T.link(fr, 0, scale, "Scale")
-    T.link(scale, "Vector", glossy, "Color")
     return mat
 
 
@@ -295,17 +303,19 @@ def build_materials(
     obj: bpy.types.Object | None = None,
     variant: str = DEFAULT_VARIANT,
     require_report: bool = True,
+    colocated: bool = False,
 ) -> tuple[bpy.types.Material, bpy.types.Material]:
     """Both materials for a result folder (``read_result``); ``obj`` (if given) gets ``variant`` in
     its first slot. The other material is kept with a fake user so a saved .blend holds both.
     Names derive from the result folder's (``asset_name``); building again replaces both materials
-    and their images in place (no ``.001`` copies, no orphans)."""
+    and their images in place (no ``.001`` copies, no orphans). ``colocated``: the accurate variant
+    for lights beside the camera (the Cycles scanner's photos; module docstring)."""
     if variant not in ("principled", "accurate"):
         raise ValueError(f"variant must be 'principled' or 'accurate', not {variant!r}")
     ri = read_result(result, require_report)  # may raise: nothing created yet
     stem = asset_name(result)
     principled = _principled(ri, f"{PRINCIPLED} ({stem})")
-    accurate = _accurate(ri, f"{ACCURATE} ({stem})")
+    accurate = _accurate(ri, f"{ACCURATE} ({stem})", colocated)
     for m in (principled, accurate):
         m.use_fake_user = True
         m["ntp_result"] = str(Path(result).resolve())

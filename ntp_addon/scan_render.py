@@ -1,17 +1,17 @@
-"""The Cycles scanner's renderer (runs as ``python -m ntp_addon.scan_render JOB.json``): linear
-EXR photos of an asset through a scanner's emitters, for ``ntp_engine.sim.cycles_scan``.
+"""The Cycles scanner's renderer (runs as ``python -m ntp_addon.scan_render JOB.json``): linear EXR
+photos of an asset through a scanner's emitters, for ``ntp_engine.sim.cycles_scan``.
 
 The job (written by the engine; see there) names the asset folder (``mesh.obj`` + the five maps),
 the camera's device file, the emitters in camera space (centre, normal, axis, size, RGB drive), the
 camera-from-world poses, samples, bounces and seed, and the calibration patch (centre, normal,
-in-plane axis, size). The scene: the asset with the ``NTP Accurate`` material (Diffuse + Glossy GGX,
-``material``), the marker backdrop (``ntp_engine.sim.renderer.marker_albedo``, one texel per 5 mm
-cell, closest-texel lookup), and one rectangular area light per lit emitter (Lambertian, as the
-device's cos^1 LEDs), moved with the camera for every pose. Direct and indirect light (``bounces``),
-exact shadows. Each photo is written as ``OUT/NAME.exr`` through a temporary name, so an interrupted
-job resumes where it stopped; existing photos are kept. ``calibration.exr`` is the white Lambertian
-patch alone, seen from the identity pose. One line ``rendered NAME`` per photo on stdout (the
-engine's progress).
+in-plane axis, size). The scene: the asset with the ``NTP Accurate`` material built for co-located
+lights (Diffuse + Glossy GGX of colour rho_s F0, ``material``), the marker backdrop
+(``ntp_engine.sim.renderer.marker_albedo``, one texel per 5 mm cell, closest-texel lookup), and one
+rectangular area light per lit emitter (Lambertian, as the device's cos^1 LEDs), moved with the
+camera for every pose. Direct and indirect light (``bounces``), exact shadows. Each photo is written
+as ``OUT/NAME.exr`` through a temporary name, so an interrupted job resumes where it stopped;
+existing photos are kept. ``calibration.exr`` is the white Lambertian patch alone, seen from the
+identity pose. One line ``rendered NAME`` per photo on stdout (the engine's progress).
 """
 
 from __future__ import annotations
@@ -144,7 +144,8 @@ def run(job_path: Path) -> None:
     scene.cycles.diffuse_bounces = scene.cycles.glossy_bounces = b
     scene.cycles.transmission_bounces = scene.cycles.volume_bounces = scene.cycles.transparent_max_bounces = 0
     obj = material.import_result_mesh(Path(job["asset"]))
-    material.build_materials(Path(job["asset"]), obj, "accurate", require_report=False)  # ground truth, not a result
+    # ground truth, not a result; every light beside the camera (the engine checked: cycles_scan)
+    material.build_materials(Path(job["asset"]), obj, "accurate", require_report=False, colocated=True)
     _backdrop(scene.collection)
     camera = bscene.camera_object("scanner camera", cam, np.eye(4))
     scene.camera = camera

@@ -31,7 +31,7 @@ from ..pipeline.cache import content_digest, digest
 from ..pipeline.output_folder import claim
 from ..pipeline.scan_folder import load_poses, load_scan
 from ..pipeline.stages import reconstruct, register_photos
-from ..sim.cycles_scan import CyclesConfig, cycles_scan
+from ..sim.cycles_scan import RENDER_VERSION, CyclesConfig, cycles_scan
 from ..sim.evaluate import material_errors, pose_error, relit_ssim
 from ..sim.gallery import GALLERY, build_asset
 from ..sim.virtual_scan import ScanConfig, virtual_scan
@@ -83,7 +83,7 @@ def scan_object(settings: GallerySettings, name: str, scanner: str, out: Path, a
         {
             "scanner": scanner,
             "config": asdict(cfg),
-            "cycles": asdict(cycles) if scanner == "cycles" else None,
+            "cycles": {**asdict(cycles), "render_version": RENDER_VERSION} if scanner == "cycles" else None,
             "asset": content_digest(sorted(p for p in asset.rglob("*") if p.is_file())),
         }
     )

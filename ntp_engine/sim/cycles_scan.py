@@ -5,10 +5,15 @@ cancel in the evaluation.
 Same trajectory (same seed, same poses), same sensor (``virtual_scan.sensor``) and the same scan
 folder and ``ground_truth/`` as ``virtual_scan``; only the linear images differ. Cycles renders them
 in its own process (``python -m ntp_addon.scan_render``; the engine never imports bpy) with a
-Diffuse + Glossy GGX material (Cycles' height-correlated Smith G, Fresnel on n.v — deliberately
-not the engine's BRDF), interreflections (``bounces``), exact shadows and Monte Carlo noise
-(``samples`` per pixel). Each emitter is a small Lambertian area light (so only cos^1 emitters can
-be modelled) driven by the pattern through the colour matrix.
+Diffuse + Glossy GGX material (Cycles' height-correlated Smith G — not the engine's separable one),
+interreflections (``bounces``), exact shadows and Monte Carlo noise (``samples`` per pixel). Each
+emitter is a small Lambertian area light (so only cos^1 emitters can be modelled) driven by the
+pattern through the colour matrix. The Glossy colour is rho_s F0: Schlick's Fresnel on w_i.h, as
+the engine's, because every emitter sits beside the camera, so w_i.h ~ 1 for every direct path
+(``fresnel_term_bound``; a device whose emitters leave more than ``MAX_FRESNEL_TERM`` is refused).
+Blender's nodes cannot put a Fresnel on w_i.h under a 1:80 anisotropic GGX, and the add-on's
+Schlick on n.v (until 2026-11-26 here too) made a broad lobe's grazing views up to 5x too bright —
+no physical surface does that (docs/virtual-scanner.md).
 
 Radiometric calibration, as on a real device: Cycles also renders a white Lambertian patch at the
 valid volume's centre facing the panel; the engine predicts that patch's measurement (Eq. 1) for
@@ -39,6 +44,7 @@ from ..io.images import read_image, write_png
 from ..io.maps import MAP_FILES
 from ..io.mesh import save_obj
 from ..io.progress import QUIET, Progress
+from ..physics.brdf import F0_DIELECTRIC
 from ..physics.measurement import measurement_rgb
 from ..pipeline.cache import content_digest, digest
 from ..pipeline.output_folder import claim
@@ -51,6 +57,12 @@ RENDER_DIR = "cycles"
 POINT_LED_SIZE = 0.002  # m: side of the square area light standing in for a point LED
 LINEAR_LED_WIDTH = 0.001  # m: width of the rectangle standing in for a linear light
 CALIBRATION_PATCH = 0.03  # m: side of the white calibration patch
+# how the scene is rendered (part of the render cache key: bump when the same settings render
+# differently): 2 = the Glossy colour rho_s F0 (was rho_s Schlick on n.v)
+RENDER_VERSION = 2
+# Schlick's (1 - F0)(1 - w_i.h)^5 relative to F0 that the material's F = F0 may leave out, at most
+# (the shipped LED array: 2.5e-4 over its valid volume)
+MAX_FRESNEL_TERM = 1e-3
 
 
 @dataclass
@@ -88,6 +100,21 @@ def emitter_lights(scanner: Scanner) -> list[dict]:
         for k in range(scanner.num_emitters)
         if drive[k].max() > 0
     ]
+
+
+def fresnel_term_bound(scanner: Scanner, steps: int = 5) -> float:
+    """The largest (1 - F0)(1 - w_i.h)^5 / F0 of a direct path — emitter to a point of the valid
+    volume (a ``steps``^3 grid over the box) to the camera: what Schlick's Fresnel on w_i.h adds to
+    F0, relative; w_i.h is cos of half the angle between the emitter and the camera there."""
+    grid = (np.stack(np.meshgrid(*[np.linspace(-0.5, 0.5, steps)] * 3, indexing="ij"), -1)).reshape(-1, 3)
+    x = scanner.valid_center + (grid * scanner.valid_size) @ scanner.valid_axes  # (P, 3) camera space
+    wo = -x / np.linalg.norm(x, axis=1, keepdims=True)
+    wi = scanner.emitter_positions[None] - x[:, None]  # (P, L, 3)
+    wi /= np.linalg.norm(wi, axis=2, keepdims=True)
+    h = wi + wo[:, None]
+    h /= np.linalg.norm(h, axis=2, keepdims=True)
+    cos = float(np.clip((wi * h).sum(2).min(), 0.0, 1.0))
+    return (1.0 - F0_DIELECTRIC) * (1.0 - cos) ** 5 / F0_DIELECTRIC
 
 
 def _render(job: dict, folder: Path, progress: Progress) -> None:
@@ -172,6 +199,12 @@ def cycles_scan(
     cam = plan.cam
     if np.any(np.asarray(cam.distortion) != 0):
         raise NtpInputError(device_path or DEVICES_DIR, "the Cycles scanner models a pinhole camera (distortion 0)")
+    if (term := fresnel_term_bound(scanner)) > MAX_FRESNEL_TERM:
+        raise NtpInputError(
+            device_path or DEVICES_DIR,
+            f"emitters too far from the camera for the Cycles scanner's Fresnel (F = F0 leaves out {term:.2g} of "
+            f"F0, at most {MAX_FRESNEL_TERM:g})",
+        )
 
     with claim(out, "scan", inputs=(src_mesh.parent, maps_dir)):
         remove_old_photos(out, plan.names)
@@ -183,6 +216,7 @@ def cycles_scan(
             "poses": [p.tolist() for p in plan.poses],
             "cycles": asdict(cycles),
             "seed": cfg.seed,
+            "render_version": RENDER_VERSION,
         }
         key_digest = digest(key)
         stamp = folder / "key.json"
