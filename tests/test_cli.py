@@ -55,6 +55,18 @@ def test_demo_runs_end_to_end_and_reports_errors(tmp_path):
     assert again.returncode == 0, again.stderr
     rep = json.loads((d / "result" / "report.json").read_text())
     assert rep["cached_stages"] == ["select", "atlas", "traces", "fit"]
+    assert not json.loads((d / "demo.json").read_text())["config"]["refine"]
+    assert not (d / "result" / "uncertainty.exr").exists()
+    # --refine: the same cached stages, then the refinement (its uncertainties, its report)
+    refined = ntp(
+        "demo", "--out", str(d), "--views", "8", "--scale", "0.1", "--resolution", "24", "--known-poses", "--quiet",
+        "--no-blend", "--refine",
+    )  # fmt: skip
+    assert refined.returncode == 0, refined.stderr
+    rep = json.loads((d / "result" / "report.json").read_text())
+    assert rep["cached_stages"] == ["select", "atlas", "traces", "fit"] and "refine" in rep["stages"]
+    assert json.loads((d / "demo.json").read_text())["config"]["refine"]
+    assert (d / "result" / "uncertainty.exr").is_file() and 0 < rep["refine"]["matte_share"] < 1
     assert [p.name for p in d.rglob(".*")] == [".ntp"] * 3  # no temporary files: the markers of demo, scan, result
 
 

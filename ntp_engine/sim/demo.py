@@ -6,7 +6,9 @@ against the ground truth (``evaluate``): relit SSIM, normal median angle, diffus
 coverage, camera pose error. Everything goes to ``DIR/demo.json``; the relit comparisons (truth
 left, reconstruction right) to ``DIR/relit/``; with bpy installed, the add-on's batch export writes
 ``DIR/asset.blend``, ``DIR/asset.glb`` and a Cycles ``DIR/preview.png``. Re-running resumes: the scan is kept when its
-settings match, and the pipeline's stages are cached.
+settings match, and the pipeline's stages are cached. With ``refine`` the reconstruction adds the
+analysis-by-synthesis refinement (``ntp reconstruct --refine``): on the defaults a better answer
+for ~3 more minutes, past the 5-minute goal (docs/accuracy.md).
 """
 
 from __future__ import annotations
@@ -75,6 +77,7 @@ def run(
     model: str | None = None,
     progress: Progress = QUIET,
     blend: bool = True,
+    refine: bool = False,
 ) -> dict:
     """Virtual scan, reconstruction, errors and export into ``out`` (see the module docstring);
     returns the summary (also ``out/demo.json``) and prints it."""
@@ -95,7 +98,7 @@ def run(
         truth = load_poses(scan_dir / "ground_truth" / "poses.json")
         scan = load_scan(scan_dir, scan_dir / "ground_truth" / "poses.json" if known_poses else None)
         t0 = time.perf_counter()
-        rep = reconstruct(scan, result_dir, resolution=resolution, model=model, progress=progress)
+        rep = reconstruct(scan, result_dir, resolution=resolution, model=model, progress=progress, refine=refine)
         t_rec = time.perf_counter() - t0
         poses, _, _ = register_photos(scan, result_dir)  # the poses the run used (cached)
 
@@ -122,6 +125,7 @@ def run(
                 "resolution": resolution,
                 "seed": seed,
                 "poses": "ground truth" if known_poses else "structure from motion",
+                "refine": refine,
             },
             "metrics": metrics,
             "errors": errors,
