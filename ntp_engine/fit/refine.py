@@ -49,6 +49,7 @@ from .highlights import parked_positions
 from .pixel_bases import (
     diffuse_basis,
     emitter_directions,
+    lobe_weights,
     selected_emitters,
     specular_basis,
     specular_basis_and_derivatives,
@@ -264,7 +265,7 @@ class _Round:
             self.drive = tr.drive.expand(tr.N, tr.V, -1, 3)
             return
         wide = (SELECT_WIDEN * log_alpha.exp()).clamp(SELECT_FLOOR, ALPHA_MAX)
-        score = _lobe(frame0, tr.wi_c, tr.h_c, tr.wo, tr.ff_c, wide)  # (N, V, C)
+        score = lobe_weights(frame0, tr.wi_c, tr.h_c, tr.wo, tr.ff_c, wide)  # (N, V, C)
         order = score.argsort(-1, descending=True)
         self.wi, self.h, self.ff, self.drive = selected_emitters(
             order,

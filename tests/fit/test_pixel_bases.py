@@ -1,6 +1,7 @@
 """The compiled pixel bases equal their torch definitions (float64 references): the diffuse basis
 the horizon-clipped sum over the emitters, the specular one the torch lobe summed, its derivatives
-automatic differentiation of that, and their per-sample inputs the emitter geometry."""
+automatic differentiation of that, the per-emitter lobe weights the torch lobe, and their
+per-sample inputs the emitter geometry."""
 
 import dataclasses
 import math
@@ -12,6 +13,7 @@ import torch
 from ntp_engine.fit.pixel_bases import (
     diffuse_basis,
     emitter_directions,
+    lobe_weights,
     selected_emitters,
     specular_basis,
     specular_basis_and_derivatives,
@@ -67,6 +69,19 @@ def test_bases_and_derivatives_match_the_torch_lobe(seed):
         scale = float(jvp.abs().max())
         torch.testing.assert_close(ds[:, :, k], jvp, rtol=1e-8, atol=1e-11 * scale)
         torch.testing.assert_close(ds32[:, :, k].double(), jvp, rtol=1e-3, atol=1e-5 * scale)
+
+
+def test_lobe_weights_are_the_torch_lobe_per_emitter():
+    frame, wi, h, wo, ff, _, alpha = _case(3)
+    wo[0, 1] = wo[0, 1] * torch.tensor([1.0, 1.0, -1.0], dtype=wo.dtype)  # seen from below: no lobe
+    ref = _lobe(frame, wi, h, wo, ff, alpha)
+    got = lobe_weights(frame, wi, h, wo, ff, alpha)
+    assert got.dtype == torch.float64 and (ref > 0).any() and (ref == 0).any()
+    torch.testing.assert_close(got, ref, rtol=1e-10, atol=1e-14 * float(ref.max()))
+    assert torch.equal(got == 0, ref == 0)  # the same emitters score nothing: blocks rank the same
+    got32 = lobe_weights(*(x.float() for x in (frame, wi, h, wo, ff, alpha)))
+    assert got32.dtype == torch.float32
+    torch.testing.assert_close(got32.double(), ref, rtol=1e-4, atol=1e-6 * float(ref.max()))
 
 
 def test_rows_read_a_subset_without_copying_it():
