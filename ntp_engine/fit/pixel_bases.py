@@ -148,8 +148,7 @@ def _specular(
 
 def lobe_weights(frame: Tensor, wi: Tensor, h: Tensor, wo: Tensor, fresnel_falloff: Tensor, alpha: Tensor) -> Tensor:
     """Each emitter's lobe for unit drive ``(N, V, M)`` (module docstring; ``fit.refine`` ranks the
-    emitter blocks by it): ``fit.refine._lobe``'s values in one compiled pass instead of a dozen
-    (N, V, M) temporaries."""
+    emitter blocks by it) in one compiled pass instead of a dozen (N, V, M) torch temporaries."""
     arrays = [_arr(x, wi.dtype) for x in (frame, wi, h, wo, fresnel_falloff, alpha)]
     out = np.zeros(fresnel_falloff.shape, arrays[1].dtype)
     with numba_threads_as_torch():

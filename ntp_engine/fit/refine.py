@@ -38,7 +38,6 @@ from ..physics.brdf import ALPHA_MAX, ALPHA_MIN, RHO_D_MAX, RHO_S_MAX
 from ..physics.frame import (
     frame_from_normal_tangent,
     rotation_from_vector,
-    to_local,
     turned_about_normal,
 )
 from ..scanner.camera import VALID_CODE
@@ -226,24 +225,6 @@ class _Trace:
             setattr(out, k, v[idx] if isinstance(v, Tensor) and k not in ("drive", "drive_c") else v)
         out.N = len(idx)
         return out
-
-
-def _lobe(frame: Tensor, wi: Tensor, h: Tensor, wo: Tensor, fresnel_falloff: Tensor, alpha: Tensor) -> Tensor:
-    """Eq. 1's specular weight per emitter, F D G / (4 cos_i cos_o) (wi.n)+ * falloff, ``(N, V, K)``,
-    for shading frames ``frame (N, 3, 3)`` (rows t, b, n in the geometric frame), geometric-frame
-    ``wi, h (N, V, K, 3)``, ``wo (N, V, 3)`` and ``alpha (N, 2)``. The cancelled Smith form of
-    ``physics.brdf.ggx_specular`` (F depends on wi.h only, so it comes precomputed with the falloff);
-    summed over emitters with its derivatives in ``pixel_bases.specular_basis_and_derivatives``."""
-    f4 = frame[:, None, None]
-    wi_s, h_s, wo_s = to_local(wi, f4), to_local(h, f4), to_local(wo, frame[:, None])
-    ax, ay = alpha[:, 0, None, None], alpha[:, 1, None, None]
-    q = (h_s[..., 0] / ax) ** 2 + (h_s[..., 1] / ay) ** 2 + h_s[..., 2] ** 2
-    cos_i = wi_s[..., 2].clamp_min(0.0)
-    lam_i = torch.sqrt(((ax * wi_s[..., 0]) ** 2 + (ay * wi_s[..., 1]) ** 2 + wi_s[..., 2] ** 2).clamp_min(1e-20))
-    axo, ayo = ax[..., 0], ay[..., 0]
-    lam_o = torch.sqrt(((axo * wo_s[..., 0]) ** 2 + (ayo * wo_s[..., 1]) ** 2 + wo_s[..., 2] ** 2).clamp_min(1e-20))
-    seen = (wo_s[..., 2] > 0).to(wo_s.dtype) / (wo_s[..., 2].clamp_min(0.0) + lam_o)  # 0 below
-    return cos_i * fresnel_falloff * seen[..., None] / (math.pi * ax * ay * q * q * (cos_i + lam_i))
 
 
 class _Round:

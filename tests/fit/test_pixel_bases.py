@@ -18,11 +18,28 @@ from ntp_engine.fit.pixel_bases import (
     specular_basis,
     specular_basis_and_derivatives,
 )
-from ntp_engine.fit.refine import _lobe
 from ntp_engine.physics.brdf import fresnel_schlick
-from ntp_engine.physics.frame import frame_from_normal_tangent, rotation_from_vector, safe_normalize
+from ntp_engine.physics.frame import frame_from_normal_tangent, rotation_from_vector, safe_normalize, to_local
 from ntp_engine.physics.measurement import local_emitter_geometry
 from ntp_engine.scanner.device_file import load_scanner
+
+
+def _lobe(frame: torch.Tensor, wi, h, wo, fresnel_falloff, alpha) -> torch.Tensor:
+    """The torch definition the compiled loops are checked against: Eq. 1's specular weight per
+    emitter, F D G / (4 cos_i cos_o) (wi.n)+ * falloff, ``(N, V, K)``, for shading frames ``frame
+    (N, 3, 3)`` (rows t, b, n in the geometric frame), geometric-frame ``wi, h (N, V, K, 3)``, ``wo
+    (N, V, 3)`` and ``alpha (N, 2)`` — the cancelled Smith form of ``physics.brdf.ggx_specular``
+    (F depends on wi.h only, so it comes precomputed with the falloff)."""
+    f4 = frame[:, None, None]
+    wi_s, h_s, wo_s = to_local(wi, f4), to_local(h, f4), to_local(wo, frame[:, None])
+    ax, ay = alpha[:, 0, None, None], alpha[:, 1, None, None]
+    q = (h_s[..., 0] / ax) ** 2 + (h_s[..., 1] / ay) ** 2 + h_s[..., 2] ** 2
+    cos_i = wi_s[..., 2].clamp_min(0.0)
+    lam_i = torch.sqrt(((ax * wi_s[..., 0]) ** 2 + (ay * wi_s[..., 1]) ** 2 + wi_s[..., 2] ** 2).clamp_min(1e-20))
+    axo, ayo = ax[..., 0], ay[..., 0]
+    lam_o = torch.sqrt(((axo * wo_s[..., 0]) ** 2 + (ayo * wo_s[..., 1]) ** 2 + wo_s[..., 2] ** 2).clamp_min(1e-20))
+    seen = (wo_s[..., 2] > 0).to(wo_s.dtype) / (wo_s[..., 2].clamp_min(0.0) + lam_o)  # 0 below
+    return cos_i * fresnel_falloff * seen[..., None] / (math.pi * ax * ay * q * q * (cos_i + lam_i))
 
 
 def _case(seed: int, N=6, V=5, M=40):
