@@ -59,6 +59,11 @@ def setup_cycles(scene: bpy.types.Scene, width: int, height: int, samples: int =
     scene.render.film_transparent = False
     scene.view_settings.view_transform = "Standard"
     scene.world = None  # a new World carries a grey background; none is black
+    # nothing clamped or blurred: Cycles' defaults clip every indirect sample above 10 (an LED's
+    # light bounced off the support is far above that in the scanner's raw units — the gallery's
+    # Cycles scans held ~1/8 of the support's light) and blur glossy bounces
+    scene.cycles.sample_clamp_direct = scene.cycles.sample_clamp_indirect = 0.0
+    scene.cycles.blur_glossy = 0.0
 
 
 def point_light(

@@ -53,6 +53,7 @@ from .pixel_bases import (
     specular_basis,
     specular_basis_and_derivatives,
 )
+from .support_light import Sources, SupportEmitters, SupportView, support_emitters
 
 VERSION = 16  # of the method: part of the pipeline's cache key (bump when results change for the same settings)
 CENSOR_CODE = VALID_CODE[1]  # above this an 8-bit code may be (or border) a clipped pixel: a lower bound
@@ -172,6 +173,7 @@ class _Trace:
         noise: SensorNoise,
         blocks: EmitterBlocks | None,
         shadow: Tensor | None = None,
+        support: SupportView | None = None,
     ):
         N, V, _ = entries.shape
         self.N, self.V, self.blocks = N, V, blocks
@@ -209,6 +211,21 @@ class _Trace:
         self.censored = (code > CENSOR_CODE).any(-1, keepdim=True).expand(N, V, 3) & mask[..., None]
         self.mask = mask[..., None].expand(N, V, 3)
         self.inv_sigma = torch.where(self.mask, 1.0 / noise.sigma(self.y), torch.zeros_like(self.y))
+        self.support = None if support is None else support.scene
+        if support is not None:  # what the support's light needs per entry and texel (``fit.support_light``)
+            self.scanner, self.sources = scanner, Sources.of(scanner)
+            self.live, self.x_cam, self.frame_cam = mask, x.view(N, V, 3), frame.view(N, V, 3, 3)
+            self.position, self.frame_world = support.position.double(), support.frame_world.double()
+
+    def support_light(self, frame0: Tensor, alpha: Tensor | None) -> SupportEmitters | None:
+        """The support's light as extra emitters for the round's ``frame0 (N, 3, 3)`` and lobe
+        ``alpha (N, 2)`` (None: diffuse only), or None without a support."""
+        if self.support is None:
+            return None
+        view = SupportView(self.support, self.position, self.frame_world)
+        return support_emitters(
+            view, self.scanner, self.sources, self.x_cam, self.frame_cam, self.live, self.wo, frame0, alpha
+        )
 
     def light_rows(self, idx: Tensor) -> _Trace:
         """The texels ``idx`` with only what the residuals need (no per-emitter arrays)."""
@@ -233,10 +250,16 @@ class _Round:
 
     def __init__(self, tr: _Trace, frame0: Tensor, log_alpha: Tensor, specular: bool, diffuse: Tensor | None = None):
         self.tr, self.specular, self.frame0 = tr, specular, frame0
+        # the support's light: more emitters, drawn for this round's normal and lobe
+        support = (
+            tr.support_light(frame0, log_alpha.exp() if specular else None) if diffuse is None or specular else None
+        )
         # diffuse basis per channel: linear in the shading normal (emitters above F0's horizon);
         # ``diffuse``: given by a round of the same normal
         if diffuse is None:
             diffuse = diffuse_basis(frame0[:, 2], tr.wi, tr.falloff, tr.drive)  # (N, V, 3, 3), wi's dtype
+            if support is not None:
+                diffuse = diffuse + support.diffuse
         self.diffuse = diffuse
         self.wo, self.row = tr.wo, torch.arange(tr.N)  # the per-entry arrays' rows of the round's texels
         if not specular:
@@ -244,17 +267,21 @@ class _Round:
         if tr.blocks is None:
             self.wi, self.h, self.ff = tr.wi, tr.h, tr.fresnel_falloff
             self.drive = tr.drive.expand(tr.N, tr.V, -1, 3)
-            return
-        wide = (SELECT_WIDEN * log_alpha.exp()).clamp(SELECT_FLOOR, ALPHA_MAX)
-        score = lobe_weights(frame0, tr.wi_c, tr.h_c, tr.wo, tr.ff_c, wide)  # (N, V, C)
-        order = score.argsort(-1, descending=True)
-        self.wi, self.h, self.ff, self.drive = selected_emitters(
-            order,
-            tr.blocks.members,
-            EXPANDED_BLOCKS,
-            (tr.wi, tr.h, tr.fresnel_falloff, tr.drive),
-            (tr.wi_c, tr.h_c, tr.ff_c, tr.drive_c),
-        )
+        else:
+            wide = (SELECT_WIDEN * log_alpha.exp()).clamp(SELECT_FLOOR, ALPHA_MAX)
+            score = lobe_weights(frame0, tr.wi_c, tr.h_c, tr.wo, tr.ff_c, wide)  # (N, V, C)
+            order = score.argsort(-1, descending=True)
+            self.wi, self.h, self.ff, self.drive = selected_emitters(
+                order,
+                tr.blocks.members,
+                EXPANDED_BLOCKS,
+                (tr.wi, tr.h, tr.fresnel_falloff, tr.drive),
+                (tr.wi_c, tr.h_c, tr.ff_c, tr.drive_c),
+            )
+        if support is not None:
+            self.wi, self.h = torch.cat([self.wi, support.wi], 2), torch.cat([self.h, support.h], 2)
+            self.ff = torch.cat([self.ff, support.fresnel_falloff], 2)
+            self.drive = torch.cat([self.drive.expand(tr.N, tr.V, -1, 3), support.drive], 2)
 
     def rows(self, idx: Tensor) -> _Round:
         """The same round for the texels ``idx`` only (the LM drops texels that have converged); the
@@ -595,6 +622,7 @@ def refine(
     specular: Tensor,
     settings: RefineSettings | None = None,
     shadow: Tensor | None = None,
+    support: SupportView | None = None,
 ) -> Refined:
     """Refine N texels from ``start``. ``entries (N, V, 12)`` as captured with ``mask (N, V)`` and
     ``shadow (N, V)`` (the emitter groups the mesh hides from each entry: ``learn.ragged``);
@@ -602,7 +630,7 @@ def refine(
     entry shows (below ``MIN_SPECULAR_SHARE`` of every pixel), gets a diffuse-only solve from its
     start and rho_s = 0, its lobe flagged unconstrained. Never NaN: a failed solve keeps the start."""
     settings = settings or RefineSettings()
-    tr = _Trace(scanner, entries, mask, settings.noise, emitter_blocks(scanner), shadow)
+    tr = _Trace(scanner, entries, mask, settings.noise, emitter_blocks(scanner), shadow, support)
     return _refine(tr, start, specular, settings)
 
 
@@ -695,6 +723,7 @@ def material_costs(
     settings: RefineSettings | None = None,
     shadow: Tensor | None = None,
     turn_prior: tuple[Tensor, Tensor] | None = None,
+    support: SupportView | None = None,
 ) -> tuple[Tensor, Tensor]:
     """How well K basis materials' lobes (``alpha (K, 2)``, ``rho_s (K, 3)``) explain N traces:
     the robust data cost ``(N, 1 + K)`` of each texel's trace under no lobe (column 0) and under each
@@ -710,7 +739,7 @@ def material_costs(
     better guess where neighbours disagree). Columns are comparable: each model has the same free
     rho_d."""
     settings = settings or RefineSettings()
-    tr_all = _Trace(scanner, entries, mask, settings.noise, emitter_blocks(scanner), shadow)
+    tr_all = _Trace(scanner, entries, mask, settings.noise, emitter_blocks(scanner), shadow, support)
     dtype = tr_all.y.dtype
     N, K = tr_all.N, alpha.shape[0]
     frame_all = frame_from_normal_tangent(start.normal.to(dtype), start.tangent.to(dtype))
@@ -760,6 +789,7 @@ def refine_toward(
     prior: LobePrior,
     settings: RefineSettings | None = None,
     shadow: Tensor | None = None,
+    support: SupportView | None = None,
 ) -> Refined:
     """Refine N texels that take their lobe from a basis material: from ``start`` (the material's
     lobe with the texel's own frame, rho_d), with alphas and rho_s pulled to ``prior`` by its
@@ -767,7 +797,7 @@ def refine_toward(
     ``FLAG_FROM_MATERIAL``, and ``FLAG_SPECULAR_UNCONSTRAINED`` where none does: its parameters are
     then the material's; its uncertainty the prior's). Never NaN: a failed solve keeps the start."""
     settings = settings or RefineSettings()
-    tr = _Trace(scanner, entries, mask, settings.noise, emitter_blocks(scanner), shadow)
+    tr = _Trace(scanner, entries, mask, settings.noise, emitter_blocks(scanner), shadow, support)
     dtype = tr.y.dtype
     N = tr.N
     frame = frame_from_normal_tangent(start.normal.to(dtype), start.tangent.to(dtype))
@@ -798,13 +828,14 @@ def calibrated_noise(
     specular: Tensor,
     settings: RefineSettings,
     shadow: Tensor | None = None,
+    support: SupportView | None = None,
 ) -> SensorNoise:
     """The sensor noise model scaled (within ``NOISE_SCALE``) so that a refinement of these sample
     traces leaves residuals of unit robust scale — 1.4826 x the median |normalised residual| of the
     answer over its entries is 1 when the model is right (Monte Carlo renders and unmodelled effects
     give more): data from a noisier source then weigh against the priors as much as they deserve.
     A quieter source keeps the model as it is (``NOISE_SCALE``'s floor of 1)."""
-    tr = _Trace(scanner, entries, mask, settings.noise, emitter_blocks(scanner), shadow)
+    tr = _Trace(scanner, entries, mask, settings.noise, emitter_blocks(scanner), shadow, support)
     r = _refine(tr, start, specular, settings)
     p = torch.cat([torch.zeros_like(r.rho_d), r.log_alpha, r.rho_d, r.rho_s], 1)
     res, active = _residuals(tr, *_predict(tr, r.frame, p), p)

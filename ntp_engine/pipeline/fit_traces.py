@@ -36,11 +36,13 @@ from ..fit.refine import (
     refine,
     refine_toward,
 )
+from ..fit.support_light import SupportScene, SupportView
 from ..fit.tangent_field import neighbour_turns, texel_spacing
 from ..io.progress import QUIET, Progress
 from ..learn.inference import predict
 from ..learn.network import TraceNet
 from ..learn.ragged import RaggedTraces, spread_rows
+from ..physics.frame import frame_from_normal_tangent
 from ..scanner.scanner import Scanner
 from .task_pool import LocalPool, TaskPool
 from .texels import Texels
@@ -188,10 +190,16 @@ class RefineInputs(NamedTuple):
     specular: torch.Tensor  # (n,) texels that seek a lobe
     shadow: torch.Tensor  # (n, V) int64 emitter groups the mesh hides from each entry
     marginal: torch.Tensor  # (n,) texels that read shadowed or grazing entries (``MIN_CLEAR_ENTRIES``)
+    support: SupportView | None  # the support's light on them (``fit.support_light``), or None
 
 
 def refine_inputs(
-    scanner: Scanner, traces: RaggedTraces, idx: torch.Tensor, fit: dict[str, np.ndarray]
+    scanner: Scanner,
+    traces: RaggedTraces,
+    idx: torch.Tensor,
+    fit: dict[str, np.ndarray],
+    support: SupportScene | None = None,
+    texels: Texels | None = None,
 ) -> RefineInputs:
     """What ``fit.refine.refine`` takes for the texels ``idx`` of ``traces`` (linear pixels as
     captured: the camera model is the scanner's): their entries (``REFINE_VIEWS`` spread over each
@@ -201,7 +209,8 @@ def refine_inputs(
     others (``marginal``): their model is coarser (half emitter blocks hidden or not, no light the
     mesh reflects into its own shadows; a grazing pixel spans a strip of surface) — on the knot
     reading shadowed entries everywhere cost the Cycles scan's normals 0.3-0.7 deg, on the gallery
-    grazing ones its relit SSIM (docs/accuracy.md)."""
+    grazing ones its relit SSIM (docs/accuracy.md). With ``support`` (and ``texels``, the atlas of
+    the traces), the support's light on them."""
     groups = shadow_groups(scanner)
     rows, mask = traces.padded_rows(idx)  # every entry of each trace
     marginal_entry = mask & (shadowed(groups, traces.shadow_at(rows, mask)) | grazing(traces.entries_at(rows, mask)))
@@ -212,7 +221,14 @@ def refine_inputs(
     i = idx.numpy()
     specular = torch.as_tensor(fit["flags"][i] & FLAG_NO_HIGHLIGHT == 0)
     start = Start.from_fit(fit, i)
-    return RefineInputs(traces.entries_at(rows, mask), mask, start, specular, traces.shadow_at(rows, mask), marginal)
+    view = None
+    if support is not None:
+        if texels is None:
+            raise ValueError("the support's light needs the texels the traces were assembled for")
+        frame = frame_from_normal_tangent(torch.as_tensor(texels.normal[i]), torch.as_tensor(texels.tangent[i]))
+        view = SupportView(support, torch.as_tensor(texels.position[i]), frame)
+    entries, shadow = traces.entries_at(rows, mask), traces.shadow_at(rows, mask)
+    return RefineInputs(entries, mask, start, specular, shadow, marginal, view)
 
 
 def refine_fit(
@@ -222,6 +238,7 @@ def refine_fit(
     settings: RefineSettings | None = None,
     progress: Progress = QUIET,
     texels: Texels | None = None,
+    support: SupportScene | None = None,
 ) -> dict[str, np.ndarray]:
     """``fit_traces``'s result refined by analysis-by-synthesis (``fit.refine``) against every entry
     of every observed trace (``traces``: linear pixels as captured), dark and clipped ones included;
@@ -236,28 +253,31 @@ def refine_fit(
     texels without a lobe of their own that belong to a lobe material refined toward its lobe, from
     the tangent turn its trace liked best (``fit.refine.material_costs``) — with ``texels`` (the
     atlas the traces were assembled for, trace i = texel i), weighing most the turn its neighbours
-    of the material point along (``fit.tangent_field``)."""
+    of the material point along (``fit.tangent_field``). With ``support`` (and ``texels``), Eq. 1
+    gains the light the support reflects onto the object (``fit.support_light``)."""
     fit = {k: v.copy() for k, v in fit.items()}
     todo = (traces.lengths > 0).nonzero().squeeze(1)
     settings = settings or RefineSettings()
     if len(todo):  # the noise model, calibrated on a seeded sample of the texels
         gen = torch.Generator().manual_seed(0)
         sample = todo[torch.randperm(len(todo), generator=gen)[:CALIBRATION_TEXELS]].sort().values
-        inp = refine_inputs(scanner, traces, sample, fit)
-        noise = calibrated_noise(scanner, inp.entries, inp.mask, inp.start, inp.specular, settings, inp.shadow)
+        inp = refine_inputs(scanner, traces, sample, fit, support, texels)
+        noise = calibrated_noise(
+            scanner, inp.entries, inp.mask, inp.start, inp.specular, settings, inp.shadow, inp.support
+        )
         settings = dataclasses.replace(settings, noise=noise)
         fit["noise_scale"] = np.array(noise.relative / RefineSettings().noise.relative)
     fit["std"] = np.full((traces.num_traces, 4), np.nan)
     fit["highlight"] = np.zeros(traces.num_traces, np.float32)
     bar = progress.counter("refine", len(todo), "texel")
     for idx in todo.split(REFINE_BATCH):
-        inp = refine_inputs(scanner, traces, idx, fit)
-        r = refine(scanner, inp.entries, inp.mask, inp.start, inp.specular, settings, inp.shadow)
+        inp = refine_inputs(scanner, traces, idx, fit, support, texels)
+        r = refine(scanner, inp.entries, inp.mask, inp.start, inp.specular, settings, inp.shadow, inp.support)
         _store(fit, idx, r, inp.marginal)
         bar.update(len(idx))
     bar.close()
     if settings.materials:
-        _material_pass(scanner, traces, fit, todo, settings, progress, texels)
+        _material_pass(scanner, traces, fit, todo, settings, progress, texels, support)
     return fit
 
 
@@ -304,6 +324,7 @@ def _material_pass(
     settings: RefineSettings,
     progress: Progress,
     texels: Texels | None = None,
+    support: SupportScene | None = None,
 ) -> None:
     """Basis materials from the first pass, assignment, and the texels that take a lobe from theirs
     refined toward it (``refine_fit``); updates ``fit`` in place."""
@@ -334,11 +355,11 @@ def _material_pass(
     field = _neighbour_turns(texels, fit, i_obs, label, own[i_obs], rest, len(basis))
     bar = progress.counter("materials", len(rest), "texel")
     for k in np.array_split(np.arange(len(rest)), -(-len(rest) // REFINE_BATCH)) if len(rest) else []:
-        inp = refine_inputs(scanner, traces, torch.as_tensor(i_obs[rest[k]]), fit)
+        inp = refine_inputs(scanner, traces, torch.as_tensor(i_obs[rest[k]]), fit, support, texels)
         maybe = torch.as_tensor(candidates(prior[rest[k]]))
         near = None if field is None else (torch.as_tensor(field[0][k]), torch.as_tensor(field[1][k]))
         c, t = material_costs(
-            scanner, inp.entries, inp.mask, inp.start, alpha, rho_s, maybe, settings, inp.shadow, near
+            scanner, inp.entries, inp.mask, inp.start, alpha, rho_s, maybe, settings, inp.shadow, near, inp.support
         )
         costs[rest[k]], turns[rest[k]] = c.numpy(), t.numpy()
         bar.update(len(k))
@@ -368,7 +389,7 @@ def _material_pass(
     sel = torch.as_tensor(np.nonzero(takes)[0])
     bar = progress.counter("material lobes", len(sel), "texel")
     for idx in sel.split(REFINE_BATCH):
-        inp = refine_inputs(scanner, traces, idx, fit)
+        inp = refine_inputs(scanner, traces, idx, fit, support, texels)
         m = fit["material"][idx.numpy()]
         pull = LobePrior(
             torch.as_tensor(basis.alpha[m], dtype=torch.float32),
@@ -376,7 +397,7 @@ def _material_pass(
             torch.as_tensor(basis.log_alpha_sigma[m], dtype=torch.float32),
             torch.as_tensor(basis.rho_s_sigma[m], dtype=torch.float32),
         )
-        r = refine_toward(scanner, inp.entries, inp.mask, inp.start, pull, settings, inp.shadow)
+        r = refine_toward(scanner, inp.entries, inp.mask, inp.start, pull, settings, inp.shadow, inp.support)
         _store(fit, idx, r, inp.marginal)
         bar.update(len(idx))
     bar.close()

@@ -3,7 +3,9 @@ photos folder, the device file and, optionally, a poses file (camera-from-world 
 SfM is skipped with it) or a COLMAP model folder (``colmap = "sparse/0"``: SfM is skipped, the
 model is aligned to the mesh) and ``support_plane = false`` when the object does not stand on a flat
 support at the mesh's lowest z (default true: SfM alignment uses the support, and photos whose
-LEDs the support shadows are skipped).
+LEDs the support shadows are skipped), and ``support_light = false`` when the photos hold no light
+the support reflects onto the object (a renderer of Eq. 1's direct light alone: the refinement then
+leaves it out; default: as ``support_plane``).
 
 Every problem is a one-line ``NtpInputError`` naming the file; photos that cannot be read are not
 errors but are left out by photo selection, each named on stderr. A mesh whose size is implausible
@@ -46,6 +48,7 @@ class Scan:
     poses: dict[str, np.ndarray] | None = None
     colmap: Path | None = None  # a COLMAP model folder to use instead of running SfM
     support_plane: bool = True  # the object stands on a flat support at the mesh's lowest z
+    support_light: bool = True  # the photos hold the light that support reflects onto the object
 
     @property
     def input_folders(self) -> tuple[Path, ...]:
@@ -124,8 +127,13 @@ def load_scan(
     support = table.get("support_plane", True)
     if not isinstance(support, bool):
         raise NtpInputError(toml, f"key 'support_plane': expected true or false, got {support!r}")
+    light = table.get("support_light", support)
+    if not isinstance(light, bool):
+        raise NtpInputError(toml, f"key 'support_light': expected true or false, got {light!r}")
+    if light and not support:
+        raise NtpInputError(toml, "key 'support_light': true needs a support (support_plane = false)")
     poses = load_poses(pose_path) if pose_path else None
-    return Scan(folder, mesh, photos, scanner, paths, poses, model, support_plane=support)
+    return Scan(folder, mesh, photos, scanner, paths, poses, model, support_plane=support, support_light=light)
 
 
 def check_mesh_size(mesh: Mesh, scanner: Scanner, path: Path) -> None:
@@ -169,9 +177,13 @@ def write_scan_toml(
     photos: str = "photos",
     device: str = "device.toml",
     comments: tuple[str, ...] = (),
+    support_light: bool = True,
 ) -> None:
-    """Write ``folder/scan.toml`` naming the mesh, the photos folder and the device file (atomic);
-    ``comments`` become ``#`` lines around them, the first before, the rest after."""
+    """Write ``folder/scan.toml`` naming the mesh, the photos folder and the device file (atomic),
+    and ``support_light = false`` where asked; ``comments`` become ``#`` lines around them, the
+    first before, the rest after."""
     lines = [f"# {c}" for c in comments[:1]] + [f'mesh = "{mesh}"', f'photos = "{photos}"', f'device = "{device}"']
+    if not support_light:
+        lines.append("support_light = false  # the photos hold no light reflected by the support")
     lines += [f"# {c}" for c in comments[1:]] + [""]
     write_text_atomic(folder / "scan.toml", "\n".join(lines))

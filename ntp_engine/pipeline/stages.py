@@ -26,10 +26,15 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import torch
 
 from ..fit.emitter_blocks import SHADOW_SPLITS
 from ..fit.refine import FLAG_FROM_MATERIAL, RefineSettings
 from ..fit.refine import VERSION as REFINE_VERSION
+from ..fit.support_light import CELL as SUPPORT_CELL
+from ..fit.support_light import CODE_RANGE as SUPPORT_CODES
+from ..fit.support_light import REACH_RADII as SUPPORT_REACH
+from ..fit.support_light import SupportAlbedo, SupportScene, estimate_support_albedo
 from ..io.atomic import atomic_path, temp_dir, write_text_atomic
 from ..io.errors import NtpInputError
 from ..io.images import write_png
@@ -38,6 +43,7 @@ from ..io.progress import QUIET, Progress
 from ..io.raycast import RayCaster
 from ..learn import models
 from ..learn.ragged import RaggedTraces
+from ..scanner import camera
 from ..scanner.device_file import scanner_to_dict
 from . import traces as trace_assembly
 from .align import Alignment, align_to_mesh
@@ -383,12 +389,18 @@ def _reconstruct(
     report.timed("network_and_fit", t0)
     if refine:
         t0 = time.perf_counter()
+        caster = RayCaster([mesh.triangles])
+        support, h_support = _support_stage(scan, cache, mesh, caster, poses, h_atlas, h_pose, progress)
+        report.timed("support", t0)
+        t0 = time.perf_counter()
 
         def refine_stage(d: Path) -> None:
-            np.savez(d / "refined.npz", **refine_fit(scan.scanner, traces, fitted, REFINE, progress, texels))
+            scene = None if support is None else SupportScene(support, caster)
+            np.savez(d / "refined.npz", **refine_fit(scan.scanner, traces, fitted, REFINE, progress, texels, scene))
 
         key = {
             "fit": h_fit,
+            "support": h_support,
             "settings": dataclasses.asdict(REFINE),
             "views": REFINE_VIEWS,
             "min_clear_entries": MIN_CLEAR_ENTRIES,
@@ -481,6 +493,37 @@ def _atlas_stage(scan: Scan, cache: StageCache, resolution: int) -> tuple[Mesh, 
 def _photo_codes(scan: Scan, name: str) -> np.ndarray:
     """A kept photo's 8-bit codes (its content is in the stage key, so it is the photo selected)."""
     return read_photo(scan.photos_dir / name, scan.scanner).astype(np.uint8)
+
+
+def _support_stage(
+    scan: Scan,
+    cache: StageCache,
+    mesh: Mesh,
+    caster: RayCaster,
+    poses: dict[str, np.ndarray],
+    h_atlas: str,
+    h_pose: str,
+    progress: Progress,
+) -> tuple[SupportAlbedo | None, str | None]:
+    """The support's albedo map from the photos (``fit.support_light``) and its stage hash; None
+    where the photos hold no light from the support (``scan.support_light``)."""
+    if not scan.support_light:
+        return None, None
+    names = sorted(poses)
+
+    def compute(d: Path) -> None:
+        def photos() -> Iterator[tuple[np.ndarray, np.ndarray]]:
+            for n in progress.track(names, "support", total=len(names), unit="photo"):
+                codes = _photo_codes(scan, n)
+                yield camera.decode(scan.scanner, torch.as_tensor(codes, dtype=torch.float64)).numpy(), codes
+
+        estimate_support_albedo(photos(), [poses[n] for n in names], scan.scanner, mesh.vertices, caster).save(
+            d / "support.npz"
+        )
+
+    key = {"atlas": h_atlas, "poses": h_pose, "cell": SUPPORT_CELL, "reach": SUPPORT_REACH, "codes": SUPPORT_CODES}
+    folder, h = cache.get("support", key, compute)
+    return SupportAlbedo.load(folder / "support.npz"), h
 
 
 def _traces_stage(

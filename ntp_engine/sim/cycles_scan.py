@@ -58,8 +58,9 @@ POINT_LED_SIZE = 0.002  # m: side of the square area light standing in for a poi
 LINEAR_LED_WIDTH = 0.001  # m: width of the rectangle standing in for a linear light
 CALIBRATION_PATCH = 0.03  # m: side of the white calibration patch
 # how the scene is rendered (part of the render cache key: bump when the same settings render
-# differently): 2 = the Glossy colour rho_s F0 (was rho_s Schlick on n.v)
-RENDER_VERSION = 2
+# differently): 2 = the Glossy colour rho_s F0 (was rho_s Schlick on n.v); 3 = no clamp on indirect
+# samples, no glossy blur (Cycles' defaults held back most of the light bounced off the support)
+RENDER_VERSION = 3
 # Schlick's (1 - F0)(1 - w_i.h)^5 relative to F0 that the material's F = F0 may leave out, at most
 # (the shipped LED array: 2.5e-4 over its valid volume)
 MAX_FRESNEL_TERM = 1e-3

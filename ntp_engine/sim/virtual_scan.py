@@ -238,4 +238,6 @@ def write_scan(
             f"written by ntp virtual-scan (renderer: {capture['renderer']})",
             "ground truth for evaluation: ground_truth/ (maps, poses.json, capture.json)",
         ),
+        # the engine renders Eq. 1's direct light, Cycles without bounces too: no support light
+        support_light=capture["renderer"] == "cycles" and capture["cycles"]["bounces"] > 0,
     )

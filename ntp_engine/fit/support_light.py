@@ -1,0 +1,386 @@
+"""Light the support reflects onto the object: the refinement's second light source (issue 17).
+
+The scanner's LEDs light the table the object stands on as much as the object, and a glossy face
+seen edge-on mirrors that table into the camera. Eq. 1 (direct light only) lacks this light; the
+refinement then explains it by turning lobes toward the LEDs (Cycles scans: normals tilted up by
+Δn_z 0.02–0.08, a blob's brushed underside |log rho_s| 8.5 — docs/accuracy.md).
+
+Model: the support is the plane z = ``SupportAlbedo.z`` of the mesh frame (``scan.support_plane``:
+the mesh's lowest z), Lambertian, with an albedo map read from the photos themselves
+(``estimate_support_albedo``: each photo's support pixels over the irradiance the scanner's
+emitters give there, the median over the photos). In photo j its radiance at p is
+a(p) / pi * E_j(p), E_j the pattern's irradiance from the scanner's emitters (their blocks'
+coarse emitters: the support is far from them compared with a block), zero where the object hides
+the scanner from p (one ray toward the camera: the emitters sit beside it). Toward a texel that is
+an area light, summed by Monte Carlo over fixed, stratified sample directions per entry — from the
+normals of the round's lobe (widened) visible from the camera (specular; Heitz 2018), and
+cosine-distributed about the round's normal (diffuse) — each one more emitter of the refinement
+with that photo's radiance as its drive and 1 / (S pdf) as its falloff; a direction that does not
+reach the support within ``MAX_REACH``, or that the object blocks, carries none. For fixed
+directions the sums are smooth in the parameters, so the refinement's Jacobians hold; each round
+draws them again for its lobe.
+
+Convention: per texel, its world position ``position (N, 3)`` (mesh frame, metres) and geometric
+frame ``frame_world (N, 3, 3)`` (rows t^, b^, n^ in the mesh frame); per entry its camera-space
+point ``x_cam (N, V, 3)`` and geometric frame ``frame_cam (N, V, 3, 3)`` (the trace's columns);
+directions and results in the texel's geometric frame (as ``pixel_bases``), drives in linear pixel
+units with the exposure (as the emitters').
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import NamedTuple
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from ..io.maps import bilinear_pixels
+from ..io.raycast import RayCaster
+from ..physics.brdf import ALPHA_MAX, F0_DIELECTRIC, fresnel_schlick, ggx_ndf
+from ..scanner import camera
+from ..scanner.scanner import Scanner
+from .emitter_blocks import emitter_blocks
+
+SPECULAR_SAMPLES = 16  # per entry, from the round's lobe (widened)
+DIFFUSE_SAMPLES = (
+    32  # per entry, cosine-distributed about the round's normal (16: -25% on a vertical face seen edge-on)
+)
+SAMPLE_WIDEN, SAMPLE_FLOOR = 1.5, 0.02  # the sampled lobe: the round's alphas x1.5 (at least 0.02)
+MAX_REACH = 1.0  # m: support points farther from the texel carry no light
+RAY_OFFSET = 1e-4  # m: rays start this far off the surfaces they leave
+CELL = 0.004  # m: the albedo map's cells
+REACH_RADII = 3.0  # the map spans this many object radii around the object's footprint
+CODE_RANGE = (2.0, 250.0)  # support pixels read with every channel's 8-bit code inside (not black, not clipped)
+
+
+@dataclass(frozen=True)
+class SupportAlbedo:
+    """The support's diffuse albedo on the plane z = ``z``: a map of square cells (cell (i, j)
+    covers x in origin_x + [j, j + 1) cell, y in origin_y + [i, i + 1) cell), ``fill`` beyond it."""
+
+    z: float
+    origin: np.ndarray  # (2,) m
+    cell: float  # m
+    albedo: np.ndarray  # (H, W, 3)
+    fill: np.ndarray  # (3,)
+
+    def at(self, xy: Tensor) -> Tensor:
+        """Albedo ``(..., 3)`` at world ``xy (..., 2)`` (nearest cell), in ``xy``'s dtype."""
+        H, W, _ = self.albedo.shape
+        ij = torch.floor((xy - torch.as_tensor(self.origin, dtype=xy.dtype)) / self.cell).long()
+        col, row = ij[..., 0], ij[..., 1]
+        inside = (col >= 0) & (col < W) & (row >= 0) & (row < H)
+        table = torch.cat(
+            [
+                torch.as_tensor(self.albedo, dtype=xy.dtype).reshape(-1, 3),
+                torch.as_tensor(self.fill, dtype=xy.dtype)[None],
+            ]
+        )
+        flat = torch.where(inside, row.clamp(0, H - 1) * W + col.clamp(0, W - 1), H * W)
+        return table[flat]
+
+    def save(self, path: Path) -> None:
+        """As one ``.npz``."""
+        np.savez(path, z=self.z, origin=self.origin, cell=self.cell, albedo=self.albedo, fill=self.fill)
+
+    @classmethod
+    def load(cls, path: Path) -> SupportAlbedo:
+        """What ``save`` wrote."""
+        with np.load(path) as f:
+            return cls(float(f["z"]), f["origin"], float(f["cell"]), f["albedo"], f["fill"])
+
+
+@dataclass(frozen=True)
+class SupportScene:
+    """What the refinement needs of the support: its albedo and, where given, the object's mesh
+    as a ray caster (what it hides from the texels and the scanner; None: nothing hidden)."""
+
+    albedo: SupportAlbedo
+    caster: RayCaster | None = None
+
+
+class SupportView(NamedTuple):
+    """The support as N texels see it: the scene, their world ``position (N, 3)`` and geometric
+    ``frame_world (N, 3, 3)`` (rows t^, b^, n^ in the mesh frame)."""
+
+    scene: SupportScene
+    position: Tensor
+    frame_world: Tensor
+
+
+class Sources(NamedTuple):
+    """The emitters that light the support, in camera space: ``points, normals (C, 3)`` and the
+    effective drive ``(C, 3)`` with their quadrature weights (Psi as the scanner's)."""
+
+    points: Tensor
+    normals: Tensor
+    drive: Tensor
+
+    @classmethod
+    def of(cls, scanner: Scanner) -> Sources:
+        """``scanner``'s emitter blocks' coarse emitters (every sample on a small device)."""
+        blocks = emitter_blocks(scanner)
+        if blocks is not None:
+            c = blocks.coarse
+            return cls(
+                torch.as_tensor(c.emitter_positions), torch.as_tensor(c.emitter_normals), blocks.coarse_drive.double()
+            )
+        pts, w = scanner.emitter_samples(torch.float64)
+        L, Q = w.shape
+        drive = torch.as_tensor(scanner.effective_pattern()).repeat_interleave(Q, 0) * w.reshape(-1, 1)
+        normals = torch.as_tensor(scanner.emitter_normals).repeat_interleave(Q, 0)
+        return cls(pts.reshape(-1, 3), normals, drive)
+
+
+def irradiance(scanner: Scanner, sources: Sources, points: Tensor, normal: Tensor) -> Tensor:
+    """Pattern irradiance ``(M, 3)`` (linear pixel units of a unit-albedo Lambertian surface times
+    pi, exposure included) at camera-space ``points (M, 3)`` with unit ``normal (M, 3)``, unshadowed."""
+    out = torch.zeros(len(points), 3, dtype=torch.float64)
+    exposure = float(scanner.exposure(scanner.pattern))
+    for s in range(0, len(points), 1 << 16):  # (chunk, C) temporaries stay ~10 MB
+        p, n = points[s : s + (1 << 16)].double(), normal[s : s + (1 << 16)].double()
+        d = sources.points[None] - p[:, None]  # (m, C, 3)
+        r2 = (d * d).sum(-1).clamp_min(1e-12)
+        inv = r2.rsqrt()
+        cos_s = ((d * n[:, None]).sum(-1) * inv).clamp_min(0.0)
+        cos_e = -(d * sources.normals[None]).sum(-1) * inv
+        w = scanner.psi(cos_e) * cos_s / r2  # (m, C)
+        out[s : s + len(p)] = exposure * w @ sources.drive
+    return out
+
+
+def _stratified(count: int) -> Tensor:
+    """``count`` fixed points ``(count, 2)`` in the unit square (a Fibonacci lattice)."""
+    i = torch.arange(count, dtype=torch.float64)
+    return torch.stack([(i + 0.5) / count, torch.remainder(i * 0.6180339887498949 + 0.5, 1.0)], -1)
+
+
+def visible_half_vectors(wo: Tensor, alpha: Tensor, u: Tensor) -> tuple[Tensor, Tensor]:
+    """Half vectors ``(N, V, S, 3)`` (shading frame) distributed as GGX's normals visible from
+    ``wo (N, V, 3)`` (Heitz 2018) for ``alpha (N, 2)``, from unit-square points ``u (S, 2)``, and the
+    density of the reflected direction ``(N, V, S)``: G1(wo) D(h) / (4 wo_z) per steradian of wi
+    (0 where wo_z <= 0). Its weights f cos_i / pdf stay below F G1(wi) for the sampled alphas."""
+    ax, ay = alpha[:, None, None, 0], alpha[:, None, None, 1]
+    o = wo[:, :, None]
+    vh = torch.stack([ax * o[..., 0], ay * o[..., 1], o[..., 2].clamp_min(1e-6)], -1)
+    vh = vh / vh.norm(dim=-1, keepdim=True)
+    lensq = vh[..., 0] ** 2 + vh[..., 1] ** 2
+    inv = torch.where(lensq > 1e-12, torch.rsqrt(lensq.clamp_min(1e-12)), torch.zeros_like(lensq))
+    t1 = torch.stack([-vh[..., 1] * inv, vh[..., 0] * inv, torch.zeros_like(lensq)], -1)
+    t1 = torch.where((lensq > 1e-12)[..., None], t1, torch.tensor([1.0, 0.0, 0.0], dtype=wo.dtype))
+    t2 = torch.linalg.cross(vh, t1)
+    r, phi = torch.sqrt(u[:, 0]), 2 * math.pi * u[:, 1]
+    p1, p2 = r * torch.cos(phi), r * torch.sin(phi)
+    s = 0.5 * (1.0 + vh[..., 2])
+    p2 = (1.0 - s) * torch.sqrt((1.0 - p1**2).clamp_min(0.0)) + s * p2
+    p3 = torch.sqrt((1.0 - p1**2 - p2**2).clamp_min(0.0))
+    nh = p1[..., None] * t1 + p2[..., None] * t2 + p3[..., None] * vh
+    h = torch.stack([ax * nh[..., 0], ay * nh[..., 1], nh[..., 2].clamp_min(0.0)], -1)
+    h = h / h.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    oz = o[..., 2]
+    smith = torch.sqrt((ax * o[..., 0]) ** 2 + (ay * o[..., 1]) ** 2 + oz**2)
+    g1 = 2 * oz / (oz + smith)
+    pdf = torch.where(oz > 0, g1 * ggx_ndf(h, ax, ay) / (4 * oz.clamp_min(1e-6)), torch.zeros_like(oz))
+    return h, pdf
+
+
+def cosine_directions(u: Tensor) -> tuple[Tensor, Tensor]:
+    """Directions ``(S, 3)`` (shading frame) distributed as cos(theta) / pi from ``u (S, 2)``, and
+    that density ``(S,)``."""
+    r, phi = torch.sqrt(u[:, 0]), 2 * math.pi * u[:, 1]
+    z = torch.sqrt((1.0 - u[:, 0]).clamp_min(1e-12))
+    return torch.stack([r * torch.cos(phi), r * torch.sin(phi), z], -1), z / math.pi
+
+
+class SupportEmitters(NamedTuple):
+    """An entry's support samples as the refinement's emitters (geometric frame): the specular ones
+    ``wi, h (N, V, S, 3)``, ``fresnel_falloff (N, V, S)``, ``drive (N, V, S, 3)``; and the diffuse
+    basis ``(N, V, 3, 3)`` of the cosine-distributed ones (``pixel_bases``' layout)."""
+
+    wi: Tensor
+    h: Tensor
+    fresnel_falloff: Tensor
+    drive: Tensor
+    diffuse: Tensor
+
+
+def support_emitters(
+    view: SupportView,
+    scanner: Scanner,
+    sources: Sources,
+    x_cam: Tensor,
+    frame_cam: Tensor,
+    live: Tensor,
+    wo: Tensor,
+    frame0: Tensor,
+    alpha: Tensor | None,
+) -> SupportEmitters:
+    """The support's light on the entries of ``view``'s N texels (module docstring): ``live (N, V)``
+    ``wo (N, V, 3)`` toward the camera, the round's shading frame ``frame0 (N, 3, 3)`` and lobe
+    ``alpha (N, 2)`` (None: diffuse samples only; the specular arrays have S = 0). Results in
+    ``wo``'s dtype."""
+    N, V, _ = wo.shape
+    f64 = torch.float64
+    wo_, f0 = wo.to(f64), frame0.to(f64)
+    dirs, weights, halves = [], [], None
+    # diffuse: cosine-distributed about the round's normal (those that miss the support carry none)
+    d_loc, d_pdf = cosine_directions(_stratified(DIFFUSE_SAMPLES))
+    dirs.append((d_loc @ f0)[:, None].expand(N, V, -1, 3))  # (N, V, Sd, 3) geometric frame
+    weights.append((1.0 / (DIFFUSE_SAMPLES * d_pdf)).expand(N, V, -1))
+    if alpha is not None:
+        wide = (SAMPLE_WIDEN * alpha.to(f64)).clamp(SAMPLE_FLOOR, ALPHA_MAX)
+        wo_loc = (f0[:, None] @ wo_[..., None])[..., 0]  # shading frame (N, V, 3)
+        h_loc, pdf = visible_half_vectors(wo_loc, wide, _stratified(SPECULAR_SAMPLES))
+        halves = h_loc @ f0[:, None]  # (N, V, Ss, 3) geometric frame
+        o_h = (wo_[:, :, None] * halves).sum(-1)
+        dirs.append(2 * o_h[..., None] * halves - wo_[:, :, None])
+        usable = (o_h > 0) & (pdf > 0)
+        weights.append(torch.where(usable, 1.0 / (SPECULAR_SAMPLES * pdf.clamp_min(1e-30)), 0.0))
+    omega = torch.cat(dirs, 2)  # (N, V, S, 3)
+    weight = torch.cat(weights, 2)
+    position, frame_world = view.position.to(f64), view.frame_world.to(f64)
+    radiance = _radiance(view.scene, scanner, sources, position, frame_world, x_cam, frame_cam, live, omega)
+    diffuse_part = slice(0, DIFFUSE_SAMPLES)
+    above = ((omega[:, :, diffuse_part] * f0[:, None, None, 2]).sum(-1) > 0).to(f64)
+    lit = radiance[:, :, diffuse_part] * (weight[:, :, diffuse_part] * above)[..., None] / math.pi  # (N, V, Sd, 3)
+    diffuse = torch.einsum("nvsc,nvsj->nvcj", lit, omega[:, :, diffuse_part])
+    dt = wo.dtype
+    if halves is None:
+        empty = torch.zeros(N, V, 0, 3, dtype=dt)
+        return SupportEmitters(empty, empty, torch.zeros(N, V, 0, dtype=dt), empty, diffuse.to(dt))
+    spec = slice(DIFFUSE_SAMPLES, None)
+    wi = omega[:, :, spec]
+    fresnel = fresnel_schlick((wi * halves).sum(-1).clamp(0.0, 1.0), F0_DIELECTRIC)
+    return SupportEmitters(
+        wi.to(dt), halves.to(dt), (fresnel * weight[:, :, spec]).to(dt), radiance[:, :, spec].to(dt), diffuse.to(dt)
+    )
+
+
+def _radiance(
+    scene: SupportScene,
+    scanner: Scanner,
+    sources: Sources,
+    position: Tensor,
+    frame_world: Tensor,
+    x_cam: Tensor,
+    frame_cam: Tensor,
+    live: Tensor,
+    omega: Tensor,
+) -> Tensor:
+    """The support's radiance ``(N, V, S, 3)`` toward each entry's texel along ``omega (N, V, S, 3)``
+    (geometric frame): 0 where the direction misses the support (or the object is in the way)."""
+    N, V, S, _ = omega.shape
+    f64 = torch.float64
+    up = frame_world[:, :, 2]  # world z in the texel's frame (N, 3)
+    height = (position[:, 2] - scene.albedo.z).clamp_min(RAY_OFFSET)
+    down = -(omega * up[:, None, None]).sum(-1)
+    reach = height[:, None, None] / down.clamp_min(1e-9)
+    hit = (down > 1e-3) & (reach < MAX_REACH) & live[..., None]
+    reach = torch.where(hit, reach, torch.zeros_like(reach))
+    p_loc = reach[..., None] * omega  # texel -> support point, geometric frame
+    p_world = position[:, None, None] + p_loc @ frame_world[:, None]  # (N, V, S, 3)
+    fc = frame_cam.to(f64)
+    xc = x_cam.to(f64)
+    p_cam = xc[:, :, None] + p_loc @ fc  # (N, V, S, 3)
+    up_cam = (up[:, None, None] @ fc).expand(N, V, 1, 3).expand(N, V, S, 3)
+    if scene.caster is not None and bool(hit.any()):
+        hit = hit & ~_hidden(scene.caster, position, frame_world, xc, fc, p_loc, p_world, reach, hit)
+    e = torch.zeros(N, V, S, 3, dtype=f64)
+    e[hit] = irradiance(scanner, sources, p_cam[hit], up_cam[hit])
+    return scene.albedo.at(p_world[..., :2]) / math.pi * e
+
+
+def _hidden(
+    caster: RayCaster,
+    position: Tensor,
+    frame_world: Tensor,
+    x_cam: Tensor,
+    frame_cam: Tensor,
+    p_loc: Tensor,
+    p_world: Tensor,
+    reach: Tensor,
+    hit: Tensor,
+) -> Tensor:
+    """``(N, V, S)`` bool among ``hit``: the mesh lies between the texel and its support point, or
+    between that point and the camera (the scanner's light: its emitters sit beside the camera)."""
+    N, V, S = hit.shape
+    n_world = frame_world[:, 2]
+    start = (position + RAY_OFFSET * n_world)[:, None, None].expand(N, V, S, 3)
+    d_world = p_world - start
+    dist = d_world.norm(dim=-1).clamp_min(1e-12)
+    camera_loc = -(frame_cam @ x_cam[..., None])[..., 0]  # camera centre, geometric frame (N, V, 3)
+    camera = position[:, None] + camera_loc @ frame_world  # world (N, V, 3)
+    to_cam = camera[:, :, None].expand(N, V, S, 3) - p_world
+    cam_dist = to_cam.norm(dim=-1).clamp_min(1e-12)
+    sel = hit.nonzero(as_tuple=True)
+    o = torch.cat([start[sel], p_world[sel] + RAY_OFFSET * to_cam[sel] / cam_dist[sel][:, None]])
+    d = torch.cat([d_world[sel] / dist[sel][:, None], to_cam[sel] / cam_dist[sel][:, None]])
+    far = torch.cat([dist[sel] - RAY_OFFSET, cam_dist[sel] - 2 * RAY_OFFSET]).clamp_min(0.0)
+    blocked = torch.from_numpy(caster.occluded(o.numpy(), d.numpy(), far.numpy()))
+    m = len(sel[0])
+    out = torch.zeros(N, V, S, dtype=torch.bool)
+    out[sel] = blocked[:m] | blocked[m:]
+    return out
+
+
+def estimate_support_albedo(
+    photos: Iterable[tuple[np.ndarray, np.ndarray]],
+    poses: list[np.ndarray],
+    scanner: Scanner,
+    vertices: np.ndarray,
+    caster: RayCaster | None,
+) -> SupportAlbedo:
+    """The support's albedo map under the object standing on z = min z of ``vertices (P, 3)``,
+    from ``photos`` (pairs of ``(H, W, 3)`` linear pixels and their 8-bit codes, read once, one at a
+    time) with camera-from-world ``poses (4, 4)``: per cell
+    and photo that sees the cell's centre (in the photo, in front, not hidden by the mesh, codes in
+    ``CODE_RANGE``) pi y / E, the median over the photos; cells no photo saw take the median of the
+    others (``fill`` too)."""
+    z = float(vertices[:, 2].min())
+    lo, hi = vertices[:, :2].min(0), vertices[:, :2].max(0)
+    centre = 0.5 * (lo + hi)
+    half = REACH_RADII * 0.5 * float(np.linalg.norm(hi - lo)) + CELL
+    n = int(math.ceil(2 * half / CELL))
+    origin = centre - 0.5 * n * CELL
+    jj, ii = np.meshgrid(np.arange(n), np.arange(n))
+    cells = np.stack([origin[0] + (jj + 0.5) * CELL, origin[1] + (ii + 0.5) * CELL, np.full((n, n), z)], -1).reshape(
+        -1, 3
+    )
+    sources = Sources.of(scanner)
+    samples = []
+    for (linear, codes), pose in zip(photos, poses):
+        R, t = pose[:3, :3], pose[:3, 3]
+        p_cam = cells @ R.T + t
+        value = np.full((len(cells), 3), np.nan)
+        front = p_cam[:, 2] > 1e-3
+        px = np.full((len(cells), 2), -1.0)
+        px[front] = camera.project(scanner, torch.as_tensor(p_cam[front])).numpy()
+        ok = front & camera.in_image(scanner, px)
+        if caster is not None and ok.any():
+            centre_w = -R.T @ t
+            d = centre_w - cells[ok]
+            dist = np.linalg.norm(d, axis=1)
+            start = cells[ok] + RAY_OFFSET * d / dist[:, None]
+            ok[np.nonzero(ok)[0][caster.occluded(start, d / dist[:, None], dist - 2 * RAY_OFFSET)]] = False
+        idx = np.nonzero(ok)[0]
+        if len(idx):
+            code = bilinear_pixels(codes.astype(np.float64), px[idx, 1], px[idx, 0])
+            y = bilinear_pixels(linear.astype(np.float64), px[idx, 1], px[idx, 0])
+            good = ((code > CODE_RANGE[0]) & (code < CODE_RANGE[1])).all(1)
+            up = np.broadcast_to(R[:, 2], (len(idx), 3))
+            e = irradiance(scanner, sources, torch.as_tensor(p_cam[idx]), torch.as_tensor(up)).numpy()
+            good &= (e > 1e-9).all(1)
+            value[idx[good]] = math.pi * y[good] / e[good]
+        samples.append(value.astype(np.float32))
+    stack = np.stack(samples) if samples else np.full((1, len(cells), 3), np.nan, np.float32)
+    seen = np.isfinite(stack).all(-1).any(0)
+    albedo = np.full((len(cells), 3), np.nan, np.float32)
+    albedo[seen] = np.nanmedian(stack[:, seen], axis=0)
+    fill = np.median(albedo[seen], axis=0) if seen.any() else np.zeros(3, np.float32)
+    albedo[~seen] = fill
+    return SupportAlbedo(z, origin, CELL, albedo.reshape(n, n, 3), fill.astype(np.float32))
