@@ -53,7 +53,13 @@ from .pixel_bases import (
     specular_basis,
     specular_basis_and_derivatives,
 )
-from .support_light import Sources, SupportEmitters, SupportView, support_emitters
+from .support_light import (
+    Sources,
+    SupportEmitters,
+    SupportView,
+    support_diffuse_basis,
+    support_specular_emitters,
+)
 
 VERSION = 16  # of the method: part of the pipeline's cache key (bump when results change for the same settings)
 CENSOR_CODE = VALID_CODE[1]  # above this an 8-bit code may be (or border) a clipped pixel: a lower bound
@@ -212,18 +218,21 @@ class _Trace:
         self.mask = mask[..., None].expand(N, V, 3)
         self.inv_sigma = torch.where(self.mask, 1.0 / noise.sigma(self.y), torch.zeros_like(self.y))
         self.support = None if support is None else support.scene
-        if support is not None:  # what the support's light needs per entry and texel (``fit.support_light``)
+        if support is not None:  # the support's light (``fit.support_light``): what each round needs
             self.scanner, self.sources = scanner, Sources.of(scanner)
             self.live, self.x_cam, self.frame_cam = mask, x.view(N, V, 3), frame.view(N, V, 3, 3)
             self.position, self.frame_world = support.position.double(), support.frame_world.double()
+            self.support_diffuse = support_diffuse_basis(
+                support, scanner, self.sources, self.x_cam, self.frame_cam, self.live
+            ).to(self.wi.dtype)
 
-    def support_light(self, frame0: Tensor, alpha: Tensor | None) -> SupportEmitters | None:
-        """The support's light as extra emitters for the round's ``frame0 (N, 3, 3)`` and lobe
-        ``alpha (N, 2)`` (None: diffuse only), or None without a support."""
+    def support_specular(self, frame0: Tensor, alpha: Tensor) -> SupportEmitters | None:
+        """The support's light as specular emitters for a round's ``frame0 (N, 3, 3)`` and lobe
+        ``alpha (N, 2)``, or None without a support."""
         if self.support is None:
             return None
         view = SupportView(self.support, self.position, self.frame_world)
-        return support_emitters(
+        return support_specular_emitters(
             view, self.scanner, self.sources, self.x_cam, self.frame_cam, self.live, self.wo, frame0, alpha
         )
 
@@ -250,16 +259,12 @@ class _Round:
 
     def __init__(self, tr: _Trace, frame0: Tensor, log_alpha: Tensor, specular: bool, diffuse: Tensor | None = None):
         self.tr, self.specular, self.frame0 = tr, specular, frame0
-        # the support's light: more emitters, drawn for this round's normal and lobe
-        support = (
-            tr.support_light(frame0, log_alpha.exp() if specular else None) if diffuse is None or specular else None
-        )
         # diffuse basis per channel: linear in the shading normal (emitters above F0's horizon);
         # ``diffuse``: given by a round of the same normal
         if diffuse is None:
             diffuse = diffuse_basis(frame0[:, 2], tr.wi, tr.falloff, tr.drive)  # (N, V, 3, 3), wi's dtype
-            if support is not None:
-                diffuse = diffuse + support.diffuse
+            if tr.support is not None:
+                diffuse = diffuse + tr.support_diffuse
         self.diffuse = diffuse
         self.wo, self.row = tr.wo, torch.arange(tr.N)  # the per-entry arrays' rows of the round's texels
         if not specular:
@@ -278,6 +283,8 @@ class _Round:
                 (tr.wi, tr.h, tr.fresnel_falloff, tr.drive),
                 (tr.wi_c, tr.h_c, tr.ff_c, tr.drive_c),
             )
+        # the support's light: more emitters, drawn for this round's lobe
+        support = tr.support_specular(frame0, log_alpha.exp())
         if support is not None:
             self.wi, self.h = torch.cat([self.wi, support.wi], 2), torch.cat([self.h, support.h], 2)
             self.ff = torch.cat([self.ff, support.fresnel_falloff], 2)

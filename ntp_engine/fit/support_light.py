@@ -14,7 +14,7 @@ coarse emitters: the support is far from them compared with a block), zero where
 the scanner from p (one ray toward the camera: the emitters sit beside it). Toward a texel that is
 an area light, summed by Monte Carlo over fixed, stratified sample directions per entry — from the
 normals of the round's lobe (widened) visible from the camera (specular; Heitz 2018), and
-cosine-distributed about the round's normal (diffuse) — each one more emitter of the refinement
+cosine-distributed about the geometric normal (diffuse) — each one more emitter of the refinement
 with that photo's radiance as its drive and 1 / (S pdf) as its falloff; a direction that does not
 reach the support within ``MAX_REACH``, or that the object blocks, carries none. For fixed
 directions the sums are smooth in the parameters, so the refinement's Jacobians hold; each round
@@ -198,18 +198,33 @@ def cosine_directions(u: Tensor) -> tuple[Tensor, Tensor]:
 
 
 class SupportEmitters(NamedTuple):
-    """An entry's support samples as the refinement's emitters (geometric frame): the specular ones
-    ``wi, h (N, V, S, 3)``, ``fresnel_falloff (N, V, S)``, ``drive (N, V, S, 3)``; and the diffuse
-    basis ``(N, V, 3, 3)`` of the cosine-distributed ones (``pixel_bases``' layout)."""
+    """Entries' specular support samples as the refinement's emitters (geometric frame): ``wi, h
+    (N, V, S, 3)``, ``fresnel_falloff (N, V, S)``, ``drive (N, V, S, 3)`` (``pixel_bases``' layout)."""
 
     wi: Tensor
     h: Tensor
     fresnel_falloff: Tensor
     drive: Tensor
-    diffuse: Tensor
 
 
-def support_emitters(
+def support_diffuse_basis(
+    view: SupportView, scanner: Scanner, sources: Sources, x_cam: Tensor, frame_cam: Tensor, live: Tensor
+) -> Tensor:
+    """The support's light on the entries of ``view``'s N texels as a diffuse basis ``(N, V, 3, 3)``
+    (``pixel_bases``' layout; module docstring), ``live (N, V)`` the entries that count: sampled
+    about the geometric normal, once for every round (a shading normal a few degrees off changes
+    which samples lie above its horizon by as little), in ``x_cam``'s dtype."""
+    N, V, _ = x_cam.shape
+    f64 = torch.float64
+    d_loc, d_pdf = cosine_directions(_stratified(DIFFUSE_SAMPLES))  # geometric frame: about n^ = z
+    omega = d_loc.to(f64).expand(N, V, -1, 3)
+    position, frame_world = view.position.to(f64), view.frame_world.to(f64)
+    radiance = _radiance(view.scene, scanner, sources, position, frame_world, x_cam, frame_cam, live, omega)
+    lit = radiance * (1.0 / (DIFFUSE_SAMPLES * math.pi * d_pdf))[:, None]  # (N, V, Sd, 3)
+    return torch.einsum("nvsc,sj->nvcj", lit, d_loc.to(f64)).to(x_cam.dtype)
+
+
+def support_specular_emitters(
     view: SupportView,
     scanner: Scanner,
     sources: Sources,
@@ -218,47 +233,27 @@ def support_emitters(
     live: Tensor,
     wo: Tensor,
     frame0: Tensor,
-    alpha: Tensor | None,
+    alpha: Tensor,
 ) -> SupportEmitters:
-    """The support's light on the entries of ``view``'s N texels (module docstring): ``live (N, V)``
-    ``wo (N, V, 3)`` toward the camera, the round's shading frame ``frame0 (N, 3, 3)`` and lobe
-    ``alpha (N, 2)`` (None: diffuse samples only; the specular arrays have S = 0). Results in
-    ``wo``'s dtype."""
-    N, V, _ = wo.shape
+    """The support's light on the entries of ``view``'s N texels as specular emitters (module
+    docstring): ``live (N, V)``, ``wo (N, V, 3)`` toward the camera, the round's shading frame
+    ``frame0 (N, 3, 3)`` and lobe ``alpha (N, 2)``; in ``wo``'s dtype."""
     f64 = torch.float64
     wo_, f0 = wo.to(f64), frame0.to(f64)
-    dirs, weights, halves = [], [], None
-    # diffuse: cosine-distributed about the round's normal (those that miss the support carry none)
-    d_loc, d_pdf = cosine_directions(_stratified(DIFFUSE_SAMPLES))
-    dirs.append((d_loc @ f0)[:, None].expand(N, V, -1, 3))  # (N, V, Sd, 3) geometric frame
-    weights.append((1.0 / (DIFFUSE_SAMPLES * d_pdf)).expand(N, V, -1))
-    if alpha is not None:
-        wide = (SAMPLE_WIDEN * alpha.to(f64)).clamp(SAMPLE_FLOOR, ALPHA_MAX)
-        wo_loc = (f0[:, None] @ wo_[..., None])[..., 0]  # shading frame (N, V, 3)
-        h_loc, pdf = visible_half_vectors(wo_loc, wide, _stratified(SPECULAR_SAMPLES))
-        halves = h_loc @ f0[:, None]  # (N, V, Ss, 3) geometric frame
-        o_h = (wo_[:, :, None] * halves).sum(-1)
-        dirs.append(2 * o_h[..., None] * halves - wo_[:, :, None])
-        usable = (o_h > 0) & (pdf > 0)
-        weights.append(torch.where(usable, 1.0 / (SPECULAR_SAMPLES * pdf.clamp_min(1e-30)), 0.0))
-    omega = torch.cat(dirs, 2)  # (N, V, S, 3)
-    weight = torch.cat(weights, 2)
+    wide = (SAMPLE_WIDEN * alpha.to(f64)).clamp(SAMPLE_FLOOR, ALPHA_MAX)
+    wo_loc = (f0[:, None] @ wo_[..., None])[..., 0]  # shading frame (N, V, 3)
+    h_loc, pdf = visible_half_vectors(wo_loc, wide, _stratified(SPECULAR_SAMPLES))
+    halves = h_loc @ f0[:, None]  # (N, V, Ss, 3) geometric frame
+    o_h = (wo_[:, :, None] * halves).sum(-1)
+    wi = 2 * o_h[..., None] * halves - wo_[:, :, None]
+    usable = (o_h > 0) & (pdf > 0)
+    weight = torch.where(usable, 1.0 / (SPECULAR_SAMPLES * pdf.clamp_min(1e-30)), 0.0)
     position, frame_world = view.position.to(f64), view.frame_world.to(f64)
-    radiance = _radiance(view.scene, scanner, sources, position, frame_world, x_cam, frame_cam, live, omega)
-    diffuse_part = slice(0, DIFFUSE_SAMPLES)
-    above = ((omega[:, :, diffuse_part] * f0[:, None, None, 2]).sum(-1) > 0).to(f64)
-    lit = radiance[:, :, diffuse_part] * (weight[:, :, diffuse_part] * above)[..., None] / math.pi  # (N, V, Sd, 3)
-    diffuse = torch.einsum("nvsc,nvsj->nvcj", lit, omega[:, :, diffuse_part])
-    dt = wo.dtype
-    if halves is None:
-        empty = torch.zeros(N, V, 0, 3, dtype=dt)
-        return SupportEmitters(empty, empty, torch.zeros(N, V, 0, dtype=dt), empty, diffuse.to(dt))
-    spec = slice(DIFFUSE_SAMPLES, None)
-    wi = omega[:, :, spec]
+    live = live & usable.any(-1)
+    radiance = _radiance(view.scene, scanner, sources, position, frame_world, x_cam, frame_cam, live, wi)
     fresnel = fresnel_schlick((wi * halves).sum(-1).clamp(0.0, 1.0), F0_DIELECTRIC)
-    return SupportEmitters(
-        wi.to(dt), halves.to(dt), (fresnel * weight[:, :, spec]).to(dt), radiance[:, :, spec].to(dt), diffuse.to(dt)
-    )
+    dt = wo.dtype
+    return SupportEmitters(wi.to(dt), halves.to(dt), (fresnel * weight).to(dt), radiance.to(dt))
 
 
 def _radiance(
@@ -273,59 +268,52 @@ def _radiance(
     omega: Tensor,
 ) -> Tensor:
     """The support's radiance ``(N, V, S, 3)`` toward each entry's texel along ``omega (N, V, S, 3)``
-    (geometric frame): 0 where the direction misses the support (or the object is in the way)."""
-    N, V, S, _ = omega.shape
+    (geometric frame): 0 where the direction misses the support (or the object is in the way).
+    Computed over the directions that reach the support only."""
     f64 = torch.float64
     up = frame_world[:, :, 2]  # world z in the texel's frame (N, 3)
     height = (position[:, 2] - scene.albedo.z).clamp_min(RAY_OFFSET)
     down = -(omega * up[:, None, None]).sum(-1)
     reach = height[:, None, None] / down.clamp_min(1e-9)
-    hit = (down > 1e-3) & (reach < MAX_REACH) & live[..., None]
-    reach = torch.where(hit, reach, torch.zeros_like(reach))
-    p_loc = reach[..., None] * omega  # texel -> support point, geometric frame
-    p_world = position[:, None, None] + p_loc @ frame_world[:, None]  # (N, V, S, 3)
-    fc = frame_cam.to(f64)
-    xc = x_cam.to(f64)
-    p_cam = xc[:, :, None] + p_loc @ fc  # (N, V, S, 3)
-    up_cam = (up[:, None, None] @ fc).expand(N, V, 1, 3).expand(N, V, S, 3)
-    if scene.caster is not None and bool(hit.any()):
-        hit = hit & ~_hidden(scene.caster, position, frame_world, xc, fc, p_loc, p_world, reach, hit)
-    e = torch.zeros(N, V, S, 3, dtype=f64)
-    e[hit] = irradiance(scanner, sources, p_cam[hit], up_cam[hit])
-    return scene.albedo.at(p_world[..., :2]) / math.pi * e
+    sel = ((down > 1e-3) & (reach < MAX_REACH) & live[..., None]).nonzero(as_tuple=True)
+    n, v = sel[0], sel[1]
+    p_loc = reach[sel][:, None] * omega[sel].to(f64)  # texel -> support point, geometric frame (M, 3)
+    fw, fc = frame_world[n], frame_cam[n, v].to(f64)
+    p_world = position[n] + (p_loc[:, None] @ fw)[:, 0]
+    out = torch.zeros(*omega.shape[:3], 3, dtype=f64)
+    if len(n) == 0:
+        return out
+    xc = x_cam[n, v].to(f64)
+    keep = torch.ones(len(n), dtype=torch.bool)
+    if scene.caster is not None:
+        keep = ~_hidden(scene.caster, position[n], fw, xc, fc, p_world)
+    p_cam = xc + (p_loc[:, None] @ fc)[:, 0]
+    up_cam = (up[n][:, None] @ fc)[:, 0]
+    e = irradiance(scanner, sources, p_cam[keep], up_cam[keep])
+    out[tuple(i[keep] for i in sel)] = scene.albedo.at(p_world[keep, :2]) / math.pi * e
+    return out
 
 
 def _hidden(
-    caster: RayCaster,
-    position: Tensor,
-    frame_world: Tensor,
-    x_cam: Tensor,
-    frame_cam: Tensor,
-    p_loc: Tensor,
-    p_world: Tensor,
-    reach: Tensor,
-    hit: Tensor,
+    caster: RayCaster, position: Tensor, frame_world: Tensor, x_cam: Tensor, frame_cam: Tensor, p_world: Tensor
 ) -> Tensor:
-    """``(N, V, S)`` bool among ``hit``: the mesh lies between the texel and its support point, or
-    between that point and the camera (the scanner's light: its emitters sit beside the camera)."""
-    N, V, S = hit.shape
-    n_world = frame_world[:, 2]
-    start = (position + RAY_OFFSET * n_world)[:, None, None].expand(N, V, S, 3)
+    """``(M,)`` bool: the mesh lies between a texel at world ``position (M, 3)`` (geometric frame
+    ``frame_world (M, 3, 3)``) and its support point ``p_world (M, 3)``, or between that point and
+    the camera of the entry (``x_cam``, ``frame_cam``: its point and frame in camera space) — the
+    scanner's light: its emitters sit beside the camera."""
+    start = position + RAY_OFFSET * frame_world[:, 2]
     d_world = p_world - start
     dist = d_world.norm(dim=-1).clamp_min(1e-12)
-    camera_loc = -(frame_cam @ x_cam[..., None])[..., 0]  # camera centre, geometric frame (N, V, 3)
-    camera = position[:, None] + camera_loc @ frame_world  # world (N, V, 3)
-    to_cam = camera[:, :, None].expand(N, V, S, 3) - p_world
+    camera_loc = -(frame_cam @ x_cam[..., None])[..., 0]  # camera centre, geometric frame (M, 3)
+    to_cam = position + (camera_loc[:, None] @ frame_world)[:, 0] - p_world
     cam_dist = to_cam.norm(dim=-1).clamp_min(1e-12)
-    sel = hit.nonzero(as_tuple=True)
-    o = torch.cat([start[sel], p_world[sel] + RAY_OFFSET * to_cam[sel] / cam_dist[sel][:, None]])
-    d = torch.cat([d_world[sel] / dist[sel][:, None], to_cam[sel] / cam_dist[sel][:, None]])
-    far = torch.cat([dist[sel] - RAY_OFFSET, cam_dist[sel] - 2 * RAY_OFFSET]).clamp_min(0.0)
+    to_cam = to_cam / cam_dist[:, None]
+    o = torch.cat([start, p_world + RAY_OFFSET * to_cam])
+    d = torch.cat([d_world / dist[:, None], to_cam])
+    far = torch.cat([dist - RAY_OFFSET, cam_dist - 2 * RAY_OFFSET]).clamp_min(0.0)
     blocked = torch.from_numpy(caster.occluded(o.numpy(), d.numpy(), far.numpy()))
-    m = len(sel[0])
-    out = torch.zeros(N, V, S, dtype=torch.bool)
-    out[sel] = blocked[:m] | blocked[m:]
-    return out
+    m = len(position)
+    return blocked[:m] | blocked[m:]
 
 
 def estimate_support_albedo(
