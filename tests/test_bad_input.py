@@ -184,6 +184,19 @@ CASES = {
     "scan_toml_without_mesh": Case(
         _toml(b'photos = "photos"\ndevice = "device.toml"\n'), "key 'mesh' missing", "scan.toml"
     ),
+    "scan_toml_support_light_not_bool": Case(
+        _toml(b'mesh = "mesh.obj"\nphotos = "photos"\ndevice = "device.toml"\nsupport_light = "yes"\n'),
+        "key 'support_light': expected true or false",
+        "scan.toml",
+    ),
+    "scan_toml_support_light_without_support": Case(
+        _toml(
+            b'mesh = "mesh.obj"\nphotos = "photos"\ndevice = "device.toml"\n'
+            b"support_plane = false\nsupport_light = true\n"
+        ),
+        "needs a support",
+        "scan.toml",
+    ),
     "mesh_missing": Case(_write("mesh.obj", None), "does not exist", "mesh.obj"),
     "mesh_garbage": Case(_write("mesh.obj", b"\x00\xffnot a mesh"), "mesh", "mesh.obj"),
     "mesh_in_millimetres": Case(_mesh(lambda m: _moved(m, scale=1000)), "is it in millimetres?", "mesh.obj"),

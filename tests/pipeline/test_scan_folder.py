@@ -89,3 +89,19 @@ def test_read_photo_names_a_wrong_size(scan24, tmp_path):
     write_png(tmp_path / "small.png", read_image(photo)[::2, ::2])
     with pytest.raises(NtpInputError, match=r"small.png: \d+x\d+ photo, the camera takes"):
         read_photo(tmp_path / "small.png", scan.scanner)
+
+
+def test_support_light_follows_the_scan(scan24, tmp_path):
+    """An engine virtual scan says its photos hold no support light (Eq. 1's direct light only); a
+    scan that does not say holds it where it stands on a support, and never without one."""
+    assert "support_light = false" in (scan24 / "scan.toml").read_text()
+    assert load_scan(scan24).support_light is False and load_scan(scan24).support_plane is True
+    scan = tmp_path / "scan"
+    scan.mkdir()
+    for name in ("mesh.obj", "device.toml", "photos"):
+        (scan / name).symlink_to(scan24 / name)
+    base = 'mesh = "mesh.obj"\nphotos = "photos"\ndevice = "device.toml"\n'
+    (scan / "scan.toml").write_text(base)
+    assert load_scan(scan).support_light is True
+    (scan / "scan.toml").write_text(base + "support_plane = false\n")
+    assert load_scan(scan).support_light is False
