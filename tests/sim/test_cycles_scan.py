@@ -82,8 +82,9 @@ def test_devices_cycles_cannot_model_are_refused(tmp_path):
 def test_a_broad_metal_lobe_seen_edge_on_is_as_bright_as_in_the_engines_scan(tmp_path):
     """The box in the gallery's rough metal (rho_s 10, alpha 0.5) all over: its object pixels in 4
     photos (those a black copy of it leaves dark) are as bright under Cycles as in the engine's scan
-    — Fresnel on w_i.h in both. Measured: 1.008; with the add-on's Schlick on n.v 1.117 (single
-    photos up to 1.22), which refined the gallery box's rough metal 14.8 deg off."""
+    — Fresnel on w_i.h in both. Measured: 1.034 (1.008 while Cycles clamped its bounce's light;
+    the engine has none); with the add-on's Schlick on n.v 1.117 (single photos up to 1.22), which
+    refined the gallery box's rough metal 14.8 deg off."""
     cfg = dataclasses.replace(CFG, views=4)
     asset = build_asset("box", tmp_path / "asset", 16)
     maps = SVBRDFMaps.load(asset / "ground_truth")
