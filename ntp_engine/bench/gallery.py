@@ -34,7 +34,7 @@ from ..pipeline.stages import reconstruct, register_photos
 from ..sim.cycles_scan import RENDER_VERSION, CyclesConfig, cycles_scan
 from ..sim.evaluate import material_errors, pose_error, relit_ssim
 from ..sim.gallery import GALLERY, build_asset
-from ..sim.virtual_scan import ScanConfig, virtual_scan
+from ..sim.virtual_scan import ScanConfig, scan_folder_is_current, virtual_scan
 from . import print_table
 
 SCANNERS = ("engine", "cycles")
@@ -88,7 +88,7 @@ def scan_object(settings: GallerySettings, name: str, scanner: str, out: Path, a
         }
     )
     stamp = out / "ground_truth" / "bench_key.json"
-    if stamp.is_file() and json.loads(stamp.read_text()).get("key") == key:
+    if stamp.is_file() and json.loads(stamp.read_text()).get("key") == key and scan_folder_is_current(out):
         return json.loads((out / "ground_truth" / "capture.json").read_text())
     if scanner == "cycles":
         capture = cycles_scan(out, str(asset), cfg=cfg, cycles=cycles, progress=progress)

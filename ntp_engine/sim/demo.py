@@ -27,7 +27,7 @@ from ..pipeline.output_folder import claim
 from ..pipeline.scan_folder import load_poses, load_scan
 from ..pipeline.stages import MIN_RESOLUTION, reconstruct, register_photos
 from .evaluate import map_errors, pose_error, relit_ssim
-from .virtual_scan import ScanConfig, virtual_scan
+from .virtual_scan import ScanConfig, scan_folder_is_current, virtual_scan
 
 DEMO_VIEWS, DEMO_SCALE, DEMO_RESOLUTION = 60, 0.25, 256  # `ntp demo`'s defaults: under 5 minutes on 2 cores
 
@@ -91,7 +91,8 @@ def run(
         capture = scan_dir / "ground_truth" / "capture.json"
         t0 = time.perf_counter()
         wanted = json.loads(json.dumps(cfg.__dict__))
-        if not (capture.is_file() and json.loads(capture.read_text())["config"] == wanted):
+        current = capture.is_file() and json.loads(capture.read_text())["config"] == wanted
+        if not (current and scan_folder_is_current(scan_dir)):
             virtual_scan(scan_dir, cfg=cfg, progress=progress)
         t_scan = time.perf_counter() - t0
 

@@ -32,7 +32,7 @@ from ..io.maps import SVBRDFMaps
 from ..io.mesh import Mesh, load_mesh, save_obj
 from ..io.progress import QUIET, Progress
 from ..pipeline.output_folder import claim
-from ..pipeline.scan_folder import write_scan_toml
+from ..pipeline.scan_folder import load_scan, write_scan_toml
 from ..scanner import camera
 from ..scanner.device_file import load_scanner, save_scanner
 from ..scanner.scanner import Scanner
@@ -210,6 +210,22 @@ def plan_capture(mesh: Mesh, scanner: Scanner, cfg: ScanConfig) -> CapturePlan:
     return CapturePlan(cfg, cam, rng, poses, blurred, [f"{i:04d}.png" for i in range(cfg.views)])
 
 
+def holds_support_light(capture: dict) -> bool:
+    """Whether a virtual scan's photos (its ``capture.json`` record) hold light the support reflects
+    onto the object: the engine renders Eq. 1's direct light only, Cycles without bounces too."""
+    return capture["renderer"] == "cycles" and capture["cycles"]["bounces"] > 0
+
+
+def scan_folder_is_current(folder: Path) -> bool:
+    """A virtual scan folder whose ``scan.toml`` says what its photos hold (older ones did not say
+    ``support_light = false``): one a re-run may keep."""
+    try:
+        capture = json.loads((folder / "ground_truth" / "capture.json").read_text())
+        return load_scan(folder).support_light == holds_support_light(capture)
+    except (OSError, ValueError, KeyError):  # NtpInputError is a ValueError
+        return False
+
+
 def write_scan(
     out: Path,
     mesh: Mesh,
@@ -238,6 +254,5 @@ def write_scan(
             f"written by ntp virtual-scan (renderer: {capture['renderer']})",
             "ground truth for evaluation: ground_truth/ (maps, poses.json, capture.json)",
         ),
-        # the engine renders Eq. 1's direct light, Cycles without bounces too: no support light
-        support_light=capture["renderer"] == "cycles" and capture["cycles"]["bounces"] > 0,
+        support_light=holds_support_light(capture),
     )

@@ -105,3 +105,10 @@ def test_support_light_follows_the_scan(scan24, tmp_path):
     assert load_scan(scan).support_light is True
     (scan / "scan.toml").write_text(base + "support_plane = false\n")
     assert load_scan(scan).support_light is False
+    # a virtual scan written before scan.toml said so is not kept by the demo and the gallery
+    from ntp_engine.sim.virtual_scan import scan_folder_is_current
+
+    assert scan_folder_is_current(scan24)
+    (scan / "ground_truth").symlink_to(scan24 / "ground_truth")
+    (scan / "scan.toml").write_text(base)
+    assert not scan_folder_is_current(scan)
