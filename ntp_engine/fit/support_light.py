@@ -360,7 +360,7 @@ def estimate_support_albedo(
             code = bilinear_pixels(codes.astype(np.float64), px[idx, 1], px[idx, 0])
             y = bilinear_pixels(linear.astype(np.float64), px[idx, 1], px[idx, 0])
             good = ((code > CODE_RANGE[0]) & (code < CODE_RANGE[1])).all(1)
-            up = np.broadcast_to(R[:, 2], (len(idx), 3))
+            up = np.tile(R[:, 2], (len(idx), 1))
             e = irradiance(scanner, sources, torch.as_tensor(p_cam[idx]), torch.as_tensor(up)).numpy()
             good &= (e > 1e-9).all(1)
             value[idx[good]] = math.pi * y[good] / e[good]
