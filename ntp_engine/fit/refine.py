@@ -219,7 +219,7 @@ class _Trace:
         self.inv_sigma = torch.where(self.mask, 1.0 / noise.sigma(self.y), torch.zeros_like(self.y))
         self.support = None if support is None else support.scene
         if support is not None:  # the support's light (``fit.support_light``): what each round needs
-            self.scanner, self.sources = scanner, Sources.of(scanner)
+            self.scanner, self.sources = scanner, Sources.of(scanner, blocks)
             self.live, self.x_cam, self.frame_cam = mask, x.view(N, V, 3), frame.view(N, V, 3, 3)
             self.position, self.frame_world = support.position.double(), support.frame_world.double()
             self.support_diffuse = support_diffuse_basis(

@@ -41,15 +41,13 @@ from torch import Tensor
 
 from ..io.maps import bilinear_pixels
 from ..io.raycast import RayCaster
-from ..physics.brdf import ALPHA_MAX, F0_DIELECTRIC, fresnel_schlick, ggx_ndf
+from ..physics.brdf import ALPHA_MAX, F0_DIELECTRIC, fresnel_schlick, ggx_ndf, smith_g1
 from ..scanner import camera
 from ..scanner.scanner import Scanner
-from .emitter_blocks import emitter_blocks
+from .emitter_blocks import EmitterBlocks, emitter_blocks
 
 SPECULAR_SAMPLES = 16  # per entry, from the round's lobe (widened)
-DIFFUSE_SAMPLES = (
-    32  # per entry, cosine-distributed about the round's normal (16: -25% on a vertical face seen edge-on)
-)
+DIFFUSE_SAMPLES = 32  # per entry, cosine-distributed about n^ (16: -25% on a face seen edge-on)
 SAMPLE_WIDEN, SAMPLE_FLOOR = 1.5, 0.02  # the sampled lobe: the round's alphas x1.5 (at least 0.02)
 MAX_REACH = 1.0  # m: support points farther from the texel carry no light
 RAY_OFFSET = 1e-4  # m: rays start this far off the surfaces they leave
@@ -122,9 +120,10 @@ class Sources(NamedTuple):
     drive: Tensor
 
     @classmethod
-    def of(cls, scanner: Scanner) -> Sources:
-        """``scanner``'s emitter blocks' coarse emitters (every sample on a small device)."""
-        blocks = emitter_blocks(scanner)
+    def of(cls, scanner: Scanner, blocks: EmitterBlocks | None = None) -> Sources:
+        """``scanner``'s emitter blocks' coarse emitters (every sample on a small device);
+        ``blocks``: its ``emitter_blocks``, where the caller has them already."""
+        blocks = blocks or emitter_blocks(scanner)
         if blocks is not None:
             c = blocks.coarse
             return cls(
@@ -183,9 +182,7 @@ def visible_half_vectors(wo: Tensor, alpha: Tensor, u: Tensor) -> tuple[Tensor, 
     h = torch.stack([ax * nh[..., 0], ay * nh[..., 1], nh[..., 2].clamp_min(0.0)], -1)
     h = h / h.norm(dim=-1, keepdim=True).clamp_min(1e-12)
     oz = o[..., 2]
-    smith = torch.sqrt((ax * o[..., 0]) ** 2 + (ay * o[..., 1]) ** 2 + oz**2)
-    g1 = 2 * oz / (oz + smith)
-    pdf = torch.where(oz > 0, g1 * ggx_ndf(h, ax, ay) / (4 * oz.clamp_min(1e-6)), torch.zeros_like(oz))
+    pdf = torch.where(oz > 0, smith_g1(o, ax, ay) * ggx_ndf(h, ax, ay) / (4 * oz.clamp_min(1e-6)), torch.zeros_like(oz))
     return h, pdf
 
 
