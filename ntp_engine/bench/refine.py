@@ -115,9 +115,8 @@ def run(out: Path, bench: RefineBench | None = None, json_path: Path | None = No
                     picks.append(np.sort(rng.choice(cand, min(bench.per_material, len(cand)), replace=False)))
                 sel = np.concatenate(picks)
                 # the cache holds pixels as captured
-                ent, mask, start, specular, shadow, _, _ = refine_inputs(
-                    scan.scanner, traces, torch.as_tensor(sel), fit
-                )
+                inp = refine_inputs(scan.scanner, traces, torch.as_tensor(sel), fit)
+                ent, mask, start, specular, shadow = inp.entries, inp.mask, inp.start, inp.specular, inp.shadow
                 noise = rf.calibrated_noise(scan.scanner, ent, mask, start, specular, rf.RefineSettings(), shadow)
                 answers = {
                     "network + fit": (

@@ -389,13 +389,15 @@ def _reconstruct(
     report.timed("network_and_fit", t0)
     if refine:
         t0 = time.perf_counter()
-        caster = RayCaster([mesh.triangles])
-        support, h_support = _support_stage(scan, cache, mesh, caster, poses, h_atlas, h_pose, progress)
-        report.timed("support", t0)
-        t0 = time.perf_counter()
+        scene, h_support = None, None
+        if scan.support_light:  # the photos hold the support's light: its albedo map, its mesh for the rays
+            caster = RayCaster([mesh.triangles])
+            support, h_support = _support_stage(scan, cache, mesh, caster, poses, h_atlas, h_pose, progress)
+            scene = SupportScene(support, caster)
+            report.timed("support", t0)
+            t0 = time.perf_counter()
 
         def refine_stage(d: Path) -> None:
-            scene = None if support is None else SupportScene(support, caster)
             np.savez(d / "refined.npz", **refine_fit(scan.scanner, traces, fitted, REFINE, progress, texels, scene))
 
         key = {
@@ -504,11 +506,8 @@ def _support_stage(
     h_atlas: str,
     h_pose: str,
     progress: Progress,
-) -> tuple[SupportAlbedo | None, str | None]:
-    """The support's albedo map from the photos (``fit.support_light``) and its stage hash; None
-    where the photos hold no light from the support (``scan.support_light``)."""
-    if not scan.support_light:
-        return None, None
+) -> tuple[SupportAlbedo, str]:
+    """The support's albedo map from the photos (``fit.support_light``) and its stage hash."""
     names = sorted(poses)
 
     def compute(d: Path) -> None:
