@@ -112,3 +112,19 @@ def test_support_light_follows_the_scan(scan24, tmp_path):
     (scan / "ground_truth").symlink_to(scan24 / "ground_truth")
     (scan / "scan.toml").write_text(base)
     assert not scan_folder_is_current(scan)
+
+
+def test_the_support_stage_runs_where_the_scan_says_its_photos_hold_that_light(scan24, tmp_path):
+    """``support_light = true`` (here on an engine scan, whose photos lack that light: the code path,
+    not the accuracy): the refinement reads the support's albedo map from a cached stage, and a
+    re-run finds it."""
+    scan = tmp_path / "scan"
+    scan.mkdir()
+    for name in ("mesh.obj", "device.toml", "photos", "ground_truth"):
+        (scan / name).symlink_to(scan24 / name)
+    (scan / "scan.toml").write_text('mesh = "mesh.obj"\nphotos = "photos"\ndevice = "device.toml"\n')
+    poses = scan24 / "ground_truth" / "poses.json"
+    for run in range(2):
+        rep = reconstruct(load_scan(scan, poses), tmp_path / "out", resolution=16, refine=True)
+        assert "support" in rep["stages"] and (tmp_path / "out" / "cache" / "support" / "support.npz").is_file()
+        assert ("support" in rep["cached_stages"]) == (run == 1)
