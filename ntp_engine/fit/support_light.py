@@ -51,6 +51,7 @@ DIFFUSE_SAMPLES = 32  # per entry, cosine-distributed about n^ (16: -25% on a fa
 SAMPLE_WIDEN, SAMPLE_FLOOR = 1.5, 0.02  # the sampled lobe: the round's alphas x1.5 (at least 0.02)
 MAX_REACH = 1.0  # m: support points farther from the texel carry no light
 RAY_OFFSET = 1e-4  # m: rays start this far off the surfaces they leave
+ALBEDO_VERSION = 1  # of estimate_support_albedo's method: part of its stage's cache key (bump when it changes)
 CELL = 0.004  # m: the albedo map's cells
 REACH_RADII = 3.0  # the map spans this many object radii around the object's footprint
 CODE_RANGE = (2.0, 250.0)  # support pixels read with every channel's 8-bit code inside (not black, not clipped)

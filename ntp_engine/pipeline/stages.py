@@ -31,6 +31,7 @@ import torch
 from ..fit.emitter_blocks import SHADOW_SPLITS
 from ..fit.refine import FLAG_FROM_MATERIAL, RefineSettings
 from ..fit.refine import VERSION as REFINE_VERSION
+from ..fit.support_light import ALBEDO_VERSION as SUPPORT_VERSION
 from ..fit.support_light import CELL as SUPPORT_CELL
 from ..fit.support_light import CODE_RANGE as SUPPORT_CODES
 from ..fit.support_light import REACH_RADII as SUPPORT_REACH
@@ -520,7 +521,14 @@ def _support_stage(
             d / "support.npz"
         )
 
-    key = {"atlas": h_atlas, "poses": h_pose, "cell": SUPPORT_CELL, "reach": SUPPORT_REACH, "codes": SUPPORT_CODES}
+    key = {
+        "atlas": h_atlas,
+        "poses": h_pose,
+        "cell": SUPPORT_CELL,
+        "reach": SUPPORT_REACH,
+        "codes": SUPPORT_CODES,
+        "version": SUPPORT_VERSION,
+    }
     folder, h = cache.get("support", key, compute)
     return SupportAlbedo.load(folder / "support.npz"), h
 
