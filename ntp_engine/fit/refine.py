@@ -61,7 +61,7 @@ from .support_light import (
     support_specular_emitters,
 )
 
-VERSION = 16  # of the method: part of the pipeline's cache key (bump when results change for the same settings)
+VERSION = 17  # of the method: part of the pipeline's cache key (bump when results change for the same settings)
 CENSOR_CODE = VALID_CODE[1]  # above this an 8-bit code may be (or border) a clipped pixel: a lower bound
 EXPANDED_BLOCKS = 4  # emitter blocks per entry summed sample by sample (the rest as coarse emitters)
 SELECT_WIDEN, SELECT_FLOOR = 3.0, 0.03  # emitters are chosen under alphas x3 (at least 0.03)
@@ -786,6 +786,42 @@ def material_costs(
         cost[idx, m] = -torch.logsumexp(score, 1)
         turn[idx, m - 1] = angles.gather(1, score.argmax(1, keepdim=True))[:, 0]
     return cost, turn
+
+
+def lobe_costs(
+    scanner: Scanner,
+    entries: Tensor,
+    mask: Tensor,
+    start: Start,
+    alphas: Tensor,
+    settings: RefineSettings | None = None,
+    shadow: Tensor | None = None,
+    support: SupportView | None = None,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """How well S candidate lobe widths explain N traces: the robust data cost ``(N, S)`` of each
+    texel's trace under ``alphas (N, S, 2)`` (alpha_x along ``start``'s tangent; clamped to the
+    range) with the texel's own frame and its rho_d and rho_s re-solved (bounded least squares),
+    and those ``rho_d, rho_s (N, S, 3)``. Summed over a material's texels it is the profile of
+    their cost over the material's lobe width, which one trace alone may not tell from a broader
+    diffuse (``fit.materials.pooled_scale``)."""
+    settings = settings or RefineSettings()
+    tr = _Trace(scanner, entries, mask, settings.noise, emitter_blocks(scanner), shadow, support)
+    dtype = tr.y.dtype
+    frame = frame_from_normal_tangent(start.normal.to(dtype), start.tangent.to(dtype))
+    N, S = alphas.shape[:2]
+    cost = torch.empty(N, S, dtype=dtype)
+    rho_d, rho_s = torch.empty(N, S, 3, dtype=dtype), torch.empty(N, S, 3, dtype=dtype)
+    diffuse: Tensor | None = None  # one normal, one diffuse basis for every width
+    for k in range(S):
+        p = torch.zeros(N, N_PARAMS, dtype=dtype)
+        p[:, P_LOGA] = alphas[:, k].to(dtype).clamp(ALPHA_MIN, ALPHA_MAX).log()
+        rnd = _Round(tr, frame, p[:, P_LOGA], True, diffuse)
+        diffuse = rnd.diffuse
+        bases = rnd.bases(p[:, P_OMEGA], p[:, P_LOGA])
+        p = _albedo_start(rnd, p, True, bases=bases)
+        cost[:, k] = torch.nan_to_num(_cost(_residuals(tr, *bases, p)[0], settings.noise.robust), nan=math.inf)
+        rho_d[:, k], rho_s[:, k] = p[:, P_RHO_D], p[:, P_RHO_S]
+    return cost, rho_d, rho_s
 
 
 def refine_toward(

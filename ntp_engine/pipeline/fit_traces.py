@@ -22,16 +22,26 @@ import torch
 from ..fit.albedo import highlights_and_albedo
 from ..fit.emitter_blocks import shadow_groups
 from ..fit.geometry import FALLBACK_ALPHA, FLAG_NO_HIGHLIGHT, fit_geometry
-from ..fit.materials import candidates, class_shares, colour_costs, estimated_matte_share, lobe_materials
+from ..fit.materials import (
+    BasisMaterials,
+    candidates,
+    class_shares,
+    colour_costs,
+    estimated_matte_share,
+    lobe_clusters,
+    pooled_scale,
+)
 from ..fit.refine import (
     FLAG_FROM_MATERIAL,
     FLAG_SPECULAR_UNCONSTRAINED,
     FLAG_TANGENT_UNCONSTRAINED,
+    ISOTROPIC_RATIO,
     LobePrior,
     Refined,
     RefineSettings,
     Start,
     calibrated_noise,
+    lobe_costs,
     material_costs,
     refine,
     refine_toward,
@@ -42,6 +52,7 @@ from ..io.progress import QUIET, Progress
 from ..learn.inference import predict
 from ..learn.network import TraceNet
 from ..learn.ragged import RaggedTraces, spread_rows
+from ..physics.brdf import ALPHA_MAX, ALPHA_MIN
 from ..physics.frame import frame_from_normal_tangent
 from ..scanner.scanner import Scanner
 from .task_pool import LocalPool, TaskPool
@@ -61,7 +72,16 @@ MIN_CLEAR_ENTRIES = 1
 CALIBRATION_TEXELS = 512  # texels refined first to calibrate the noise model (fit.refine.calibrated_noise)
 REFINE_BATCH = 512  # texels per refinement batch: (batch, views, emitters) tensors stay ~100 MB
 FLAG_MARGINAL = 128  # refined on entries the mesh shadows or sees at grazing angles (too few others)
-REFINE_FLAGS = FLAG_SPECULAR_UNCONSTRAINED | FLAG_TANGENT_UNCONSTRAINED | FLAG_FROM_MATERIAL | FLAG_MARGINAL
+FLAG_WIDTH_FROM_MATERIAL = 256  # a lobe of its own, its width its material's: the trace could not tell them apart
+REFINE_FLAGS = FLAG_SPECULAR_UNCONSTRAINED | FLAG_TANGENT_UNCONSTRAINED | FLAG_FROM_MATERIAL
+REFINE_FLAGS |= FLAG_MARGINAL | FLAG_WIDTH_FROM_MATERIAL
+# a material's lobe width from its members' traces together (``_pooled_widths``): this many sampled
+# members, the width scaled over this grid (per axis of an anisotropic lobe)
+POOL_TEXELS = 256
+POOL_SCALES = 2.0 ** np.linspace(-2.0, 2.0, 17)
+# a texel with its own lobe takes its material's width where that costs its trace at most this more
+# than its own (AIC's 1 per parameter for the 2 alphas it would add; half chi-square units)
+WIDTH_PARAMS = 2.0
 # texels per unit of work of the fit stage (a Ray task with --ray): a few seconds of work and ~10 MB
 # of traces at 60 photos; only one block's traces are in memory at a time (the table is on disk)
 FIT_BLOCK = 4096
@@ -306,6 +326,88 @@ def _neighbour_turns(
     return turn, agree
 
 
+def _pooled_widths(
+    scanner: Scanner,
+    traces: RaggedTraces,
+    fit: dict[str, np.ndarray],
+    clear: np.ndarray,
+    members: np.ndarray,
+    basis: BasisMaterials,
+    settings: RefineSettings,
+    texels: Texels | None,
+    support: SupportScene | None,
+) -> BasisMaterials:
+    """``basis`` with each material's lobe width (alphas) and rho_s from its members' traces
+    together instead of the median of their own answers: one trace often cannot tell a broad lobe
+    from a narrower one over a brighter diffuse, or a sharp one seen through an LED or two from a
+    broader dimmer one, and its own solve lands by its start (the gallery's box alpha 0.5 metal
+    came back 0.25 with rho_d x2.3, its glossy plastics and lacquers 1.5-4x too broad). The width
+    is scaled over ``POOL_SCALES`` (both alphas; an anisotropic lobe's larger, then its smaller),
+    each of ``POOL_TEXELS`` sampled members (``clear`` texels, ``members`` their material) judging
+    it with its own frame and its albedos re-solved (``refine.lobe_costs``); the scale their clipped
+    votes favour is taken (``materials.pooled_scale``), rho_s as the members' median at it."""
+    rng = np.random.default_rng(0)
+    alpha, rho_s = basis.alpha.copy(), basis.rho_s.copy()
+    for k in range(len(basis)):
+        ids = clear[members == k]
+        ids = np.sort(rng.choice(ids, min(POOL_TEXELS, len(ids)), replace=False))
+        inp = refine_inputs(scanner, traces, torch.as_tensor(ids), fit, support, texels)
+        isotropic = alpha[k, 0] < ISOTROPIC_RATIO * alpha[k, 1]
+        for axes in [np.ones(2)] if isotropic else [np.array([1.0, 0.0]), np.array([0.0, 1.0])]:
+            grid = alpha[k] * POOL_SCALES[:, None] ** axes  # (S, 2)
+            c, _, _ = lobe_costs(
+                scanner,
+                inp.entries,
+                inp.mask,
+                inp.start,
+                torch.as_tensor(grid).expand(len(ids), -1, -1),
+                settings,
+                inp.shadow,
+                inp.support,
+            )
+            alpha[k] = np.clip(alpha[k] * pooled_scale(c.numpy(), POOL_SCALES) ** axes, ALPHA_MIN, ALPHA_MAX)
+        alpha[k] = np.sort(alpha[k])[::-1]  # alpha_x >= alpha_y
+        _, _, rs = lobe_costs(
+            scanner,
+            inp.entries,
+            inp.mask,
+            inp.start,
+            torch.as_tensor(alpha[k]).expand(len(ids), 1, 2),
+            settings,
+            inp.shadow,
+            inp.support,
+        )
+        rho_s[k] = rs[:, 0].median(0).values.numpy()
+    return dataclasses.replace(basis, alpha=alpha, rho_s=rho_s)
+
+
+def _widths_from_materials(
+    scanner: Scanner,
+    traces: RaggedTraces,
+    fit: dict[str, np.ndarray],
+    idx: np.ndarray,
+    basis: BasisMaterials,
+    settings: RefineSettings,
+    texels: Texels | None,
+    support: SupportScene | None,
+) -> None:
+    """Texels ``idx`` with a lobe of their own in a lobe material (``fit["material"]``) take its
+    width where their trace explains it within ``WIDTH_PARAMS`` of their own (both with the
+    texel's frame and albedos re-solved, ``refine.lobe_costs``): alphas the material's, rho_d and
+    rho_s re-solved, flagged ``FLAG_WIDTH_FROM_MATERIAL``. Updates ``fit`` in place."""
+    for k in np.array_split(idx, -(-len(idx) // REFINE_BATCH)) if len(idx) else []:
+        inp = refine_inputs(scanner, traces, torch.as_tensor(k), fit, support, texels)
+        alphas = np.stack([fit["alpha"][k], basis.alpha[fit["material"][k]]], 1)  # (n, 2 candidates, 2)
+        c, rd, rs = lobe_costs(
+            scanner, inp.entries, inp.mask, inp.start, torch.as_tensor(alphas), settings, inp.shadow, inp.support
+        )
+        take = (c[:, 1] <= c[:, 0] + WIDTH_PARAMS).numpy()
+        t = k[take]
+        fit["alpha"][t] = alphas[take, 1]
+        fit["rho_d"][t], fit["rho_s"][t] = rd[take, 1].numpy(), rs[take, 1].numpy()
+        fit["flags"][t] |= FLAG_WIDTH_FROM_MATERIAL
+
+
 def _store(fit: dict[str, np.ndarray], idx: torch.Tensor, r: Refined, marginal: torch.Tensor) -> None:
     i = idx.numpy()
     fit["n_loc"][i], fit["t_loc"][i] = r.frame[:, 2].numpy(), r.frame[:, 0].numpy()
@@ -337,7 +439,10 @@ def _material_pass(
     # grazing angles) is coarser — on the knot's Cycles scan those moved the clusters enough to lose
     # the glossy plastic's lobe
     clear = own & (fit["flags"] & FLAG_MARGINAL == 0)
-    basis = lobe_materials(fit["rho_d"][clear], fit["alpha"][clear], fit["rho_s"][clear], fit["highlight"][clear])
+    rows = np.nonzero(clear)[0]
+    basis, members = lobe_clusters(fit["rho_d"][rows], fit["alpha"][rows], fit["rho_s"][rows], fit["highlight"][rows])
+    if len(basis):
+        basis = _pooled_widths(scanner, traces, fit, rows, members, basis, settings, texels, support)
     if len(basis) == 0:  # too few texels kept a lobe to make a material of: all matte
         fit["material"][i_obs] = -1
         fit.update(basis.to_arrays())
@@ -375,6 +480,7 @@ def _material_pass(
     label[rest] = np.argmin(costs[rest] + prior[rest], 1) - 1  # -1: matte
     fit["material"][i_obs] = label
     fit.update(basis.to_arrays())
+    _widths_from_materials(scanner, traces, fit, i_obs[own[i_obs] & (label >= 0)], basis, settings, texels, support)
     # texels without a lobe of their own in a lobe material: toward its lobe
     takes = np.zeros(N, bool)
     takes[i_obs] = (label >= 0) & ~own[i_obs]
