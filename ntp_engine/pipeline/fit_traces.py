@@ -78,7 +78,7 @@ REFINE_FLAGS |= FLAG_MARGINAL | FLAG_WIDTH_FROM_MATERIAL
 # a material's lobe width from its members' traces together (``_pooled_widths``): this many sampled
 # members, the width scaled over this grid (per axis of an anisotropic lobe)
 POOL_TEXELS = 256
-POOL_SCALES = 2.0 ** np.linspace(-2.0, 2.0, 17)
+POOL_SCALES = 2.0 ** np.linspace(-2.0, 2.0, 9)
 # a texel with its own lobe takes its material's width where that costs its trace at most this more
 # than its own (AIC's 1 per parameter for the 2 alphas it would add; half chi-square units)
 WIDTH_PARAMS = 2.0
@@ -342,7 +342,7 @@ def _pooled_widths(
     from a narrower one over a brighter diffuse, or a sharp one seen through an LED or two from a
     broader dimmer one, and its own solve lands by its start (the gallery's box alpha 0.5 metal
     came back 0.25 with rho_d x2.3, its glossy plastics and lacquers 1.5-4x too broad). The width
-    is scaled over ``POOL_SCALES`` (both alphas; an anisotropic lobe's larger, then its smaller),
+    is scaled over ``POOL_SCALES`` (both alphas; an anisotropic lobe's then its larger, then its smaller),
     each of ``POOL_TEXELS`` sampled members (``clear`` texels, ``members`` their material) judging
     it with its own frame and its albedos re-solved (``refine.lobe_costs``); the scale their clipped
     votes favour is taken (``materials.pooled_scale``), rho_s as the members' median at it."""
@@ -353,7 +353,7 @@ def _pooled_widths(
         ids = np.sort(rng.choice(ids, min(POOL_TEXELS, len(ids)), replace=False))
         inp = refine_inputs(scanner, traces, torch.as_tensor(ids), fit, support, texels)
         isotropic = alpha[k, 0] < ISOTROPIC_RATIO * alpha[k, 1]
-        for axes in [np.ones(2)] if isotropic else [np.array([1.0, 0.0]), np.array([0.0, 1.0])]:
+        for axes in [np.ones(2)] if isotropic else [np.ones(2), np.array([1.0, 0.0]), np.array([0.0, 1.0])]:
             grid = alpha[k] * POOL_SCALES[:, None] ** axes  # (S, 2)
             c, _, _ = lobe_costs(
                 scanner,

@@ -11,8 +11,10 @@ from ntp_engine.fit.materials import (
     class_costs,
     clusters,
     estimated_matte_share,
+    lobe_clusters,
     lobe_materials,
     material_weight,
+    pooled_scale,
 )
 
 
@@ -74,6 +76,32 @@ def test_lobe_materials_are_their_members_medians():
     only = lobe_materials(rho_d, alpha, rho_s, faint)
     assert len(only) == 1
     np.testing.assert_allclose(only.rho_d[0], np.median(rho_d[200:], 0))
+
+
+def test_lobe_clusters_name_each_texels_material():
+    rho_d, alpha, rho_s = _two_materials(np.random.default_rng(1))
+    m, members = lobe_clusters(rho_d, alpha, rho_s, np.r_[np.ones(200), np.full(200, 0.1)])
+    assert len(m) == 2 and members.shape == (400,)
+    assert len(set(members[:200])) == 1 and len(set(members[200:])) == 1 and members[0] != members[200]
+    np.testing.assert_allclose(m.alpha[members[0]], np.median(alpha[:200], 0))
+    # the blue's metal-strong lobes never showed themselves: no material, its texels in none
+    faint = np.full(400, 0.1)
+    only, members = lobe_clusters(rho_d, alpha, rho_s, faint)
+    assert len(only) == 1 and (members[:200] == -1).all() and (members[200:] == 0).all()
+
+
+def test_pooled_scale_takes_the_width_most_texels_prefer():
+    """Each texel's cost over the width scales is its vote, clipped: 200 texels that prefer x2 by a
+    little outvote 10 that fit no width well and pull hard toward x0.5 — where the plain sum of
+    costs follows the 10. The minimum lies between grid points (the parabola finds it)."""
+    scales = 2.0 ** np.linspace(-2, 2, 17)
+    x = np.log2(scales)
+    many = np.tile(0.8 * (x - np.log2(2.1)) ** 2, (200, 1)) + 3.0  # 3: each texel's own noise floor
+    few = np.tile(400 * (x + 1) ** 2, (10, 1))
+    costs = np.concatenate([many, few, np.full((1, 17), np.inf)])  # a texel no width fits: no vote
+    assert abs(np.log2(pooled_scale(costs, scales)) - np.log2(2.1)) < 0.05
+    assert pooled_scale(costs, scales, clip=np.inf) < 0.6  # the plain sum: the 10 decide
+    assert pooled_scale(np.full((3, 17), np.inf), scales) == 1.0
 
 
 def test_a_cluster_counts_as_a_material_by_how_many_of_its_lobes_showed_themselves():
