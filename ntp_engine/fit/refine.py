@@ -71,6 +71,7 @@ MAX_TRIES = 3  # damping increases per LM iteration before the texel waits for t
 NOISE_SCALE = (1.0, 10.0)
 CONVERGED = 1e-4  # a texel whose LM step lowers its cost by less than this (relative) is done
 SHARP_START = 0.25  # the multi-start's sharper lobe: alphas times this
+LOBE_COST_ITERATIONS = 2  # LM iterations on the albedos per candidate width (lobe_costs)
 ISOTROPIC_RATIO = 1.25  # alpha_x / alpha_y below this: the tangent is not constrained by the lobe
 # a lobe solved less anisotropic than this is solved again isotropic, and keeps its anisotropy only
 # where the trace pays for it (``_prefer_isotropic``)
@@ -812,14 +813,18 @@ def lobe_costs(
     cost = torch.empty(N, S, dtype=dtype)
     rho_d, rho_s = torch.empty(N, S, 3, dtype=dtype), torch.empty(N, S, 3, dtype=dtype)
     diffuse: Tensor | None = None  # one normal, one diffuse basis for every width
+    albedos = torch.zeros(N, N_PARAMS, dtype=torch.bool)
+    albedos[:, P_RHO_D] = albedos[:, P_RHO_S] = True
     for k in range(S):
         p = torch.zeros(N, N_PARAMS, dtype=dtype)
         p[:, P_LOGA] = alphas[:, k].to(dtype).clamp(ALPHA_MIN, ALPHA_MAX).log()
         rnd = _Round(tr, frame, p[:, P_LOGA], True, diffuse)
         diffuse = rnd.diffuse
-        bases = rnd.bases(p[:, P_OMEGA], p[:, P_LOGA])
-        p = _albedo_start(rnd, p, True, bases=bases)
-        cost[:, k] = torch.nan_to_num(_cost(_residuals(tr, *bases, p)[0], settings.noise.robust), nan=math.inf)
+        p = _albedo_start(rnd, p, True)
+        # then the albedos under the robust cost: the least squares leave out the clipped entries,
+        # which for a bright lobe are its highlights (a lower bound the cost holds them to)
+        p, c, _ = _lm(rnd, p, _Prior.weak(frame, p, settings), albedos, LOBE_COST_ITERATIONS, settings)
+        cost[:, k] = torch.nan_to_num(c, nan=math.inf)
         rho_d[:, k], rho_s[:, k] = p[:, P_RHO_D], p[:, P_RHO_S]
     return cost, rho_d, rho_s
 

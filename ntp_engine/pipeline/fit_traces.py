@@ -342,31 +342,34 @@ def _pooled_widths(
     from a narrower one over a brighter diffuse, or a sharp one seen through an LED or two from a
     broader dimmer one, and its own solve lands by its start (the gallery's box alpha 0.5 metal
     came back 0.25 with rho_d x2.3, its glossy plastics and lacquers 1.5-4x too broad). The width
-    is scaled over ``POOL_SCALES`` (both alphas; an anisotropic lobe's then its larger, then its smaller),
-    each of ``POOL_TEXELS`` sampled members (``clear`` texels, ``members`` their material) judging
-    it with its own frame and its albedos re-solved (``refine.lobe_costs``); the scale their clipped
-    votes favour is taken (``materials.pooled_scale``), rho_s as the members' median at it."""
-    rng = np.random.default_rng(0)
+    is scaled over ``POOL_SCALES`` (both alphas; an anisotropic lobe's larger and its smaller, each
+    with the other at the members' median), each of ``POOL_TEXELS`` sampled members (``clear``
+    texels, ``members`` their material; seeded per material) judging it with its own frame and its
+    albedos re-solved (``refine.lobe_costs``); the scale their clipped votes favour is taken
+    (``materials.pooled_scale``), rho_s as the members' median at it."""
     alpha, rho_s = basis.alpha.copy(), basis.rho_s.copy()
+    S = len(POOL_SCALES)
     for k in range(len(basis)):
         ids = clear[members == k]
-        ids = np.sort(rng.choice(ids, min(POOL_TEXELS, len(ids)), replace=False))
+        ids = np.sort(np.random.default_rng(k).choice(ids, min(POOL_TEXELS, len(ids)), replace=False))
         inp = refine_inputs(scanner, traces, torch.as_tensor(ids), fit, support, texels)
         isotropic = alpha[k, 0] < ISOTROPIC_RATIO * alpha[k, 1]
-        for axes in [np.ones(2)] if isotropic else [np.ones(2), np.array([1.0, 0.0]), np.array([0.0, 1.0])]:
-            grid = alpha[k] * POOL_SCALES[:, None] ** axes  # (S, 2)
-            c, _, _ = lobe_costs(
-                scanner,
-                inp.entries,
-                inp.mask,
-                inp.start,
-                torch.as_tensor(grid).expand(len(ids), -1, -1),
-                settings,
-                inp.shadow,
-                inp.support,
-            )
-            alpha[k] = np.clip(alpha[k] * pooled_scale(c.numpy(), POOL_SCALES) ** axes, ALPHA_MIN, ALPHA_MAX)
-        alpha[k] = np.sort(alpha[k])[::-1]  # alpha_x >= alpha_y
+        # each axis scaled with the other at the members' median (one call, 2S widths)
+        axes = np.ones((1, 2)) if isotropic else np.eye(2)
+        grid = (alpha[k] * POOL_SCALES[None, :, None] ** axes[:, None]).reshape(-1, 2)
+        c, _, _ = lobe_costs(
+            scanner,
+            inp.entries,
+            inp.mask,
+            inp.start,
+            torch.as_tensor(grid).expand(len(ids), -1, -1),
+            settings,
+            inp.shadow,
+            inp.support,
+        )
+        for a, axis in enumerate(axes):
+            alpha[k] = alpha[k] * pooled_scale(c[:, a * S : (a + 1) * S].numpy(), POOL_SCALES) ** axis
+        alpha[k] = np.sort(np.clip(alpha[k], ALPHA_MIN, ALPHA_MAX))[::-1]  # alpha_x >= alpha_y
         _, _, rs = lobe_costs(
             scanner,
             inp.entries,

@@ -54,6 +54,7 @@ from .fit_traces import (
     ALBEDO_VIEWS,
     CALIBRATION_TEXELS,
     FIT_BLOCK,
+    FLAG_WIDTH_FROM_MATERIAL,
     MIN_CLEAR_ENTRIES,
     NETWORK_VIEWS,
     REFINE_VIEWS,
@@ -454,6 +455,7 @@ def refine_summary(fitted: dict[str, np.ndarray]) -> dict:
         if "material_matte_share" in fitted:  # the matte class's share estimated on this object
             out["matte_share"] = round(float(fitted["material_matte_share"]), 4)
         out["texels_lobe_from_material"] = int((fitted["flags"] & FLAG_FROM_MATERIAL != 0).sum())
+        out["texels_width_from_material"] = int((fitted["flags"] & FLAG_WIDTH_FROM_MATERIAL != 0).sum())
     return out
 
 

@@ -7,6 +7,7 @@ import pytest
 import torch
 
 from ntp_engine.fit.emitter_blocks import shadow_groups
+from ntp_engine.fit.materials import pooled_scale
 from ntp_engine.fit.refine import (
     FLAG_FROM_MATERIAL,
     FLAG_SPECULAR_UNCONSTRAINED,
@@ -18,6 +19,7 @@ from ntp_engine.fit.refine import (
     SensorNoise,
     Start,
     calibrated_noise,
+    lobe_costs,
     lobe_evidence,
     material_costs,
     refine,
@@ -26,6 +28,7 @@ from ntp_engine.fit.refine import (
 from ntp_engine.learn.synthetic import SyntheticConfig, sample_batch
 from ntp_engine.physics.frame import cross, rotation_from_vector, safe_normalize, turned_about_normal
 from ntp_engine.physics.measurement import emitter_terms, measure_terms
+from ntp_engine.pipeline.fit_traces import POOL_SCALES
 from ntp_engine.scanner.device_file import load_scanner
 
 DEV = load_scanner()
@@ -326,3 +329,23 @@ def test_refine_toward_keeps_a_material_lobe_the_trace_misses():
     assert (r.log_alpha[:, 0] - r.log_alpha[:, 1] < 0.01).all()  # an isotropic material's lobe stays isotropic
     assert (r.rho_d - p["rho_d"]).abs()[missed].median() < 0.01
     assert _normal_err(r, p).median() < 1.0
+
+
+@pytest.mark.parametrize("off", [0.5, 2.0])
+def test_lobe_costs_profile_a_materials_width_from_its_texels_traces(off):
+    """A broad metal lobe (alpha 0.3, rho_d 0.05) whose material's width is off by 2x: the texels'
+    costs over the width grid (their frames, albedos re-solved) pool to the true width, and there
+    rho_d is the truth — too narrow a lobe leaves its tails to a brighter diffuse."""
+    entries, mask, p = _traces(48, 21, (0.05, 0.05, 0.05), (6.0, 6.0, 6.0), (0.3, 0.3))
+    start = Start(p["n_local"], p["t_local"], torch.full((48, 2), 0.3), torch.zeros(48, 3), torch.zeros(48, 3))
+    grid = torch.as_tensor(0.3 * off * POOL_SCALES)[None, :, None].expand(48, -1, 2)
+    cost, rho_d, rho_s = lobe_costs(DEV, entries, mask, start, grid)
+    assert cost.shape == (48, len(POOL_SCALES)) and rho_d.shape == rho_s.shape == (48, len(POOL_SCALES), 3)
+    assert torch.isfinite(cost).all()
+    width = 0.3 * off * pooled_scale(cost.numpy(), POOL_SCALES)
+    assert abs(math.log(width / 0.3)) < 0.05
+    at = lambda scale: int((torch.as_tensor(POOL_SCALES) - scale).abs().argmin())  # noqa: E731
+    assert (rho_d[:, at(1 / off)] - 0.05).abs().median() < 0.005
+    assert (rho_s[:, at(1 / off)].mean(1) / 6.0).log().abs().median() < 0.1
+    if off < 1:
+        assert rho_d[:, at(1.0)].median() > 0.065  # the case is real: the narrow lobe's tails in rho_d
