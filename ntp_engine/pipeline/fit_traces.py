@@ -75,7 +75,7 @@ FLAG_MARGINAL = 128  # refined on entries the mesh shadows or sees at grazing an
 FLAG_WIDTH_FROM_MATERIAL = 256  # a lobe of its own, its width its material's: the trace could not tell them apart
 REFINE_FLAGS = FLAG_SPECULAR_UNCONSTRAINED | FLAG_TANGENT_UNCONSTRAINED | FLAG_FROM_MATERIAL
 REFINE_FLAGS |= FLAG_MARGINAL | FLAG_WIDTH_FROM_MATERIAL
-# a material's lobe width from its members' traces together (``_pooled_widths``): this many sampled
+# a material's lobe width from its members' traces together (``pooled_widths``): this many sampled
 # members, the width scaled over this grid (per axis of an anisotropic lobe)
 POOL_TEXELS = 256
 POOL_SCALES = 2.0 ** np.linspace(-2.0, 2.0, 9)
@@ -326,7 +326,7 @@ def _neighbour_turns(
     return turn, agree
 
 
-def _pooled_widths(
+def pooled_widths(
     scanner: Scanner,
     traces: RaggedTraces,
     fit: dict[str, np.ndarray],
@@ -445,7 +445,7 @@ def _material_pass(
     rows = np.nonzero(clear)[0]
     basis, members = lobe_clusters(fit["rho_d"][rows], fit["alpha"][rows], fit["rho_s"][rows], fit["highlight"][rows])
     if len(basis):
-        basis = _pooled_widths(scanner, traces, fit, rows, members, basis, settings, texels, support)
+        basis = pooled_widths(scanner, traces, fit, rows, members, basis, settings, texels, support)
     if len(basis) == 0:  # too few texels kept a lobe to make a material of: all matte
         fit["material"][i_obs] = -1
         fit.update(basis.to_arrays())

@@ -93,3 +93,48 @@ def test_refine_inputs_read_marginal_entries_only_where_too_few_others_are_left(
         assert len(got) == min(len(usable), REFINE_VIEWS) and set(got.tolist()) <= usable
         assert torch.equal(masks[i, mask[i]], table[i][got])
     assert not few[0] and few[1] and mask[2].sum() == 5  # both cases are there
+
+
+def test_a_materials_width_comes_from_its_members_traces_together():
+    """A broad metal lobe (alpha 0.3, rho_d 0.05, rho_s 6) seen in 8 entries per texel: a material
+    whose width is 2x off (the median of answers that landed by their start) gets the truth from
+    its texels' traces together, and its rho_s; in the refinement's second pass the texels whose
+    traces cannot tell their own width from the material's take it, their albedos re-solved
+    (flagged ``FLAG_WIDTH_FROM_MATERIAL``)."""
+    from ntp_engine.fit.materials import BasisMaterials
+    from ntp_engine.fit.refine import FLAG_SPECULAR_UNCONSTRAINED, RefineSettings
+    from ntp_engine.physics.frame import cross
+    from ntp_engine.physics.measurement import emitter_terms, measure_terms
+    from ntp_engine.pipeline.fit_traces import FLAG_WIDTH_FROM_MATERIAL, pooled_widths, refine_fit
+
+    dev, n, v = load_scanner(), 96, 8
+    cfg = SyntheticConfig(views_min=v, views_max=v, albedo_jitter=0.0, roughness_jitter=0.0, sweep_fraction=1.0)
+    gen = torch.Generator().manual_seed(5)
+    b = sample_batch(dev, n, gen, cfg)
+    geo = torch.stack([b.tangent_geo, cross(b.normal_geo, b.tangent_geo), b.normal_geo], -2)
+    n_cam = torch.einsum("nvij,ni->nvj", geo, b.params["n_local"])
+    t_cam = torch.einsum("nvij,ni->nvj", geo, b.params["t_local"])
+    a_l, s_l = emitter_terms(dev, b.position, n_cam, t_cam, torch.full((n, v), 0.3), torch.full((n, v), 0.3))
+    lin = measure_terms(dev, a_l, s_l, torch.full((n, v, 3), 0.05), torch.full((n, v, 3), 6.0))
+    lin = dev.exposure(dev.pattern) * lin
+    y = torch.round((255 * lin * (1 + 0.01 * torch.randn(lin.shape, generator=gen))).clamp(0, 255)) / 255
+    traces = RaggedTraces.from_padded(torch.cat([y, b.position, b.normal_geo, b.tangent_geo], -1), b.length_mask)
+    start = {"n_loc": b.params["n_local"].double().numpy(), "t_loc": b.params["t_local"].double().numpy()}
+    start |= {"alpha": np.full((n, 2), 0.15), "rho_d": np.full((n, 3), 0.1), "rho_s": np.full((n, 3), 3.0)}
+    start["flags"] = np.zeros(n, np.int64)
+    one = np.ones((1, 1))
+    for off in (0.5, 2.0):
+        wrong = BasisMaterials(
+            0.1 * one.repeat(3, 1), 0.3 * off * one.repeat(2, 1), 3 * one.repeat(3, 1), *[one[0]] * 4
+        )
+        got = pooled_widths(
+            dev, traces, start, np.arange(n), np.zeros(n, np.int64), wrong, RefineSettings(), None, None
+        )
+        np.testing.assert_allclose(got.alpha, [[0.3, 0.3]], rtol=0.1)
+        np.testing.assert_allclose(got.rho_s, [[6.0, 6.0, 6.0]], rtol=0.15)
+    out = refine_fit(dev, traces, start, RefineSettings())
+    np.testing.assert_allclose(out["material_alpha"], [[0.3, 0.3]], rtol=0.1)
+    took = out["flags"] & FLAG_WIDTH_FROM_MATERIAL != 0
+    assert took.mean() > 0.25 and (out["flags"][took] & FLAG_SPECULAR_UNCONSTRAINED == 0).all()
+    np.testing.assert_allclose(out["alpha"][took], np.broadcast_to(out["material_alpha"], (took.sum(), 2)))
+    assert abs(np.median(out["rho_d"][took]) - 0.05) < 0.01
