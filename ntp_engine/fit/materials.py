@@ -15,6 +15,10 @@ class's share is the object's own (``estimated_matte_share``: the mixture's maxi
 by EM from ``MATTE_SHARE``): an object with little matte surface gives a texel that cannot tell
 to its colour's lobe material, one with much keeps it matte.
 
+A material's lobe width is then what its members' traces explain best together
+(``pooled_scale`` over ``refine.lobe_costs``, in ``pipeline.fit_traces.pooled_widths``), not the
+median of their own answers, which one trace often cannot pin down.
+
 Convention: rho_d, rho_s linear RGB ``(N, 3)``; alpha ``(N, 2)`` with alpha_x >= alpha_y (the
 refinement's canonical lobe); costs in half chi-square units like the refinement's.
 """

@@ -115,6 +115,7 @@ def test_refinement_stage_writes_uncertainty_and_resumes(scan24, tmp_path):
     assert len(basis["table"]) == rep["refine"]["basis_materials"]
     assert set(np.unique(ids).astype(int)) <= set(range(len(basis["table"]) + 1))
     assert 0 <= rep["refine"]["texels_lobe_from_material"] <= rep["texels"]["observed"]
+    assert 0 <= rep["refine"]["texels_width_from_material"] <= rep["texels"]["observed"]
     if basis["table"]:  # the matte class's share, estimated on this object
         assert 0.05 <= rep["refine"]["matte_share"] <= 0.95
     truth = scan24 / "ground_truth"
