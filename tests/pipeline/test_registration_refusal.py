@@ -36,7 +36,7 @@ def test_an_ambiguous_azimuth_is_refused_with_its_diagnostics_and_forced_on_requ
     uniform_maps([0.6, 0.5, 0.4], [0.3, 0.3, 0.3], 0.3, 0.3).save(asset / "maps")
     scan = tmp_path / "scan"
     r = run_virtual_scan(
-        scan, "--mesh", asset / "mesh.obj", "--maps", asset / "maps", "--views", "24", "--scale", "0.125"
+        scan, "--mesh", asset / "mesh.obj", "--maps", asset / "maps", "--views", "24", "--scale", "0.1"
     )
     assert r.returncode == 0, r.stderr
     out = tmp_path / "rec"
