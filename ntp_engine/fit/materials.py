@@ -159,13 +159,6 @@ def material_weight(highlight: np.ndarray, rho_s: np.ndarray) -> float:
     return len(highlight) * f * f
 
 
-def lobe_materials(
-    rho_d: np.ndarray, alpha: np.ndarray, rho_s: np.ndarray, highlight: np.ndarray | None = None
-) -> BasisMaterials:
-    """``lobe_clusters``' materials."""
-    return lobe_clusters(rho_d, alpha, rho_s, highlight)[0]
-
-
 def lobe_clusters(
     rho_d: np.ndarray, alpha: np.ndarray, rho_s: np.ndarray, highlight: np.ndarray | None = None
 ) -> tuple[BasisMaterials, np.ndarray]:

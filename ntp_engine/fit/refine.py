@@ -539,13 +539,21 @@ def _albedo_start(
         s = torch.zeros_like(s)
     elif keep_rho_s:  # the lobe is given: only rho_d is solved, against what the lobe leaves
         y, s = y - p[:, None, P_RHO_S] * s, torch.zeros_like(s)
+    return _with_albedos(p, d, s, y, w, RHO_S_MAX if specular and not keep_rho_s else 0.0, keep_rho_s)
+
+
+def _with_albedos(
+    p: Tensor, d: Tensor, s: Tensor, y: Tensor, w: Tensor, rho_s_max: float, keep_rho_s: bool = False
+) -> Tensor:
+    """p with rho_d (and rho_s unless ``keep_rho_s``) the bounded least squares of ``y`` ≈ rho_d
+    ``d`` + rho_s ``s`` channel by channel, weights ``w`` (all ``(N, V, 3)``; float64 inside)."""
     rd, rs = bounded_ls2(
         d.double().transpose(1, 2),
         s.double().transpose(1, 2),
         y.double().transpose(1, 2),
-        w.transpose(1, 2),
+        w.double().transpose(1, 2),
         RHO_D_MAX,
-        RHO_S_MAX if specular and not keep_rho_s else 0.0,
+        rho_s_max,
     )
     p = p.clone()
     p[:, P_RHO_D] = rd.to(p.dtype)
@@ -839,17 +847,7 @@ def _robust_albedos(
     r, active = _residuals(tr, d, s, p)
     cost = _cost(r, c)
     for _ in range(ALBEDO_ITERATIONS):
-        w = (tr.inv_sigma**2 * active / (1.0 + (r / c) ** 2)).double()
-        rd, rs = bounded_ls2(
-            d.double().transpose(1, 2),
-            s.double().transpose(1, 2),
-            tr.y.double().transpose(1, 2),
-            w.transpose(1, 2),
-            RHO_D_MAX,
-            RHO_S_MAX,
-        )
-        q = p.clone()
-        q[:, P_RHO_D], q[:, P_RHO_S] = rd.to(p.dtype), rs.to(p.dtype)
+        q = _with_albedos(p, d, s, tr.y, tr.inv_sigma**2 * active / (1.0 + (r / c) ** 2), RHO_S_MAX)
         r_q, active_q = _residuals(tr, d, s, q)
         new = _cost(r_q, c)
         better = new < cost

@@ -357,31 +357,23 @@ def pooled_widths(
         # each axis scaled with the other at the members' median (one call, 2S widths)
         axes = np.ones((1, 2)) if isotropic else np.eye(2)
         grid = (alpha[k] * POOL_SCALES[None, :, None] ** axes[:, None]).reshape(-1, 2)
-        c, _, _ = lobe_costs(
-            scanner,
-            inp.entries,
-            inp.mask,
-            inp.start,
-            torch.as_tensor(grid).expand(len(ids), -1, -1),
-            settings,
-            inp.shadow,
-            inp.support,
-        )
+        c, _, _ = _lobe_costs(scanner, inp, grid, settings)
         for a, axis in enumerate(axes):
             alpha[k] = alpha[k] * pooled_scale(c[:, a * S : (a + 1) * S].numpy(), POOL_SCALES) ** axis
         alpha[k] = np.sort(np.clip(alpha[k], ALPHA_MIN, ALPHA_MAX))[::-1]  # alpha_x >= alpha_y
-        _, _, rs = lobe_costs(
-            scanner,
-            inp.entries,
-            inp.mask,
-            inp.start,
-            torch.as_tensor(alpha[k]).expand(len(ids), 1, 2),
-            settings,
-            inp.shadow,
-            inp.support,
-        )
+        _, _, rs = _lobe_costs(scanner, inp, alpha[k][None], settings)
         rho_s[k] = rs[:, 0].median(0).values.numpy()
     return dataclasses.replace(basis, alpha=alpha, rho_s=rho_s)
+
+
+def _lobe_costs(
+    scanner: Scanner, inp: RefineInputs, widths: np.ndarray, settings: RefineSettings
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``refine.lobe_costs`` of ``inp``'s texels under ``widths``: ``(W, 2)`` for all of them or
+    ``(N, W, 2)`` each its own."""
+    w = torch.as_tensor(widths)
+    w = w.expand(len(inp.mask), -1, -1) if w.dim() == 2 else w
+    return lobe_costs(scanner, inp.entries, inp.mask, inp.start, w, settings, inp.shadow, inp.support)
 
 
 def _widths_from_materials(
@@ -401,9 +393,7 @@ def _widths_from_materials(
     for k in np.array_split(idx, -(-len(idx) // REFINE_BATCH)) if len(idx) else []:
         inp = refine_inputs(scanner, traces, torch.as_tensor(k), fit, support, texels)
         alphas = np.stack([fit["alpha"][k], basis.alpha[fit["material"][k]]], 1)  # (n, 2 candidates, 2)
-        c, rd, rs = lobe_costs(
-            scanner, inp.entries, inp.mask, inp.start, torch.as_tensor(alphas), settings, inp.shadow, inp.support
-        )
+        c, rd, rs = _lobe_costs(scanner, inp, alphas, settings)
         take = (c[:, 1] <= c[:, 0] + WIDTH_PARAMS).numpy()
         t = k[take]
         fit["alpha"][t] = alphas[take, 1]
@@ -444,8 +434,7 @@ def _material_pass(
     clear = own & (fit["flags"] & FLAG_MARGINAL == 0)
     rows = np.nonzero(clear)[0]
     basis, members = lobe_clusters(fit["rho_d"][rows], fit["alpha"][rows], fit["rho_s"][rows], fit["highlight"][rows])
-    if len(basis):
-        basis = pooled_widths(scanner, traces, fit, rows, members, basis, settings, texels, support)
+    basis = pooled_widths(scanner, traces, fit, rows, members, basis, settings, texels, support)
     if len(basis) == 0:  # too few texels kept a lobe to make a material of: all matte
         fit["material"][i_obs] = -1
         fit.update(basis.to_arrays())

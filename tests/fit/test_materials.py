@@ -12,7 +12,6 @@ from ntp_engine.fit.materials import (
     clusters,
     estimated_matte_share,
     lobe_clusters,
-    lobe_materials,
     material_weight,
     pooled_scale,
 )
@@ -60,7 +59,7 @@ def test_clusters_do_not_depend_on_one_k_means_run():
 
 def test_lobe_materials_are_their_members_medians():
     rho_d, alpha, rho_s = _two_materials(np.random.default_rng(1))
-    m = lobe_materials(rho_d, alpha, rho_s)
+    m = lobe_clusters(rho_d, alpha, rho_s)[0]
     assert len(m) == 2
     order = np.argsort(m.alpha[:, 0])
     np.testing.assert_allclose(m.alpha[order], [[0.05, 0.05], [0.3, 0.05]], rtol=0.05)
@@ -69,11 +68,11 @@ def test_lobe_materials_are_their_members_medians():
     back = BasisMaterials.from_arrays(m.to_arrays())
     for a, b in zip(back.to_arrays().values(), m.to_arrays().values(), strict=True):
         np.testing.assert_array_equal(a, b)
-    assert len(lobe_materials(rho_d[:3], alpha[:3], rho_s[:3])) == 0  # too few to be a material
+    assert len(lobe_clusters(rho_d[:3], alpha[:3], rho_s[:3])[0]) == 0  # too few to be a material
     # metal-strong lobes that never made much of a pixel (corrections to a bright diffuse) make no
     # material; a dielectric's lobe (the grey, rho_s 1) is faint by nature and makes one
     faint = np.full(400, 0.1)
-    only = lobe_materials(rho_d, alpha, rho_s, faint)
+    only = lobe_clusters(rho_d, alpha, rho_s, faint)[0]
     assert len(only) == 1
     np.testing.assert_allclose(only.rho_d[0], np.median(rho_d[200:], 0))
 
@@ -111,7 +110,7 @@ def test_a_cluster_counts_as_a_material_by_how_many_of_its_lobes_showed_themselv
         """The two materials' shares (blue, grey) when that share of the blue's lobes (metal-strong)
         made a highlight; none of the grey's (a dielectric's: rho_s 1) did."""
         hl = np.r_[np.where(np.arange(200) < frac_blue * 200, 0.9, 0.1), np.full(200, 0.1)]
-        m = lobe_materials(rho_d, alpha, rho_s, hl)
+        m = lobe_clusters(rho_d, alpha, rho_s, hl)[0]
         out = np.zeros(2)
         out[(m.alpha[:, 0] > 0.1).astype(int)] = m.share  # blue alpha 0.05, grey 0.3
         return out
@@ -134,7 +133,7 @@ def test_a_cluster_counts_as_a_material_by_how_many_of_its_lobes_showed_themselv
 
 def test_class_costs_follow_colour_and_share():
     rho_d, alpha, rho_s = _two_materials(np.random.default_rng(3))
-    m = lobe_materials(rho_d, alpha, rho_s)
+    m = lobe_clusters(rho_d, alpha, rho_s)[0]
     blue = int(np.argmin(m.alpha[:, 0]))
     probe = np.array([[0.05, 0.08, 0.3], [0.2, 0.2, 0.2], [0.9, 0.1, 0.05]])  # blue, grey, a red no material has
     c = class_costs(probe, m)
