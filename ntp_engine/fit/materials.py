@@ -207,6 +207,14 @@ def lobe_clusters(
     return BasisMaterials(*(np.array([r[i] for r in rows]) for i in range(len(_NAMES)))), members
 
 
+def pooled_votes(costs: np.ndarray, clip: float = POOL_CLIP) -> np.ndarray:
+    """The candidates' totals ``(S,)`` of ``costs (n, S)`` (n texels' traces under S candidate
+    lobes): each texel's costs above its own best, clipped at ``clip``, summed; the lowest total is
+    what the texels together favour. Texels whose every cost is inf do not vote."""
+    c = costs[np.isfinite(costs).any(1)]
+    return np.minimum(c - c.min(1, keepdims=True), clip).sum(0)
+
+
 def pooled_scale(costs: np.ndarray, scales: np.ndarray, clip: float = POOL_CLIP) -> float:
     """The scale of a material's lobe width that its texels' traces, together, explain best:
     ``costs (n, S)`` of each texel's trace under the lobe at ``scales (S,)`` (ascending,
@@ -216,10 +224,9 @@ def pooled_scale(costs: np.ndarray, scales: np.ndarray, clip: float = POOL_CLIP)
     gallery's box the plain sum chose 0.30 for its alpha 0.5 metal, the clipped one 0.50). The
     minimum of the sum, refined by a parabola through its neighbours in log scale; texels whose
     every cost is inf do not vote."""
-    c = costs[np.isfinite(costs).any(1)]
-    if len(c) == 0:
+    if not np.isfinite(costs).any():
         return 1.0
-    total = np.minimum(c - c.min(1, keepdims=True), clip).sum(0)
+    total = pooled_votes(costs, clip)
     j = int(np.argmin(total))
     x = np.log(scales)
     if 0 < j < len(scales) - 1:

@@ -30,8 +30,10 @@ from ..fit.materials import (
     estimated_matte_share,
     lobe_clusters,
     pooled_scale,
+    pooled_votes,
 )
 from ..fit.refine import (
+    ANISOTROPY_PARAMS,
     FLAG_FROM_MATERIAL,
     FLAG_SPECULAR_UNCONSTRAINED,
     FLAG_TANGENT_UNCONSTRAINED,
@@ -341,28 +343,41 @@ def pooled_widths(
     together instead of the median of their own answers: one trace often cannot tell a broad lobe
     from a narrower one over a brighter diffuse, or a sharp one seen through an LED or two from a
     broader dimmer one, and its own solve lands by its start (the gallery's box alpha 0.5 metal
-    came back 0.25 with rho_d x2.3, its glossy plastics and lacquers 1.5-4x too broad). The width
-    is scaled over ``POOL_SCALES`` (both alphas; an anisotropic lobe's larger and its smaller, each
-    with the other at the members' median), each of ``POOL_TEXELS`` sampled members (``clear``
-    texels, ``members`` their material; seeded per material) judging it with its own frame and its
-    albedos re-solved (``refine.lobe_costs``); the scale their clipped votes favour is taken
-    (``materials.pooled_scale``), rho_s as the members' median at it."""
+    came back 0.25 with rho_d x2.3, its glossy plastics and lacquers 1.5-4x too broad). Each of
+    ``POOL_TEXELS`` sampled members (``clear`` texels, ``members`` their material; seeded per
+    material) judges candidate widths with its own frame and its albedos re-solved
+    (``refine.lobe_costs``); their clipped votes (``materials.pooled_votes``) decide. Candidates:
+    an isotropic lobe scaled over ``POOL_SCALES`` about the members' geometric-mean width and, where
+    the members' median lobe is anisotropic, its smaller alpha scaled (the larger at the median),
+    then its larger (the smaller at its pooled value). The anisotropic lobe is kept only where its
+    votes beat the isotropic one's by ``ANISOTROPY_PARAMS``: a sharp isotropic lobe seen through an
+    LED or two measures one axis, and each member's own solve leaves the other by its start (the
+    box's alpha 0.006 lacquer pooled to 0.039 x 0.006 per axis). rho_s: the members' median at
+    the chosen width."""
     alpha, rho_s = basis.alpha.copy(), basis.rho_s.copy()
     S = len(POOL_SCALES)
     for k in range(len(basis)):
         ids = clear[members == k]
         ids = np.sort(np.random.default_rng(k).choice(ids, min(POOL_TEXELS, len(ids)), replace=False))
         inp = refine_inputs(scanner, traces, torch.as_tensor(ids), fit, support, texels)
-        isotropic = alpha[k, 0] < ISOTROPIC_RATIO * alpha[k, 1]
-        # each axis scaled with the other at the members' median (one call, 2S widths)
-        axes = np.ones((1, 2)) if isotropic else np.eye(2)
-        grid = (alpha[k] * POOL_SCALES[None, :, None] ** axes[:, None]).reshape(-1, 2)
-        c, _, _ = _lobe_costs(scanner, inp, grid, settings)
-        for a, axis in enumerate(axes):
-            alpha[k] = alpha[k] * pooled_scale(c[:, a * S : (a + 1) * S].numpy(), POOL_SCALES) ** axis
-        alpha[k] = np.sort(np.clip(alpha[k], ALPHA_MIN, ALPHA_MAX))[::-1]  # alpha_x >= alpha_y
-        _, _, rs = _lobe_costs(scanner, inp, alpha[k][None], settings)
-        rho_s[k] = rs[:, 0].median(0).values.numpy()
+        a = alpha[k]
+        iso = np.sqrt(a[0] * a[1]) * POOL_SCALES[:, None] * np.ones(2)
+        if a[0] < ISOTROPIC_RATIO * a[1]:
+            c, _, _ = _lobe_costs(scanner, inp, iso, settings)
+            widths = [iso[0] * pooled_scale(c.numpy(), POOL_SCALES)]
+        else:
+            # the isotropic profile and the smaller alpha's in one call, then the larger alpha's
+            minor = a * np.stack([np.ones(S), POOL_SCALES], 1)
+            c, _, _ = _lobe_costs(scanner, inp, np.concatenate([iso, minor]), settings)
+            aniso = a * np.array([1.0, pooled_scale(c[:, S:].numpy(), POOL_SCALES)])
+            widths = [iso[0] * pooled_scale(c[:, :S].numpy(), POOL_SCALES)]
+            c, _, _ = _lobe_costs(scanner, inp, aniso * np.stack([POOL_SCALES, np.ones(S)], 1), settings)
+            widths.append(aniso * np.array([pooled_scale(c.numpy(), POOL_SCALES), 1.0]))
+        cand = np.sort(np.clip(widths, ALPHA_MIN, ALPHA_MAX), 1)[:, ::-1]  # alpha_x >= alpha_y
+        c, _, rs = _lobe_costs(scanner, inp, cand, settings)
+        votes = pooled_votes(c.numpy())
+        j = 1 if len(cand) == 2 and votes[1] + ANISOTROPY_PARAMS < votes[0] else 0
+        alpha[k], rho_s[k] = cand[j], rs[:, j].median(0).values.numpy()
     return dataclasses.replace(basis, alpha=alpha, rho_s=rho_s)
 
 
