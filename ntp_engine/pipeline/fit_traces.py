@@ -373,7 +373,7 @@ def pooled_widths(
             widths = [iso[0] * pooled_scale(c[:, :S].numpy(), POOL_SCALES)]
             c, _, _ = _lobe_costs(scanner, inp, aniso * np.stack([POOL_SCALES, np.ones(S)], 1), settings)
             widths.append(aniso * np.array([pooled_scale(c.numpy(), POOL_SCALES), 1.0]))
-        cand = np.sort(np.clip(widths, ALPHA_MIN, ALPHA_MAX), 1)[:, ::-1]  # alpha_x >= alpha_y
+        cand = -np.sort(-np.clip(widths, ALPHA_MIN, ALPHA_MAX), 1)  # alpha_x >= alpha_y
         c, _, rs = _lobe_costs(scanner, inp, cand, settings)
         votes = pooled_votes(c.numpy())
         j = 1 if len(cand) == 2 and votes[1] + ANISOTROPY_PARAMS < votes[0] else 0
