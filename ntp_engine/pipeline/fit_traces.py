@@ -361,16 +361,17 @@ def pooled_widths(
         ids = np.sort(np.random.default_rng(k).choice(ids, min(POOL_TEXELS, len(ids)), replace=False))
         inp = refine_inputs(scanner, traces, torch.as_tensor(ids), fit, support, texels)
         a = alpha[k]
-        iso = np.sqrt(a[0] * a[1]) * POOL_SCALES[:, None] * np.ones(2)
+        mean = np.sqrt(a[0] * a[1]) * np.ones(2)  # the isotropic lobe of the members' mean width
+        iso = mean * POOL_SCALES[:, None]
         if a[0] < ISOTROPIC_RATIO * a[1]:
             c, _, _ = _lobe_costs(scanner, inp, iso, settings)
-            widths = [iso[0] * pooled_scale(c.numpy(), POOL_SCALES)]
+            widths = [mean * pooled_scale(c.numpy(), POOL_SCALES)]
         else:
             # the isotropic profile and the smaller alpha's in one call, then the larger alpha's
             minor = a * np.stack([np.ones(S), POOL_SCALES], 1)
             c, _, _ = _lobe_costs(scanner, inp, np.concatenate([iso, minor]), settings)
             aniso = a * np.array([1.0, pooled_scale(c[:, S:].numpy(), POOL_SCALES)])
-            widths = [iso[0] * pooled_scale(c[:, :S].numpy(), POOL_SCALES)]
+            widths = [mean * pooled_scale(c[:, :S].numpy(), POOL_SCALES)]
             c, _, _ = _lobe_costs(scanner, inp, aniso * np.stack([POOL_SCALES, np.ones(S)], 1), settings)
             widths.append(aniso * np.array([pooled_scale(c.numpy(), POOL_SCALES), 1.0]))
         cand = -np.sort(-np.clip(widths, ALPHA_MIN, ALPHA_MAX), 1)  # alpha_x >= alpha_y

@@ -95,38 +95,52 @@ def test_refine_inputs_read_marginal_entries_only_where_too_few_others_are_left(
     assert not few[0] and few[1] and mask[2].sum() == 5  # both cases are there
 
 
-def test_a_materials_width_comes_from_its_members_traces_together():
-    """A broad metal lobe (alpha 0.3, rho_d 0.05, rho_s 6) seen in 8 entries per texel: a material
-    whose width is 2x off (the median of answers that landed by their start) gets the truth from
-    its texels' traces together, and its rho_s; in the refinement's second pass the texels whose
-    traces cannot tell their own width from the material's take it, their albedos re-solved
-    (flagged ``FLAG_WIDTH_FROM_MATERIAL``)."""
-    from ntp_engine.fit.materials import BasisMaterials
-    from ntp_engine.fit.refine import FLAG_SPECULAR_UNCONSTRAINED, RefineSettings
+def _lobe_traces(n: int, v: int, alpha: tuple[float, float], rho_d: float, rho_s: float, seed: int):
+    """``n`` synthetic traces of ``v`` entries (1% noise, 8-bit) of one material, alpha_x along
+    each texel's true tangent, and a first-pass answer that knows the frames only."""
     from ntp_engine.physics.frame import cross
     from ntp_engine.physics.measurement import emitter_terms, measure_terms
-    from ntp_engine.pipeline.fit_traces import FLAG_WIDTH_FROM_MATERIAL, pooled_widths, refine_fit
 
-    dev, n, v = load_scanner(), 96, 8
+    dev = load_scanner()
     cfg = SyntheticConfig(views_min=v, views_max=v, albedo_jitter=0.0, roughness_jitter=0.0, sweep_fraction=1.0)
-    gen = torch.Generator().manual_seed(5)
+    gen = torch.Generator().manual_seed(seed)
     b = sample_batch(dev, n, gen, cfg)
     geo = torch.stack([b.tangent_geo, cross(b.normal_geo, b.tangent_geo), b.normal_geo], -2)
     n_cam = torch.einsum("nvij,ni->nvj", geo, b.params["n_local"])
     t_cam = torch.einsum("nvij,ni->nvj", geo, b.params["t_local"])
-    a_l, s_l = emitter_terms(dev, b.position, n_cam, t_cam, torch.full((n, v), 0.3), torch.full((n, v), 0.3))
-    lin = measure_terms(dev, a_l, s_l, torch.full((n, v, 3), 0.05), torch.full((n, v, 3), 6.0))
+    ax, ay = (torch.full((n, v), a) for a in alpha)
+    a_l, s_l = emitter_terms(dev, b.position, n_cam, t_cam, ax, ay)
+    lin = measure_terms(dev, a_l, s_l, torch.full((n, v, 3), rho_d), torch.full((n, v, 3), rho_s))
     lin = dev.exposure(dev.pattern) * lin
     y = torch.round((255 * lin * (1 + 0.01 * torch.randn(lin.shape, generator=gen))).clamp(0, 255)) / 255
     traces = RaggedTraces.from_padded(torch.cat([y, b.position, b.normal_geo, b.tangent_geo], -1), b.length_mask)
     start = {"n_loc": b.params["n_local"].double().numpy(), "t_loc": b.params["t_local"].double().numpy()}
     start |= {"alpha": np.full((n, 2), 0.15), "rho_d": np.full((n, 3), 0.1), "rho_s": np.full((n, 3), 3.0)}
     start["flags"] = np.zeros(n, np.int64)
+    return dev, traces, start
+
+
+def _material(alpha: tuple[float, float]):
+    """One basis material of lobe width ``alpha`` (rho_d 0.1, rho_s 3)."""
+    from ntp_engine.fit.materials import BasisMaterials
+
     one = np.ones((1, 1))
+    return BasisMaterials(0.1 * one.repeat(3, 1), np.array([alpha]), 3 * one.repeat(3, 1), *[one[0]] * 4)
+
+
+def test_a_materials_width_comes_from_its_members_traces_together():
+    """A broad metal lobe (alpha 0.3, rho_d 0.05, rho_s 6) seen in 8 entries per texel: a material
+    whose width is 2x off (the median of answers that landed by their start) gets the truth from
+    its texels' traces together, and its rho_s; in the refinement's second pass the texels whose
+    traces cannot tell their own width from the material's take it, their albedos re-solved
+    (flagged ``FLAG_WIDTH_FROM_MATERIAL``)."""
+    from ntp_engine.fit.refine import FLAG_SPECULAR_UNCONSTRAINED, RefineSettings
+    from ntp_engine.pipeline.fit_traces import FLAG_WIDTH_FROM_MATERIAL, pooled_widths, refine_fit
+
+    n = 96
+    dev, traces, start = _lobe_traces(n, 8, (0.3, 0.3), 0.05, 6.0, 5)
     for off in (0.5, 2.0):
-        wrong = BasisMaterials(
-            0.1 * one.repeat(3, 1), 0.3 * off * one.repeat(2, 1), 3 * one.repeat(3, 1), *[one[0]] * 4
-        )
+        wrong = _material((0.3 * off, 0.3 * off))
         got = pooled_widths(
             dev, traces, start, np.arange(n), np.zeros(n, np.int64), wrong, RefineSettings(), None, None
         )
@@ -138,3 +152,19 @@ def test_a_materials_width_comes_from_its_members_traces_together():
     assert took.mean() > 0.25 and (out["flags"][took] & FLAG_SPECULAR_UNCONSTRAINED == 0).all()
     np.testing.assert_allclose(out["alpha"][took], np.broadcast_to(out["material_alpha"], (took.sum(), 2)))
     assert abs(np.median(out["rho_d"][took]) - 0.05) < 0.01
+
+
+def test_a_materials_lobe_is_isotropic_unless_its_members_traces_together_show_otherwise():
+    """A sharp isotropic lobe (alpha 0.02, the lacquer's kind) whose members' median came out
+    0.08 x 0.02 (one axis measured, the other by the start) pools isotropic at the truth; a brushed
+    lobe (0.3 x 0.03) whose median came out 0.3 x 0.06 stays anisotropic, both axes within 15%."""
+    from ntp_engine.fit.refine import RefineSettings
+    from ntp_engine.pipeline.fit_traces import pooled_widths
+
+    n = 96
+    for truth, median, seed in (((0.02, 0.02), (0.08, 0.02), 6), ((0.3, 0.03), (0.3, 0.06), 7)):
+        dev, traces, start = _lobe_traces(n, 16, truth, 0.1, 3.0, seed)
+        got = pooled_widths(
+            dev, traces, start, np.arange(n), np.zeros(n, np.int64), _material(median), RefineSettings(), None, None
+        )
+        np.testing.assert_allclose(got.alpha, [truth], rtol=0.15)
