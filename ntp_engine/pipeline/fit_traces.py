@@ -367,13 +367,18 @@ def pooled_widths(
             c, _, _ = _lobe_costs(scanner, inp, iso, settings)
             widths = [mean * pooled_scale(c.numpy(), POOL_SCALES)]
         else:
-            # the isotropic profile and the smaller alpha's in one call, then the larger alpha's
+            # the isotropic profile and the smaller alpha's in one call, then the larger alpha's and
+            # the smaller's again (one round of coordinate descent more)
             minor = a * np.stack([np.ones(S), POOL_SCALES], 1)
             c, _, _ = _lobe_costs(scanner, inp, np.concatenate([iso, minor]), settings)
             aniso = a * np.array([1.0, pooled_scale(c[:, S:].numpy(), POOL_SCALES)])
             widths = [mean * pooled_scale(c[:, :S].numpy(), POOL_SCALES)]
-            c, _, _ = _lobe_costs(scanner, inp, aniso * np.stack([POOL_SCALES, np.ones(S)], 1), settings)
-            widths.append(aniso * np.array([pooled_scale(c.numpy(), POOL_SCALES), 1.0]))
+            for axis in (0, 1):  # the larger alpha with the smaller pooled, then the smaller again
+                scaled = np.stack([np.ones(S), np.ones(S)], 1)
+                scaled[:, axis] = POOL_SCALES
+                c, _, _ = _lobe_costs(scanner, inp, aniso * scaled, settings)
+                aniso[axis] *= pooled_scale(c.numpy(), POOL_SCALES)
+            widths.append(aniso)
         cand = -np.sort(-np.clip(widths, ALPHA_MIN, ALPHA_MAX), 1)  # alpha_x >= alpha_y
         c, _, rs = _lobe_costs(scanner, inp, cand, settings)
         votes = pooled_votes(c.numpy())

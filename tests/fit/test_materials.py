@@ -14,6 +14,7 @@ from ntp_engine.fit.materials import (
     lobe_clusters,
     material_weight,
     pooled_scale,
+    pooled_votes,
 )
 
 
@@ -101,6 +102,14 @@ def test_pooled_scale_takes_the_width_most_texels_prefer():
     assert abs(np.log2(pooled_scale(costs, scales)) - np.log2(2.1)) < 0.05
     assert pooled_scale(costs, scales, clip=np.inf) < 0.6  # the plain sum: the 10 decide
     assert pooled_scale(np.full((3, 17), np.inf), scales) == 1.0
+
+
+def test_pooled_votes_count_each_texel_above_its_own_best_clipped():
+    """Two candidates, four texels: one prefers the first by 0.5, one the second by 5 (its vote
+    clipped at 2), one is inf under the second (a full vote against it), one inf under both (none)."""
+    costs = np.array([[1.0, 1.5], [9.0, 4.0], [3.0, np.inf], [np.inf, np.inf]])
+    np.testing.assert_allclose(pooled_votes(costs), [2.0, 0.5 + 2.0])
+    np.testing.assert_allclose(pooled_votes(costs, clip=10.0), [5.0, 0.5 + 10.0])
 
 
 def test_a_cluster_counts_as_a_material_by_how_many_of_its_lobes_showed_themselves():
