@@ -367,24 +367,17 @@ def pooled_widths(
             c, _, _ = _lobe_costs(scanner, inp, iso, settings)
             widths = [mean * pooled_scale(c.numpy(), POOL_SCALES)]
         else:
-            # the isotropic profile and the smaller alpha's in one call, then the larger alpha's and
-            # the smaller's again (one round of coordinate descent more; kept where it wins the vote)
+            # the isotropic profile and the smaller alpha's in one call, then the larger alpha's
             minor = a * np.stack([np.ones(S), POOL_SCALES], 1)
             c, _, _ = _lobe_costs(scanner, inp, np.concatenate([iso, minor]), settings)
             aniso = np.clip(a * np.array([1.0, pooled_scale(c[:, S:].numpy(), POOL_SCALES)]), ALPHA_MIN, ALPHA_MAX)
             widths = [mean * pooled_scale(c[:, :S].numpy(), POOL_SCALES)]
-            for axis in (0, 1):  # the larger alpha with the smaller pooled, then the smaller again
-                scaled = np.ones((S, 2))
-                scaled[:, axis] = POOL_SCALES
-                c, _, _ = _lobe_costs(scanner, inp, aniso * scaled, settings)
-                aniso = aniso.copy()
-                aniso[axis] = np.clip(aniso[axis] * pooled_scale(c.numpy(), POOL_SCALES), ALPHA_MIN, ALPHA_MAX)
-                widths.append(aniso)
+            c, _, _ = _lobe_costs(scanner, inp, aniso * np.stack([POOL_SCALES, np.ones(S)], 1), settings)
+            widths.append(aniso * np.array([pooled_scale(c.numpy(), POOL_SCALES), 1.0]))
         cand = -np.sort(-np.clip(widths, ALPHA_MIN, ALPHA_MAX), 1)  # alpha_x >= alpha_y
         c, _, rs = _lobe_costs(scanner, inp, cand, settings)
         votes = pooled_votes(c.numpy())
-        j = 0 if len(cand) == 1 else 1 + int(np.argmin(votes[1:]))  # the isotropic lobe or the best anisotropic
-        j = j if votes[j] + ANISOTROPY_PARAMS < votes[0] else 0
+        j = 1 if len(cand) == 2 and votes[1] + ANISOTROPY_PARAMS < votes[0] else 0
         alpha[k], rho_s[k] = cand[j], rs[:, j].median(0).values.numpy()
     return dataclasses.replace(basis, alpha=alpha, rho_s=rho_s)
 
