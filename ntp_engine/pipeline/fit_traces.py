@@ -352,8 +352,8 @@ def pooled_widths(
     then its larger (the smaller at its pooled value). The anisotropic lobe is kept only where its
     votes beat the isotropic one's by ``ANISOTROPY_PARAMS``: a sharp isotropic lobe seen through an
     LED or two measures one axis, and each member's own solve leaves the other by its start (the
-    box's alpha 0.006 lacquer pooled to 0.039 x 0.006 per axis). rho_s: the members' median at
-    the chosen width."""
+    gallery's vase alpha 0.02 plastic: |log alpha| 0.10 per axis, 0.02 so). rho_s: the members'
+    median at the chosen width."""
     alpha, rho_s = basis.alpha.copy(), basis.rho_s.copy()
     S = len(POOL_SCALES)
     for k in range(len(basis)):
