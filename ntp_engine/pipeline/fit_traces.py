@@ -376,11 +376,13 @@ def pooled_widths(
             widths.append(aniso * np.array([pooled_scale(c.numpy(), POOL_SCALES), 1.0]))
         cand = -np.sort(-np.clip(widths, ALPHA_MIN, ALPHA_MAX), 1)  # alpha_x >= alpha_y
         c, _, rs = _lobe_costs(scanner, inp, cand, settings)
-        votes = pooled_votes(c.numpy())
-        # the anisotropic candidate pays for its two parameters only where it is anisotropic (its
-        # larger alpha may have pooled to the range's end with the smaller: the knot's 0.5 metal)
-        paid = ANISOTROPY_PARAMS * (cand[-1, 0] >= ISOTROPIC_RATIO * cand[-1, 1])
-        j = 1 if len(cand) == 2 and votes[1] + paid < votes[0] else 0
+        j = 0  # the isotropic lobe, unless the anisotropic one wins the vote
+        if len(cand) == 2:
+            votes = pooled_votes(c.numpy())
+            # it pays for its two parameters only where it is anisotropic (its larger alpha may have
+            # pooled to the range's end with the smaller: the knot's 0.5 metal)
+            paid = ANISOTROPY_PARAMS * (cand[1, 0] >= ISOTROPIC_RATIO * cand[1, 1])
+            j = int(votes[1] + paid < votes[0])
         alpha[k], rho_s[k] = cand[j], rs[:, j].median(0).values.numpy()
     return dataclasses.replace(basis, alpha=alpha, rho_s=rho_s)
 

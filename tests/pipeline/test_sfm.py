@@ -13,12 +13,12 @@ from ntp_engine.sim.evaluate import pose_error, similarity_fit
 
 
 @pytest.mark.parametrize("mapper", ["incremental", "hierarchical"])
-def test_sfm_recovers_the_trajectory_up_to_a_similarity(scan24, colmap24, tmp_path, mapper):
+def test_sfm_recovers_the_trajectory_up_to_a_similarity(scan24, tmp_path, mapper, request):
     scan = scan24
     names = sorted(p.name for p in (scan / "photos").glob("*.png"))
     device = load_scanner(scan / "device.toml")
-    if mapper == chosen_mapper("auto", len(names)):  # the suite's shared model is this very call
-        reg = colmap24[1]
+    if mapper == chosen_mapper("auto", len(names)):  # the suite's shared model: these photos, this mapper
+        reg = request.getfixturevalue("colmap24")[1]
     else:
         reg = structure_from_motion(scan / "photos", names, device, tmp_path / "sfm", mapper=mapper)
     assert len(reg.poses) >= 0.8 * len(names) and len(reg.points) > 100
