@@ -33,7 +33,7 @@ from ..pipeline.scan_folder import load_scan
 from ..pipeline.stages import cached_fit, reconstruct
 from ..pipeline.texels import rasterize
 from ..scanner.scanner import Scanner
-from ..sim.evaluate import _nearest, parameter_errors
+from ..sim.evaluate import parameter_errors, truth_at_texels
 from ..sim.gallery import GALLERY, build_asset
 from ..sim.materials import load_labels
 from . import gallery as bench_gallery
@@ -65,18 +65,15 @@ class RefineBench:
 def _truth_in_texel_frames(
     out: Path, scan_dir: Path, resolution: int
 ) -> tuple[dict, np.ndarray, list[dict], np.ndarray]:
-    """The truth at every texel (nearest), its labels and the texels' geometric frames (rows t^, b^, n^)."""
+    """The truth at every texel's centre (``truth_at_texels``), its labels and the texels' geometric
+    frames (rows t^, b^, n^)."""
     tex = rasterize(load_mesh(out / "mesh.obj"), (resolution, resolution))
     uv = np.stack([(tex.col + 0.5) / resolution, 1 - (tex.row + 0.5) / resolution], 1)
     gt = scan_dir / "ground_truth"
-    maps = SVBRDFMaps.load(gt)
-    true = {
-        k: _nearest(getattr(maps, k), uv)
-        for k in ("diffuse_albedo", "specular_albedo", "normal", "tangent", "roughness")
-    }
     labels, table = load_labels(gt)
+    true, label = truth_at_texels(SVBRDFMaps.load(gt), labels, uv)
     frame = np.stack([tex.tangent, np.cross(tex.normal, tex.tangent), tex.normal], 1)
-    return true, _nearest(labels[..., None], uv)[:, 0], table, frame
+    return true, label, table, frame
 
 
 def _as_maps(frame: np.ndarray, n_loc, t_loc, alpha, rho_d, rho_s) -> dict[str, np.ndarray]:

@@ -15,8 +15,8 @@
   >= 2:1), |log alpha ratio| of the sorted alphas (larger with larger), rho_d RMSE and ratio (mean
   reconstructed / mean true), |log rho_s ratio| (channel means), and on matte materials the
   spurious-lobe rate: the fraction of texels given rho_s > ``SPURIOUS_RHO_S``. Medians over the
-  material's observed texels (the truth taken at its nearest texel, so materials do not blend at
-  borders); NaN where a metric does not apply or nothing was observed.
+  material's observed texels (the truth at each texel's centre, ``truth_at_texels``); NaN where a
+  metric does not apply or nothing was observed.
 
 Both assets must share the UV layout (true for scans of a mesh with UVs, whose UVs the pipeline
 keeps).
@@ -31,7 +31,7 @@ import torch
 from skimage.metrics import structural_similarity
 
 from ..io.images import read_image, write_png
-from ..io.maps import MAP_FILES, SVBRDFMaps, texel_uv
+from ..io.maps import MAP_FILES, SVBRDFMaps, bilinear_corners, bilinear_pixels, texel_uv, uv_to_pixel
 from ..io.mesh import Mesh, load_mesh
 from ..io.raycast import RayCaster
 from ..pipeline.texels import rasterize
@@ -73,6 +73,26 @@ def _nearest(img: np.ndarray, uv: np.ndarray) -> np.ndarray:
     """The texel of ``img (H, W, C)`` containing each ``uv (N, 2)``: ``(N, C)``."""
     h, w = img.shape[:2]
     return img[np.clip(((1 - uv[:, 1]) * h).astype(int), 0, h - 1), np.clip((uv[:, 0] * w).astype(int), 0, w - 1)]
+
+
+def truth_at_texels(truth: SVBRDFMaps, labels: np.ndarray, uv: np.ndarray) -> tuple[dict[str, np.ndarray], np.ndarray]:
+    """The truth where the renderer shades a result's texel centres ``uv (N, 2)``: each map's
+    bilinear sample ``(N, C)`` (normal unit, tangent orthogonal to it) over only the truth texels of
+    the centre's own material — the label of the truth texel containing it, also returned ``(N,)``
+    — so materials do not blend at borders. Where the result's texels are the truth's (same
+    resolution) that is the texel itself; where the truth is finer, a texel centre lies between truth
+    texels, and the one containing it (its nearest) is half a truth texel off: on the gallery's
+    curved objects 1-2 deg of normal (docs/accuracy.md)."""
+    label = _nearest(labels[..., None], uv)[:, 0]
+    h, w = labels.shape
+    r, c = uv_to_pixel(uv, (h, w))
+    rows, cols, _, _ = bilinear_corners(h, w, r, c)
+    taps = labels[rows, cols] == label[:, None]  # the containing texel is one of the four
+    out = {k: bilinear_pixels(getattr(truth, k), r, c, taps) for k in MAP_FILES}
+    n = out["normal"] / np.maximum(np.linalg.norm(out["normal"], axis=1, keepdims=True), 1e-12)
+    t = out["tangent"] - (out["tangent"] * n).sum(1, keepdims=True) * n
+    out["normal"], out["tangent"] = n, t / np.maximum(np.linalg.norm(t, axis=1, keepdims=True), 1e-12)
+    return out, label
 
 
 def _major_axis(maps: dict[str, np.ndarray]) -> np.ndarray:
@@ -153,12 +173,9 @@ def material_errors(
     mesh = load_mesh(result / "mesh.obj")
     surface = surface_texels(mesh, shape)
     seen = surface if scanner is None or poses is None else seen_texels(mesh, shape, scanner, poses)
-    truth_maps = SVBRDFMaps.load(truth)
-    # the truth's nearest texel: bilinear samples would blend materials (and atlas charts) at borders
-    true = {k: _nearest(getattr(truth_maps, k), uv) for k in MAP_FILES}
-    rec = {k: getattr(rec_maps, k).reshape(-1, getattr(rec_maps, k).shape[-1]) for k in MAP_FILES}
     labels, table = load_labels(truth)
-    label = _nearest(labels[..., None], uv)[:, 0]
+    true, label = truth_at_texels(SVBRDFMaps.load(truth), labels, uv)
+    rec = {k: getattr(rec_maps, k).reshape(-1, getattr(rec_maps, k).shape[-1]) for k in MAP_FILES}
     rows = []
     for k, mat in enumerate(table):
         member = (label == k) & surface

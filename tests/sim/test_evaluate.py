@@ -6,7 +6,7 @@ import pytest
 from ntp_engine.io.assets import DEMO_DIR
 from ntp_engine.io.errors import NtpInputError
 from ntp_engine.io.images import write_exr
-from ntp_engine.io.maps import SVBRDFMaps
+from ntp_engine.io.maps import MAP_FILES, SVBRDFMaps, texel_uv
 from ntp_engine.io.mesh import Mesh, load_mesh, smooth_normals
 from ntp_engine.pipeline.texels import rasterize
 from ntp_engine.scanner.camera import look_at
@@ -76,6 +76,24 @@ def test_material_errors_of_the_truth_are_zero(tmp_path):
     assert matte["spurious_lobe"] == 0 and np.isnan(matte["log_alpha"]) and np.isnan(matte["tangent_deg"])
     assert metal["tangent_deg"] < 1 and metal["log_alpha"] < 0.05 and metal["log_rho_s"] < 0.05
     assert np.isnan(mirror["tangent_deg"])  # isotropic: no tangent to score
+
+
+def test_the_truth_is_taken_at_each_texels_centre(tmp_path):
+    """A result at half the truth's resolution whose texels hold what the renderer shades at their
+    centres (the truth's bilinear samples) scores no error in the medians (its albedos blend with
+    the neighbouring materials' at borders, as the renderer's do): its centres lie between truth texels,
+    and the truth texel containing one is half a truth texel away (on the vase ~1 deg of normal)."""
+    asset = build_asset("vase", tmp_path / "asset", 64)
+    result = tmp_path / "result"
+    result.mkdir()
+    shutil.copy(asset / "mesh.obj", result / "mesh.obj")
+    res = 32
+    samples = SVBRDFMaps.load(asset / "ground_truth").sample(texel_uv((res, res)).reshape(-1, 2))
+    SVBRDFMaps(*(samples[k].reshape(res, res, -1) for k in MAP_FILES)).save(result)
+    write_exr(result / "confidence.exr", np.ones((res, res, 3)))
+    for r in material_errors(result, asset / "ground_truth"):
+        assert r["normal_deg"] < 0.01, r
+        assert np.nan_to_num(r["log_alpha"]) < 0.01 and np.nan_to_num(r["tangent_deg"]) < 0.1
 
 
 def test_material_errors_see_each_kind_of_error(tmp_path):
