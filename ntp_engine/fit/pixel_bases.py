@@ -10,7 +10,8 @@ padding). Diffuse: ``falloff (N, V, M)`` = w_q Psi / r^2; the basis is linear in
 rho_d,c (basis_c . n) for any normal n near the ``n0`` that chose the emitters above the horizon.
 Specular: ``frame (N, 3, 3)`` rows t, b, n of the shading frame; unit ``h (N, V, M, 3)``,
 ``fresnel_falloff (N, V, M)`` = F(wi.h) w_q Psi / r^2, ``drive (N, V, M, 3)``, unit ``wo (N, V, 3)``,
-``alpha (N, 2)`` = (alpha_x, alpha_y) along (t, b). The lobe toward emitter m is
+``alpha (N, 2)`` = (alpha_x, alpha_y) along (t, b), or per entry ``(N, V, 2)`` (the lobe a pixel
+sample sees on a curved surface: ``fit.footprint``). The lobe toward emitter m is
 F D G / (4 cos_i cos_o) cos_i falloff in the cancelled Smith form of ``physics.brdf.ggx_specular``:
     lobe = cos_i+ F falloff / (pi ax ay q^2 (cos_i+ + L_i) (cos_o+ + L_o)),  0 where cos_o <= 0,
 q = (h_x/ax)^2 + (h_y/ay)^2 + h_z^2 and L = |(ax v_x, ay v_y, v_z)| in the shading frame.
@@ -137,6 +138,8 @@ def _specular(
 ) -> tuple[Tensor, Tensor]:
     """The compiled loop's call; the derivatives ``(0, 0, 5, 3)`` unless asked for."""
     N, V = len(frame), fresnel_falloff.shape[1]
+    if alpha.dim() == 2:  # one lobe for every entry of a texel
+        alpha = alpha[:, None, :].expand(N, V, 2)
     arrays = [_arr(x, wi.dtype) for x in (frame, wi, h, wo, fresnel_falloff, drive, alpha)]
     row = np.arange(N, dtype=np.int64) if rows is None else np.ascontiguousarray(rows.numpy().astype(np.int64))
     spec = np.zeros((N, V, 3), arrays[1].dtype)
@@ -223,13 +226,13 @@ def _specular_loop(rows, frame, wi, h, wo, ff, drive, alpha, derivatives, spec, 
     N, V, M = spec.shape[0], ff.shape[1], ff.shape[2]
     for n in numba.prange(N):
         r = rows[n]
-        ax, ay = float(alpha[n, 0]), float(alpha[n, 1])
-        ax2, ay2 = ax * ax, ay * ay
         t0, t1, t2 = float(frame[n, 0, 0]), float(frame[n, 0, 1]), float(frame[n, 0, 2])
         b0, b1, b2 = float(frame[n, 1, 0]), float(frame[n, 1, 1]), float(frame[n, 1, 2])
         n0, n1, n2 = float(frame[n, 2, 0]), float(frame[n, 2, 1]), float(frame[n, 2, 2])
-        norm = 1.0 / (math.pi * ax * ay)
         for v in range(V):
+            ax, ay = float(alpha[n, v, 0]), float(alpha[n, v, 1])
+            ax2, ay2 = ax * ax, ay * ay
+            norm = 1.0 / (math.pi * ax * ay)
             ox = t0 * wo[r, v, 0] + t1 * wo[r, v, 1] + t2 * wo[r, v, 2]
             oy = b0 * wo[r, v, 0] + b1 * wo[r, v, 1] + b2 * wo[r, v, 2]
             oz = n0 * wo[r, v, 0] + n1 * wo[r, v, 1] + n2 * wo[r, v, 2]

@@ -44,6 +44,7 @@ from ..scanner.camera import VALID_CODE
 from ..scanner.scanner import Scanner
 from .albedo import bounded_ls2
 from .emitter_blocks import EmitterBlocks, emitter_blocks, shadow_groups
+from .footprint import along_axes, effective_alpha
 from .highlights import parked_positions
 from .pixel_bases import (
     diffuse_basis,
@@ -61,7 +62,7 @@ from .support_light import (
     support_specular_emitters,
 )
 
-VERSION = 18  # of the method: part of the pipeline's cache key (bump when results change for the same settings)
+VERSION = 19  # of the method: part of the pipeline's cache key (bump when results change for the same settings)
 CENSOR_CODE = VALID_CODE[1]  # above this an 8-bit code may be (or border) a clipped pixel: a lower bound
 EXPANDED_BLOCKS = 4  # emitter blocks per entry summed sample by sample (the rest as coarse emitters)
 SELECT_WIDEN, SELECT_FLOOR = 3.0, 0.03  # emitters are chosen under alphas x3 (at least 0.03)
@@ -170,7 +171,8 @@ class _Trace:
     (and, with ``blocks``, to each block's coarse emitter), half vectors and Fresnel-weighted falloff
     in the texel's geometric frame — none depends on the parameters (a shading frame only rotates
     them). Sample index K is padding: it emits nothing. ``shadow (N, V)``: the emitter groups the
-    mesh hides from each entry (``learn.ragged``), whose falloff is 0."""
+    mesh hides from each entry (``learn.ragged``), whose falloff is 0. ``footprint (N, V, 2, 2)``: the
+    slope spread of each entry's pixel sample (``fit.footprint``), which widens the lobe it sees."""
 
     def __init__(
         self,
@@ -181,6 +183,7 @@ class _Trace:
         blocks: EmitterBlocks | None,
         shadow: Tensor | None = None,
         support: SupportView | None = None,
+        footprint: Tensor | None = None,
     ):
         N, V, _ = entries.shape
         self.N, self.V, self.blocks = N, V, blocks
@@ -212,6 +215,9 @@ class _Trace:
             self.falloff, self.fresnel_falloff = self.falloff * lit, self.fresnel_falloff * lit
             if blocks is not None:  # a block's coarse emitter carries the drive of its visible groups
                 self.ff_c = self.ff_c * groups.block_visibility(shadow, x.dtype)
+        # the slope spread each entry's pixel sample covers (``fit.footprint``): None on a flat or
+        # unknown surface
+        self.spread = None if footprint is None or not bool((footprint != 0).any()) else footprint.to(x.dtype)
         y = entries[..., :3]
         self.y = torch.where(mask[..., None], y, torch.zeros_like(y))
         code = 255.0 * self.y
@@ -243,6 +249,7 @@ class _Trace:
         for k in ("y", "inv_sigma", "censored", "mask"):
             setattr(out, k, getattr(self, k)[idx])
         out.N, out.V, out.blocks = len(idx), self.V, self.blocks
+        out.spread = None if self.spread is None else self.spread[idx]
         return out
 
     def rows(self, idx: Tensor) -> _Trace:
@@ -268,13 +275,18 @@ class _Round:
                 diffuse = diffuse + tr.support_diffuse
         self.diffuse = diffuse
         self.wo, self.row = tr.wo, torch.arange(tr.N)  # the per-entry arrays' rows of the round's texels
+        # the slope variance of each entry's sample along the round's shading axes (``fit.footprint``)
+        self.variance = None if tr.spread is None else along_axes(tr.spread, frame0)
         if not specular:
             return
         if tr.blocks is None:
             self.wi, self.h, self.ff = tr.wi, tr.h, tr.fresnel_falloff
             self.drive = tr.drive.expand(tr.N, tr.V, -1, 3)
         else:
-            wide = (SELECT_WIDEN * log_alpha.exp()).clamp(SELECT_FLOOR, ALPHA_MAX)
+            seen = log_alpha.exp()
+            if self.variance is not None:  # the widest lobe any entry sees
+                seen = effective_alpha(seen, self.variance).amax(1)
+            wide = (SELECT_WIDEN * seen).clamp(SELECT_FLOOR, ALPHA_MAX)
             score = lobe_weights(frame0, tr.wi_c, tr.h_c, tr.wo, tr.ff_c, wide)  # (N, V, C)
             order = score.argsort(-1, descending=True)
             self.wi, self.h, self.ff, self.drive = selected_emitters(
@@ -298,7 +310,13 @@ class _Round:
         vars(out).update(vars(self))
         out.tr, out.row = self.tr.light_rows(idx), self.row[idx]
         out.frame0, out.diffuse = self.frame0[idx], self.diffuse[idx]
+        out.variance = None if self.variance is None else self.variance[idx]
         return out
+
+    def seen_alpha(self, alpha: Tensor) -> Tensor:
+        """The alphas each entry's pixel sample sees ``(N, V, 2)``, or ``alpha (N, 2)`` itself on a
+        flat surface (``fit.footprint``)."""
+        return alpha if self.variance is None else effective_alpha(alpha, self.variance)
 
     def rebase(self, omega: Tensor) -> None:
         """Fold the rotation ``omega (N, 3)`` into the round's frame (linearise about it next)."""
@@ -316,7 +334,10 @@ class _Round:
         if not self.specular:
             return diffuse, torch.zeros_like(diffuse), dd, torch.zeros_like(dd)
         alpha = log_alpha.exp()
-        spec, ds = specular_basis_and_derivatives(frame, self.wi, self.h, self.wo, self.ff, self.drive, alpha, self.row)
+        seen = self.seen_alpha(alpha)
+        spec, ds = specular_basis_and_derivatives(frame, self.wi, self.h, self.wo, self.ff, self.drive, seen, self.row)
+        if seen is not alpha:  # d log(seen alpha) / d log alpha = (alpha / seen alpha)^2
+            ds[:, :, 3:5] *= ((alpha[:, None, :] / seen) ** 2).to(ds.dtype)[..., None]
         return diffuse, spec, dd, ds
 
     def bases(self, omega: Tensor, log_alpha: Tensor) -> tuple[Tensor, Tensor]:
@@ -326,7 +347,7 @@ class _Round:
         diffuse = (self.diffuse * frame[:, None, None, 2, :]).sum(-1)
         if not self.specular:
             return diffuse, torch.zeros_like(diffuse)
-        alpha = log_alpha.exp()
+        alpha = self.seen_alpha(log_alpha.exp())
         return diffuse, specular_basis(frame, self.wi, self.h, self.wo, self.ff, self.drive, alpha, self.row)
 
 
@@ -639,6 +660,7 @@ def refine(
     settings: RefineSettings | None = None,
     shadow: Tensor | None = None,
     support: SupportView | None = None,
+    footprint: Tensor | None = None,
 ) -> Refined:
     """Refine N texels from ``start``. ``entries (N, V, 12)`` as captured with ``mask (N, V)`` and
     ``shadow (N, V)`` (the emitter groups the mesh hides from each entry: ``learn.ragged``);
@@ -646,7 +668,7 @@ def refine(
     entry shows (below ``MIN_SPECULAR_SHARE`` of every pixel), gets a diffuse-only solve from its
     start and rho_s = 0, its lobe flagged unconstrained. Never NaN: a failed solve keeps the start."""
     settings = settings or RefineSettings()
-    tr = _Trace(scanner, entries, mask, settings.noise, emitter_blocks(scanner), shadow, support)
+    tr = _Trace(scanner, entries, mask, settings.noise, emitter_blocks(scanner), shadow, support, footprint)
     return _refine(tr, start, specular, settings)
 
 
@@ -740,6 +762,7 @@ def material_costs(
     shadow: Tensor | None = None,
     turn_prior: tuple[Tensor, Tensor] | None = None,
     support: SupportView | None = None,
+    footprint: Tensor | None = None,
 ) -> tuple[Tensor, Tensor]:
     """How well K basis materials' lobes (``alpha (K, 2)``, ``rho_s (K, 3)``) explain N traces:
     the robust data cost ``(N, 1 + K)`` of each texel's trace under no lobe (column 0) and under each
@@ -755,7 +778,7 @@ def material_costs(
     better guess where neighbours disagree). Columns are comparable: each model has the same free
     rho_d."""
     settings = settings or RefineSettings()
-    tr_all = _Trace(scanner, entries, mask, settings.noise, emitter_blocks(scanner), shadow, support)
+    tr_all = _Trace(scanner, entries, mask, settings.noise, emitter_blocks(scanner), shadow, support, footprint)
     dtype = tr_all.y.dtype
     N, K = tr_all.N, alpha.shape[0]
     frame_all = frame_from_normal_tangent(start.normal.to(dtype), start.tangent.to(dtype))
@@ -806,6 +829,7 @@ def lobe_costs(
     settings: RefineSettings | None = None,
     shadow: Tensor | None = None,
     support: SupportView | None = None,
+    footprint: Tensor | None = None,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """How well S candidate lobe widths explain N traces: the robust data cost ``(N, S)`` of each
     texel's trace under ``alphas (N, S, 2)`` (alpha_x along ``start``'s tangent; clamped to the
@@ -814,7 +838,7 @@ def lobe_costs(
     it is the profile of their cost over the material's lobe width, which one trace alone may not
     tell from a broader diffuse (``fit.materials.pooled_scale``)."""
     settings = settings or RefineSettings()
-    tr = _Trace(scanner, entries, mask, settings.noise, emitter_blocks(scanner), shadow, support)
+    tr = _Trace(scanner, entries, mask, settings.noise, emitter_blocks(scanner), shadow, support, footprint)
     dtype = tr.y.dtype
     frame = frame_from_normal_tangent(start.normal.to(dtype), start.tangent.to(dtype))
     N, S = alphas.shape[:2]
@@ -867,6 +891,7 @@ def refine_toward(
     settings: RefineSettings | None = None,
     shadow: Tensor | None = None,
     support: SupportView | None = None,
+    footprint: Tensor | None = None,
 ) -> Refined:
     """Refine N texels that take their lobe from a basis material: from ``start`` (the material's
     lobe with the texel's own frame, rho_d), with alphas and rho_s pulled to ``prior`` by its
@@ -874,7 +899,7 @@ def refine_toward(
     ``FLAG_FROM_MATERIAL``, and ``FLAG_SPECULAR_UNCONSTRAINED`` where none does: its parameters are
     then the material's; its uncertainty the prior's). Never NaN: a failed solve keeps the start."""
     settings = settings or RefineSettings()
-    tr = _Trace(scanner, entries, mask, settings.noise, emitter_blocks(scanner), shadow, support)
+    tr = _Trace(scanner, entries, mask, settings.noise, emitter_blocks(scanner), shadow, support, footprint)
     dtype = tr.y.dtype
     N = tr.N
     frame = frame_from_normal_tangent(start.normal.to(dtype), start.tangent.to(dtype))
@@ -906,13 +931,14 @@ def calibrated_noise(
     settings: RefineSettings,
     shadow: Tensor | None = None,
     support: SupportView | None = None,
+    footprint: Tensor | None = None,
 ) -> SensorNoise:
     """The sensor noise model scaled (within ``NOISE_SCALE``) so that a refinement of these sample
     traces leaves residuals of unit robust scale — 1.4826 x the median |normalised residual| of the
     answer over its entries is 1 when the model is right (Monte Carlo renders and unmodelled effects
     give more): data from a noisier source then weigh against the priors as much as they deserve.
     A quieter source keeps the model as it is (``NOISE_SCALE``'s floor of 1)."""
-    tr = _Trace(scanner, entries, mask, settings.noise, emitter_blocks(scanner), shadow, support)
+    tr = _Trace(scanner, entries, mask, settings.noise, emitter_blocks(scanner), shadow, support, footprint)
     r = _refine(tr, start, specular, settings)
     p = torch.cat([torch.zeros_like(r.rho_d), r.log_alpha, r.rho_d, r.rho_s], 1)
     res, active = _residuals(tr, *_predict(tr, r.frame, p), p)

@@ -21,6 +21,7 @@ import torch
 
 from ..fit.albedo import highlights_and_albedo
 from ..fit.emitter_blocks import shadow_groups
+from ..fit.footprint import slope_spread
 from ..fit.geometry import FALLBACK_ALPHA, FLAG_NO_HIGHLIGHT, fit_geometry
 from ..fit.materials import (
     BasisMaterials,
@@ -213,6 +214,7 @@ class RefineInputs(NamedTuple):
     shadow: torch.Tensor  # (n, V) int64 emitter groups the mesh hides from each entry
     marginal: torch.Tensor  # (n,) texels that read shadowed or grazing entries (``MIN_CLEAR_ENTRIES``)
     support: SupportView | None  # the support's light on them (``fit.support_light``), or None
+    footprint: torch.Tensor | None  # (n, V, 2, 2) slope spread of each entry's pixel sample (``fit.footprint``)
 
 
 def refine_inputs(
@@ -232,7 +234,8 @@ def refine_inputs(
     mesh reflects into its own shadows; a grazing pixel spans a strip of surface) — on the knot
     reading shadowed entries everywhere cost the Cycles scan's normals 0.3-0.7 deg, on the gallery
     grazing ones its relit SSIM (docs/accuracy.md). With ``support`` (and ``texels``, the atlas of
-    the traces), the support's light on them."""
+    the traces), the support's light on them; with ``texels``, the normals each entry's pixel sample
+    spans where the surface turns (``fit.footprint``)."""
     groups = shadow_groups(scanner)
     rows, mask = traces.padded_rows(idx)  # every entry of each trace
     marginal_entry = mask & (shadowed(groups, traces.shadow_at(rows, mask)) | grazing(traces.entries_at(rows, mask)))
@@ -250,7 +253,10 @@ def refine_inputs(
         frame = frame_from_normal_tangent(torch.as_tensor(texels.normal[i]), torch.as_tensor(texels.tangent[i]))
         view = SupportView(support, torch.as_tensor(texels.position[i]), frame)
     entries, shadow = traces.entries_at(rows, mask), traces.shadow_at(rows, mask)
-    return RefineInputs(entries, mask, start, specular, shadow, marginal, view)
+    footprint = None
+    if texels is not None and texels.shape_operator is not None:
+        footprint = slope_spread(scanner, entries, mask, torch.as_tensor(texels.shape_operator[i]))
+    return RefineInputs(entries, mask, start, specular, shadow, marginal, view, footprint)
 
 
 def refine_fit(
@@ -285,7 +291,7 @@ def refine_fit(
         sample = todo[torch.randperm(len(todo), generator=gen)[:CALIBRATION_TEXELS]].sort().values
         inp = refine_inputs(scanner, traces, sample, fit, support, texels)
         noise = calibrated_noise(
-            scanner, inp.entries, inp.mask, inp.start, inp.specular, settings, inp.shadow, inp.support
+            scanner, inp.entries, inp.mask, inp.start, inp.specular, settings, inp.shadow, inp.support, inp.footprint
         )
         settings = dataclasses.replace(settings, noise=noise)
         fit["noise_scale"] = np.array(noise.relative / RefineSettings().noise.relative)
@@ -294,7 +300,9 @@ def refine_fit(
     bar = progress.counter("refine", len(todo), "texel")
     for idx in todo.split(REFINE_BATCH):
         inp = refine_inputs(scanner, traces, idx, fit, support, texels)
-        r = refine(scanner, inp.entries, inp.mask, inp.start, inp.specular, settings, inp.shadow, inp.support)
+        r = refine(
+            scanner, inp.entries, inp.mask, inp.start, inp.specular, settings, inp.shadow, inp.support, inp.footprint
+        )
         _store(fit, idx, r, inp.marginal)
         bar.update(len(idx))
     bar.close()
@@ -394,7 +402,7 @@ def _lobe_costs(
     ``(N, W, 2)`` each its own."""
     w = torch.as_tensor(widths)
     w = w.expand(len(inp.mask), -1, -1) if w.dim() == 2 else w
-    return lobe_costs(scanner, inp.entries, inp.mask, inp.start, w, settings, inp.shadow, inp.support)
+    return lobe_costs(scanner, inp.entries, inp.mask, inp.start, w, settings, inp.shadow, inp.support, inp.footprint)
 
 
 def _widths_from_materials(
@@ -477,7 +485,18 @@ def _material_pass(
         maybe = torch.as_tensor(candidates(prior[rest[k]]))
         near = None if field is None else (torch.as_tensor(field[0][k]), torch.as_tensor(field[1][k]))
         c, t = material_costs(
-            scanner, inp.entries, inp.mask, inp.start, alpha, rho_s, maybe, settings, inp.shadow, near, inp.support
+            scanner,
+            inp.entries,
+            inp.mask,
+            inp.start,
+            alpha,
+            rho_s,
+            maybe,
+            settings,
+            inp.shadow,
+            near,
+            inp.support,
+            inp.footprint,
         )
         costs[rest[k]], turns[rest[k]] = c.numpy(), t.numpy()
         bar.update(len(k))
@@ -516,7 +535,9 @@ def _material_pass(
             torch.as_tensor(basis.log_alpha_sigma[m], dtype=torch.float32),
             torch.as_tensor(basis.rho_s_sigma[m], dtype=torch.float32),
         )
-        r = refine_toward(scanner, inp.entries, inp.mask, inp.start, pull, settings, inp.shadow, inp.support)
+        r = refine_toward(
+            scanner, inp.entries, inp.mask, inp.start, pull, settings, inp.shadow, inp.support, inp.footprint
+        )
         _store(fit, idx, r, inp.marginal)
         bar.update(len(idx))
     bar.close()

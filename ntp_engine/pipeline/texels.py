@@ -31,6 +31,9 @@ class Texels:
     position: np.ndarray  # (T, 3) object space, m
     normal: np.ndarray  # (T, 3) unit geometric normal
     tangent: np.ndarray  # (T, 3) unit, orthogonal to normal
+    # (T, 2, 2) 1/m: d(n . t^, n . b^) / d(x . t^, x . b^) of the geometric normal n at the texel, in
+    # its frame (b^ = n^ x t^): how fast the surface turns (``shape_operators``)
+    shape_operator: np.ndarray | None = None
 
     def __len__(self) -> int:
         """T, the number of covered texels."""
@@ -113,7 +116,30 @@ def rasterize(mesh: Mesh, shape: tuple[int, int], batch: int = 1 << 22) -> Texel
         ref = np.where(np.abs(nrm[bad, 0:1]) < 0.9, [[1.0, 0, 0]], [[0, 1.0, 0]])
         tan[bad] = ref - (ref * nrm[bad]).sum(1, keepdims=True) * nrm[bad]
     tan /= np.linalg.norm(tan, axis=1, keepdims=True)
-    return Texels((h, w), row, col, face, bary, pos, nrm, tan)
+    return Texels((h, w), row, col, face, bary, pos, nrm, tan, shape_operators(mesh, face, bary, nrm, tan))
+
+
+def shape_operators(
+    mesh: Mesh, face: np.ndarray, bary: np.ndarray, normal: np.ndarray, tangent: np.ndarray
+) -> np.ndarray:
+    """The shape operator ``(T, 2, 2)`` (1/m) at points ``bary (T, 3)`` of triangles ``face (T,)``
+    with unit geometric ``normal`` and ``tangent (T, 3)``: the derivative of the normal interpolated
+    from the vertex normals (then normalised), d(n . t, n . b) / d(x . t, x . b) with b = n x t.
+    Convention: 0 on a flat face; I / r on a sphere of radius r; 0 on degenerate triangles."""
+    tri = mesh.faces[face]
+    p, nv = mesh.vertices[tri], mesh.normals[tri]  # (T, 3 corners, 3)
+    basis = np.stack([tangent, np.cross(normal, tangent)], 1)  # (T, 2, 3)
+    edges = np.einsum("tij,tkj->tik", basis, p[:, 1:] - p[:, :1])  # (T, 2 axes, 2 edges)
+    turns = np.einsum("tij,tkj->tik", basis, nv[:, 1:] - nv[:, :1])
+    det = edges[:, 0, 0] * edges[:, 1, 1] - edges[:, 0, 1] * edges[:, 1, 0]
+    scale = np.linalg.norm(p[:, 1] - p[:, 0], axis=1) * np.linalg.norm(p[:, 2] - p[:, 0], axis=1)
+    ok = np.abs(det) > 1e-9 * np.maximum(scale, 1e-30)
+    inv = np.stack([edges[:, 1, 1], -edges[:, 0, 1], -edges[:, 1, 0], edges[:, 0, 0]], 1).reshape(-1, 2, 2)
+    inv /= np.where(ok, det, 1.0)[:, None, None]
+    # the normalisation's derivative: the tangential part of d(raw normal) over its length
+    length = np.linalg.norm(np.einsum("tk,tkj->tj", bary, nv), axis=1)
+    out = turns @ inv / np.maximum(length, 1e-12)[:, None, None]
+    return np.where(ok[:, None, None], out, 0.0)
 
 
 def uv_atlas(mesh: Mesh, resolution: int) -> Mesh:

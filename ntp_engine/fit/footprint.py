@@ -1,0 +1,74 @@
+"""The normals a pixel sample spans on a curved surface, and the broader lobe it therefore sees.
+
+An entry's pixel value is a bilinear sample of the four pixels around the texel's projection
+(``pipeline.traces``), and each pixel sees the surface at its own point. Where the surface turns
+(the shape operator S, ``pipeline.texels.shape_operators``) those points' normals differ from the
+texel's: by S times the surface step of one pixel, about 1 mm at the scanner's distance — 6 deg on
+a 9 mm tube. A lobe sharper than that spread (an alpha 0.006 lacquer spans 0.3 deg) is seen through
+it: the mixture of the four points' lobes is, to second order, the lobe convolved with their slope
+spread, which for a microfacet lobe widens alpha^2 by twice the slope variance along each axis (the
+variance of a Gaussian slope distribution is alpha^2 / 2; Toksvig, LEAN mapping). The mean normal is
+the texel's (bilinear weights are unbiased), so the diffuse term is unchanged.
+
+Convention: the texel's geometric frame (t^, b^, n^) as ``fit.refine``; slopes in radians (small
+angles); ``spread (N, V, 2, 2)`` the covariance of the normal's (t^, b^) components over an entry's
+bilinear sample: sum over the image axes a of f_a (1 - f_a) g_a g_a^T, f_a the sample's fraction
+past the pixel centre and g_a = S (d x / d pixel_a) the normal's turn per pixel step. A camera whose
+pixels integrate over their area would add 1/12 px^2 per axis; the gallery's renderers point-sample.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from ..physics.frame import frame_from_normal_tangent
+from ..scanner import camera
+from ..scanner.scanner import Scanner
+
+# slope variance at most (~13 deg std): a grazing entry's pixel spans a long strip, which the
+# second-order picture does not describe
+SPREAD_MAX = 0.05
+
+
+def slope_spread(scanner: Scanner, entries: Tensor, mask: Tensor, shape_operator: Tensor) -> Tensor:
+    """``spread (N, V, 2, 2)`` (module docstring) of trace ``entries (N, V, 12)`` (camera space,
+    ``learn.ragged``'s layout) with ``mask (N, V)``, on texels whose shape operators are
+    ``shape_operator (N, 2, 2)`` (1/m); 0 for padding and where the surface is seen edge-on."""
+    dt = torch.float64
+    x = entries[..., 3:6].to(dt)
+    live = mask & (x[..., 2] > 0)
+    x = torch.where(live[..., None], x, torch.tensor([0.0, 0.0, 1.0], dtype=dt))
+    geo = frame_from_normal_tangent(entries[..., 6:9].to(dt), entries[..., 9:12].to(dt))  # (N, V, 3, 3)
+    px = camera.project(scanner, x)  # (N, V, 2) column, row
+    frac = px - torch.floor(px)
+    var = frac * (1 - frac)  # per image axis, px^2
+    # pixels per metre along t^, b^ on the tangent plane, and its inverse: metres per pixel step
+    along = camera.project_jacobian(scanner, x) @ geo[..., :2, :].transpose(-1, -2)  # (N, V, 2 px, 2 tb)
+    det = along[..., 0, 0] * along[..., 1, 1] - along[..., 0, 1] * along[..., 1, 0]
+    seen = live & (det.abs() > 1e-12) & torch.isfinite(det)
+    det = torch.where(seen, det, torch.ones_like(det))
+    step = (
+        torch.stack([along[..., 1, 1], -along[..., 0, 1], -along[..., 1, 0], along[..., 0, 0]], -1).unflatten(
+            -1, (2, 2)
+        )
+        / det[..., None, None]
+    )  # (N, V, 2 tb, 2 px)
+    turn = shape_operator.to(dt)[:, None] @ step  # normal's (t, b) change per pixel step
+    spread = turn @ torch.diag_embed(var) @ turn.transpose(-1, -2)
+    spread = torch.where(seen[..., None, None], torch.nan_to_num(spread), torch.zeros_like(spread))
+    scale = (SPREAD_MAX / (spread[..., 0, 0] + spread[..., 1, 1]).clamp_min(1e-30)).clamp_max(1.0)
+    return (spread * scale[..., None, None]).to(entries.dtype)
+
+
+def along_axes(spread: Tensor, frame: Tensor) -> Tensor:
+    """The slope variance ``(N, V, 2)`` of ``spread (N, V, 2, 2)`` along the shading axes t, b of
+    ``frame (N, 3, 3)`` (rows t, b, n in the geometric frame; their tangent-plane parts)."""
+    axes = frame[:, :2, :2].to(spread.dtype)  # (N, 2 axes, 2 tb)
+    return torch.einsum("nai,nvij,naj->nva", axes, spread, axes)
+
+
+def effective_alpha(alpha: Tensor, variance: Tensor) -> Tensor:
+    """The alphas ``(N, V, 2)`` a pixel sample sees of a lobe ``alpha (N, 2)`` through slope
+    ``variance (N, V, 2)`` along its axes: sqrt(alpha^2 + 2 variance)."""
+    return torch.sqrt(alpha[:, None, :] ** 2 + 2.0 * variance.to(alpha.dtype))
