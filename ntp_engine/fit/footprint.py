@@ -6,8 +6,9 @@ An entry's pixel value is a bilinear sample of the four pixels around the texel'
 texel's: by S times the surface step of one pixel, about 1 mm at the scanner's distance — 6 deg on
 a 9 mm tube. A lobe sharper than that spread (an alpha 0.006 lacquer spans 0.3 deg) is seen through
 it: the mixture of the four points' lobes is, to second order, the lobe convolved with their slope
-spread, which for a microfacet lobe widens alpha^2 by twice the slope variance along each axis (the
-variance of a Gaussian slope distribution is alpha^2 / 2; Toksvig, LEAN mapping). The mean normal is
+spread, which widens alpha^2 by a multiple of the slope variance along each axis (twice it for a
+Gaussian spread of a Beckmann lobe, whose slope variance is alpha^2 / 2: Toksvig, LEAN mapping;
+``SPREAD_WIDENING``, chosen on the gallery). The mean normal is
 the texel's (bilinear weights are unbiased), so the diffuse term is unchanged.
 
 Convention: the texel's geometric frame (t^, b^, n^) as ``fit.refine``; slopes in radians (small
@@ -29,6 +30,12 @@ from ..scanner.scanner import Scanner
 # slope variance at most (~13 deg std): a grazing entry's pixel spans a long strip, which the
 # second-order picture does not describe
 SPREAD_MAX = 0.05
+# alpha^2 grows by this times the slope variance. 2 is a Gaussian spread's exact widening of a
+# Beckmann lobe; on the gallery (engine scans, true poses) it over-corrected — the knot's alpha 0.02
+# plastic pooled 0.012 x 0.006, and the box's brushed sides took a sharp isotropic cluster (tangent
+# 67 deg) — while 1 brought the box's mirror lacquer and the vase's dark brushed metal to within
+# 0.01 of their |log alpha| (docs/accuracy.md): four point samples are not a Gaussian spread
+SPREAD_WIDENING = 1.0
 
 
 def slope_spread(scanner: Scanner, entries: Tensor, mask: Tensor, shape_operator: Tensor) -> Tensor:
@@ -70,5 +77,5 @@ def along_axes(spread: Tensor, frame: Tensor) -> Tensor:
 
 def effective_alpha(alpha: Tensor, variance: Tensor) -> Tensor:
     """The alphas ``(N, V, 2)`` a pixel sample sees of a lobe ``alpha (N, 2)`` through slope
-    ``variance (N, V, 2)`` along its axes: sqrt(alpha^2 + 2 variance)."""
-    return torch.sqrt(alpha[:, None, :] ** 2 + 2.0 * variance.to(alpha.dtype))
+    ``variance (N, V, 2)`` along its axes: sqrt(alpha^2 + ``SPREAD_WIDENING`` variance)."""
+    return torch.sqrt(alpha[:, None, :] ** 2 + SPREAD_WIDENING * variance.to(alpha.dtype))
