@@ -112,9 +112,13 @@ def run(out: Path, bench: RefineBench | None = None, json_path: Path | None = No
                     picks.append(np.sort(rng.choice(cand, min(bench.per_material, len(cand)), replace=False)))
                 sel = np.concatenate(picks)
                 # the cache holds pixels as captured
-                inp = refine_inputs(scan.scanner, traces, torch.as_tensor(sel), fit)
+                texels = rasterize(load_mesh(result / "mesh.obj"), (settings.resolution, settings.resolution))
+                inp = refine_inputs(scan.scanner, traces, torch.as_tensor(sel), fit, None, texels)
                 ent, mask, start, specular, shadow = inp.entries, inp.mask, inp.start, inp.specular, inp.shadow
-                noise = rf.calibrated_noise(scan.scanner, ent, mask, start, specular, rf.RefineSettings(), shadow)
+                footprint = inp.footprint
+                noise = rf.calibrated_noise(
+                    scan.scanner, ent, mask, start, specular, rf.RefineSettings(), shadow, None, footprint
+                )
                 answers = {
                     "network + fit": (
                         fit["n_loc"][sel],
@@ -127,7 +131,7 @@ def run(out: Path, bench: RefineBench | None = None, json_path: Path | None = No
                 for label_v, st in VARIANTS:
                     st = replace(st, noise=noise)
                     t0 = time.perf_counter()
-                    r = rf.refine(scan.scanner, ent, mask, start, specular, st, shadow)
+                    r = rf.refine(scan.scanner, ent, mask, start, specular, st, shadow, None, footprint)
                     seconds = time.perf_counter() - t0
                     speed.append(
                         {
@@ -167,7 +171,9 @@ def run(out: Path, bench: RefineBench | None = None, json_path: Path | None = No
                             }
                         )
                 baseline.append(
-                    _baseline(noise, scan.scanner, ent, mask, shadow, fit, sel, specular, frame, true, bench, rng)
+                    _baseline(
+                        noise, scan.scanner, ent, mask, shadow, footprint, fit, sel, specular, frame, true, bench, rng
+                    )
                 )
     record = {"bench": asdict(bench), "rows": rows, "speed": speed, "baseline": baseline}
     text = markdown(record)
@@ -185,6 +191,7 @@ def _baseline(
     ent: torch.Tensor,
     mask: torch.Tensor,
     shadow: torch.Tensor,
+    footprint: torch.Tensor | None,
     fit: dict[str, np.ndarray],
     sel: np.ndarray,
     specular: torch.Tensor,
@@ -204,7 +211,8 @@ def _baseline(
     idx = sel[pick]
     t0 = time.perf_counter()
     lobe = torch.ones(len(pick), dtype=torch.bool)
-    ours = rf.refine(scanner, ent[pick], mask[pick], rf.Start.from_fit(fit, idx), lobe, st, shadow[pick])
+    spread = None if footprint is None else footprint[pick]
+    ours = rf.refine(scanner, ent[pick], mask[pick], rf.Start.from_fit(fit, idx), lobe, st, shadow[pick], None, spread)
     t_ours = (time.perf_counter() - t0) / len(pick)
     t0 = time.perf_counter()
     res = [
@@ -215,6 +223,7 @@ def _baseline(
             shadow[pick[i : i + 1]],
             {k: fit[k][idx[i : i + 1]] for k in ("n_loc", "t_loc", "alpha", "rho_d", "rho_s")},
             st,
+            None if spread is None else spread[i : i + 1],
         )
         for i in range(len(pick))
     ]
@@ -243,10 +252,16 @@ def _baseline(
 
 
 def _scipy_texel(
-    scanner, ent: torch.Tensor, mask: torch.Tensor, shadow: torch.Tensor, start: dict, st: rf.RefineSettings
+    scanner,
+    ent: torch.Tensor,
+    mask: torch.Tensor,
+    shadow: torch.Tensor,
+    start: dict,
+    st: rf.RefineSettings,
+    footprint: torch.Tensor | None = None,
 ) -> tuple:
     """One texel by scipy least_squares on the refinement's objective with every sample exact."""
-    tr = rf._Trace(scanner, ent, mask, st.noise, None, shadow)  # no blocks: every emitter sample exact
+    tr = rf._Trace(scanner, ent, mask, st.noise, None, shadow, None, footprint)  # no blocks: every sample exact
     frame0 = rf.frame_from_normal_tangent(torch.as_tensor(start["n_loc"]), torch.as_tensor(start["t_loc"]))
     la0 = torch.as_tensor(np.log(np.clip(start["alpha"], rf.ALPHA_MIN, rf.ALPHA_MAX)))
     rnd = rf._Round(tr, frame0, la0, True)

@@ -30,3 +30,29 @@ def test_dome_texels_lie_on_the_surface_with_outward_frames():
     assert np.abs(r * r + z * z - 1).max() < 0.02  # on the dome's surface (faceted)
     assert (tx.normal[:, 2] >= -1e-9).all()
     assert np.abs((tx.normal * tx.tangent).sum(1)).max() < 1e-9
+
+
+def test_shape_operators_are_zero_on_a_plane_and_one_over_the_radius_on_a_sphere():
+    import trimesh
+
+    from ntp_engine.pipeline.texels import shape_operators
+
+    r = 0.05
+    s = trimesh.creation.icosphere(subdivisions=4, radius=r)
+    sphere = Mesh(np.asarray(s.vertices), np.asarray(s.faces), None, smooth_normals(s.vertices, s.faces))
+    F = len(sphere.faces)
+    bary = np.full((F, 3), 1 / 3)
+    n = np.einsum("tk,tkj->tj", bary, sphere.normals[sphere.faces])
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    t = np.cross(n, [0.3, 0.5, 0.8])
+    t /= np.linalg.norm(t, axis=1, keepdims=True)
+    S = shape_operators(sphere, np.arange(F), bary, n, t)
+    assert np.median(np.abs(S - np.eye(2) / r)) < 0.03 / r  # curvature 1/r along every direction
+    flat = Mesh(
+        np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]]), np.array([[0, 1, 2]]), None, np.tile([0.0, 0, 1], (3, 1))
+    )
+    zero = shape_operators(flat, np.array([0]), bary[:1], np.array([[0.0, 0, 1]]), np.array([[1.0, 0, 0]]))
+    assert np.abs(zero).max() == 0
+    degenerate = Mesh(np.zeros((3, 3)), np.array([[0, 1, 2]]), None, np.tile([0.0, 0, 1], (3, 1)))
+    up, along = np.array([[0.0, 0, 1]]), np.array([[1.0, 0, 0]])
+    assert np.abs(shape_operators(degenerate, np.array([0]), bary[:1], up, along)).max() == 0
