@@ -5,7 +5,7 @@ import math
 import pytest
 import torch
 
-from ntp_engine.fit.footprint import SPREAD_MAX, along_axes, effective_alpha, slope_spread
+from ntp_engine.fit.footprint import SPREAD_MAX, SPREAD_WIDENING, along_axes, effective_alpha, slope_spread
 from ntp_engine.scanner.device_file import load_scanner
 
 DEV = load_scanner()
@@ -65,4 +65,6 @@ def test_the_lobe_is_widened_along_the_axis_the_normals_spread():
     assert along_axes(spread, turned)[0, 0].tolist() == pytest.approx([0.0, 0.004])
     alpha = torch.tensor([[0.02, 0.02]], dtype=torch.float64)
     seen = effective_alpha(alpha, along_axes(spread, frame))[0, 0]
-    assert seen[0].item() > 0.05 and seen[1].item() == pytest.approx(0.02)
+    assert seen[0].item() == pytest.approx(math.sqrt(0.02**2 + SPREAD_WIDENING * 0.004))
+    assert seen[0].item() > 0.04
+    assert seen[1].item() == pytest.approx(0.02)
