@@ -70,20 +70,16 @@ def slope_spread(scanner: Scanner, entries: Tensor, mask: Tensor, shape_operator
     return _flushed((spread * scale[..., None, None]).to(entries.dtype))
 
 
-def along_axes(spread: Tensor, frame: Tensor) -> Tensor:
-    """The slope variance ``(N, V, 2)`` of ``spread (N, V, 2, 2)`` along the shading axes t, b of
-    ``frame (N, 3, 3)`` (rows t, b, n in the geometric frame; their tangent-plane parts)."""
+def widening(spread: Tensor, frame: Tensor) -> Tensor:
+    """What each entry's pixel sample adds to a lobe's alpha_x^2, alpha_y^2 ``(N, V, 2)``:
+    ``SPREAD_WIDENING`` times the slope variance of ``spread (N, V, 2, 2)`` along the shading axes
+    t, b of ``frame (N, 3, 3)`` (rows t, b, n in the geometric frame; their tangent-plane parts).
+    The lobe the sample sees has sqrt(alpha^2 + widening) (``fit.pixel_bases``)."""
     axes = frame[:, :2, :2].to(spread.dtype)  # (N, 2 axes, 2 tb)
-    return _flushed(torch.einsum("nai,nvij,naj->nva", axes, spread, axes))
+    return SPREAD_WIDENING * _flushed(torch.einsum("nai,nvij,naj->nva", axes, spread, axes))
 
 
 def _flushed(variance: Tensor) -> Tensor:
     """``variance`` with values below ``NEGLIGIBLE`` set to 0: a flat face's round-off (~1e-30) made
-    float32 subnormals, whose arithmetic ran the refinement's lobe sums 12x slower."""
+    float32 subnormals, whose arithmetic is ~10x slower."""
     return torch.where(variance.abs() < NEGLIGIBLE, torch.zeros_like(variance), variance)
-
-
-def effective_alpha(alpha: Tensor, variance: Tensor) -> Tensor:
-    """The alphas ``(N, V, 2)`` a pixel sample sees of a lobe ``alpha (N, 2)`` through slope
-    ``variance (N, V, 2)`` along its axes: sqrt(alpha^2 + ``SPREAD_WIDENING`` variance)."""
-    return torch.sqrt(alpha[:, None, :] ** 2 + SPREAD_WIDENING * variance.to(alpha.dtype))

@@ -10,8 +10,10 @@ padding). Diffuse: ``falloff (N, V, M)`` = w_q Psi / r^2; the basis is linear in
 rho_d,c (basis_c . n) for any normal n near the ``n0`` that chose the emitters above the horizon.
 Specular: ``frame (N, 3, 3)`` rows t, b, n of the shading frame; unit ``h (N, V, M, 3)``,
 ``fresnel_falloff (N, V, M)`` = F(wi.h) w_q Psi / r^2, ``drive (N, V, M, 3)``, unit ``wo (N, V, 3)``,
-``alpha (N, 2)`` = (alpha_x, alpha_y) along (t, b), or per entry ``(N, V, 2)`` (the lobe a pixel
-sample sees on a curved surface: ``fit.footprint``). The lobe toward emitter m is
+``alpha (N, 2)`` = (alpha_x, alpha_y) along (t, b); ``widening (N, V, 2)``, optional: what each
+entry's pixel sample adds to alpha_x^2, alpha_y^2 on a curved surface (``fit.footprint``), the lobe
+it sees then having sqrt(alpha^2 + widening), derivatives still by the surface's log alphas. The
+lobe toward emitter m is
 F D G / (4 cos_i cos_o) cos_i falloff in the cancelled Smith form of ``physics.brdf.ggx_specular``:
     lobe = cos_i+ F falloff / (pi ax ay q^2 (cos_i+ + L_i) (cos_o+ + L_o)),  0 where cos_o <= 0,
 q = (h_x/ax)^2 + (h_y/ay)^2 + h_z^2 and L = |(ax v_x, ay v_y, v_z)| in the shading frame.
@@ -105,9 +107,10 @@ def specular_basis(
     drive: Tensor,
     alpha: Tensor,
     rows: Tensor | None = None,
+    widening: Tensor | None = None,
 ) -> Tensor:
     """The unit-rho_s pixel basis ``(N, V, 3)`` = sum_m lobe_m drive_m (module docstring)."""
-    return _specular(frame, wi, h, wo, fresnel_falloff, drive, alpha, rows, False)[0]
+    return _specular(frame, wi, h, wo, fresnel_falloff, drive, alpha, rows, widening, False)[0]
 
 
 def specular_basis_and_derivatives(
@@ -119,10 +122,11 @@ def specular_basis_and_derivatives(
     drive: Tensor,
     alpha: Tensor,
     rows: Tensor | None = None,
+    widening: Tensor | None = None,
 ) -> tuple[Tensor, Tensor]:
     """``specular_basis`` and its derivatives ``(N, V, 5, 3)`` by (omega, log alpha_x, log alpha_y)
     (module docstring), in one pass."""
-    return _specular(frame, wi, h, wo, fresnel_falloff, drive, alpha, rows, True)
+    return _specular(frame, wi, h, wo, fresnel_falloff, drive, alpha, rows, widening, True)
 
 
 def _specular(
@@ -134,18 +138,19 @@ def _specular(
     drive: Tensor,
     alpha: Tensor,
     rows: Tensor | None,
+    widening: Tensor | None,
     derivatives: bool,
 ) -> tuple[Tensor, Tensor]:
     """The compiled loop's call; the derivatives ``(0, 0, 5, 3)`` unless asked for."""
     N, V = len(frame), fresnel_falloff.shape[1]
-    if alpha.dim() == 2:  # one lobe for every entry of a texel
-        alpha = alpha[:, None, :].expand(N, V, 2)
     arrays = [_arr(x, wi.dtype) for x in (frame, wi, h, wo, fresnel_falloff, drive, alpha)]
+    # per entry in the loop: small torch ops between compiled loops cost ~1 ms each (thread wake-ups)
+    wide = np.zeros((0, 0, 2), arrays[1].dtype) if widening is None else _arr(widening, wi.dtype)
     row = np.arange(N, dtype=np.int64) if rows is None else np.ascontiguousarray(rows.numpy().astype(np.int64))
     spec = np.zeros((N, V, 3), arrays[1].dtype)
     ds = np.zeros((N, V, N_DERIVATIVES, 3) if derivatives else (0, 0, N_DERIVATIVES, 3), spec.dtype)
     with numba_threads_as_torch():
-        _specular_loop(row, *arrays, derivatives, spec, ds)
+        _specular_loop(row, *arrays, wide, derivatives, spec, ds)
     return torch.from_numpy(spec), torch.from_numpy(ds)
 
 
@@ -221,7 +226,7 @@ def _diffuse_loop(normal, wi, falloff, drive, out):  # pragma: no cover - compil
 
 
 @numba.njit(parallel=True, fastmath=True, cache=True)
-def _specular_loop(rows, frame, wi, h, wo, ff, drive, alpha, derivatives, spec, ds):  # pragma: no cover - compiled
+def _specular_loop(rows, frame, wi, h, wo, ff, drive, alpha, widening, derivatives, spec, ds):  # pragma: no cover
     """Fills ``spec (N, V, 3)`` and, with ``derivatives``, ``ds (N, V, 5, 3)`` (see the module)."""
     N, V, M = spec.shape[0], ff.shape[1], ff.shape[2]
     for n in numba.prange(N):
@@ -229,9 +234,16 @@ def _specular_loop(rows, frame, wi, h, wo, ff, drive, alpha, derivatives, spec, 
         t0, t1, t2 = float(frame[n, 0, 0]), float(frame[n, 0, 1]), float(frame[n, 0, 2])
         b0, b1, b2 = float(frame[n, 1, 0]), float(frame[n, 1, 1]), float(frame[n, 1, 2])
         n0, n1, n2 = float(frame[n, 2, 0]), float(frame[n, 2, 1]), float(frame[n, 2, 2])
+        a0x, a0y = float(alpha[n, 0]), float(alpha[n, 1])
+        widened = widening.shape[0] > 0
         for v in range(V):
-            ax, ay = float(alpha[n, v, 0]), float(alpha[n, v, 1])
-            ax2, ay2 = ax * ax, ay * ay
+            ax2, ay2 = a0x * a0x, a0y * a0y
+            if widened:  # the lobe this entry's pixel sample sees
+                ax2 += widening[n, v, 0]
+                ay2 += widening[n, v, 1]
+            ax, ay = math.sqrt(ax2), math.sqrt(ay2)
+            # d log(seen alpha) / d log alpha
+            cx, cy = a0x * a0x / ax2, a0y * a0y / ay2
             norm = 1.0 / (math.pi * ax * ay)
             ox = t0 * wo[r, v, 0] + t1 * wo[r, v, 1] + t2 * wo[r, v, 2]
             oy = b0 * wo[r, v, 0] + b1 * wo[r, v, 1] + b2 * wo[r, v, 2]
@@ -310,8 +322,12 @@ def _specular_loop(rows, frame, wi, h, wo, ff, drive, alpha, derivatives, spec, 
             ds[n, v, 0, 0], ds[n, v, 0, 1], ds[n, v, 0, 2] = g00 + w0 * s0, g01 + w0 * s1, g02 + w0 * s2
             ds[n, v, 1, 0], ds[n, v, 1, 1], ds[n, v, 1, 2] = g10 + w1 * s0, g11 + w1 * s1, g12 + w1 * s2
             ds[n, v, 2, 0], ds[n, v, 2, 1], ds[n, v, 2, 2] = g20 + w2 * s0, g21 + w2 * s1, g22 + w2 * s2
-            ds[n, v, 3, 0], ds[n, v, 3, 1], ds[n, v, 3, 2] = g30 + la_x * s0, g31 + la_x * s1, g32 + la_x * s2
-            ds[n, v, 4, 0], ds[n, v, 4, 1], ds[n, v, 4, 2] = g40 + la_y * s0, g41 + la_y * s1, g42 + la_y * s2
+            ds[n, v, 3, 0] = cx * (g30 + la_x * s0)
+            ds[n, v, 3, 1] = cx * (g31 + la_x * s1)
+            ds[n, v, 3, 2] = cx * (g32 + la_x * s2)
+            ds[n, v, 4, 0] = cy * (g40 + la_y * s0)
+            ds[n, v, 4, 1] = cy * (g41 + la_y * s1)
+            ds[n, v, 4, 2] = cy * (g42 + la_y * s2)
 
 
 @numba.njit(parallel=True, fastmath=True, cache=True)

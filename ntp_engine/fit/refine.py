@@ -44,7 +44,7 @@ from ..scanner.camera import VALID_CODE
 from ..scanner.scanner import Scanner
 from .albedo import bounded_ls2
 from .emitter_blocks import EmitterBlocks, emitter_blocks, shadow_groups
-from .footprint import along_axes, effective_alpha
+from .footprint import widening
 from .highlights import parked_positions
 from .pixel_bases import (
     diffuse_basis,
@@ -275,8 +275,8 @@ class _Round:
                 diffuse = diffuse + tr.support_diffuse
         self.diffuse = diffuse
         self.wo, self.row = tr.wo, torch.arange(tr.N)  # the per-entry arrays' rows of the round's texels
-        # the slope variance of each entry's sample along the round's shading axes (``fit.footprint``)
-        self.variance = None if tr.spread is None else along_axes(tr.spread, frame0)
+        # what each entry's sample adds to the round's alpha_x^2, alpha_y^2 (``fit.footprint``)
+        self.widening = None if tr.spread is None else widening(tr.spread, frame0)
         if not specular:
             return
         if tr.blocks is None:
@@ -284,8 +284,8 @@ class _Round:
             self.drive = tr.drive.expand(tr.N, tr.V, -1, 3)
         else:
             seen = log_alpha.exp()
-            if self.variance is not None:  # the widest lobe any entry sees
-                seen = effective_alpha(seen, self.variance).amax(1)
+            if self.widening is not None:  # the widest lobe any entry sees
+                seen = torch.sqrt(seen**2 + self.widening.amax(1))
             wide = (SELECT_WIDEN * seen).clamp(SELECT_FLOOR, ALPHA_MAX)
             score = lobe_weights(frame0, tr.wi_c, tr.h_c, tr.wo, tr.ff_c, wide)  # (N, V, C)
             order = score.argsort(-1, descending=True)
@@ -310,13 +310,8 @@ class _Round:
         vars(out).update(vars(self))
         out.tr, out.row = self.tr.light_rows(idx), self.row[idx]
         out.frame0, out.diffuse = self.frame0[idx], self.diffuse[idx]
-        out.variance = None if self.variance is None else self.variance[idx]
+        out.widening = None if self.widening is None else self.widening[idx]
         return out
-
-    def seen_alpha(self, alpha: Tensor) -> Tensor:
-        """The alphas each entry's pixel sample sees ``(N, V, 2)``, or ``alpha (N, 2)`` itself on a
-        flat surface (``fit.footprint``)."""
-        return alpha if self.variance is None else effective_alpha(alpha, self.variance)
 
     def rebase(self, omega: Tensor) -> None:
         """Fold the rotation ``omega (N, 3)`` into the round's frame (linearise about it next)."""
@@ -334,10 +329,9 @@ class _Round:
         if not self.specular:
             return diffuse, torch.zeros_like(diffuse), dd, torch.zeros_like(dd)
         alpha = log_alpha.exp()
-        seen = self.seen_alpha(alpha)
-        spec, ds = specular_basis_and_derivatives(frame, self.wi, self.h, self.wo, self.ff, self.drive, seen, self.row)
-        if seen is not alpha:  # d log(seen alpha) / d log alpha = (alpha / seen alpha)^2
-            ds[:, :, 3:5] *= ((alpha[:, None, :] / seen) ** 2).to(ds.dtype)[..., None]
+        spec, ds = specular_basis_and_derivatives(
+            frame, self.wi, self.h, self.wo, self.ff, self.drive, alpha, self.row, self.widening
+        )
         return diffuse, spec, dd, ds
 
     def bases(self, omega: Tensor, log_alpha: Tensor) -> tuple[Tensor, Tensor]:
@@ -347,8 +341,9 @@ class _Round:
         diffuse = (self.diffuse * frame[:, None, None, 2, :]).sum(-1)
         if not self.specular:
             return diffuse, torch.zeros_like(diffuse)
-        alpha = self.seen_alpha(log_alpha.exp())
-        return diffuse, specular_basis(frame, self.wi, self.h, self.wo, self.ff, self.drive, alpha, self.row)
+        alpha = log_alpha.exp()
+        spec = specular_basis(frame, self.wi, self.h, self.wo, self.ff, self.drive, alpha, self.row, self.widening)
+        return diffuse, spec
 
 
 _LO = torch.tensor([-math.inf] * 3 + [math.log(ALPHA_MIN)] * 2 + [0.0] * 6)

@@ -88,6 +88,37 @@ def test_bases_and_derivatives_match_the_torch_lobe(seed):
         torch.testing.assert_close(ds32[:, :, k].double(), jvp, rtol=1e-3, atol=1e-5 * scale)
 
 
+def test_a_widened_lobe_is_the_lobe_each_entry_sees_derived_by_the_surfaces_alphas():
+    """With ``widening (N, V, 2)``, entry v sees alphas sqrt(alpha^2 + widening[:, v]) (``fit.
+    footprint``); the derivatives stay those by the surface's own log alphas."""
+    frame, wi, h, wo, ff, drive, alpha = _case(4)
+    g = torch.Generator().manual_seed(9)
+    wide = 0.01 * torch.rand(*wo.shape[:2], 2, generator=g, dtype=torch.float64)
+
+    def reference(x):
+        f = rotation_from_vector(x[:, :3]).transpose(-1, -2) @ frame
+        a = alpha * x[:, 3:].exp()
+        out = []
+        for v in range(wo.shape[1]):
+            seen = torch.sqrt(a**2 + wide[:, v])
+            sl = slice(v, v + 1)
+            lobe = _lobe(f, wi[:, sl], h[:, sl], wo[:, sl], ff[:, sl], seen)
+            out.append(torch.einsum("nvm,nvmc->nvc", lobe, drive[:, sl]))
+        return torch.cat(out, 1)
+
+    x0 = torch.zeros(len(frame), 5, dtype=torch.float64)
+    spec, ds = specular_basis_and_derivatives(frame, wi, h, wo, ff, drive, alpha, None, wide)
+    ref = reference(x0)
+    torch.testing.assert_close(spec, ref, rtol=1e-9, atol=1e-12 * float(ref.abs().max()))
+    assert not torch.allclose(spec, specular_basis(frame, wi, h, wo, ff, drive, alpha))
+    assert torch.equal(specular_basis(frame, wi, h, wo, ff, drive, alpha, None, wide), spec)
+    for k in range(5):
+        e = torch.zeros_like(x0)
+        e[:, k] = 1.0
+        _, jvp = torch.func.jvp(reference, (x0,), (e,))
+        torch.testing.assert_close(ds[:, :, k], jvp, rtol=1e-8, atol=1e-11 * float(jvp.abs().max()))
+
+
 def test_lobe_weights_are_the_torch_lobe_per_emitter():
     frame, wi, h, wo, ff, _, alpha = _case(3)
     wo[0, 1] = wo[0, 1] * torch.tensor([1.0, 1.0, -1.0], dtype=wo.dtype)  # seen from below: no lobe
