@@ -6,7 +6,9 @@ Model of one entry j (a view of the texel) and camera channel c, in linear pixel
 over the emitter samples k (``measurement``'s factorised Eq. 1, falloff w = w_q Psi / r^2). The
 camera is the sensor model ``SensorNoise``: an entry whose 8-bit code is above ``CENSOR_CODE`` may be
 clipped (or bilinearly mixed with a clipped pixel) and only says "at least this bright" (censored);
-dark entries keep their information with an absolute noise floor instead of being dropped.
+dark entries keep their information with an absolute noise floor instead of being dropped. On a
+curved surface an entry's pixel sample spans several normals and sees the lobe widened
+(``fit.footprint``).
 
 Convention: the parameters live in the texel's geometric (lumitexel) frame (z = n^, x = t^), like
 ``fit_traces``'s results: ``frame (N, 3, 3)`` rows (t, b, n); ``log_alpha (N, 2)`` natural logs of
@@ -661,7 +663,9 @@ def refine(
     ``shadow (N, V)`` (the emitter groups the mesh hides from each entry: ``learn.ragged``);
     ``specular (N,)``: texels whose lobe is solved. A texel without one, or whose solved lobe no
     entry shows (below ``MIN_SPECULAR_SHARE`` of every pixel), gets a diffuse-only solve from its
-    start and rho_s = 0, its lobe flagged unconstrained. Never NaN: a failed solve keeps the start."""
+    start and rho_s = 0, its lobe flagged unconstrained. ``footprint (N, V, 2, 2)``: the normals each
+    entry's pixel sample spans (``fit.footprint``; None: a flat surface), which widen the lobe it
+    sees. Never NaN: a failed solve keeps the start."""
     settings = settings or RefineSettings()
     tr = _Trace(scanner, entries, mask, settings.noise, emitter_blocks(scanner), shadow, support, footprint)
     return _refine(tr, start, specular, settings)
