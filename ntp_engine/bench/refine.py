@@ -31,7 +31,7 @@ from ..pipeline.fit_traces import refine_inputs
 from ..pipeline.output_folder import claim
 from ..pipeline.scan_folder import load_scan
 from ..pipeline.stages import cached_fit, reconstruct
-from ..pipeline.texels import rasterize
+from ..pipeline.texels import Texels, rasterize
 from ..scanner.scanner import Scanner
 from ..sim.evaluate import parameter_errors, truth_at_texels
 from ..sim.gallery import GALLERY, build_asset
@@ -62,13 +62,11 @@ class RefineBench:
     seed: int = 0
 
 
-def _truth_in_texel_frames(
-    out: Path, scan_dir: Path, resolution: int
-) -> tuple[dict, np.ndarray, list[dict], np.ndarray]:
-    """The truth at every texel's centre (``truth_at_texels``), its labels and the texels' geometric
-    frames (rows t^, b^, n^)."""
-    tex = rasterize(load_mesh(out / "mesh.obj"), (resolution, resolution))
-    uv = np.stack([(tex.col + 0.5) / resolution, 1 - (tex.row + 0.5) / resolution], 1)
+def _truth_in_texel_frames(tex: Texels, scan_dir: Path) -> tuple[dict, np.ndarray, list[dict], np.ndarray]:
+    """The truth at the centre of every texel of ``tex`` (``truth_at_texels``), its labels and the
+    texels' geometric frames (rows t^, b^, n^)."""
+    h, w = tex.shape
+    uv = np.stack([(tex.col + 0.5) / w, 1 - (tex.row + 0.5) / h], 1)
     gt = scan_dir / "ground_truth"
     labels, table = load_labels(gt)
     true, label = truth_at_texels(SVBRDFMaps.load(gt), labels, uv)
@@ -104,7 +102,9 @@ def run(out: Path, bench: RefineBench | None = None, json_path: Path | None = No
                 scan = load_scan(scan_dir, scan_dir / "ground_truth" / "poses.json")
                 reconstruct(scan, result, resolution=settings.resolution, progress=progress)
                 traces, fit = cached_fit(result)
-                true, label, table, frame = _truth_in_texel_frames(result, scan_dir, settings.resolution)
+                res = (settings.resolution, settings.resolution)
+                texels = rasterize(load_mesh(result / "mesh.obj"), res, curvature=True)
+                true, label, table, frame = _truth_in_texel_frames(texels, scan_dir)
                 observed = traces.lengths.numpy() > 0
                 picks = []
                 for k in range(len(table)):
@@ -112,7 +112,6 @@ def run(out: Path, bench: RefineBench | None = None, json_path: Path | None = No
                     picks.append(np.sort(rng.choice(cand, min(bench.per_material, len(cand)), replace=False)))
                 sel = np.concatenate(picks)
                 # the cache holds pixels as captured
-                texels = rasterize(load_mesh(result / "mesh.obj"), (settings.resolution, settings.resolution))
                 inp = refine_inputs(scan.scanner, traces, torch.as_tensor(sel), fit, None, texels)
                 ent, mask, start, specular, shadow = inp.entries, inp.mask, inp.start, inp.specular, inp.shadow
                 footprint = inp.footprint

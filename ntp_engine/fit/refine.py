@@ -251,7 +251,6 @@ class _Trace:
         for k in ("y", "inv_sigma", "censored", "mask"):
             setattr(out, k, getattr(self, k)[idx])
         out.N, out.V, out.blocks = len(idx), self.V, self.blocks
-        out.spread = None if self.spread is None else self.spread[idx]
         return out
 
     def rows(self, idx: Tensor) -> _Trace:
@@ -277,10 +276,12 @@ class _Round:
                 diffuse = diffuse + tr.support_diffuse
         self.diffuse = diffuse
         self.wo, self.row = tr.wo, torch.arange(tr.N)  # the per-entry arrays' rows of the round's texels
-        # what each entry's sample adds to the round's alpha_x^2, alpha_y^2 (``fit.footprint``)
-        self.widening = None if tr.spread is None else widening(tr.spread, frame0)
+        self.widening: Tensor | None = None
         if not specular:
             return
+        # what each entry's sample adds to the round's alpha_x^2, alpha_y^2 (``fit.footprint``)
+        if tr.spread is not None:
+            self.widening = widening(tr.spread, frame0)
         if tr.blocks is None:
             self.wi, self.h, self.ff = tr.wi, tr.h, tr.fresnel_falloff
             self.drive = tr.drive.expand(tr.N, tr.V, -1, 3)

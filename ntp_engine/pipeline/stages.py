@@ -355,7 +355,7 @@ def _reconstruct(
 
     t0 = time.perf_counter()
     mesh, h_atlas = _atlas_stage(scan, cache, resolution)
-    texels = rasterize(mesh, (resolution, resolution))
+    texels = rasterize(mesh, (resolution, resolution), curvature=refine)
     report.timed("atlas", t0)
 
     t0 = time.perf_counter()

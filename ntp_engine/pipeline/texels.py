@@ -32,7 +32,8 @@ class Texels:
     normal: np.ndarray  # (T, 3) unit geometric normal
     tangent: np.ndarray  # (T, 3) unit, orthogonal to normal
     # (T, 2, 2) 1/m: d(n . t^, n . b^) / d(x . t^, x . b^) of the geometric normal n at the texel, in
-    # its frame (b^ = n^ x t^): how fast the surface turns (``shape_operators``)
+    # its frame (b^ = n^ x t^): how fast the surface turns (``shape_operators``; ``rasterize``'s
+    # ``curvature``)
     shape_operator: np.ndarray | None = None
 
     def __len__(self) -> int:
@@ -57,8 +58,9 @@ def _uv_tangents(mesh: Mesh, mesh_uv: np.ndarray) -> np.ndarray:
     return np.where((np.abs(det) > 1e-20)[:, None], t, 0.0)
 
 
-def rasterize(mesh: Mesh, shape: tuple[int, int], batch: int = 1 << 22) -> Texels:
-    """All texels of an ``shape = (H, W)`` map covered by the mesh's UV triangles."""
+def rasterize(mesh: Mesh, shape: tuple[int, int], batch: int = 1 << 22, curvature: bool = False) -> Texels:
+    """All texels of an ``shape = (H, W)`` map covered by the mesh's UV triangles; with
+    ``curvature``, their shape operators too (a third of the time: only the refinement reads them)."""
     if mesh.uv is None:
         raise ValueError("mesh has no UVs")
     h, w = shape
@@ -116,7 +118,8 @@ def rasterize(mesh: Mesh, shape: tuple[int, int], batch: int = 1 << 22) -> Texel
         ref = np.where(np.abs(nrm[bad, 0:1]) < 0.9, [[1.0, 0, 0]], [[0, 1.0, 0]])
         tan[bad] = ref - (ref * nrm[bad]).sum(1, keepdims=True) * nrm[bad]
     tan /= np.linalg.norm(tan, axis=1, keepdims=True)
-    return Texels((h, w), row, col, face, bary, pos, nrm, tan, shape_operators(mesh, face, bary, nrm, tan))
+    shape_op = shape_operators(mesh, face, bary, nrm, tan) if curvature else None
+    return Texels((h, w), row, col, face, bary, pos, nrm, tan, shape_op)
 
 
 def shape_operators(

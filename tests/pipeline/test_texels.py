@@ -56,3 +56,15 @@ def test_shape_operators_are_zero_on_a_plane_and_one_over_the_radius_on_a_sphere
     degenerate = Mesh(np.zeros((3, 3)), np.array([[0, 1, 2]]), None, np.tile([0.0, 0, 1], (3, 1)))
     up, along = np.array([[0.0, 0, 1]]), np.array([[1.0, 0, 0]])
     assert np.abs(shape_operators(degenerate, np.array([0]), bary[:1], up, along)).max() == 0
+
+
+def test_rasterize_gives_shape_operators_only_when_asked():
+    from ntp_engine.pipeline.texels import shape_operators
+
+    mesh = dome_mesh()
+    plain = rasterize(mesh, (32, 32))
+    curved = rasterize(mesh, (32, 32), curvature=True)
+    assert plain.shape_operator is None
+    assert curved.shape_operator is not None and np.abs(curved.shape_operator).max() > 0
+    expect = shape_operators(mesh, curved.face, curved.bary, curved.normal, curved.tangent)
+    np.testing.assert_array_equal(curved.shape_operator, expect)
