@@ -77,10 +77,11 @@ class SVBRDFMaps:
             arrays[name] = img[..., :2] if name == "roughness" else img[..., :3]
         return cls(**{k: v.astype(np.float64) for k, v in arrays.items()})
 
-    def sample(self, uv: np.ndarray) -> dict[str, np.ndarray]:
+    def sample(self, uv: np.ndarray, taps: np.ndarray | None = None) -> dict[str, np.ndarray]:
         """Bilinear samples at ``uv (N, 2)``: each map ``(N, C)``; normals/tangents re-normalised,
-        the tangent made orthogonal to the normal."""
-        out = {name: bilinear(getattr(self, name), uv) for name in MAP_FILES}
+        the tangent made orthogonal to the normal. ``taps (N, 4)``: which texels each sample may
+        read (``bilinear_pixels``)."""
+        out = {name: bilinear(getattr(self, name), uv, taps) for name in MAP_FILES}
         n = _unit(out["normal"])
         t = out["tangent"] - (out["tangent"] * n).sum(-1, keepdims=True) * n
         out["normal"], out["tangent"] = n, _unit(t)
@@ -104,10 +105,11 @@ def texel_uv(shape: tuple[int, int]) -> np.ndarray:
     return np.stack([(cols + 0.5) / w, 1.0 - (rows + 0.5) / h], -1)
 
 
-def bilinear(img: np.ndarray, uv: np.ndarray) -> np.ndarray:
-    """Bilinear samples ``(N, C)`` of a map at ``uv (N, 2)`` (edges clamped)."""
+def bilinear(img: np.ndarray, uv: np.ndarray, taps: np.ndarray | None = None) -> np.ndarray:
+    """Bilinear samples ``(N, C)`` of a map at ``uv (N, 2)`` (edges clamped); ``taps (N, 4)``,
+    optional: which of the four texels each may read (``bilinear_pixels``)."""
     r, c = uv_to_pixel(uv, (img.shape[0], img.shape[1]))
-    return bilinear_pixels(img, r, c)
+    return bilinear_pixels(img, r, c, taps)
 
 
 def bilinear_corners(

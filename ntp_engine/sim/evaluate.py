@@ -31,7 +31,7 @@ import torch
 from skimage.metrics import structural_similarity
 
 from ..io.images import read_image, write_png
-from ..io.maps import MAP_FILES, SVBRDFMaps, bilinear_corners, bilinear_pixels, texel_uv, uv_to_pixel
+from ..io.maps import MAP_FILES, SVBRDFMaps, bilinear_corners, texel_uv, uv_to_pixel
 from ..io.mesh import Mesh, load_mesh
 from ..io.raycast import RayCaster
 from ..pipeline.texels import rasterize
@@ -85,14 +85,9 @@ def truth_at_texels(truth: SVBRDFMaps, labels: np.ndarray, uv: np.ndarray) -> tu
     curved objects 1-2 deg of normal (docs/accuracy.md)."""
     label = _nearest(labels[..., None], uv)[:, 0]
     h, w = labels.shape
-    r, c = uv_to_pixel(uv, (h, w))
-    rows, cols, _, _ = bilinear_corners(h, w, r, c)
+    rows, cols, _, _ = bilinear_corners(h, w, *uv_to_pixel(uv, (h, w)))
     taps = labels[rows, cols] == label[:, None]  # the containing texel is one of the four
-    out = {k: bilinear_pixels(getattr(truth, k), r, c, taps) for k in MAP_FILES}
-    n = out["normal"] / np.maximum(np.linalg.norm(out["normal"], axis=1, keepdims=True), 1e-12)
-    t = out["tangent"] - (out["tangent"] * n).sum(1, keepdims=True) * n
-    out["normal"], out["tangent"] = n, t / np.maximum(np.linalg.norm(t, axis=1, keepdims=True), 1e-12)
-    return out, label
+    return truth.sample(uv, taps), label
 
 
 def _major_axis(maps: dict[str, np.ndarray]) -> np.ndarray:
