@@ -54,15 +54,9 @@ def slope_spread(scanner: Scanner, entries: Tensor, mask: Tensor, shape_operator
     var = frac * (1 - frac)  # per image axis, px^2
     # pixels per metre along t^, b^ on the tangent plane, and its inverse: metres per pixel step
     along = camera.project_jacobian(scanner, x) @ geo[..., :2, :].transpose(-1, -2)  # (N, V, 2 px, 2 tb)
-    det = along[..., 0, 0] * along[..., 1, 1] - along[..., 0, 1] * along[..., 1, 0]
+    det = torch.linalg.det(along)
     seen = live & (det.abs() > 1e-12) & torch.isfinite(det)
-    det = torch.where(seen, det, torch.ones_like(det))
-    step = (
-        torch.stack([along[..., 1, 1], -along[..., 0, 1], -along[..., 1, 0], along[..., 0, 0]], -1).unflatten(
-            -1, (2, 2)
-        )
-        / det[..., None, None]
-    )  # (N, V, 2 tb, 2 px)
+    step = torch.linalg.inv(torch.where(seen[..., None, None], along, torch.eye(2, dtype=dt)))  # (N, V, 2 tb, 2 px)
     turn = shape_operator.to(dt)[:, None] @ step  # normal's (t, b) change per pixel step
     spread = turn @ torch.diag_embed(var) @ turn.transpose(-1, -2)
     spread = torch.where(seen[..., None, None], torch.nan_to_num(spread), torch.zeros_like(spread))

@@ -137,8 +137,7 @@ def shape_operators(
     det = edges[:, 0, 0] * edges[:, 1, 1] - edges[:, 0, 1] * edges[:, 1, 0]
     scale = np.linalg.norm(p[:, 1] - p[:, 0], axis=1) * np.linalg.norm(p[:, 2] - p[:, 0], axis=1)
     ok = np.abs(det) > 1e-9 * np.maximum(scale, 1e-30)
-    inv = np.stack([edges[:, 1, 1], -edges[:, 0, 1], -edges[:, 1, 0], edges[:, 0, 0]], 1).reshape(-1, 2, 2)
-    inv /= np.where(ok, det, 1.0)[:, None, None]
+    inv = np.linalg.inv(np.where(ok[:, None, None], edges, np.eye(2)))
     # the normalisation's derivative: the tangential part of d(raw normal) over its length
     length = np.linalg.norm(np.einsum("tk,tkj->tj", bary, nv), axis=1)
     out = turns @ inv / np.maximum(length, 1e-12)[:, None, None]
