@@ -233,6 +233,7 @@ def _bench_gallery(args: argparse.Namespace) -> int:
         samples=args.samples,
         refine=args.refine or None,
         model=args.model,
+        budget=args.budget or None,
     )
     bench_gallery.run(args.out, settings, json_path=args.json, progress=_progress(args))
     return 0
@@ -522,6 +523,11 @@ def _parser() -> argparse.ArgumentParser:
         "--model",
         default=None,
         help="trace network: a shipped name or a model folder (results and tables *-model-NAME; default: compact)",
+    )
+    bg.add_argument(
+        "--budget",
+        action="store_true",
+        help="where each run's relit SSIM is lost: the SSIM gained by one material's maps of a kind from the truth",
     )
     bg.add_argument("--json", type=Path, default=None)
     _quiet_and_progress(bg)

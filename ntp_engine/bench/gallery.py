@@ -5,7 +5,9 @@ Per run: pose error (SfM), relit SSIM under novel point lights (object pixels), 
 per material (``sim.evaluate.material_errors``): the share of its surface texels some photo sees
 (true poses), coverage (of those, the share some trace reached), normal angle, tangent angle mod 180 on
 anisotropic texels, |log alpha ratio|, rho_d RMSE and ratio, |log rho_s ratio|, spurious-lobe
-rate on matte. Writes ``OUT/gallery.json``, ``OUT/gallery.md`` (the tables) and
+rate on matte. With ``budget`` (``--budget``), where each run's relit SSIM is lost: the SSIM gained
+by one group of maps of one material taken from the truth (``sim.evaluate.relit_budget``). Writes
+``OUT/gallery.json``, ``OUT/gallery.md`` (the tables) and
 ``OUT/gallery.png`` (error per material, a bar per scanner x poses), and prints the tables; with
 ``refine`` (``--refine``) the results and files are ``*-refined`` beside them, from the same scans,
 and with another trace network (``model``, ``--model``) ``*-model-NAME``.
@@ -32,7 +34,7 @@ from ..pipeline.output_folder import claim
 from ..pipeline.scan_folder import load_poses, load_scan
 from ..pipeline.stages import reconstruct, register_photos
 from ..sim.cycles_scan import RENDER_VERSION, CyclesConfig, cycles_scan
-from ..sim.evaluate import material_errors, pose_error, relit_ssim
+from ..sim.evaluate import BUDGET_GROUPS, material_errors, pose_error, relit_budget, relit_ssim
 from ..sim.gallery import GALLERY, build_asset
 from ..sim.virtual_scan import ScanConfig, scan_folder_is_current, virtual_scan
 from . import print_table
@@ -69,6 +71,7 @@ class GallerySettings:
     seed: int = 0
     refine: bool = False  # the analysis-by-synthesis refinement after the network's fit
     model: str | None = None  # the trace network (a shipped name or a model folder; None: the default)
+    budget: bool = False  # where the relit SSIM is lost, per material x group of maps (sim.evaluate.relit_budget)
 
 
 DEFAULT = GallerySettings()
@@ -118,6 +121,10 @@ def _evaluate(settings: GallerySettings, scan_dir: Path, poses: str, out: Path, 
     run["relit_ssim"] = relit_ssim(
         out, scan_dir / "mesh.obj", gt, lights=settings.relit_lights, scale=settings.relit_scale
     )["relit_ssim"]
+    if settings.budget:
+        run["relit_budget"] = relit_budget(
+            out, scan_dir / "mesh.obj", gt, lights=settings.relit_lights, scale=settings.relit_scale
+        )
     true_poses = list(load_poses(gt / "poses.json").values())  # what the photos saw, whichever poses ran
     run["materials"] = material_errors(out, gt, scan.scanner, true_poses)
     return run
@@ -228,8 +235,20 @@ def _material_rows(record: dict) -> tuple[tuple, list[tuple]]:
     return header, rows
 
 
+def _budget_rows(record: dict) -> tuple[tuple, list[tuple]]:
+    header = ("object", "scanner", "poses", "relit SSIM / ceiling", "material", *(f"+{g}" for g in BUDGET_GROUPS))
+    rows = []
+    for r in record["runs"]:
+        b = r.get("relit_budget")
+        for i, m in enumerate(b["materials"] if b else []):
+            head = f"{b['relit_ssim']:.3f} / {b['ceiling']:.3f}" if i == 0 else ""
+            gains = (f"{m[g]:+.3f}" for g in BUDGET_GROUPS)
+            rows.append((r["object"], r["scanner"], r["poses"], head, m["material"], *gains))
+    return header, rows
+
+
 def markdown(record: dict) -> str:
-    """The two tables (runs, materials) as Markdown."""
+    """The tables (runs, materials; with ``budget`` where the relit SSIM is lost) as Markdown."""
 
     def table(header: tuple, rows: list[tuple]) -> list[str]:
         return ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)] + [
@@ -246,6 +265,14 @@ def markdown(record: dict) -> str:
         *table(*_material_rows(record)),
         "",
     ]
+    budget = _budget_rows(record)
+    if budget[1]:
+        lines += [
+            "Relit SSIM gained by one group of maps of one material taken from the truth (the rest the result's):",
+            "",
+            *table(*budget),
+            "",
+        ]
     return "\n".join(lines)
 
 
@@ -255,6 +282,10 @@ def _print(record: dict) -> None:
     print()
     header, rows = _material_rows(record)
     print_table(rows, header)
+    header, rows = _budget_rows(record)
+    if rows:
+        print()
+        print_table(rows, header)
 
 
 def figure(record: dict, path: Path) -> None:

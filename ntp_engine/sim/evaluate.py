@@ -45,6 +45,14 @@ from .virtual_scan import ScanConfig, trajectory
 SPURIOUS_RHO_S = 0.1  # a matte texel given more specular albedo than this has a spurious lobe
 MIN_ANISOTROPY = 2.0  # tangents are scored where the true alphas differ by at least this ratio
 NOVEL_LIGHT_DEVICE = "point_light.toml"  # relit under a single point light, unlike the scan's LED array
+# the groups of maps ``relit_budget`` replaces by the truth, one at a time
+BUDGET_GROUPS = {
+    "diffuse": ("diffuse_albedo",),
+    "normal": ("normal",),
+    "lobe": ("specular_albedo", "roughness"),
+    "tangent": ("tangent",),
+    "everything": tuple(MAP_FILES),
+}
 
 
 def map_errors(result: Path, truth: Path) -> dict:
@@ -211,6 +219,31 @@ def compare_images(reference: np.ndarray, test: np.ndarray, mask: np.ndarray) ->
     }
 
 
+def _novel_views(true_scene: Scene, lights: int, scale: float, seed: int) -> list[tuple]:
+    """The ``lights`` novel views of the relit comparison: (pose, camera, the truth's render, its
+    object pixels) each."""
+    point = true_scene.scanner
+    cam = resampled(point, scale)
+    poses = trajectory(true_scene.center, point, ScanConfig(views=lights, seed=seed), np.random.default_rng(seed))
+    views = []
+    for pose in poses:
+        a, ha = true_scene.render_linear(pose, cam, exact_shadows=True)
+        views.append((pose, cam, a, (ha["geom"] == 0).reshape(a.shape[:2])))
+    return views
+
+
+def _relit_scores(scene: Scene, views: list[tuple], save_dir: Path | None = None) -> list[float]:
+    """SSIM of ``scene``'s render against the truth's in each of ``views`` (``_novel_views``)."""
+    scores = []
+    for k, (pose, cam, a, obj) in enumerate(views):
+        b, _ = scene.render_linear(pose, cam, exact_shadows=True)
+        c = compare_images(a, b, obj)
+        scores.append(c["ssim"])
+        if save_dir is not None:
+            write_png(save_dir / f"relit_{k}.png", np.concatenate(c["display"], 1))
+    return scores
+
+
 def relit_ssim(
     result: Path,
     truth_mesh: Path,
@@ -224,21 +257,51 @@ def relit_ssim(
     rendered against the truth (object pixels; see the module docstring). ``save_dir`` gets the
     pairs as PNG (truth left)."""
     point = shipped_device(NOVEL_LIGHT_DEVICE)
-    cam = resampled(point, scale)
     true_scene = Scene(load_mesh(truth_mesh), SVBRDFMaps.load(truth_maps), point, clusters=1)
     rec_scene = Scene(load_mesh(result / "mesh.obj"), SVBRDFMaps.load(result), point, clusters=1)
-    poses = trajectory(true_scene.center, point, ScanConfig(views=lights, seed=seed), np.random.default_rng(seed))
-    scores = []
-    for k, pose in enumerate(poses):
-        a, ha = true_scene.render_linear(pose, cam, exact_shadows=True)
-        b, _ = rec_scene.render_linear(pose, cam, exact_shadows=True)
-        obj = (ha["geom"] == 0).reshape(a.shape[:2])
-        c = compare_images(a, b, obj)
-        scores.append(c["ssim"])
-        da, db = c["display"]
-        if save_dir is not None:
-            write_png(save_dir / f"relit_{k}.png", np.concatenate([da, db], 1))
+    scores = _relit_scores(rec_scene, _novel_views(true_scene, lights, scale, seed), save_dir)
     return {"relit_ssim": float(np.mean(scores)), "relit_ssim_per_light": scores}
+
+
+def relit_budget(
+    result: Path,
+    truth_mesh: Path,
+    truth_maps: Path,
+    lights: int = 3,
+    scale: float = 0.25,
+    seed: int = 1000,
+) -> dict:
+    """Where a result's relit SSIM is lost (``relit_ssim``'s views and lights): the SSIM gained when
+    one group of maps (``BUDGET_GROUPS``) of one labelled material's texels — or of all texels —
+    is replaced by the truth at the texel centres (``truth_at_texels``), everything else the
+    result's. ``{"relit_ssim": as is, "ceiling": every map the truth's (the result's resolution's
+    own limit), "materials": [{"material": name, group: gain, ...}, ..., {"material": "all", ...}]}``.
+    Gains of one material's groups need not add up: SSIM is not additive."""
+    point = shipped_device(NOVEL_LIGHT_DEVICE)
+    labels, table = load_labels(truth_maps)
+    true_scene = Scene(load_mesh(truth_mesh), SVBRDFMaps.load(truth_maps), point, clusters=1)
+    views = _novel_views(true_scene, lights, scale, seed)
+    rec = SVBRDFMaps.load(result)
+    shape = rec.shape
+    true, label = truth_at_texels(SVBRDFMaps.load(truth_maps), labels, texel_uv(shape).reshape(-1, 2))
+    scene = Scene(load_mesh(result / "mesh.obj"), rec, point, clusters=1)
+
+    def ssim_with_truth(where: np.ndarray, names: tuple[str, ...]) -> float:
+        maps = {k: getattr(rec, k).reshape(-1, getattr(rec, k).shape[-1]).copy() for k in MAP_FILES}
+        for k in names:
+            maps[k][where] = true[k][where]
+        scene.maps = SVBRDFMaps(**{k: v.reshape(*shape, -1) for k, v in maps.items()})
+        return float(np.mean(_relit_scores(scene, views)))
+
+    everywhere = np.ones(len(label), bool)
+    as_is = ssim_with_truth(everywhere, ())
+    rows = []
+    for name, where in [(m["name"], label == k) for k, m in enumerate(table)] + [("all", everywhere)]:
+        row: dict = {"material": name}
+        for group, names in BUDGET_GROUPS.items():
+            row[group] = ssim_with_truth(where, names) - as_is
+        rows.append(row)
+    return {"relit_ssim": as_is, "ceiling": as_is + rows[-1]["everything"], "materials": rows}
 
 
 def pose_error(poses: dict[str, np.ndarray], truth: dict[str, np.ndarray]) -> dict:
