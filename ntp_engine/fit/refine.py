@@ -64,7 +64,7 @@ from .support_light import (
     support_specular_emitters,
 )
 
-VERSION = 19  # of the method: part of the pipeline's cache key (bump when results change for the same settings)
+VERSION = 20  # of the method: part of the pipeline's cache key (bump when results change for the same settings)
 CENSOR_CODE = VALID_CODE[1]  # above this an 8-bit code may be (or border) a clipped pixel: a lower bound
 EXPANDED_BLOCKS = 4  # emitter blocks per entry summed sample by sample (the rest as coarse emitters)
 SELECT_WIDEN, SELECT_FLOOR = 3.0, 0.03  # emitters are chosen under alphas x3 (at least 0.03)
@@ -788,15 +788,8 @@ def material_costs(
 
     def judged(tr: _Trace, f: Tensor, m: int, diffuse: Tensor | None) -> tuple[Tensor, Tensor]:
         """The cost under material m (0: no lobe), and the round's diffuse basis."""
-        p = torch.zeros(tr.N, N_PARAMS, dtype=dtype)
-        if m:
-            p[:, P_LOGA] = alpha[m - 1].to(dtype).clamp(ALPHA_MIN, ALPHA_MAX).log()
-            p[:, P_RHO_S] = rho_s[m - 1].to(dtype).clamp(0, RHO_S_MAX)
-        rnd = _Round(tr, f, p[:, P_LOGA], m > 0, diffuse)
-        bases = rnd.bases(p[:, P_OMEGA], p[:, P_LOGA])
-        p = _albedo_start(rnd, p, m > 0, keep_rho_s=True, bases=bases)
-        c = _cost(_residuals(tr, *bases, p)[0], settings.noise.robust)
-        return torch.nan_to_num(c, nan=math.inf), rnd.diffuse
+        a, r = (alpha[m - 1], rho_s[m - 1]) if m else (alpha.new_ones(2), rho_s.new_zeros(3))
+        return _given_lobe_cost(tr, f, a.expand(tr.N, 2), r.expand(tr.N, 3), m > 0, diffuse, settings)
 
     # every model shares the texel's normal, so its diffuse basis
     cost[:, 0], diffuse = judged(tr_all, frame_all, 0, None)
@@ -818,6 +811,57 @@ def material_costs(
         cost[idx, m] = -torch.logsumexp(score, 1)
         turn[idx, m - 1] = angles.gather(1, score.argmax(1, keepdim=True))[:, 0]
     return cost, turn
+
+
+def _given_lobe_cost(
+    tr: _Trace,
+    frame: Tensor,
+    alpha: Tensor,
+    rho_s: Tensor,
+    specular: bool,
+    diffuse: Tensor | None,
+    settings: RefineSettings,
+) -> tuple[Tensor, Tensor]:
+    """The robust data cost ``(N,)`` of traces under the lobes ``alpha (N, 2)``, ``rho_s (N, 3)``
+    (``specular`` False: none) in ``frame``, rho_d re-solved (bounded least squares; inf where not
+    finite), and the round's diffuse basis (``diffuse``: one of the same normal, reused)."""
+    dtype = tr.y.dtype
+    p = torch.zeros(tr.N, N_PARAMS, dtype=dtype)
+    if specular:
+        p[:, P_LOGA] = alpha.to(dtype).clamp(ALPHA_MIN, ALPHA_MAX).log()
+        p[:, P_RHO_S] = rho_s.to(dtype).clamp(0, RHO_S_MAX)
+    rnd = _Round(tr, frame, p[:, P_LOGA], specular, diffuse)
+    bases = rnd.bases(p[:, P_OMEGA], p[:, P_LOGA])
+    p = _albedo_start(rnd, p, specular, keep_rho_s=True, bases=bases)
+    c = _cost(_residuals(tr, *bases, p)[0], settings.noise.robust)
+    return torch.nan_to_num(c, nan=math.inf), rnd.diffuse
+
+
+def turn_costs(
+    scanner: Scanner,
+    entries: Tensor,
+    mask: Tensor,
+    start: Start,
+    turns: Tensor,
+    settings: RefineSettings | None = None,
+    shadow: Tensor | None = None,
+    support: SupportView | None = None,
+    footprint: Tensor | None = None,
+) -> Tensor:
+    """The robust data cost ``(N, T)`` of N traces under each texel's own lobe (``start``'s normal,
+    alphas and rho_s) with its tangent turned by ``turns (N, T)`` (radians about the normal, as
+    ``material_costs``' turns), rho_d re-solved: how much its photos object to each direction."""
+    settings = settings or RefineSettings()
+    tr = _Trace(scanner, entries, mask, settings.noise, emitter_blocks(scanner), shadow, support, footprint)
+    dtype = tr.y.dtype
+    frame = frame_from_normal_tangent(start.normal.to(dtype), start.tangent.to(dtype))
+    costs, diffuse = [], None
+    for a in turns.to(dtype).unbind(1):
+        c, diffuse = _given_lobe_cost(
+            tr, turned_about_normal(frame, a), start.alpha, start.rho_s, True, diffuse, settings
+        )
+        costs.append(c)
+    return torch.stack(costs, 1)
 
 
 def lobe_costs(

@@ -15,12 +15,21 @@ right-handed (``physics.frame.turned_about_normal``); axial (mod pi): a lobe's a
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from scipy.spatial import cKDTree
 
 NEIGHBOURS = 16  # nearest sources averaged per texel
 REACH = 10.0  # a source's weight falls as a Gaussian of this many texel spacings (median nearest-texel distance)
 DOUBT = 0.25  # added to the sources' weights (a source in the texel's plane weighs 1): one source is not many
+# fused_turns: a texel's own tangent with its nearest neighbours', as far as the field is smooth
+FUSE_NEIGHBOURS = 24
+VARIATION_BINS = 12  # field_variation's distances: 1, 2, 4, ... 2048 texel spacings
+VARIATION_PAIRS = 8  # pairs per source: its nearest others, and as many random ones
+MIN_PAIRS = 16  # pairs a distance bin needs (else it takes the nearer bin's value)
+GATE = 3.0  # sigmas of disagreement beyond which a texel's own tangent and its neighbours' are not fused
+MIN_STD = math.radians(0.5)  # no trace fixes a tangent better (a floor under the LM's std: 0.3 deg ones erred 0.4)
 
 
 def texel_spacing(position: np.ndarray) -> float:
@@ -32,6 +41,31 @@ def _object_axes(t_loc: np.ndarray, normal: np.ndarray, tangent: np.ndarray) -> 
     """Local axes ``(N, 3)`` (geometric frame) in object space."""
     bitangent = np.cross(normal, tangent)
     return t_loc[:, :1] * tangent + t_loc[:, 1:2] * bitangent + t_loc[:, 2:3] * normal
+
+
+def _neighbour_axes(
+    position: np.ndarray,
+    normal: np.ndarray,
+    tangent: np.ndarray,
+    t_loc: np.ndarray,
+    source: np.ndarray,
+    target: np.ndarray,
+    k: int,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The ``k`` nearest ``source`` texels of each ``target``: their axes' turns from the target's
+    own ``t_loc`` in its tangent plane ``(M, k)`` (radians), the squared length of their projections
+    there, their distances (m) and their rows of ``source`` ``(M, k)`` each."""
+    M = len(target)
+    axes = _object_axes(t_loc[source], normal[source], tangent[source])
+    dist, near = cKDTree(position[source]).query(position[target], k=min(k, len(source)))
+    dist, near = dist.reshape(M, -1), near.reshape(M, -1)  # no distance bound: all finite
+    a = axes[near]  # (M, k, 3)
+    n_t, t_t = normal[target][:, None], tangent[target][:, None]
+    b_t = np.cross(n_t, t_t)
+    x, y = (a * t_t).sum(-1), (a * b_t).sum(-1)  # in the target's geometric frame
+    own = t_loc[target]
+    psi = np.arctan2(y, x) - np.arctan2(own[:, 1], own[:, 0])[:, None]
+    return psi, x * x + y * y, dist, near
 
 
 def neighbour_turns(
@@ -55,22 +89,104 @@ def neighbour_turns(
     if M == 0 or len(source) == 0:
         return turn, agree
     spacing = texel_spacing(position) if spacing is None else spacing
-    axes = _object_axes(t_loc[source], normal[source], tangent[source])
-    dist, near = cKDTree(position[source]).query(position[target], k=min(NEIGHBOURS, len(source)))
-    dist, near = dist.reshape(M, -1), near.reshape(M, -1)  # no distance bound: all finite
+    psi, size, dist, _ = _neighbour_axes(position, normal, tangent, t_loc, source, target, NEIGHBOURS)
     fall = np.exp(-0.5 * (dist / (REACH * max(spacing, 1e-9))) ** 2)
-    a = axes[near]  # (M, k, 3)
-    n_t, t_t = normal[target][:, None], tangent[target][:, None]
-    b_t = np.cross(n_t, t_t)
-    x, y = (a * t_t).sum(-1), (a * b_t).sum(-1)  # in the target's geometric frame
-    psi = np.arctan2(y, x)
-    own = t_loc[target]
-    psi0 = np.arctan2(own[:, 1], own[:, 0])[:, None]
-    size = x * x + y * y  # an axis nearly along the target's normal says little
-    w = size * fall
-    c, s = (w * np.cos(2 * (psi - psi0))).sum(1), (w * np.sin(2 * (psi - psi0))).sum(1)
+    w = size * fall  # an axis nearly along the target's normal says little
+    c, s = (w * np.cos(2 * psi)).sum(1), (w * np.sin(2 * psi)).sum(1)
     count = size.sum(1)
     has = count > 1e-12
     turn[has] = 0.5 * np.arctan2(s[has], c[has])
     agree[has] = np.hypot(c[has], s[has]) / (count[has] + DOUBT)
     return turn, agree
+
+
+def field_variation(
+    position: np.ndarray,
+    normal: np.ndarray,
+    tangent: np.ndarray,
+    t_loc: np.ndarray,
+    std: np.ndarray,
+    source: np.ndarray,
+    spacing: float | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """How far one material's tangent field turns with distance, measured on its ``source``
+    texels (those whose traces fixed their tangents, 1-sigma ``std (N,)`` radians): its
+    semivariogram — half the mean squared angle between two texels' axes beyond what their own
+    errors explain — at ``VARIATION_BINS`` distances ``(B,)`` (m, doubling from one texel spacing)
+    ``(B,)`` (rad^2; non-decreasing, robust: from the median). Pairs: each source with its
+    ``VARIATION_PAIRS`` nearest others and as many seeded random ones (far pairs too)."""
+    spacing = texel_spacing(position) if spacing is None else spacing
+    dist_bins = max(spacing, 1e-9) * 2.0 ** np.arange(VARIATION_BINS)
+    gamma = np.zeros(VARIATION_BINS)
+    S = len(source)
+    if S < 2:
+        return dist_bins, gamma
+    axes = _object_axes(t_loc[source], normal[source], tangent[source])
+    k = min(VARIATION_PAIRS + 1, S)
+    _, near = cKDTree(position[source]).query(position[source], k=k)
+    rng = np.random.default_rng(0)
+    i = np.repeat(np.arange(S), 2 * (k - 1))
+    j = np.concatenate([near[:, 1:], rng.integers(0, S, (S, k - 1))], 1).reshape(-1)
+    keep = i != j
+    i, j = i[keep], j[keep]
+    d = np.linalg.norm(position[source[i]] - position[source[j]], axis=1)
+    angle = np.arccos(np.clip(np.abs((axes[i] * axes[j]).sum(1)), 0.0, 1.0))  # axial
+    noise = np.maximum(std[source[i]], MIN_STD) ** 2 + np.maximum(std[source[j]], MIN_STD) ** 2
+    b = np.clip(np.round(np.log2(np.maximum(d / max(spacing, 1e-9), 1.0))).astype(int), 0, VARIATION_BINS - 1)
+    for n in range(VARIATION_BINS):
+        sel = b == n
+        if sel.sum() >= MIN_PAIRS:  # median of a chi^2_1 is 0.455 of its mean
+            gamma[n] = max(0.0, float(np.median(angle[sel] ** 2)) / 0.455 - float(np.median(noise[sel]))) / 2
+        elif n:
+            gamma[n] = gamma[n - 1]
+    return dist_bins, np.maximum.accumulate(gamma)
+
+
+def fused_turns(
+    position: np.ndarray,
+    normal: np.ndarray,
+    tangent: np.ndarray,
+    t_loc: np.ndarray,
+    std: np.ndarray,
+    source: np.ndarray,
+    target: np.ndarray,
+    variation: tuple[np.ndarray, np.ndarray] | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Each of ``target (M,)``'s tangent and its neighbours' together: the turn ``(M,)`` (radians,
+    from its own ``t_loc``) to the precision-weighted axial mean of its own axis (1-sigma ``std``
+    radians ``(N,)``, inf: unconstrained) and its ``FUSE_NEIGHBOURS`` nearest other ``source``
+    texels' — each weighed by the squared length of its projection into the target's tangent plane
+    over the variance of predicting the target from it: its own std^2 plus twice the field's
+    semivariogram at its distance (``variation``: ``field_variation``'s, by default of these
+    sources) — and the fused std ``(M,)``. The neighbours' mean counts as one measurement whose
+    variance is its standard error (at least their spread over the square root of their effective
+    number). So a texel whose own trace fixed its tangent keeps it, one that did not takes its
+    neighbours' as far as the field is smooth over the distance to them, and noise between the two
+    is averaged. Where the two differ by more than ``GATE`` sigmas together the field turns there
+    (the texel keeps its own). A target without sources keeps its tangent and std."""
+    M = len(target)
+    turn, fused = np.zeros(M), std[target].astype(np.float64).copy()
+    if M == 0 or len(source) == 0:
+        return turn, fused
+    if variation is None:
+        variation = field_variation(position, normal, tangent, t_loc, std, source)
+    psi, size, dist, near = _neighbour_axes(position, normal, tangent, t_loc, source, target, FUSE_NEIGHBOURS + 1)
+    field = 2 * np.interp(dist, *variation)  # variance of the field's turn between source and target
+    w = size / (np.maximum(std[source], MIN_STD)[near] ** 2 + field)
+    w = w * (source[near] != target[:, None])  # a texel is not its own neighbour
+    total = w.sum(1)
+    c, s = (w * np.cos(2 * psi)).sum(1), (w * np.sin(2 * psi)).sum(1)
+    has = total > 0
+    mean = 0.5 * np.arctan2(s, c)  # the neighbours' axis, from the target's own
+    resultant = np.clip(np.hypot(c, s) / np.maximum(total, 1e-300), 1e-12, 1.0)
+    spread = -0.5 * np.log(resultant)  # variance of the axes (doubled angles' circular variance / 4)
+    effective = total**2 / np.maximum((w * w).sum(1), 1e-300)
+    mean_var = np.maximum(spread / np.maximum(effective, 1.0), 1.0 / np.maximum(total, 1e-300))
+    own_var = np.maximum(std[target], MIN_STD) ** 2
+    share = 1.0 / (1.0 + mean_var / own_var)  # 1 where the texel's own is unconstrained (inf)
+    # a texel that disagrees with its neighbours beyond both their errors sits where the field turns
+    # (an edge of brushing): its own trace says so, and it keeps its tangent
+    share = np.where(mean**2 > GATE**2 * (own_var + mean_var), 0.0, share)
+    turn[has] = (share * mean)[has]
+    fused[has] = np.sqrt(1.0 / (1.0 / own_var + 1.0 / mean_var))[has]
+    return turn, fused

@@ -48,9 +48,10 @@ from ..fit.refine import (
     material_costs,
     refine,
     refine_toward,
+    turn_costs,
 )
 from ..fit.support_light import SupportScene, SupportView
-from ..fit.tangent_field import neighbour_turns, texel_spacing
+from ..fit.tangent_field import field_variation, fused_turns, neighbour_turns, texel_spacing
 from ..io.progress import QUIET, Progress
 from ..learn.inference import predict
 from ..learn.network import TraceNet
@@ -75,6 +76,11 @@ MIN_CLEAR_ENTRIES = 1
 CALIBRATION_TEXELS = 512  # texels refined first to calibrate the noise model (fit.refine.calibrated_noise)
 REFINE_BATCH = 512  # texels per refinement batch: (batch, views, emitters) tensors stay ~100 MB
 FLAG_MARGINAL = 128  # refined on entries the mesh shadows or sees at grazing angles (too few others)
+MAX_SOURCE_STD = np.radians(20.0)  # a tangent known worse than this tells its neighbours nothing (_fuse_tangents)
+TAKEN_TANGENT_STD = np.radians(20.0)  # a taken lobe's tangent: the turn its trace liked best, to about this
+MIN_SOURCE_SHARE = 0.02  # a material's texels that must have fixed their own tangents for the others to take theirs
+TURN_OBJECTION = 2.0  # a taken lobe's photos object to its neighbours' tangent at this much more cost (half chi^2)
+MIN_TURN = np.radians(0.5)  # a turn below this is not worth asking the photos about
 FLAG_WIDTH_FROM_MATERIAL = 256  # a lobe of its own, its width its material's: the trace could not tell them apart
 REFINE_FLAGS = FLAG_SPECULAR_UNCONSTRAINED | FLAG_TANGENT_UNCONSTRAINED | FLAG_FROM_MATERIAL
 REFINE_FLAGS |= FLAG_MARGINAL | FLAG_WIDTH_FROM_MATERIAL
@@ -306,6 +312,7 @@ def refine_fit(
         _store(fit, idx, r, inp.marginal)
         bar.update(len(idx))
     bar.close()
+
     if settings.materials:
         _material_pass(scanner, traces, fit, todo, settings, progress, texels, support)
     return fit
@@ -516,8 +523,30 @@ def _material_pass(
     # texels without a lobe of their own in a lobe material: toward its lobe
     takes = np.zeros(N, bool)
     takes[i_obs] = (label >= 0) & ~own[i_obs]
-    if not takes.any():
-        return
+    if takes.any():
+        _take_material_lobes(
+            scanner, traces, fit, takes, turns, i_obs, label, basis, settings, progress, texels, support
+        )
+    _fuse_tangents(scanner, traces, fit, i_obs, label, settings, texels, support)
+
+
+def _take_material_lobes(
+    scanner: Scanner,
+    traces: RaggedTraces,
+    fit: dict[str, np.ndarray],
+    takes: np.ndarray,
+    turns: np.ndarray,
+    i_obs: np.ndarray,
+    label: np.ndarray,
+    basis: BasisMaterials,
+    settings: RefineSettings,
+    progress: Progress,
+    texels: Texels | None,
+    support: SupportScene | None,
+) -> None:
+    """The texels ``takes (N,)`` (no lobe of their own, in a lobe material) refined toward their
+    material's lobe, from the tangent turn their traces liked best (``turns (O, K)``, rows of
+    ``i_obs``); updates ``fit``."""
     # their tangents turned to where their material's lobe fits their traces best
     k_takes = np.nonzero(takes[i_obs])[0]
     turn = turns[k_takes, label[k_takes]]
@@ -541,3 +570,58 @@ def _material_pass(
         _store(fit, idx, r, inp.marginal)
         bar.update(len(idx))
     bar.close()
+
+
+def _fuse_tangents(
+    scanner: Scanner,
+    traces: RaggedTraces,
+    fit: dict[str, np.ndarray],
+    i_obs: np.ndarray,
+    label: np.ndarray,
+    settings: RefineSettings,
+    texels: Texels | None = None,
+    support: SupportScene | None = None,
+) -> None:
+    """Every anisotropic lobe's tangent fused with its neighbours' of the same material
+    (``fit.tangent_field.fused_turns``) — a tangent its trace fixed stays, noise between neighbours
+    is averaged — and ``std``'s tangent column the fused one. A texel that took its material's lobe
+    (``FLAG_FROM_MATERIAL``) has no tangent of its own to weigh (its trace chose among turns; the
+    LM's local std says where the lobe cannot point, not where it points): it takes its neighbours'
+    unless its photos object, costing ``TURN_OBJECTION`` or more under it (``fit.refine.turn_costs``).
+    Needs ``texels`` (where the texels lie); updates ``fit`` in place."""
+    if texels is None:
+        return
+    alpha, flags = fit["alpha"][i_obs], fit["flags"][i_obs]
+    anisotropic = (label >= 0) & (alpha[:, 0] >= ISOTROPIC_RATIO * alpha[:, 1])
+    taken = flags & FLAG_FROM_MATERIAL > 0
+    std = np.where(taken, TAKEN_TANGENT_STD, np.radians(np.nan_to_num(fit["std"][i_obs, 1], nan=np.inf)))
+    constrained = anisotropic & ~taken & (flags & FLAG_TANGENT_UNCONSTRAINED == 0) & (std <= MAX_SOURCE_STD)
+    std_all = np.full(len(fit["std"]), np.inf)
+    std_all[i_obs] = std
+    spacing = texel_spacing(texels.position)
+    turn, fused = np.zeros(len(i_obs)), std.copy()
+    geometry = (texels.position, texels.normal, texels.tangent, fit["t_loc"], std_all)
+    for m in np.unique(label[anisotropic]):
+        target = np.nonzero(anisotropic & (label == m))[0]
+        source = i_obs[constrained & (label == m)]
+        variation = field_variation(*geometry, source, spacing)
+        turn[target], fused[target] = fused_turns(*geometry, source, i_obs[target], variation)
+        # a field seen on too few of the material's texels is not laid over the rest: their own
+        # traces' turns stay (the blob's underside: 20 sources, 64 deg off, for 2,624 taken lobes)
+        if len(source) < MIN_SOURCE_SHARE * len(target):
+            t_taken = target[taken[target]]
+            turn[t_taken], fused[t_taken] = 0.0, std[t_taken]
+    # a taken lobe turns only where its photos do not object
+    ask = np.nonzero(taken & anisotropic & (np.abs(turn) > MIN_TURN))[0]
+    for k in np.array_split(ask, -(-len(ask) // REFINE_BATCH)) if len(ask) else []:
+        inp = refine_inputs(scanner, traces, torch.as_tensor(i_obs[k]), fit, support, texels)
+        turns = torch.stack([torch.zeros(len(k), dtype=torch.float64), torch.as_tensor(turn[k])], 1)
+        c = turn_costs(
+            scanner, inp.entries, inp.mask, inp.start, turns, settings, inp.shadow, inp.support, inp.footprint
+        ).numpy()
+        objects = c[:, 1] - c[:, 0] >= TURN_OBJECTION
+        turn[k[objects]], fused[k[objects]] = 0.0, std[k[objects]]
+    t, n = fit["t_loc"][i_obs], fit["n_loc"][i_obs]
+    fit["t_loc"][i_obs] = np.cos(turn)[:, None] * t + np.sin(turn)[:, None] * np.cross(n, t)
+    changed = anisotropic & np.isfinite(fused)
+    fit["std"][i_obs[changed], 1] = np.degrees(fused[changed])

@@ -3,8 +3,9 @@
 import math
 
 import numpy as np
+import pytest
 
-from ntp_engine.fit.tangent_field import neighbour_turns
+from ntp_engine.fit.tangent_field import MIN_STD, fused_turns, neighbour_turns
 
 
 def _plane(n: int = 20, spacing: float = 0.002):
@@ -61,3 +62,50 @@ def test_no_far_or_disagreeing_neighbours_give_no_confidence():
     d = np.linalg.norm(position[rest], axis=1)
     assert agree[d < 0.01].min() > agree[d > 0.03].max()
     assert agree[d > 0.04].max() < 0.2  # 2 sigma (REACH 10 x 2 mm) away
+
+
+def _turned(t_loc: np.ndarray, turn: np.ndarray) -> np.ndarray:
+    """Axis angles (deg) of ``t_loc`` turned by ``turn`` (rad) in the plane's frame."""
+    return np.degrees(np.arctan2(t_loc[:, 1], t_loc[:, 0]) + turn)
+
+
+def test_an_unconstrained_tangent_takes_its_neighbours_and_a_known_one_keeps_its_own():
+    position, normal, tangent = _plane()
+    N = len(position)
+    t_loc = np.tile(_axis(30.0), (N, 1))
+    std = np.full(N, math.radians(2.0))
+    free, fixed = 105, 294  # two texels far apart
+    t_loc[free], std[free] = _axis(-45.0), np.inf  # a guess: its trace did not say
+    t_loc[fixed], std[fixed] = _axis(0.0), MIN_STD  # its trace fixed it
+    source = np.setdiff1d(np.arange(N), [free])
+    turn, fused = fused_turns(position, normal, tangent, t_loc, std, source, np.array([free, fixed]))
+    angle = _turned(t_loc[[free, fixed]], turn)
+    assert angle[0] == pytest.approx(30.0, abs=1e-6) and fused[0] < math.radians(1.0)
+    assert angle[1] == pytest.approx(0.0, abs=1e-9)  # 30 deg from 24 neighbours at 2 deg: the field turns there
+    # one that its neighbours agree with within the errors is averaged with them
+    t_loc[fixed] = _axis(29.5)
+    turn, fused = fused_turns(position, normal, tangent, t_loc, std, source, np.array([fixed]))
+    assert 29.6 < _turned(t_loc[[fixed]], turn)[0] < 30.0 and fused[0] < MIN_STD
+    # no sources: nothing moves
+    turn, fused = fused_turns(position, normal, tangent, t_loc, std, np.zeros(0, int), np.array([free, fixed]))
+    assert (turn == 0).all() and fused[0] == np.inf and fused[1] == MIN_STD
+
+
+def test_noise_between_neighbours_is_averaged_where_the_field_is_smooth():
+    position, normal, tangent = _plane(30)
+    N = len(position)
+    rng = np.random.default_rng(0)
+    truth = 20.0 + 10.0 * position[:, 0] / position[:, 0].max()  # turns slowly across the plane
+    noisy = truth + rng.normal(0.0, 4.0, N)
+    t_loc = np.stack([np.cos(np.radians(noisy)), np.sin(np.radians(noisy)), np.zeros(N)], 1)
+    std = np.full(N, math.radians(4.0))
+    every = np.arange(N)
+    turn, fused = fused_turns(position, normal, tangent, t_loc, std, every, every)
+    before, after = np.abs(noisy - truth), np.abs(_turned(t_loc, turn) - truth)
+    assert np.median(after) < 0.4 * np.median(before)  # ~20 neighbours: ~1/4.5 of the noise
+    assert (fused < math.radians(4.0)).all()
+    # where the neighbours disagree (a field turning fast), a texel keeps more of its own
+    wild = truth + rng.uniform(-90.0, 90.0, N)
+    t_wild = np.stack([np.cos(np.radians(wild)), np.sin(np.radians(wild)), np.zeros(N)], 1)
+    turn_wild, _ = fused_turns(position, normal, tangent, t_wild, std, every, every)
+    assert np.median(np.abs(turn_wild)) < np.median(np.abs(turn)) * 2 + 1e-3 or np.median(np.abs(turn_wild)) < 0.5

@@ -15,6 +15,7 @@ from ntp_engine.sim.evaluate import (
     compare_images,
     material_errors,
     pose_error,
+    relit_budget,
     relit_ssim,
     seen_texels,
     surface_texels,
@@ -188,3 +189,27 @@ def test_material_errors_need_labels(tmp_path):
     (truth / "labels.png").unlink()
     with pytest.raises(NtpInputError, match="labels.png"):
         material_errors(result, truth)
+
+
+def test_the_relit_budget_finds_the_material_and_maps_that_lose_ssim(tmp_path):
+    """A result that is the truth but for the print's diffuse albedo (halved) and the brushed
+    metal's lobe (a quarter of its rho_s): each gains only where it was spoiled, and the whole truth
+    makes the ceiling, which is perfect (the result has the truth's resolution)."""
+    result, truth = _result_from_truth(tmp_path)
+    labels, table = load_labels(truth)
+    names = [m["name"] for m in table]
+    maps = SVBRDFMaps.load(result)
+    maps.diffuse_albedo[labels == names.index("matte_print")] *= 0.5
+    maps.specular_albedo[labels == names.index("metal_brushed_dark")] *= 0.25
+    maps.save(result)
+    b = relit_budget(result, truth.parent / "mesh.obj", truth, lights=1, scale=0.1)
+    rows = {r["material"]: r for r in b["materials"]}
+    assert list(rows) == [*names, "all"]
+    assert b["ceiling"] == pytest.approx(1.0) and b["relit_ssim"] < 0.99
+    assert rows["all"]["everything"] == pytest.approx(b["ceiling"] - b["relit_ssim"])
+    assert rows["matte_print"]["diffuse"] > 0.005 and rows["metal_brushed_dark"]["lobe"] > 0.005
+    for name, spoiled in (("matte_print", "diffuse"), ("metal_brushed_dark", "lobe")):
+        others = [rows[name][g] for g in ("diffuse", "normal", "lobe", "tangent") if g != spoiled]
+        assert np.abs(others).max() < 1e-6, rows[name]  # the truth at the centres: the same maps
+    for name in ("plastic_glossy", "lacquer_mirror"):
+        assert np.abs([v for g, v in rows[name].items() if g != "material"]).max() < 1e-6, rows[name]
