@@ -1,11 +1,14 @@
-"""Where a texel's anisotropic material points, from its neighbours (``fit.refine.material_costs``'s
-prior over tangent turns).
+"""Where a texel's anisotropic material points, from its neighbours: ``fit.refine.material_costs``'s
+prior over tangent turns (``neighbour_turns``), and every anisotropic tangent fused with its
+neighbours' as far as the field is smooth (``fused_turns`` over ``field_variation``; used by
+``pipeline.fit_traces``, docs/refinement.md "The tangent field, fused").
 
 A texel whose trace does not show its lobe cannot tell where an anisotropic lobe points; its
 neighbours of the same material whose own traces fixed their lobes can — tangent fields are smooth
 over a surface (brushing, weaving, machining). Uniform over the turns, the material's lobe pays
 ~ln 4 for not knowing where it points, and the texel goes to a weakly anisotropic material instead
-(docs/accuracy.md, "Isotropic unless shown").
+(docs/accuracy.md, "Isotropic unless shown"). And a tangent a trace did fix is noisy by a few
+degrees, enough to break a sharp anisotropic highlight into sparkles.
 
 Convention: texels ``(N,)`` with object-space positions (m) and geometric frames (unit ``normal``,
 ``tangent``; the bitangent n x t); lobe axes ``t_loc (N, 3)`` in each texel's geometric frame (rows

@@ -25,6 +25,7 @@ from ntp_engine.fit.refine import (
     material_costs,
     refine,
     refine_toward,
+    turn_costs,
 )
 from ntp_engine.learn.synthetic import SyntheticConfig, sample_batch
 from ntp_engine.physics.frame import cross, rotation_from_vector, safe_normalize, turned_about_normal
@@ -307,6 +308,23 @@ def test_material_costs_try_the_turn_the_neighbours_point_along():
     none = material_costs(DEV, entries, mask, start, alpha, rho_s, turn_prior=(told, torch.zeros(48, 1)))
     torch.testing.assert_close(none[0], uniform)
     torch.testing.assert_close(none[1], turn_u)
+
+
+def test_turn_costs_say_how_much_a_trace_objects_to_each_tangent():
+    """A texel's own lobe judged at its true tangent and turned from it: the traces that show the
+    lobe object to a 30 deg turn (the fused field's check, ``pipeline.fit_traces._fuse_tangents``)
+    and more to 90 deg; at no turn the cost is material_costs' for that lobe at that tangent."""
+    entries, mask, p = _traces(48, 11, (0.3, 0.25, 0.2), (3.0, 3.0, 3.0), (0.2, 0.04))
+    alpha = torch.tensor([0.2, 0.04]).expand(48, 2)
+    start = Start(p["n_local"], p["t_local"], alpha, p["rho_d"], p["rho_s"])
+    turns = torch.tensor([0.0, math.radians(30.0), math.radians(90.0)]).expand(48, 3)
+    cost = turn_costs(DEV, entries, mask, start, turns)
+    assert cost.shape == (48, 3) and torch.isfinite(cost).all()
+    judged = material_costs(DEV, entries, mask, start, alpha[:1], p["rho_s"][:1])[0]
+    shows = judged[:, 1] < judged[:, 0] - 10
+    assert shows.float().mean() > 0.4
+    torch.testing.assert_close(cost[shows, 0], judged[shows, 1] - math.log(4), atol=1e-3, rtol=1e-3)
+    assert (cost[shows, 1:] - cost[shows, :1] > 2.0).float().mean() > 0.9
 
 
 def test_refine_toward_keeps_a_material_lobe_the_trace_misses():

@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from ntp_engine.fit.tangent_field import MIN_STD, fused_turns, neighbour_turns
+from ntp_engine.fit.tangent_field import MIN_STD, field_variation, fused_turns, neighbour_turns, texel_spacing
 
 
 def _plane(n: int = 20, spacing: float = 0.002):
@@ -109,3 +109,29 @@ def test_noise_between_neighbours_is_averaged_where_the_field_is_smooth():
     t_wild = np.stack([np.cos(np.radians(wild)), np.sin(np.radians(wild)), np.zeros(N)], 1)
     turn_wild, _ = fused_turns(position, normal, tangent, t_wild, std, every, every)
     assert np.median(np.abs(turn_wild)) < np.median(np.abs(turn)) * 2 + 1e-3 or np.median(np.abs(turn_wild)) < 0.5
+
+
+def test_the_field_variation_is_how_far_axes_turn_with_distance_beyond_their_errors():
+    position, normal, tangent = _plane(30)
+    N = len(position)
+    rng = np.random.default_rng(1)
+    every = np.arange(N)
+    std = np.full(N, math.radians(3.0))
+    noisy = 20.0 + rng.normal(0.0, 3.0, N)  # one direction, measured to 3 deg
+    t_loc = np.stack([np.cos(np.radians(noisy)), np.sin(np.radians(noisy)), np.zeros(N)], 1)
+    dist, gamma = field_variation(position, normal, tangent, t_loc, std, every)
+    assert dist[0] == pytest.approx(texel_spacing(position)) and (np.diff(dist) > 0).all()
+    assert np.sqrt(2 * gamma.max()) < math.radians(1.5)  # the errors explain the spread
+    # a field turning 2 deg per texel along x: the variation grows with distance
+    turning = noisy + 2.0 * position[:, 0] / texel_spacing(position)
+    t_turn = np.stack([np.cos(np.radians(turning)), np.sin(np.radians(turning)), np.zeros(N)], 1)
+    _, gamma_turn = field_variation(position, normal, tangent, t_turn, std, every)
+    assert (np.diff(gamma_turn) >= 0).all() and gamma_turn[4] > 4 * gamma_turn[1] > 0
+    assert np.degrees(np.sqrt(2 * gamma_turn[3])) == pytest.approx(2.0 * 8 / math.sqrt(2), rel=0.5)  # 8 spacings
+    # and the fusion weighs far neighbours less there: an unconstrained texel takes its nearest's
+    free = 15 * 30 + 15
+    std_free = std.copy()
+    std_free[free] = np.inf
+    turn, _ = fused_turns(position, normal, tangent, t_turn, std_free, np.setdiff1d(every, [free]), np.array([free]))
+    truth = 20.0 + 2.0 * position[free, 0] / texel_spacing(position)
+    assert abs(_turned(t_turn[[free]], turn)[0] - truth) < 2.0
