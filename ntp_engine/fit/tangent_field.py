@@ -113,11 +113,12 @@ def field_variation(
     spacing: float | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """How far one material's tangent field turns with distance, measured on its ``source``
-    texels (those whose traces fixed their tangents, 1-sigma ``std (N,)`` radians): its
-    semivariogram — half the mean squared angle between two texels' axes beyond what their own
-    errors explain — at ``VARIATION_BINS`` distances ``(B,)`` (m, doubling from one texel spacing)
-    ``(B,)`` (rad^2; non-decreasing, robust: from the median). Pairs: each source with its
-    ``VARIATION_PAIRS`` nearest others and as many seeded random ones (far pairs too)."""
+    texels (those whose traces fixed their tangents, 1-sigma ``std (N,)`` radians): distances
+    ``(B,)`` (m; ``VARIATION_BINS`` of them, doubling from one texel spacing) and the field's
+    semivariogram there ``(B,)`` (rad^2) — half the mean squared angle between two texels' axes
+    beyond what their own errors explain; robust (from the median), non-decreasing, 0 without two
+    sources. Pairs: each source with its ``VARIATION_PAIRS`` nearest others and as many seeded
+    random ones (far pairs too)."""
     spacing = texel_spacing(position) if spacing is None else spacing
     dist_bins = max(spacing, 1e-9) * 2.0 ** np.arange(VARIATION_BINS)
     gamma = np.zeros(VARIATION_BINS)
@@ -189,7 +190,8 @@ def fused_turns(
     share = 1.0 / (1.0 + mean_var / own_var)  # 1 where the texel's own is unconstrained (inf)
     # a texel that disagrees with its neighbours beyond both their errors sits where the field turns
     # (an edge of brushing): its own trace says so, and it keeps its tangent
-    share = np.where(mean**2 > GATE**2 * (own_var + mean_var), 0.0, share)
-    turn[has] = (share * mean)[has]
-    fused[has] = np.sqrt(1.0 / (1.0 / own_var + 1.0 / mean_var))[has]
+    apart = mean**2 > GATE**2 * (own_var + mean_var)
+    fuse = has & ~apart
+    turn[fuse] = (share * mean)[fuse]
+    fused[fuse] = np.sqrt(1.0 / (1.0 / own_var + 1.0 / mean_var))[fuse]
     return turn, fused

@@ -312,7 +312,6 @@ def refine_fit(
         _store(fit, idx, r, inp.marginal)
         bar.update(len(idx))
     bar.close()
-
     if settings.materials:
         _material_pass(scanner, traces, fit, todo, settings, progress, texels, support)
     return fit
@@ -582,13 +581,16 @@ def _fuse_tangents(
     texels: Texels | None = None,
     support: SupportScene | None = None,
 ) -> None:
-    """Every anisotropic lobe's tangent fused with its neighbours' of the same material
-    (``fit.tangent_field.fused_turns``) — a tangent its trace fixed stays, noise between neighbours
-    is averaged — and ``std``'s tangent column the fused one. A texel that took its material's lobe
-    (``FLAG_FROM_MATERIAL``) has no tangent of its own to weigh (its trace chose among turns; the
-    LM's local std says where the lobe cannot point, not where it points): it takes its neighbours'
-    unless its photos object, costing ``TURN_OBJECTION`` or more under it (``fit.refine.turn_costs``).
-    Needs ``texels`` (where the texels lie); updates ``fit`` in place."""
+    """Every anisotropic lobe's tangent fused with its neighbours' of the same material that fixed
+    theirs (``fit.tangent_field.fused_turns`` over the material's ``field_variation``) — a tangent
+    its trace fixed stays, noise between neighbours is averaged — and ``std``'s tangent column the
+    fused one. A texel that took its material's lobe (``FLAG_FROM_MATERIAL``) counts as knowing its
+    tangent to ``TAKEN_TANGENT_STD`` (its trace chose among turns; the LM's local std there says
+    where the lobe cannot point, not where it points) and is no source; it turns only where its
+    photos do not object (``TURN_OBJECTION`` or more under its own lobe, ``fit.refine.turn_costs``)
+    and where the field was seen on ``MIN_SOURCE_SHARE`` of the material's anisotropic texels or
+    more. Needs ``texels`` (where the texels lie); updates ``fit`` in place (docs/refinement.md,
+    basis materials step 6)."""
     if texels is None:
         return
     alpha, flags = fit["alpha"][i_obs], fit["flags"][i_obs]
