@@ -2,6 +2,7 @@
 failed registrations reported as such, re-runs resume from the cache, bad settings refused."""
 
 import json
+from dataclasses import replace
 
 import pytest
 
@@ -32,8 +33,16 @@ def test_tiny_gallery_writes_tables_json_and_figure(tmp_path):
 
     capture = tmp_path / "scans" / "box-engine" / "ground_truth" / "capture.json"
     stamp = capture.stat().st_mtime_ns
-    gallery.run(tmp_path, TINY)
+    again = gallery.run(tmp_path, replace(TINY, poses=("true",), budget=True))
     assert capture.stat().st_mtime_ns == stamp  # the scan was kept
+    # with the budget: where the relit SSIM is lost, per material and for all of them
+    budget = again["runs"][0]["relit_budget"]
+    assert [m["material"] for m in budget["materials"]] == [*names, "all"]
+    assert budget["relit_ssim"] == pytest.approx(again["runs"][0]["relit_ssim"])
+    assert budget["ceiling"] == pytest.approx(budget["relit_ssim"] + budget["materials"][-1]["everything"])
+    md = (tmp_path / "gallery.md").read_text()
+    assert "| +diffuse | +normal | +lobe | +tangent | +everything |" in md
+    assert md.count("| box | engine | true |") == 1 + 5  # the run's row and its 5 budget rows
 
 
 def test_bad_settings_are_refused(tmp_path):
