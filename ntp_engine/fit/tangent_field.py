@@ -169,7 +169,7 @@ def fused_turns(
     is averaged. Where the two differ by more than ``GATE`` sigmas together the field turns there
     (the texel keeps its own). A target without sources keeps its tangent and std."""
     M = len(target)
-    turn, fused = np.zeros(M), std[target].astype(np.float64).copy()
+    turn, fused = np.zeros(M), std[target].astype(np.float64)  # a copy
     if M == 0 or len(source) == 0:
         return turn, fused
     if variation is None:

@@ -325,15 +325,15 @@ def _neighbour_turns(
     own: np.ndarray,
     rest: np.ndarray,
     K: int,
+    spacing: float,
 ) -> tuple[np.ndarray, np.ndarray] | None:
     """Per texel of ``rest`` (rows of ``i_obs``) and lobe material: the turn its neighbours of that
     material with an anisotropic lobe of their own point along, and how well they agree ``(R, K)``
-    each (``fit.tangent_field``); None without ``texels``."""
+    each (``fit.tangent_field``; ``spacing``: the texels' ``texel_spacing``); None without ``texels``."""
     if texels is None:
         return None
     turn, agree = np.zeros((len(rest), K)), np.zeros((len(rest), K))
     constrained = own & (fit["flags"][i_obs] & FLAG_TANGENT_UNCONSTRAINED == 0)
-    spacing = texel_spacing(texels.position)  # once for all materials
     for m in range(K):
         source = i_obs[constrained & (label == m)]
         turn[:, m], agree[:, m] = neighbour_turns(
@@ -484,7 +484,8 @@ def _material_pass(
     alpha, rho_s = torch.as_tensor(basis.alpha), torch.as_tensor(basis.rho_s)
     label = np.full(len(i_obs), -1)
     label[own[i_obs]] = np.argmin(prior[own[i_obs]], 1) - 1  # a texel with its own lobe: by its colour
-    field = _neighbour_turns(texels, fit, i_obs, label, own[i_obs], rest, len(basis))
+    spacing = 0.0 if texels is None else texel_spacing(texels.position)  # once for the pass
+    field = _neighbour_turns(texels, fit, i_obs, label, own[i_obs], rest, len(basis), spacing)
     bar = progress.counter("materials", len(rest), "texel")
     for k in np.array_split(np.arange(len(rest)), -(-len(rest) // REFINE_BATCH)) if len(rest) else []:
         inp = refine_inputs(scanner, traces, torch.as_tensor(i_obs[rest[k]]), fit, support, texels)
@@ -526,7 +527,7 @@ def _material_pass(
         _take_material_lobes(
             scanner, traces, fit, takes, turns, i_obs, label, basis, settings, progress, texels, support
         )
-    _fuse_tangents(scanner, traces, fit, i_obs, label, settings, texels, support)
+    _fuse_tangents(scanner, traces, fit, i_obs, label, settings, spacing, texels, support)
 
 
 def _take_material_lobes(
@@ -578,6 +579,7 @@ def _fuse_tangents(
     i_obs: np.ndarray,
     label: np.ndarray,
     settings: RefineSettings,
+    spacing: float,
     texels: Texels | None = None,
     support: SupportScene | None = None,
 ) -> None:
@@ -589,8 +591,8 @@ def _fuse_tangents(
     where the lobe cannot point, not where it points) and is no source; it turns only where its
     photos do not object (``TURN_OBJECTION`` or more under its own lobe, ``fit.refine.turn_costs``)
     and where the field was seen on ``MIN_SOURCE_SHARE`` of the material's anisotropic texels or
-    more. Needs ``texels`` (where the texels lie); updates ``fit`` in place (docs/refinement.md,
-    basis materials step 6)."""
+    more. Needs ``texels`` (where the texels lie; ``spacing`` their ``texel_spacing``); updates
+    ``fit`` in place (docs/refinement.md, basis materials step 6)."""
     if texels is None:
         return
     alpha, flags = fit["alpha"][i_obs], fit["flags"][i_obs]
@@ -600,7 +602,6 @@ def _fuse_tangents(
     constrained = anisotropic & ~taken & (flags & FLAG_TANGENT_UNCONSTRAINED == 0) & (std <= MAX_SOURCE_STD)
     std_all = np.full(len(fit["std"]), np.inf)
     std_all[i_obs] = std
-    spacing = texel_spacing(texels.position)
     turn, fused = np.zeros(len(i_obs)), std.copy()
     geometry = (texels.position, texels.normal, texels.tangent, fit["t_loc"], std_all)
     for m in np.unique(label[anisotropic]):

@@ -279,11 +279,12 @@ def relit_budget(
     Gains of one material's groups need not add up: SSIM is not additive."""
     point = shipped_device(NOVEL_LIGHT_DEVICE)
     labels, table = load_labels(truth_maps)
-    true_scene = Scene(load_mesh(truth_mesh), SVBRDFMaps.load(truth_maps), point, clusters=1)
+    truth = SVBRDFMaps.load(truth_maps)
+    true_scene = Scene(load_mesh(truth_mesh), truth, point, clusters=1)
     views = _novel_views(true_scene, lights, scale, seed)
     rec = SVBRDFMaps.load(result)
     shape = rec.shape
-    true, label = truth_at_texels(SVBRDFMaps.load(truth_maps), labels, texel_uv(shape).reshape(-1, 2))
+    true, label = truth_at_texels(truth, labels, texel_uv(shape).reshape(-1, 2))
     scene = Scene(load_mesh(result / "mesh.obj"), rec, point, clusters=1)
 
     def ssim_with_truth(where: np.ndarray, names: tuple[str, ...]) -> float:
