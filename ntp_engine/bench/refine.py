@@ -23,11 +23,12 @@ import torch
 from scipy.optimize import least_squares
 
 from ..fit import refine as rf
+from ..fit.footprint import Footprint
 from ..io.atomic import write_text_atomic
 from ..io.maps import SVBRDFMaps, texel_uv
 from ..io.mesh import load_mesh
 from ..io.progress import QUIET, Progress
-from ..pipeline.fit_traces import refine_inputs
+from ..pipeline.fit_traces import refine_inputs, with_albedo_offsets
 from ..pipeline.output_folder import claim
 from ..pipeline.scan_folder import load_scan
 from ..pipeline.stages import cached_fit, reconstruct
@@ -110,7 +111,8 @@ def run(out: Path, bench: RefineBench | None = None, json_path: Path | None = No
                     cand = np.nonzero((label == k) & observed)[0]
                     picks.append(np.sort(rng.choice(cand, min(bench.per_material, len(cand)), replace=False)))
                 sel = np.concatenate(picks)
-                # the cache holds pixels as captured
+                # the cache holds pixels as captured; each entry's albedo blend as the refine stage's
+                traces = with_albedo_offsets(scan.scanner, traces, fit["rho_d"], texels)
                 inp = refine_inputs(scan.scanner, traces, torch.as_tensor(sel), fit, None, texels)
                 ent, mask, start, specular, shadow = inp.entries, inp.mask, inp.start, inp.specular, inp.shadow
                 footprint = inp.footprint
@@ -189,7 +191,7 @@ def _baseline(
     ent: torch.Tensor,
     mask: torch.Tensor,
     shadow: torch.Tensor,
-    footprint: torch.Tensor | None,
+    footprint: Footprint | None,
     fit: dict[str, np.ndarray],
     sel: np.ndarray,
     specular: torch.Tensor,
@@ -209,7 +211,7 @@ def _baseline(
     idx = sel[pick]
     t0 = time.perf_counter()
     lobe = torch.ones(len(pick), dtype=torch.bool)
-    spread = None if footprint is None else footprint[pick]
+    spread = None if footprint is None else footprint.rows(pick)
     ours = rf.refine(scanner, ent[pick], mask[pick], rf.Start.from_fit(fit, idx), lobe, st, shadow[pick], None, spread)
     t_ours = (time.perf_counter() - t0) / len(pick)
     t0 = time.perf_counter()
@@ -221,7 +223,7 @@ def _baseline(
             shadow[pick[i : i + 1]],
             {k: fit[k][idx[i : i + 1]] for k in ("n_loc", "t_loc", "alpha", "rho_d", "rho_s")},
             st,
-            None if spread is None else spread[i : i + 1],
+            None if spread is None else spread.rows(slice(i, i + 1)),
         )
         for i in range(len(pick))
     ]
@@ -256,7 +258,7 @@ def _scipy_texel(
     shadow: torch.Tensor,
     start: dict,
     st: rf.RefineSettings,
-    footprint: torch.Tensor | None = None,
+    footprint: Footprint | None = None,
 ) -> tuple:
     """One texel by scipy least_squares on the refinement's objective with every sample exact."""
     tr = rf._Trace(scanner, ent, mask, st.noise, None, shadow, None, footprint)  # no blocks: every sample exact

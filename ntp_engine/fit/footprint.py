@@ -1,4 +1,5 @@
-"""The normals a pixel sample spans on a curved surface, and the broader lobe it therefore sees.
+"""What a pixel sample spans on the surface: the normals on a curved surface (the broader lobe it
+therefore sees) and the albedos near an albedo edge (the neighbours' diffuse it blends in).
 
 An entry's pixel value is a bilinear sample of the four pixels around the texel's projection
 (``pipeline.traces``), and each pixel sees the surface at its own point. Where the surface turns
@@ -16,16 +17,44 @@ angles); ``spread (N, V, 2, 2)`` the covariance of the normal's (t^, b^) compone
 bilinear sample: sum over the image axes a of f_a (1 - f_a) g_a g_a^T, f_a the sample's fraction
 past the pixel centre and g_a = S (d x / d pixel_a) the normal's turn per pixel step. A camera whose
 pixels integrate over their area would add 1/12 px^2 per axis; the gallery's renderers point-sample.
+
+The same four points carry the albedo of the surface where they land, not the texel's: within a
+pixel or two of an albedo edge (a texel is ~0.6 mm on the demo, a pixel ~0.5 mm) an entry's pixel
+blends its neighbours' diffuse in a share that moves with the view's sub-pixel position, which a
+per-texel model can explain only with a lobe (the demo's faint-lobe material: 61% of its texels
+that kept a spurious lobe lie next to an albedo edge, 17% of all). ``albedo_offsets`` says, per
+entry, what the blend adds to the texel's own albedo, read from an estimate of the albedo map (the
+fit stage's): the point ``delta`` in (t^, b^) metres of tap a is the pixel step (d x / d pixel)
+times its offset from the sample, its map position uv + (d uv / d(t, b)) delta
+(``pipeline.texels.uv_per_metre``), and the offset sum_a w_a rho(uv_a) - rho(uv) with the sample's
+bilinear weights w_a. The refinement takes it out of the entry's pixel (``fit.refine``) so the
+texel's own albedo is what is solved.
 """
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
+import numpy as np
 import torch
 from torch import Tensor
 
+from ..io.maps import bilinear
 from ..physics.frame import frame_from_normal_tangent
 from ..scanner import camera
 from ..scanner.scanner import Scanner
+
+
+class Footprint(NamedTuple):
+    """What each entry's pixel sample spans, as the refinement reads it (module docstring)."""
+
+    spread: Tensor | None = None  # (N, V, 2, 2) slope spread (``slope_spread``); None: a flat surface
+    albedo_offset: Tensor | None = None  # (N, V, 3) the neighbours' albedo blended in (``albedo_offsets``)
+
+    def rows(self, idx: Tensor | np.ndarray | slice) -> Footprint:
+        """The same for the texels ``idx``."""
+        return Footprint(*(None if v is None else v[idx] for v in self))
+
 
 # slope variance at most (~13 deg std): a grazing entry's pixel spans a long strip, which the
 # second-order picture does not describe
@@ -40,10 +69,10 @@ NEGLIGIBLE = 1e-12  # slope variance (a 1e-6 rad spread): none
 SPREAD_WIDENING = 0.5
 
 
-def slope_spread(scanner: Scanner, entries: Tensor, mask: Tensor, shape_operator: Tensor) -> Tensor:
-    """``spread (N, V, 2, 2)`` (module docstring) of trace ``entries (N, V, 12)`` (camera space,
-    ``learn.ragged``'s layout) with ``mask (N, V)``, on texels whose shape operators are
-    ``shape_operator (N, 2, 2)`` (1/m); 0 for padding and where the surface is seen edge-on."""
+def _pixel_steps(scanner: Scanner, entries: Tensor, mask: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Per entry of ``entries (N, V, 12)`` with ``mask (N, V)``: the bilinear sample's fractions past
+    the pixel centre ``(N, V, 2)`` (column, row), the surface step per pixel step along (t^, b^)
+    ``(N, V, 2 tb, 2 px)`` (metres) and where both are defined ``(N, V)`` (live, not edge-on); float64."""
     dt = torch.float64
     x = entries[..., 3:6].to(dt)
     live = mask & (x[..., 2] > 0)
@@ -51,17 +80,55 @@ def slope_spread(scanner: Scanner, entries: Tensor, mask: Tensor, shape_operator
     geo = frame_from_normal_tangent(entries[..., 6:9].to(dt), entries[..., 9:12].to(dt))  # (N, V, 3, 3)
     px = camera.project(scanner, x)  # (N, V, 2) column, row
     frac = px - torch.floor(px)
-    var = frac * (1 - frac)  # per image axis, px^2
     # pixels per metre along t^, b^ on the tangent plane, and its inverse: metres per pixel step
     along = camera.project_jacobian(scanner, x) @ geo[..., :2, :].transpose(-1, -2)  # (N, V, 2 px, 2 tb)
     det = torch.linalg.det(along)
     seen = live & (det.abs() > 1e-12) & torch.isfinite(det)
     step = torch.linalg.inv(torch.where(seen[..., None, None], along, torch.eye(2, dtype=dt)))  # (N, V, 2 tb, 2 px)
-    turn = shape_operator.to(dt)[:, None] @ step  # normal's (t, b) change per pixel step
+    return frac, step, seen
+
+
+def slope_spread(scanner: Scanner, entries: Tensor, mask: Tensor, shape_operator: Tensor) -> Tensor:
+    """``spread (N, V, 2, 2)`` (module docstring) of trace ``entries (N, V, 12)`` (camera space,
+    ``learn.ragged``'s layout) with ``mask (N, V)``, on texels whose shape operators are
+    ``shape_operator (N, 2, 2)`` (1/m); 0 for padding and where the surface is seen edge-on."""
+    frac, step, seen = _pixel_steps(scanner, entries, mask)
+    var = frac * (1 - frac)  # per image axis, px^2
+    turn = shape_operator.to(step.dtype)[:, None] @ step  # normal's (t, b) change per pixel step
     spread = turn @ torch.diag_embed(var) @ turn.transpose(-1, -2)
     spread = torch.where(seen[..., None, None], torch.nan_to_num(spread), torch.zeros_like(spread))
     scale = (SPREAD_MAX / (spread[..., 0, 0] + spread[..., 1, 1]).clamp_min(1e-30)).clamp_max(1.0)
     return _flushed((spread * scale[..., None, None]).to(entries.dtype))
+
+
+def sample_points(scanner: Scanner, entries: Tensor, mask: Tensor) -> tuple[Tensor, Tensor]:
+    """Where the four pixels of each entry's bilinear sample see the surface: ``delta (N, V, 4, 2)``
+    in metres along (t^, b^) from the texel's point (on its tangent plane; the taps in
+    ``io.maps.bilinear_corners``' order) and their weights ``(N, V, 4)`` (0 for padding and edge-on
+    entries); float64."""
+    frac, step, seen = _pixel_steps(scanner, entries, mask)
+    fc, fr = frac[..., 0], frac[..., 1]
+    # (column, row) of each tap from the sample, in pixels: r0c0, r0c1, r1c0, r1c1
+    taps = torch.stack([torch.stack([c, r], -1) for r in (-fr, 1 - fr) for c in (-fc, 1 - fc)], -2)
+    weight = torch.stack([wc * wr for wr in (1 - fr, fr) for wc in (1 - fc, fc)], -1)
+    delta = torch.einsum("nvij,nvaj->nvai", step, taps)
+    return torch.where(seen[..., None, None], delta, torch.zeros_like(delta)), weight * seen[..., None]
+
+
+def albedo_offsets(
+    delta: Tensor, weight: Tensor, uv: np.ndarray, uv_per_metre: np.ndarray, albedo: np.ndarray
+) -> Tensor:
+    """What each entry's pixel sample adds to its texel's diffuse albedo ``(N, V, 3)``: sum_a w_a
+    rho(uv_a) - rho(uv) over the taps ``delta (N, V, 4, 2)`` with weights ``weight (N, V, 4)``
+    (``sample_points``) of texels at ``uv (N, 2)`` with ``uv_per_metre (N, 2, 2)``
+    (``pipeline.texels``), rho the map ``albedo (H, W, 3)`` sampled bilinearly (its unobserved texels
+    filled). 0 where no tap is weighed."""
+    N, V = weight.shape[:2]
+    at = uv[:, None, None, :] + np.einsum("nij,nvaj->nvai", uv_per_metre, delta.numpy())
+    taps = bilinear(albedo, at.reshape(-1, 2)).reshape(N, V, 4, -1)
+    w = weight.numpy()
+    blend = (w[..., None] * taps).sum(2) - w.sum(2)[..., None] * bilinear(albedo, uv)[:, None, :]
+    return torch.from_numpy(blend)
 
 
 def widening(spread: Tensor, frame: Tensor) -> Tensor:

@@ -7,8 +7,8 @@ over the emitter samples k (``measurement``'s factorised Eq. 1, falloff w = w_q 
 camera is the sensor model ``SensorNoise``: an entry whose 8-bit code is above ``CENSOR_CODE`` may be
 clipped (or bilinearly mixed with a clipped pixel) and only says "at least this bright" (censored);
 dark entries keep their information with an absolute noise floor instead of being dropped. On a
-curved surface an entry's pixel sample spans several normals and sees the lobe widened
-(``fit.footprint``).
+curved surface an entry's pixel sample spans several normals and sees the lobe widened, and near an
+albedo edge it blends the neighbours' albedo, which is taken out of it (``fit.footprint``).
 
 Convention: the parameters live in the texel's geometric (lumitexel) frame (z = n^, x = t^), like
 ``fit_traces``'s results: ``frame (N, 3, 3)`` rows (t, b, n); ``log_alpha (N, 2)`` natural logs of
@@ -46,7 +46,7 @@ from ..scanner.camera import VALID_CODE
 from ..scanner.scanner import Scanner
 from .albedo import bounded_ls2
 from .emitter_blocks import EmitterBlocks, emitter_blocks, shadow_groups
-from .footprint import widening
+from .footprint import Footprint, widening
 from .highlights import parked_positions
 from .pixel_bases import (
     diffuse_basis,
@@ -64,7 +64,7 @@ from .support_light import (
     support_specular_emitters,
 )
 
-VERSION = 20  # of the method: part of the pipeline's cache key (bump when results change for the same settings)
+VERSION = 21  # of the method: part of the pipeline's cache key (bump when results change for the same settings)
 CENSOR_CODE = VALID_CODE[1]  # above this an 8-bit code may be (or border) a clipped pixel: a lower bound
 EXPANDED_BLOCKS = 4  # emitter blocks per entry summed sample by sample (the rest as coarse emitters)
 SELECT_WIDEN, SELECT_FLOOR = 3.0, 0.03  # emitters are chosen under alphas x3 (at least 0.03)
@@ -123,6 +123,8 @@ class RefineSettings:
     log_alpha_prior_sigma: float = 3.0  # a weak pull to the start's alphas (natural log units)
     normal_prior_deg: float = 3.0  # a weak pull to the start's normal: a lobe seen in few views cannot tip it far
     materials: bool = True  # basis materials for texels whose own trace does not show their lobe (fit.materials)
+    # the neighbours' albedo each entry's pixel blends in, taken out of it (fit.footprint.albedo_offsets)
+    albedo_blend: bool = True
 
 
 class Start(NamedTuple):
@@ -173,8 +175,9 @@ class _Trace:
     (and, with ``blocks``, to each block's coarse emitter), half vectors and Fresnel-weighted falloff
     in the texel's geometric frame — none depends on the parameters (a shading frame only rotates
     them). Sample index K is padding: it emits nothing. ``shadow (N, V)``: the emitter groups the
-    mesh hides from each entry (``learn.ragged``), whose falloff is 0. ``footprint (N, V, 2, 2)``: the
-    slope spread of each entry's pixel sample (``fit.footprint``), which widens the lobe it sees."""
+    mesh hides from each entry (``learn.ragged``), whose falloff is 0. ``footprint``: what each
+    entry's pixel sample spans (``fit.footprint``): the slope spread, which widens the lobe it sees,
+    and the neighbours' albedo it blends in, taken out of its pixel."""
 
     def __init__(
         self,
@@ -185,7 +188,7 @@ class _Trace:
         blocks: EmitterBlocks | None,
         shadow: Tensor | None = None,
         support: SupportView | None = None,
-        footprint: Tensor | None = None,
+        footprint: Footprint | None = None,
     ):
         N, V, _ = entries.shape
         self.N, self.V, self.blocks = N, V, blocks
@@ -219,7 +222,8 @@ class _Trace:
                 self.ff_c = self.ff_c * groups.block_visibility(shadow, x.dtype)
         # the slope spread each entry's pixel sample covers (``fit.footprint``): None on a flat or
         # unknown surface
-        self.spread = None if footprint is None or not bool((footprint != 0).any()) else footprint.to(x.dtype)
+        spread = None if footprint is None else footprint.spread
+        self.spread = None if spread is None or not bool((spread != 0).any()) else spread.to(x.dtype)
         y = entries[..., :3]
         self.y = torch.where(mask[..., None], y, torch.zeros_like(y))
         code = 255.0 * self.y
@@ -234,6 +238,20 @@ class _Trace:
             self.support_diffuse = support_diffuse_basis(
                 support, scanner, self.sources, self.x_cam, self.frame_cam, self.live
             ).to(self.wi.dtype)
+        if footprint is not None and footprint.albedo_offset is not None:
+            self._take_out_blend(footprint.albedo_offset)
+
+    def _take_out_blend(self, albedo_offset: Tensor) -> None:
+        """Each entry's pixel less the diffuse light its sample blends in from the neighbours' albedo
+        (``albedo_offset (N, V, 3)``, ``fit.footprint``), so the texel's own albedo is solved. Its
+        diffuse basis at the geometric normal: a refined normal a degree or two off moves it by its
+        cosine. The noise and the censoring stay the pixel's as captured."""
+        up = torch.zeros(self.N, 3, dtype=self.wi.dtype)
+        up[:, 2] = 1
+        basis = diffuse_basis(up, self.wi, self.falloff, self.drive)[..., 2]  # (N, V, 3 channels)
+        if self.support is not None:
+            basis = basis + self.support_diffuse[..., 2]
+        self.y = torch.where(self.mask, self.y - albedo_offset.to(self.y.dtype) * basis.to(self.y.dtype), self.y)
 
     def support_specular(self, frame0: Tensor, alpha: Tensor) -> SupportEmitters | None:
         """The support's light as specular emitters for a round's ``frame0 (N, 3, 3)`` and lobe
@@ -658,15 +676,15 @@ def refine(
     settings: RefineSettings | None = None,
     shadow: Tensor | None = None,
     support: SupportView | None = None,
-    footprint: Tensor | None = None,
+    footprint: Footprint | None = None,
 ) -> Refined:
     """Refine N texels from ``start``. ``entries (N, V, 12)`` as captured with ``mask (N, V)`` and
     ``shadow (N, V)`` (the emitter groups the mesh hides from each entry: ``learn.ragged``);
     ``specular (N,)``: texels whose lobe is solved. A texel without one, or whose solved lobe no
     entry shows (below ``MIN_SPECULAR_SHARE`` of every pixel), gets a diffuse-only solve from its
-    start and rho_s = 0, its lobe flagged unconstrained. ``footprint (N, V, 2, 2)``: the normals each
-    entry's pixel sample spans (``fit.footprint``; None: a flat surface), which widen the lobe it
-    sees. Never NaN: a failed solve keeps the start."""
+    start and rho_s = 0, its lobe flagged unconstrained. ``footprint``: what each entry's pixel sample
+    spans (``fit.footprint``; None: a flat surface, no albedo blend) — the normals, which widen the
+    lobe it sees, and the neighbours' albedo. Never NaN: a failed solve keeps the start."""
     settings = settings or RefineSettings()
     tr = _Trace(scanner, entries, mask, settings.noise, emitter_blocks(scanner), shadow, support, footprint)
     return _refine(tr, start, specular, settings)
@@ -762,7 +780,7 @@ def material_costs(
     shadow: Tensor | None = None,
     turn_prior: tuple[Tensor, Tensor] | None = None,
     support: SupportView | None = None,
-    footprint: Tensor | None = None,
+    footprint: Footprint | None = None,
 ) -> tuple[Tensor, Tensor]:
     """How well K basis materials' lobes (``alpha (K, 2)``, ``rho_s (K, 3)``) explain N traces:
     the robust data cost ``(N, 1 + K)`` of each texel's trace under no lobe (column 0) and under each
@@ -846,7 +864,7 @@ def turn_costs(
     settings: RefineSettings | None = None,
     shadow: Tensor | None = None,
     support: SupportView | None = None,
-    footprint: Tensor | None = None,
+    footprint: Footprint | None = None,
 ) -> Tensor:
     """The robust data cost ``(N, T)`` of N traces under each texel's own lobe (``start``'s normal,
     alphas and rho_s) with its tangent turned by ``turns (N, T)`` (radians about the normal, as
@@ -873,7 +891,7 @@ def lobe_costs(
     settings: RefineSettings | None = None,
     shadow: Tensor | None = None,
     support: SupportView | None = None,
-    footprint: Tensor | None = None,
+    footprint: Footprint | None = None,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """How well S candidate lobe widths explain N traces: the robust data cost ``(N, S)`` of each
     texel's trace under ``alphas (N, S, 2)`` (alpha_x along ``start``'s tangent; clamped to the
@@ -935,7 +953,7 @@ def refine_toward(
     settings: RefineSettings | None = None,
     shadow: Tensor | None = None,
     support: SupportView | None = None,
-    footprint: Tensor | None = None,
+    footprint: Footprint | None = None,
 ) -> Refined:
     """Refine N texels that take their lobe from a basis material: from ``start`` (the material's
     lobe with the texel's own frame, rho_d), with alphas and rho_s pulled to ``prior`` by its
@@ -975,7 +993,7 @@ def calibrated_noise(
     settings: RefineSettings,
     shadow: Tensor | None = None,
     support: SupportView | None = None,
-    footprint: Tensor | None = None,
+    footprint: Footprint | None = None,
 ) -> SensorNoise:
     """The sensor noise model scaled (within ``NOISE_SCALE``) so that a refinement of these sample
     traces leaves residuals of unit robust scale — 1.4826 x the median |normalised residual| of the

@@ -5,7 +5,9 @@ space in metres, geometric normal n^, geometric tangent t^), in the camera space
 Eq. 4); the network normalises positions itself. Entries of one trace are in photo order. Optional
 per-entry columns: ``in_range`` (the 8-bit code was in the valid range and the mesh hides too little
 of the pattern for the network) and ``shadow`` (int64 masks: the emitter groups of
-``fit.emitter_blocks.shadow_groups`` the mesh hides from the entry's point, bit g = group g).
+``fit.emitter_blocks.shadow_groups`` the mesh hides from the entry's point, bit g = group g) and
+``albedo_offset`` (RGB: what the entry's pixel sample adds to the texel's own diffuse albedo by
+blending its neighbours', ``fit.footprint.albedo_offsets``; set by the refinement).
 """
 
 from __future__ import annotations
@@ -62,6 +64,7 @@ class RaggedTraces:
     offsets: Tensor  # (N + 1,) int64, offsets[0] = 0, offsets[-1] = E
     in_range: Tensor | None = None  # (E,) bool: what the network may read (None: every entry)
     shadow: Tensor | None = None  # (E,) int64: emitter groups the mesh hides (None: none)
+    albedo_offset: Tensor | None = None  # (E, 3): the neighbours' albedo the pixel blends in (None: none)
 
     def __post_init__(self):
         if self.entries.ndim != 2 or self.entries.shape[1] != ENTRY_SIZE:
@@ -74,6 +77,8 @@ class RaggedTraces:
             raise ValueError("in_range must hold one flag per entry")
         if self.shadow is not None and self.shadow.shape != (len(self.entries),):
             raise ValueError("shadow must hold one mask per entry")
+        if self.albedo_offset is not None and self.albedo_offset.shape != (len(self.entries), 3):
+            raise ValueError("albedo_offset must hold one RGB offset per entry")
 
     def in_range_only(self) -> RaggedTraces:
         """The traces with only their in-range entries (what the network and the lumitexel fit
@@ -105,7 +110,8 @@ class RaggedTraces:
         a, b = int(self.offsets[start]), int(self.offsets[stop])
         flags = None if self.in_range is None else self.in_range[a:b]
         shadow = None if self.shadow is None else self.shadow[a:b]
-        return RaggedTraces(self.entries[a:b], self.offsets[start : stop + 1] - a, flags, shadow)
+        albedo = None if self.albedo_offset is None else self.albedo_offset[a:b]
+        return RaggedTraces(self.entries[a:b], self.offsets[start : stop + 1] - a, flags, shadow, albedo)
 
     @property
     def num_traces(self) -> int:
@@ -148,9 +154,19 @@ class RaggedTraces:
             return torch.zeros(mask.shape, dtype=torch.int64)
         return torch.where(mask, self.shadow[rows], torch.zeros((), dtype=torch.int64))
 
+    def albedo_offset_at(self, rows: Tensor, mask: Tensor) -> Tensor | None:
+        """The ``albedo_offset`` ``(n, V, 3)`` at ``rows`` where ``mask``, 0 elsewhere; None without
+        that column."""
+        if self.albedo_offset is None:
+            return None
+        if len(self.entries) == 0:
+            return torch.zeros(*mask.shape, 3, dtype=self.albedo_offset.dtype)
+        return torch.where(mask[..., None], self.albedo_offset[rows], torch.zeros((), dtype=self.albedo_offset.dtype))
+
     def spread(self, max_views: int) -> RaggedTraces:
         """The table with at most ``max_views`` entries per trace, the same ones ``padded`` keeps
-        (evenly spread, first and last included); ``in_range`` and ``shadow`` are not carried (read them first)."""
+        (evenly spread, first and last included); ``in_range``, ``shadow`` and ``albedo_offset`` are not
+        carried (read them first)."""
         lengths = self.lengths
         keep = lengths.clamp_max(max_views)
         offsets = torch.zeros_like(self.offsets)

@@ -21,7 +21,7 @@ import torch
 
 from ..fit.albedo import highlights_and_albedo
 from ..fit.emitter_blocks import shadow_groups
-from ..fit.footprint import slope_spread
+from ..fit.footprint import Footprint, albedo_offsets, sample_points, slope_spread
 from ..fit.geometry import FALLBACK_ALPHA, FLAG_NO_HIGHLIGHT, fit_geometry
 from ..fit.materials import (
     BasisMaterials,
@@ -52,10 +52,11 @@ from ..fit.refine import (
 )
 from ..fit.support_light import SupportScene, SupportView
 from ..fit.tangent_field import field_variation, fused_turns, neighbour_turns, texel_spacing
+from ..io.maps import fill_missing, texel_uv
 from ..io.progress import QUIET, Progress
 from ..learn.inference import predict
 from ..learn.network import TraceNet
-from ..learn.ragged import RaggedTraces, spread_rows
+from ..learn.ragged import RaggedTraces, spans, spread_rows
 from ..physics.brdf import ALPHA_MAX, ALPHA_MIN
 from ..physics.frame import frame_from_normal_tangent
 from ..scanner.scanner import Scanner
@@ -74,6 +75,7 @@ REFINE_VIEWS = 24  # entries per texel the refinement reads (spread evenly over 
 # alone; with fewer it reads its marginal ones too (``refine_inputs``)
 MIN_CLEAR_ENTRIES = 1
 CALIBRATION_TEXELS = 512  # texels refined first to calibrate the noise model (fit.refine.calibrated_noise)
+BLEND_ENTRIES = 1 << 18  # entries per block of with_albedo_offsets (its float64 temporaries ~100 MB)
 REFINE_BATCH = 512  # texels per refinement batch: (batch, views, emitters) tensors stay ~100 MB
 FLAG_MARGINAL = 128  # refined on entries the mesh shadows or sees at grazing angles (too few others)
 MAX_SOURCE_STD = np.radians(20.0)  # a tangent known worse than this tells its neighbours nothing (_fuse_tangents)
@@ -220,7 +222,7 @@ class RefineInputs(NamedTuple):
     shadow: torch.Tensor  # (n, V) int64 emitter groups the mesh hides from each entry
     marginal: torch.Tensor  # (n,) texels that read shadowed or grazing entries (``MIN_CLEAR_ENTRIES``)
     support: SupportView | None  # the support's light on them (``fit.support_light``), or None
-    footprint: torch.Tensor | None  # (n, V, 2, 2) slope spread of each entry's pixel sample (``fit.footprint``)
+    footprint: Footprint | None  # what each entry's pixel sample spans (``fit.footprint``)
 
 
 def refine_inputs(
@@ -259,10 +261,39 @@ def refine_inputs(
         frame = frame_from_normal_tangent(torch.as_tensor(texels.normal[i]), torch.as_tensor(texels.tangent[i]))
         view = SupportView(support, torch.as_tensor(texels.position[i]), frame)
     entries, shadow = traces.entries_at(rows, mask), traces.shadow_at(rows, mask)
-    footprint = None
+    spread = None
     if texels is not None and texels.shape_operator is not None:
-        footprint = slope_spread(scanner, entries, mask, torch.as_tensor(texels.shape_operator[i]))
+        spread = slope_spread(scanner, entries, mask, torch.as_tensor(texels.shape_operator[i]))
+    blend = traces.albedo_offset_at(rows, mask)
+    footprint = None if spread is None and blend is None else Footprint(spread, blend)
     return RefineInputs(entries, mask, start, specular, shadow, marginal, view, footprint)
+
+
+def with_albedo_offsets(scanner: Scanner, traces: RaggedTraces, rho_d: np.ndarray, texels: Texels) -> RaggedTraces:
+    """``traces`` (trace i = texel i of ``texels``, which need ``uv_per_metre``) with each entry's
+    ``albedo_offset``: what its pixel sample blends in of the neighbours' albedo
+    (``fit.footprint.albedo_offsets``), read from the map of ``rho_d (N, 3)`` — the fit stage's
+    answers, fixed for the whole refinement; texels no trace reached take the nearest observed
+    one's. In blocks of ~``BLEND_ENTRIES`` entries."""
+    assert texels.uv_per_metre is not None
+    H, W = texels.shape
+    seen = (traces.lengths > 0).numpy()
+    known = np.zeros((H, W), bool)
+    known[texels.row[seen], texels.col[seen]] = True
+    albedo = np.zeros((H, W, 3))
+    albedo[texels.row, texels.col] = rho_d
+    albedo = fill_missing(albedo, known)
+    uv = texel_uv((H, W))[texels.row, texels.col]
+    out = torch.zeros(len(traces.entries), 3, dtype=torch.float32)
+    for start, stop in spans(traces.offsets.numpy(), BLEND_ENTRIES):
+        b = traces.block(start, stop)
+        texel = torch.repeat_interleave(torch.arange(start, stop), b.lengths).numpy()
+        entries = b.entries[:, None, :]
+        delta, weight = sample_points(scanner, entries, torch.ones(len(entries), 1, dtype=torch.bool))
+        blend = albedo_offsets(delta, weight, uv[texel], texels.uv_per_metre[texel], albedo)
+        a = int(traces.offsets[start])
+        out[a : a + len(entries)] = blend[:, 0].to(torch.float32)
+    return dataclasses.replace(traces, albedo_offset=out)
 
 
 def refine_fit(
@@ -275,7 +306,9 @@ def refine_fit(
     support: SupportScene | None = None,
 ) -> dict[str, np.ndarray]:
     """``fit_traces``'s result refined by analysis-by-synthesis (``fit.refine``) against every entry
-    of every observed trace (``traces``: linear pixels as captured), dark and clipped ones included;
+    of every observed trace (``traces``: linear pixels as captured), dark and clipped ones included —
+    with ``texels`` and ``settings.albedo_blend``, less what each entry's pixel blends in of the
+    neighbours' albedo (``with_albedo_offsets``, from ``fit``'s map);
     adds ``std (N, 4)``, the 1-sigma uncertainties of normal (deg), tangent (deg), log alpha,
     log rho_s (NaN where no trace reached), and ``noise_scale`` (the noise model's calibration
     factor, from a first pass over a sample).
@@ -292,6 +325,8 @@ def refine_fit(
     fit = {k: v.copy() for k, v in fit.items()}
     todo = (traces.lengths > 0).nonzero().squeeze(1)
     settings = settings or RefineSettings()
+    if settings.albedo_blend and texels is not None and texels.uv_per_metre is not None:
+        traces = with_albedo_offsets(scanner, traces, fit["rho_d"], texels)
     if len(todo):  # the noise model, calibrated on a seeded sample of the texels
         gen = torch.Generator().manual_seed(0)
         sample = todo[torch.randperm(len(todo), generator=gen)[:CALIBRATION_TEXELS]].sort().values

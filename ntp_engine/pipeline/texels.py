@@ -35,6 +35,9 @@ class Texels:
     # its frame (b^ = n^ x t^): how fast the surface turns (``shape_operators``; ``rasterize``'s
     # ``curvature``)
     shape_operator: np.ndarray | None = None
+    # (T, 2, 2) 1/m: d(u, v) / d(x . t^, x . b^) on the texel's triangle — where a step on the surface
+    # lands in the map (``uv_per_metre``; ``rasterize``'s ``curvature``)
+    uv_per_metre: np.ndarray | None = None
 
     def __len__(self) -> int:
         """T, the number of covered texels."""
@@ -60,7 +63,8 @@ def _uv_tangents(mesh: Mesh, mesh_uv: np.ndarray) -> np.ndarray:
 
 def rasterize(mesh: Mesh, shape: tuple[int, int], batch: int = 1 << 22, curvature: bool = False) -> Texels:
     """All texels of an ``shape = (H, W)`` map covered by the mesh's UV triangles; with
-    ``curvature``, their shape operators too (a third of the time: only the refinement reads them)."""
+    ``curvature``, their shape operators and ``uv_per_metre`` too (a third of the time: only the
+    refinement reads them)."""
     if mesh.uv is None:
         raise ValueError("mesh has no UVs")
     h, w = shape
@@ -118,8 +122,10 @@ def rasterize(mesh: Mesh, shape: tuple[int, int], batch: int = 1 << 22, curvatur
         ref = np.where(np.abs(nrm[bad, 0:1]) < 0.9, [[1.0, 0, 0]], [[0, 1.0, 0]])
         tan[bad] = ref - (ref * nrm[bad]).sum(1, keepdims=True) * nrm[bad]
     tan /= np.linalg.norm(tan, axis=1, keepdims=True)
-    shape_op = shape_operators(mesh, face, bary, nrm, tan) if curvature else None
-    return Texels((h, w), row, col, face, bary, pos, nrm, tan, shape_op)
+    if not curvature:
+        return Texels((h, w), row, col, face, bary, pos, nrm, tan)
+    shape_op, to_uv = shape_operators(mesh, face, bary, nrm, tan), uv_per_metre(mesh, face, nrm, tan)
+    return Texels((h, w), row, col, face, bary, pos, nrm, tan, shape_op, to_uv)
 
 
 def shape_operators(
@@ -141,6 +147,24 @@ def shape_operators(
     # the normalisation's derivative: the tangential part of d(raw normal) over its length
     length = np.linalg.norm(np.einsum("tk,tkj->tj", bary, nv), axis=1)
     out = turns @ inv / np.maximum(length, 1e-12)[:, None, None]
+    return np.where(ok[:, None, None], out, 0.0)
+
+
+def uv_per_metre(mesh: Mesh, face: np.ndarray, normal: np.ndarray, tangent: np.ndarray) -> np.ndarray:
+    """``(T, 2, 2)``: d(u, v) / d(x . t, x . b) (1/m) on triangles ``face (T,)`` at texels with unit
+    geometric ``normal`` and ``tangent (T, 3)``, b = n x t — the inverse of the triangle's dP/du,
+    dP/dv seen along (t, b). Convention: uv as ``io.maps.texel_uv`` (v up); 0 on triangles
+    degenerate in space (one degenerate in UV maps every step onto its line, as its texels do)."""
+    if mesh.uv is None:
+        raise ValueError("mesh has no UVs")
+    p, uv = mesh.vertices[mesh.faces[face]], mesh.uv[mesh.faces[face]]
+    basis = np.stack([tangent, np.cross(normal, tangent)], 1)  # (T, 2, 3)
+    edges = np.einsum("tij,tkj->tik", basis, p[:, 1:] - p[:, :1])  # (T, 2 axes, 2 edges)
+    duv = (uv[:, 1:] - uv[:, :1]).transpose(0, 2, 1)  # (T, 2 uv, 2 edges)
+    det = edges[:, 0, 0] * edges[:, 1, 1] - edges[:, 0, 1] * edges[:, 1, 0]
+    scale = np.linalg.norm(p[:, 1] - p[:, 0], axis=1) * np.linalg.norm(p[:, 2] - p[:, 0], axis=1)
+    ok = np.abs(det) > 1e-9 * np.maximum(scale, 1e-30)
+    out = duv @ np.linalg.inv(np.where(ok[:, None, None], edges, np.eye(2)))
     return np.where(ok[:, None, None], out, 0.0)
 
 

@@ -1,11 +1,20 @@
-"""The normals an entry's pixel sample spans (``fit.footprint``)."""
+"""The normals and albedos an entry's pixel sample spans (``fit.footprint``)."""
 
 import math
 
+import numpy as np
 import pytest
 import torch
 
-from ntp_engine.fit.footprint import SPREAD_MAX, SPREAD_WIDENING, slope_spread, widening
+from ntp_engine.fit.footprint import (
+    SPREAD_MAX,
+    SPREAD_WIDENING,
+    albedo_offsets,
+    sample_points,
+    slope_spread,
+    widening,
+)
+from ntp_engine.scanner import camera
 from ntp_engine.scanner.device_file import load_scanner
 
 DEV = load_scanner()
@@ -65,3 +74,53 @@ def test_the_lobe_is_widened_along_the_axis_the_normals_spread():
     assert widening(spread, turned)[0, 0].tolist() == pytest.approx([0.0, SPREAD_WIDENING * 0.004])
     # round-off on a flat face is no spread (float32 subnormals would slow every lobe sum)
     assert widening(torch.full((1, 1, 2, 2), 1e-30), frame.float()).abs().max().item() == 0
+
+
+def test_the_sample_points_are_where_the_four_pixels_see_the_tangent_plane():
+    """Each tap's point (texel point + delta along t^, b^) projects onto its pixel's centre (to the
+    linearised projection's second order), in ``io.maps.bilinear_corners``' order, with the
+    bilinear weights; padding and a surface seen edge-on have no taps."""
+    n = torch.tensor([0.3, -0.2, -0.93], dtype=torch.float64)
+    n = n / n.norm()
+    t = torch.tensor([1.0, 0.4, 0.0], dtype=torch.float64)
+    t = t - (t @ n) * n
+    t = t / t.norm()
+    b = torch.linalg.cross(n, t)
+    entries = torch.cat(
+        [_entry([0.0123, -0.0071, 0.31], n.tolist(), t.tolist()), _entry([0, 0, 0.3], [1.0, 0, 0], [0, 1.0, 0])], 1
+    )
+    delta, weight = sample_points(DEV, entries, torch.tensor([[True, True]]))
+    px = camera.project(DEV, entries[0, 0, 3:6])
+    base = torch.floor(px)
+    fc, fr = (px - base).tolist()
+    expect_w = [(1 - fc) * (1 - fr), fc * (1 - fr), (1 - fc) * fr, fc * fr]
+    np.testing.assert_allclose(weight[0, 0].numpy(), expect_w, atol=1e-12)
+    for a, (dr, dc) in enumerate([(0, 0), (0, 1), (1, 0), (1, 1)]):
+        x = entries[0, 0, 3:6] + delta[0, 0, a, 0] * t + delta[0, 0, a, 1] * b
+        seen = camera.project(DEV, x)
+        np.testing.assert_allclose(
+            seen.numpy(), (base + torch.tensor([dc, dr], dtype=torch.float64)).numpy(), atol=0.01
+        )
+    assert weight[0, 1].abs().max().item() == 0 and delta[0, 1].abs().max().item() == 0  # edge-on
+    delta, weight = sample_points(DEV, entries, torch.tensor([[False, False]]))
+    assert weight.abs().max().item() == 0
+
+
+def test_the_albedo_offset_is_what_the_taps_blend_in_of_the_neighbours():
+    """On a map with one albedo edge: taps that all land on the texel's side add nothing; taps that
+    reach across add their weights' share of the step (bilinear in the map); a uniform map adds 0."""
+    H = W = 8
+    albedo = np.full((H, W, 3), 0.4)
+    albedo[:, 4:] = 0.8  # columns 4.. brighter
+    uv = np.array([[(3 + 0.5) / W, 1 - (2 + 0.5) / H]] * 2)  # texel row 2, column 3: next to the edge
+    per_metre = np.tile(np.eye(2)[None] * 1000.0 / W, (2, 1, 1))  # 1 mm = one texel, u along t, v along b
+    delta = torch.zeros(2, 1, 4, 2, dtype=torch.float64)
+    delta[0, 0, :, 0] = torch.tensor([-0.5e-3, 0.5e-3, -0.5e-3, 0.5e-3])  # half a texel left and right
+    delta[1, 0, :, 1] = torch.tensor([-0.5e-3, -0.5e-3, 0.5e-3, 0.5e-3])  # along v only: along the edge
+    weight = torch.full((2, 1, 4), 0.25, dtype=torch.float64)
+    out = albedo_offsets(delta, weight, uv, per_metre, albedo)
+    # right-hand taps at column 3.5: half way to the brighter column, 0.6; left ones at 2.5: 0.4
+    np.testing.assert_allclose(out[0, 0].numpy(), [0.1] * 3, atol=1e-12)
+    np.testing.assert_allclose(out[1, 0].numpy(), [0.0] * 3, atol=1e-12)
+    assert albedo_offsets(delta, weight, uv, per_metre, np.full((H, W, 3), 0.4)).abs().max().item() < 1e-12
+    assert albedo_offsets(delta, 0 * weight, uv, per_metre, albedo).abs().max().item() == 0

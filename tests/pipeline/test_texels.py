@@ -68,3 +68,33 @@ def test_rasterize_gives_shape_operators_only_when_asked():
     assert curved.shape_operator is not None and np.abs(curved.shape_operator).max() > 0
     expect = shape_operators(mesh, curved.face, curved.bary, curved.normal, curved.tangent)
     np.testing.assert_array_equal(curved.shape_operator, expect)
+
+
+def test_uv_per_metre_says_where_a_step_on_the_surface_lands_in_the_map():
+    """On a tilted, sheared UV layout: a small step along (t^, b^) from a texel's point moves its uv
+    by uv_per_metre times the step — the mesh's own uv at the moved point (barycentric) — and
+    degenerate triangles give 0."""
+    rng = np.random.default_rng(3)
+    v = np.array([[0, 0, 0], [0.1, 0, 0.02], [0.1, 0.08, 0.05], [0, 0.08, 0.03]])
+    f = np.array([[0, 1, 2], [0, 2, 3]])
+    uv = np.array([[0.1, 0.1], [0.8, 0.2], [0.9, 0.9], [0.2, 0.7]])
+    m = Mesh(v, f, uv, smooth_normals(v, f))
+    tx = rasterize(m, (32, 32), curvature=True)
+    assert tx.uv_per_metre is not None and len(tx) > 100
+    k = rng.choice(len(tx), 20, replace=False)
+    b = np.cross(tx.normal[k], tx.tangent[k])
+    step = rng.normal(size=(20, 2)) * 1e-3  # metres along (t, b)
+    x = tx.position[k] + step[:, :1] * tx.tangent[k] + step[:, 1:] * b
+    for j, i in enumerate(k):  # the moved point's uv by the triangle's barycentric coordinates
+        p = v[f[tx.face[i]]]
+        e = np.stack([p[1] - p[0], p[2] - p[0]], 1)
+        w = np.linalg.lstsq(e, x[j] - p[0], rcond=None)[0]
+        t_uv = uv[f[tx.face[i]]]
+        moved = t_uv[0] + w[0] * (t_uv[1] - t_uv[0]) + w[1] * (t_uv[2] - t_uv[0])
+        here = texel_uv((32, 32))[tx.row[i], tx.col[i]]
+        np.testing.assert_allclose(moved - here, tx.uv_per_metre[i] @ step[j], atol=1e-9)
+    from ntp_engine.pipeline.texels import uv_per_metre
+
+    degenerate = Mesh(np.zeros((3, 3)), np.array([[0, 1, 2]]), uv[:3], np.tile([0.0, 0, 1], (3, 1)))
+    up, along = np.array([[0.0, 0, 1]]), np.array([[1.0, 0, 0]])
+    assert np.abs(uv_per_metre(degenerate, np.array([0]), up, along)).max() == 0
