@@ -28,7 +28,7 @@ from ..io.atomic import write_text_atomic
 from ..io.maps import SVBRDFMaps, texel_uv
 from ..io.mesh import load_mesh
 from ..io.progress import QUIET, Progress
-from ..pipeline.fit_traces import refine_inputs, with_albedo_offsets
+from ..pipeline.fit_traces import refine_inputs
 from ..pipeline.output_folder import claim
 from ..pipeline.scan_folder import load_scan
 from ..pipeline.stages import cached_fit, reconstruct
@@ -111,8 +111,7 @@ def run(out: Path, bench: RefineBench | None = None, json_path: Path | None = No
                     cand = np.nonzero((label == k) & observed)[0]
                     picks.append(np.sort(rng.choice(cand, min(bench.per_material, len(cand)), replace=False)))
                 sel = np.concatenate(picks)
-                # the cache holds pixels as captured; each entry's albedo blend as the refine stage's
-                traces = with_albedo_offsets(scan.scanner, traces, fit["rho_d"], texels)
+                # the cache holds pixels as captured
                 inp = refine_inputs(scan.scanner, traces, torch.as_tensor(sel), fit, None, texels)
                 ent, mask, start, specular, shadow = inp.entries, inp.mask, inp.start, inp.specular, inp.shadow
                 footprint = inp.footprint

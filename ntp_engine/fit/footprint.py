@@ -22,13 +22,16 @@ The same four points carry the albedo of the surface where they land, not the te
 pixel or two of an albedo edge (a texel is ~0.6 mm on the demo, a pixel ~0.5 mm) an entry's pixel
 blends its neighbours' diffuse in a share that moves with the view's sub-pixel position, which a
 per-texel model can explain only with a lobe (the demo's faint-lobe material: 61% of its texels
-that kept a spurious lobe lie next to an albedo edge, 17% of all). ``albedo_offsets`` says, per
-entry, what the blend adds to the texel's own albedo, read from an estimate of the albedo map (the
-fit stage's): the point ``delta`` in (t^, b^) metres of tap a is the pixel step (d x / d pixel)
-times its offset from the sample, its map position uv + (d uv / d(t, b)) delta
-(``pipeline.texels.uv_per_metre``), and the offset sum_a w_a rho(uv_a) - rho(uv) with the sample's
-bilinear weights w_a. The refinement takes it out of the entry's pixel (``fit.refine``) so the
-texel's own albedo is what is solved.
+that kept a spurious lobe lie next to an albedo edge, 17% of all). ``albedo_blend`` says, per
+entry, how much albedo the taps may blend in, read from an estimate of the albedo map: tap a lies
+``delta`` (t^, b^ metres) from the texel's point — the pixel step (d x / d pixel) times its offset
+from the sample — at uv + (d uv / d(t, b)) delta in the map (``pipeline.texels.uv_per_metre``), and
+the blend is sqrt(sum_a w_a d_a^2) with the sample's bilinear weights w_a and d_a the difference
+from the texel's own albedo less ``BLEND_NOISE`` (soft-thresholded: the estimate's own noise is no
+edge). The refinement counts it as noise on the entry's diffuse light (``fit.refine``): an entry
+that may blend a neighbour weighs less. Taking the blend out of the pixel instead (the estimate's
+sum_a w_a d_a) needs the map exact below a texel: with the gallery's 128² estimates it cost the
+vase 0.942 -> 0.826 of relit SSIM (docs/accuracy.md).
 """
 
 from __future__ import annotations
@@ -49,13 +52,14 @@ class Footprint(NamedTuple):
     """What each entry's pixel sample spans, as the refinement reads it (module docstring)."""
 
     spread: Tensor | None = None  # (N, V, 2, 2) slope spread (``slope_spread``); None: a flat surface
-    albedo_offset: Tensor | None = None  # (N, V, 3) the neighbours' albedo blended in (``albedo_offsets``)
+    albedo_blend: Tensor | None = None  # (N, V, 3) the neighbours' albedo it may blend in (``albedo_blend``)
 
     def rows(self, idx: Tensor | np.ndarray | slice) -> Footprint:
         """The same for the texels ``idx``."""
         return Footprint(*(None if v is None else v[idx] for v in self))
 
 
+BLEND_NOISE = 0.05  # albedo differences in the estimate below this are its noise, not an edge
 # slope variance at most (~13 deg std): a grazing entry's pixel spans a long strip, which the
 # second-order picture does not describe
 SPREAD_MAX = 0.05
@@ -115,20 +119,19 @@ def sample_points(scanner: Scanner, entries: Tensor, mask: Tensor) -> tuple[Tens
     return torch.where(seen[..., None, None], delta, torch.zeros_like(delta)), weight * seen[..., None]
 
 
-def albedo_offsets(
-    delta: Tensor, weight: Tensor, uv: np.ndarray, uv_per_metre: np.ndarray, albedo: np.ndarray
-) -> Tensor:
-    """What each entry's pixel sample adds to its texel's diffuse albedo ``(N, V, 3)``: sum_a w_a
-    rho(uv_a) - rho(uv) over the taps ``delta (N, V, 4, 2)`` with weights ``weight (N, V, 4)``
-    (``sample_points``) of texels at ``uv (N, 2)`` with ``uv_per_metre (N, 2, 2)``
-    (``pipeline.texels``), rho the map ``albedo (H, W, 3)`` sampled bilinearly (its unobserved texels
-    filled). 0 where no tap is weighed."""
+def albedo_blend(delta: Tensor, weight: Tensor, uv: np.ndarray, uv_per_metre: np.ndarray, albedo: np.ndarray) -> Tensor:
+    """How much of its neighbours' albedo each entry's pixel sample may blend in ``(N, V, 3)``:
+    sqrt(sum_a w_a d_a^2), d_a = rho(uv_a) - rho(uv) soft-thresholded by ``BLEND_NOISE``, over the
+    taps ``delta (N, V, 4, 2)`` with weights ``weight (N, V, 4)`` (``sample_points``) of texels at
+    ``uv (N, 2)`` with ``uv_per_metre (N, 2, 2)`` (``pipeline.texels``), rho the map ``albedo (H, W,
+    3)`` sampled bilinearly (its unobserved texels filled). 0 where no tap is weighed or the map is
+    uniform within ``BLEND_NOISE``."""
     N, V = weight.shape[:2]
     at = uv[:, None, None, :] + np.einsum("nij,nvaj->nvai", uv_per_metre, delta.numpy())
     taps = bilinear(albedo, at.reshape(-1, 2)).reshape(N, V, 4, -1)
-    w = weight.numpy()
-    blend = (w[..., None] * taps).sum(2) - w.sum(2)[..., None] * bilinear(albedo, uv)[:, None, :]
-    return torch.from_numpy(blend)
+    d = taps - bilinear(albedo, uv)[:, None, None, :]
+    d = np.maximum(np.abs(d) - BLEND_NOISE, 0.0)
+    return torch.from_numpy(np.sqrt((weight.numpy()[..., None] * d * d).sum(2)))
 
 
 def widening(spread: Tensor, frame: Tensor) -> Tensor:

@@ -8,7 +8,8 @@ camera is the sensor model ``SensorNoise``: an entry whose 8-bit code is above `
 clipped (or bilinearly mixed with a clipped pixel) and only says "at least this bright" (censored);
 dark entries keep their information with an absolute noise floor instead of being dropped. On a
 curved surface an entry's pixel sample spans several normals and sees the lobe widened, and near an
-albedo edge it blends the neighbours' albedo, which is taken out of it (``fit.footprint``).
+albedo edge it may blend the neighbours' albedo, which counts as noise on its diffuse light
+(``fit.footprint``).
 
 Convention: the parameters live in the texel's geometric (lumitexel) frame (z = n^, x = t^), like
 ``fit_traces``'s results: ``frame (N, 3, 3)`` rows (t, b, n); ``log_alpha (N, 2)`` natural logs of
@@ -123,7 +124,7 @@ class RefineSettings:
     log_alpha_prior_sigma: float = 3.0  # a weak pull to the start's alphas (natural log units)
     normal_prior_deg: float = 3.0  # a weak pull to the start's normal: a lobe seen in few views cannot tip it far
     materials: bool = True  # basis materials for texels whose own trace does not show their lobe (fit.materials)
-    # the neighbours' albedo each entry's pixel blends in, taken out of it (fit.footprint.albedo_offsets)
+    # the neighbours' albedo each entry's pixel may blend in, as noise on its diffuse light (fit.footprint)
     albedo_blend: bool = True
 
 
@@ -177,7 +178,7 @@ class _Trace:
     them). Sample index K is padding: it emits nothing. ``shadow (N, V)``: the emitter groups the
     mesh hides from each entry (``learn.ragged``), whose falloff is 0. ``footprint``: what each
     entry's pixel sample spans (``fit.footprint``): the slope spread, which widens the lobe it sees,
-    and the neighbours' albedo it blends in, taken out of its pixel."""
+    and the neighbours' albedo it may blend in, noise on its diffuse light."""
 
     def __init__(
         self,
@@ -238,20 +239,22 @@ class _Trace:
             self.support_diffuse = support_diffuse_basis(
                 support, scanner, self.sources, self.x_cam, self.frame_cam, self.live
             ).to(self.wi.dtype)
-        if footprint is not None and footprint.albedo_offset is not None:
-            self._take_out_blend(footprint.albedo_offset)
+        if footprint is not None and footprint.albedo_blend is not None:
+            self._blend_noise(footprint.albedo_blend)
 
-    def _take_out_blend(self, albedo_offset: Tensor) -> None:
-        """Each entry's pixel less the diffuse light its sample blends in from the neighbours' albedo
-        (``albedo_offset (N, V, 3)``, ``fit.footprint``), so the texel's own albedo is solved. Its
-        diffuse basis at the geometric normal: a refined normal a degree or two off moves it by its
-        cosine. The noise and the censoring stay the pixel's as captured."""
+    def _blend_noise(self, albedo_blend: Tensor) -> None:
+        """The albedo each entry's pixel may blend in of the neighbours' (``albedo_blend (N, V, 3)``,
+        ``fit.footprint``) as noise on its diffuse light, added in quadrature to the sensor's: its
+        diffuse basis at the geometric normal (a refined normal a degree or two off moves it by its
+        cosine) times the blend. The censoring stays the pixel's as captured."""
         up = torch.zeros(self.N, 3, dtype=self.wi.dtype)
         up[:, 2] = 1
         basis = diffuse_basis(up, self.wi, self.falloff, self.drive)[..., 2]  # (N, V, 3 channels)
         if self.support is not None:
             basis = basis + self.support_diffuse[..., 2]
-        self.y = torch.where(self.mask, self.y - albedo_offset.to(self.y.dtype) * basis.to(self.y.dtype), self.y)
+        blend = albedo_blend.to(self.y.dtype) * basis.to(self.y.dtype)
+        sigma = 1.0 / torch.where(self.mask, self.inv_sigma, torch.ones_like(self.inv_sigma))
+        self.inv_sigma = torch.where(self.mask, torch.rsqrt(sigma * sigma + blend * blend), self.inv_sigma)
 
     def support_specular(self, frame0: Tensor, alpha: Tensor) -> SupportEmitters | None:
         """The support's light as specular emitters for a round's ``frame0 (N, 3, 3)`` and lobe
@@ -684,7 +687,7 @@ def refine(
     entry shows (below ``MIN_SPECULAR_SHARE`` of every pixel), gets a diffuse-only solve from its
     start and rho_s = 0, its lobe flagged unconstrained. ``footprint``: what each entry's pixel sample
     spans (``fit.footprint``; None: a flat surface, no albedo blend) — the normals, which widen the
-    lobe it sees, and the neighbours' albedo. Never NaN: a failed solve keeps the start."""
+    lobe it sees, and the neighbours' albedo it may blend in. Never NaN: a failed solve keeps the start."""
     settings = settings or RefineSettings()
     tr = _Trace(scanner, entries, mask, settings.noise, emitter_blocks(scanner), shadow, support, footprint)
     return _refine(tr, start, specular, settings)

@@ -6,8 +6,8 @@ Eq. 4); the network normalises positions itself. Entries of one trace are in pho
 per-entry columns: ``in_range`` (the 8-bit code was in the valid range and the mesh hides too little
 of the pattern for the network) and ``shadow`` (int64 masks: the emitter groups of
 ``fit.emitter_blocks.shadow_groups`` the mesh hides from the entry's point, bit g = group g) and
-``albedo_offset`` (RGB: what the entry's pixel sample adds to the texel's own diffuse albedo by
-blending its neighbours', ``fit.footprint.albedo_offsets``; set by the refinement).
+``albedo_blend`` (RGB: how much of the neighbours' albedo the entry's pixel sample may blend in,
+``fit.footprint.albedo_blend``; set by the refinement).
 """
 
 from __future__ import annotations
@@ -64,7 +64,7 @@ class RaggedTraces:
     offsets: Tensor  # (N + 1,) int64, offsets[0] = 0, offsets[-1] = E
     in_range: Tensor | None = None  # (E,) bool: what the network may read (None: every entry)
     shadow: Tensor | None = None  # (E,) int64: emitter groups the mesh hides (None: none)
-    albedo_offset: Tensor | None = None  # (E, 3): the neighbours' albedo the pixel blends in (None: none)
+    albedo_blend: Tensor | None = None  # (E, 3): the neighbours' albedo the pixel may blend in (None: none)
 
     def __post_init__(self):
         if self.entries.ndim != 2 or self.entries.shape[1] != ENTRY_SIZE:
@@ -77,8 +77,8 @@ class RaggedTraces:
             raise ValueError("in_range must hold one flag per entry")
         if self.shadow is not None and self.shadow.shape != (len(self.entries),):
             raise ValueError("shadow must hold one mask per entry")
-        if self.albedo_offset is not None and self.albedo_offset.shape != (len(self.entries), 3):
-            raise ValueError("albedo_offset must hold one RGB offset per entry")
+        if self.albedo_blend is not None and self.albedo_blend.shape != (len(self.entries), 3):
+            raise ValueError("albedo_blend must hold one RGB value per entry")
 
     def in_range_only(self) -> RaggedTraces:
         """The traces with only their in-range entries (what the network and the lumitexel fit
@@ -110,7 +110,7 @@ class RaggedTraces:
         a, b = int(self.offsets[start]), int(self.offsets[stop])
         flags = None if self.in_range is None else self.in_range[a:b]
         shadow = None if self.shadow is None else self.shadow[a:b]
-        albedo = None if self.albedo_offset is None else self.albedo_offset[a:b]
+        albedo = None if self.albedo_blend is None else self.albedo_blend[a:b]
         return RaggedTraces(self.entries[a:b], self.offsets[start : stop + 1] - a, flags, shadow, albedo)
 
     @property
@@ -154,18 +154,18 @@ class RaggedTraces:
             return torch.zeros(mask.shape, dtype=torch.int64)
         return torch.where(mask, self.shadow[rows], torch.zeros((), dtype=torch.int64))
 
-    def albedo_offset_at(self, rows: Tensor, mask: Tensor) -> Tensor | None:
-        """The ``albedo_offset`` ``(n, V, 3)`` at ``rows`` where ``mask``, 0 elsewhere; None without
+    def albedo_blend_at(self, rows: Tensor, mask: Tensor) -> Tensor | None:
+        """The ``albedo_blend`` ``(n, V, 3)`` at ``rows`` where ``mask``, 0 elsewhere; None without
         that column."""
-        if self.albedo_offset is None:
+        if self.albedo_blend is None:
             return None
         if len(self.entries) == 0:
-            return torch.zeros(*mask.shape, 3, dtype=self.albedo_offset.dtype)
-        return torch.where(mask[..., None], self.albedo_offset[rows], torch.zeros((), dtype=self.albedo_offset.dtype))
+            return torch.zeros(*mask.shape, 3, dtype=self.albedo_blend.dtype)
+        return torch.where(mask[..., None], self.albedo_blend[rows], torch.zeros((), dtype=self.albedo_blend.dtype))
 
     def spread(self, max_views: int) -> RaggedTraces:
         """The table with at most ``max_views`` entries per trace, the same ones ``padded`` keeps
-        (evenly spread, first and last included); ``in_range``, ``shadow`` and ``albedo_offset`` are not
+        (evenly spread, first and last included); ``in_range``, ``shadow`` and ``albedo_blend`` are not
         carried (read them first)."""
         lengths = self.lengths
         keep = lengths.clamp_max(max_views)

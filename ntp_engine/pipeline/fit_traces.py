@@ -21,7 +21,7 @@ import torch
 
 from ..fit.albedo import highlights_and_albedo
 from ..fit.emitter_blocks import shadow_groups
-from ..fit.footprint import Footprint, albedo_offsets, sample_points, slope_spread
+from ..fit.footprint import Footprint, albedo_blend, sample_points, slope_spread
 from ..fit.geometry import FALLBACK_ALPHA, FLAG_NO_HIGHLIGHT, fit_geometry
 from ..fit.materials import (
     BasisMaterials,
@@ -75,7 +75,7 @@ REFINE_VIEWS = 24  # entries per texel the refinement reads (spread evenly over 
 # alone; with fewer it reads its marginal ones too (``refine_inputs``)
 MIN_CLEAR_ENTRIES = 1
 CALIBRATION_TEXELS = 512  # texels refined first to calibrate the noise model (fit.refine.calibrated_noise)
-BLEND_ENTRIES = 1 << 18  # entries per block of with_albedo_offsets (its float64 temporaries ~100 MB)
+BLEND_ENTRIES = 1 << 18  # entries per block of with_albedo_blend (its float64 temporaries ~100 MB)
 REFINE_BATCH = 512  # texels per refinement batch: (batch, views, emitters) tensors stay ~100 MB
 FLAG_MARGINAL = 128  # refined on entries the mesh shadows or sees at grazing angles (too few others)
 MAX_SOURCE_STD = np.radians(20.0)  # a tangent known worse than this tells its neighbours nothing (_fuse_tangents)
@@ -264,17 +264,16 @@ def refine_inputs(
     spread = None
     if texels is not None and texels.shape_operator is not None:
         spread = slope_spread(scanner, entries, mask, torch.as_tensor(texels.shape_operator[i]))
-    blend = traces.albedo_offset_at(rows, mask)
+    blend = traces.albedo_blend_at(rows, mask)
     footprint = None if spread is None and blend is None else Footprint(spread, blend)
     return RefineInputs(entries, mask, start, specular, shadow, marginal, view, footprint)
 
 
-def with_albedo_offsets(scanner: Scanner, traces: RaggedTraces, rho_d: np.ndarray, texels: Texels) -> RaggedTraces:
+def with_albedo_blend(scanner: Scanner, traces: RaggedTraces, rho_d: np.ndarray, texels: Texels) -> RaggedTraces:
     """``traces`` (trace i = texel i of ``texels``, which need ``uv_per_metre``) with each entry's
-    ``albedo_offset``: what its pixel sample blends in of the neighbours' albedo
-    (``fit.footprint.albedo_offsets``), read from the map of ``rho_d (N, 3)`` — the fit stage's
-    answers, fixed for the whole refinement; texels no trace reached take the nearest observed
-    one's. In blocks of ~``BLEND_ENTRIES`` entries."""
+    ``albedo_blend``: how much of its neighbours' albedo its pixel sample may blend in
+    (``fit.footprint.albedo_blend``), read from the map of ``rho_d (N, 3)``; texels no trace reached
+    take the nearest observed one's. In blocks of ~``BLEND_ENTRIES`` entries."""
     assert texels.uv_per_metre is not None
     H, W = texels.shape
     seen = (traces.lengths > 0).numpy()
@@ -290,10 +289,10 @@ def with_albedo_offsets(scanner: Scanner, traces: RaggedTraces, rho_d: np.ndarra
         texel = torch.repeat_interleave(torch.arange(start, stop), b.lengths).numpy()
         entries = b.entries[:, None, :]
         delta, weight = sample_points(scanner, entries, torch.ones(len(entries), 1, dtype=torch.bool))
-        blend = albedo_offsets(delta, weight, uv[texel], texels.uv_per_metre[texel], albedo)
+        blend = albedo_blend(delta, weight, uv[texel], texels.uv_per_metre[texel], albedo)
         a = int(traces.offsets[start])
         out[a : a + len(entries)] = blend[:, 0].to(torch.float32)
-    return dataclasses.replace(traces, albedo_offset=out)
+    return dataclasses.replace(traces, albedo_blend=out)
 
 
 def refine_fit(
@@ -306,9 +305,10 @@ def refine_fit(
     support: SupportScene | None = None,
 ) -> dict[str, np.ndarray]:
     """``fit_traces``'s result refined by analysis-by-synthesis (``fit.refine``) against every entry
-    of every observed trace (``traces``: linear pixels as captured), dark and clipped ones included —
-    with ``texels`` and ``settings.albedo_blend``, less what each entry's pixel blends in of the
-    neighbours' albedo (``with_albedo_offsets``, from ``fit``'s map);
+    of every observed trace (``traces``: linear pixels as captured), dark and clipped ones included;
+    with ``texels`` and ``settings.albedo_blend``, the texels whose pixels may blend a neighbour's
+    albedo (``with_albedo_blend``, from the first pass's albedos) refined again with that blend as
+    noise, and every later step reading it so;
     adds ``std (N, 4)``, the 1-sigma uncertainties of normal (deg), tangent (deg), log alpha,
     log rho_s (NaN where no trace reached), and ``noise_scale`` (the noise model's calibration
     factor, from a first pass over a sample).
@@ -325,8 +325,6 @@ def refine_fit(
     fit = {k: v.copy() for k, v in fit.items()}
     todo = (traces.lengths > 0).nonzero().squeeze(1)
     settings = settings or RefineSettings()
-    if settings.albedo_blend and texels is not None and texels.uv_per_metre is not None:
-        traces = with_albedo_offsets(scanner, traces, fit["rho_d"], texels)
     if len(todo):  # the noise model, calibrated on a seeded sample of the texels
         gen = torch.Generator().manual_seed(0)
         sample = todo[torch.randperm(len(todo), generator=gen)[:CALIBRATION_TEXELS]].sort().values
@@ -338,18 +336,45 @@ def refine_fit(
         fit["noise_scale"] = np.array(noise.relative / RefineSettings().noise.relative)
     fit["std"] = np.full((traces.num_traces, 4), np.nan)
     fit["highlight"] = np.zeros(traces.num_traces, np.float32)
-    bar = progress.counter("refine", len(todo), "texel")
+    start = {k: v.copy() for k, v in fit.items()}  # where every texel's own refinement starts
+    _refine_texels(scanner, traces, fit, start, todo, settings, progress, texels, support, "refine")
+    if settings.albedo_blend and texels is not None and texels.uv_per_metre is not None:
+        # the albedos just refined say where the edges are; the texels whose pixels may blend a
+        # neighbour's are refined again from their start with that blend as noise
+        traces = with_albedo_blend(scanner, traces, fit["rho_d"], texels)
+        assert traces.albedo_blend is not None
+        per_trace = torch.zeros(traces.num_traces)
+        texel = torch.repeat_interleave(torch.arange(traces.num_traces), traces.lengths)
+        per_trace.index_reduce_(0, texel, traces.albedo_blend.amax(1), "amax")
+        edges = todo[per_trace[todo] > 0]
+        _refine_texels(scanner, traces, fit, start, edges, settings, progress, texels, support, "albedo edges")
+    if settings.materials:
+        _material_pass(scanner, traces, fit, todo, settings, progress, texels, support)
+    return fit
+
+
+def _refine_texels(
+    scanner: Scanner,
+    traces: RaggedTraces,
+    fit: dict[str, np.ndarray],
+    start: dict[str, np.ndarray],
+    todo: torch.Tensor,
+    settings: RefineSettings,
+    progress: Progress,
+    texels: Texels | None,
+    support: SupportScene | None,
+    name: str,
+) -> None:
+    """The texels ``todo`` refined from ``start`` (``refine_fit``'s first pass), into ``fit``."""
+    bar = progress.counter(name, len(todo), "texel")
     for idx in todo.split(REFINE_BATCH):
-        inp = refine_inputs(scanner, traces, idx, fit, support, texels)
+        inp = refine_inputs(scanner, traces, idx, start, support, texels)
         r = refine(
             scanner, inp.entries, inp.mask, inp.start, inp.specular, settings, inp.shadow, inp.support, inp.footprint
         )
         _store(fit, idx, r, inp.marginal)
         bar.update(len(idx))
     bar.close()
-    if settings.materials:
-        _material_pass(scanner, traces, fit, todo, settings, progress, texels, support)
-    return fit
 
 
 def _neighbour_turns(

@@ -7,9 +7,10 @@ import pytest
 import torch
 
 from ntp_engine.fit.footprint import (
+    BLEND_NOISE,
     SPREAD_MAX,
     SPREAD_WIDENING,
-    albedo_offsets,
+    albedo_blend,
     sample_points,
     slope_spread,
     widening,
@@ -106,9 +107,10 @@ def test_the_sample_points_are_where_the_four_pixels_see_the_tangent_plane():
     assert weight.abs().max().item() == 0
 
 
-def test_the_albedo_offset_is_what_the_taps_blend_in_of_the_neighbours():
-    """On a map with one albedo edge: taps that all land on the texel's side add nothing; taps that
-    reach across add their weights' share of the step (bilinear in the map); a uniform map adds 0."""
+def test_the_albedo_blend_is_how_far_the_taps_reach_across_an_edge():
+    """On a map with one albedo edge (0.4 | 0.8): taps that reach across it blend sqrt(sum w d^2),
+    each difference less ``BLEND_NOISE``; taps along the edge, a uniform map, a map varying by less
+    than ``BLEND_NOISE`` and unweighted taps blend nothing."""
     H = W = 8
     albedo = np.full((H, W, 3), 0.4)
     albedo[:, 4:] = 0.8  # columns 4.. brighter
@@ -118,9 +120,13 @@ def test_the_albedo_offset_is_what_the_taps_blend_in_of_the_neighbours():
     delta[0, 0, :, 0] = torch.tensor([-0.5e-3, 0.5e-3, -0.5e-3, 0.5e-3])  # half a texel left and right
     delta[1, 0, :, 1] = torch.tensor([-0.5e-3, -0.5e-3, 0.5e-3, 0.5e-3])  # along v only: along the edge
     weight = torch.full((2, 1, 4), 0.25, dtype=torch.float64)
-    out = albedo_offsets(delta, weight, uv, per_metre, albedo)
-    # right-hand taps at column 3.5: half way to the brighter column, 0.6; left ones at 2.5: 0.4
-    np.testing.assert_allclose(out[0, 0].numpy(), [0.1] * 3, atol=1e-12)
+    out = albedo_blend(delta, weight, uv, per_metre, albedo)
+    # right-hand taps at column 3.5 read 0.6 (0.2 brighter), the left ones 0.4
+    expect = math.sqrt(0.5 * (0.2 - BLEND_NOISE) ** 2)
+    np.testing.assert_allclose(out[0, 0].numpy(), [expect] * 3, atol=1e-12)
     np.testing.assert_allclose(out[1, 0].numpy(), [0.0] * 3, atol=1e-12)
-    assert albedo_offsets(delta, weight, uv, per_metre, np.full((H, W, 3), 0.4)).abs().max().item() < 1e-12
-    assert albedo_offsets(delta, 0 * weight, uv, per_metre, albedo).abs().max().item() == 0
+    faint = np.full((H, W, 3), 0.4)
+    faint[:, 4:] = 0.4 + BLEND_NOISE
+    for flat in (np.full((H, W, 3), 0.4), faint):
+        assert albedo_blend(delta, weight, uv, per_metre, flat).abs().max().item() < 1e-12
+    assert albedo_blend(delta, 0 * weight, uv, per_metre, albedo).abs().max().item() == 0

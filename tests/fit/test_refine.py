@@ -409,17 +409,19 @@ def test_a_sharp_lobe_seen_through_pixel_samples_on_a_curved_surface_is_recovere
     assert torch.isfinite(told.log_alpha).all() and torch.isfinite(told.frame).all()
 
 
-def test_the_neighbours_albedo_a_pixel_blends_in_is_taken_out():
-    """Matte texels (rho_d 0.4) next to an albedo edge (0.8): each entry's pixel blends in a share of
-    the brighter neighbour that moves with the view (0-50%). Told the blend (``Footprint``'s
-    ``albedo_offset``), the refinement returns the texel's own albedo and no lobe; blind, the blend
-    pulls the albedo up and a lobe explains the views that blended most on some texels."""
+def test_the_neighbours_albedo_a_pixel_may_blend_in_weighs_its_entry_down():
+    """Matte texels (rho_d 0.4) next to an albedo edge (0.8): half of each trace's pixels blend in
+    20-50% of the brighter neighbour, as the view's sub-pixel position falls. Told how much each
+    may blend (``Footprint``'s ``albedo_blend``, noise on its diffuse light), the refinement returns
+    nearly the texel's own albedo and no lobe; blind, the blend pulls the albedo up and a lobe
+    explains the views that blended most on some texels."""
     n = 64
     cfg = SyntheticConfig(views_min=24, views_max=24, albedo_jitter=0.0, roughness_jitter=0.0, sweep_fraction=1.0)
     gen = torch.Generator().manual_seed(11)
     b = sample_batch(DEV, n, gen, cfg)
     p = b.params
-    share = 0.5 * torch.rand(n, 24, 1, generator=gen)
+    blends = torch.rand(n, 24, 1, generator=gen) < 0.5
+    share = torch.where(blends, 0.2 + 0.3 * torch.rand(n, 24, 1, generator=gen), torch.zeros(n, 24, 1))
     offset = (share * 0.4).expand(n, 24, 3)  # the neighbour's 0.8 - the texel's 0.4
     n_cam = torch.einsum("nvij,ni->nvj", _geo(b), p["n_local"])
     t_cam = torch.einsum("nvij,ni->nvj", _geo(b), p["t_local"])
@@ -430,12 +432,14 @@ def test_the_neighbours_albedo_a_pixel_blends_in_is_taken_out():
     entries = torch.cat([y, b.position, b.normal_geo, b.tangent_geo], -1)
     start = Start(p["n_local"], p["t_local"], torch.full((n, 2), 0.2), torch.full((n, 3), 0.5), torch.full((n, 3), 0.5))
     spec = torch.ones(n, dtype=torch.bool)
-    told = refine(DEV, entries, b.length_mask, start, spec, footprint=Footprint(albedo_offset=offset))
+    blend = (0.5 * blends * 0.4).expand(n, 24, 3)  # what the taps report: half their weight across the edge
+    told = refine(DEV, entries, b.length_mask, start, spec, footprint=Footprint(albedo_blend=blend))
     blind = refine(DEV, entries, b.length_mask, start, spec)
     told_err = (told.rho_d - 0.4).abs().mean(1)
     blind_err = (blind.rho_d - 0.4).abs().mean(1)
-    # told: 0.002 in the median, 0.008 at the 90th percentile; blind: 0.07 and 0.15, half the texels a lobe
-    assert told_err.median() < 0.005 and torch.quantile(told_err, 0.9) < 0.02
-    assert (told.rho_s.amax(1) == 0).float().mean() >= 0.95
-    assert blind_err.median() > 0.04 and (blind.rho_s.amax(1) > 0).float().mean() > 0.25  # the case is real
+    # told: 0.0014 in the median, 0.0045 at the 90th percentile, no lobe; blind: 0.022 and 0.080, a
+    # third of the texels a lobe
+    assert told_err.median() < 0.005 and torch.quantile(told_err, 0.9) < 0.015
+    assert (told.rho_s.amax(1) > 0).float().mean() <= 0.05
+    assert blind_err.median() > 0.015 and (blind.rho_s.amax(1) > 0).float().mean() > 0.2  # the case is real
     assert torch.isfinite(told.rho_d).all() and torch.isfinite(told.frame).all()

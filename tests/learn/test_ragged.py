@@ -116,19 +116,19 @@ def test_spread_rows_run_over_the_usable_entries_only():
     assert torch.equal(all_rows[all_mask], plain_rows[plain_mask])
 
 
-def test_albedo_offsets_are_those_of_the_padded_entries():
-    """``albedo_offset_at`` reads the rows ``padded`` reads (zeros past a trace's length); ``block``
+def test_albedo_blends_are_those_of_the_padded_entries():
+    """``albedo_blend_at`` reads the rows ``padded`` reads (zeros past a trace's length); ``block``
     carries the column; without one it is None; a column of the wrong shape is refused."""
     entries = torch.arange(20, dtype=torch.float32)[:, None].repeat(1, 12)
     offset = torch.arange(60, dtype=torch.float32).reshape(20, 3)
-    tr = RaggedTraces(entries, torch.tensor([0, 2, 2, 12, 20]), albedo_offset=offset)
+    tr = RaggedTraces(entries, torch.tensor([0, 2, 2, 12, 20]), albedo_blend=offset)
     idx = torch.tensor([2, 0, 1])
     padded, mask = tr.padded(idx, max_views=4)
-    got = tr.albedo_offset_at(*tr.padded_rows(idx, max_views=4))
+    got = tr.albedo_blend_at(*tr.padded_rows(idx, max_views=4))
     assert got is not None and got.shape == (*mask.shape, 3) and (got[~mask] == 0).all()
     assert torch.equal(got[mask][:, 0], 3 * padded[mask][:, 0])
     b = tr.block(2, 4)
-    assert b.albedo_offset is not None and torch.equal(b.albedo_offset, offset[2:])
-    assert RaggedTraces(entries, tr.offsets).albedo_offset_at(*tr.padded_rows(idx)) is None
+    assert b.albedo_blend is not None and torch.equal(b.albedo_blend, offset[2:])
+    assert RaggedTraces(entries, tr.offsets).albedo_blend_at(*tr.padded_rows(idx)) is None
     with pytest.raises(ValueError):
-        RaggedTraces(entries, tr.offsets, albedo_offset=offset[:, :2])
+        RaggedTraces(entries, tr.offsets, albedo_blend=offset[:, :2])
