@@ -343,10 +343,10 @@ def refine_fit(
         # neighbour's are refined again from their start with that blend as noise
         traces = with_albedo_blend(scanner, traces, fit["rho_d"], texels)
         assert traces.albedo_blend is not None
-        per_trace = torch.zeros(traces.num_traces)
-        texel = torch.repeat_interleave(torch.arange(traces.num_traces), traces.lengths)
-        per_trace.index_reduce_(0, texel, traces.albedo_blend.amax(1), "amax")
-        edges = todo[per_trace[todo] > 0]
+        per_trace = np.zeros(traces.num_traces, np.float32)  # each trace's largest blend
+        texel = np.repeat(np.arange(traces.num_traces), traces.lengths.numpy())
+        np.maximum.at(per_trace, texel, traces.albedo_blend.amax(1).numpy())
+        edges = todo[torch.as_tensor(per_trace[todo.numpy()] > 0)]
         _refine_texels(scanner, traces, fit, start, edges, settings, progress, texels, support, "albedo edges")
     if settings.materials:
         _material_pass(scanner, traces, fit, todo, settings, progress, texels, support)
