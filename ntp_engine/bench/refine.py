@@ -25,7 +25,7 @@ from scipy.optimize import least_squares
 from ..fit import refine as rf
 from ..fit.footprint import Footprint
 from ..io.atomic import write_text_atomic
-from ..io.maps import SVBRDFMaps, texel_uv
+from ..io.maps import SVBRDFMaps
 from ..io.mesh import load_mesh
 from ..io.progress import QUIET, Progress
 from ..pipeline.fit_traces import refine_inputs
@@ -66,7 +66,7 @@ class RefineBench:
 def _truth_in_texel_frames(tex: Texels, scan_dir: Path) -> tuple[dict, np.ndarray, list[dict], np.ndarray]:
     """The truth at the centre of every texel of ``tex`` (``truth_at_texels``), its labels and the
     texels' geometric frames (rows t^, b^, n^)."""
-    uv = texel_uv(tex.shape)[tex.row, tex.col]
+    uv = tex.uv
     gt = scan_dir / "ground_truth"
     labels, table = load_labels(gt)
     true, label = truth_at_texels(SVBRDFMaps.load(gt), labels, uv)

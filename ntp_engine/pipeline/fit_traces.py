@@ -52,7 +52,6 @@ from ..fit.refine import (
 )
 from ..fit.support_light import SupportScene, SupportView
 from ..fit.tangent_field import field_variation, fused_turns, neighbour_turns, texel_spacing
-from ..io.maps import fill_missing, texel_uv
 from ..io.progress import QUIET, Progress
 from ..learn.inference import predict
 from ..learn.network import TraceNet
@@ -275,14 +274,8 @@ def with_albedo_blend(scanner: Scanner, traces: RaggedTraces, rho_d: np.ndarray,
     (``fit.footprint.albedo_blend``), read from the map of ``rho_d (N, 3)``; texels no trace reached
     take the nearest observed one's. In blocks of ~``BLEND_ENTRIES`` entries."""
     assert texels.uv_per_metre is not None
-    H, W = texels.shape
-    seen = (traces.lengths > 0).numpy()
-    known = np.zeros((H, W), bool)
-    known[texels.row[seen], texels.col[seen]] = True
-    albedo = np.zeros((H, W, 3))
-    albedo[texels.row, texels.col] = rho_d
-    albedo = fill_missing(albedo, known)
-    uv = texel_uv((H, W))[texels.row, texels.col]
+    albedo = texels.image(rho_d, known=(traces.lengths > 0).numpy())
+    uv = texels.uv
     out = torch.zeros(len(traces.entries), 3, dtype=torch.float32)
     for start, stop in spans(traces.offsets.numpy(), BLEND_ENTRIES):
         b = traces.block(start, stop)

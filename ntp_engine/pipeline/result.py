@@ -17,7 +17,7 @@ from ..fit.geometry import FLAG_NO_LOBE
 from ..fit.materials import BasisMaterials
 from ..io.atomic import write_text_atomic
 from ..io.images import write_exr, write_png
-from ..io.maps import MAP_FILES, SVBRDFMaps, fill_missing
+from ..io.maps import MAP_FILES, SVBRDFMaps
 from ..io.mesh import Mesh, save_obj
 from ..physics.brdf import ALPHA_MAX, F0_DIELECTRIC, RHO_S_MAX
 from .texels import Texels
@@ -58,13 +58,9 @@ def write_result(out: Path, mesh: Mesh, texels: Texels, fitted: dict[str, np.nda
     n_obj = np.where(observed[:, None], n_obj, texels.normal)
     t_obj = np.where(observed[:, None], t_obj, texels.tangent)
     H, W = texels.shape
-    known = np.zeros((H, W), bool)
-    known[texels.row, texels.col] = observed
 
     def to_map(values: np.ndarray) -> np.ndarray:
-        img = np.zeros((H, W, values.shape[1]))
-        img[texels.row, texels.col] = values
-        return fill_missing(img, known)
+        return texels.image(values, known=observed)
 
     n_map, t_map = to_map(n_obj), to_map(t_obj)
     n_map /= np.maximum(np.linalg.norm(n_map, axis=-1, keepdims=True), 1e-12)

@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 import xatlas
 
+from ..io.maps import fill_missing, texel_uv
 from ..io.mesh import Mesh, smooth_normals
 
 
@@ -47,6 +48,20 @@ class Texels:
     def index(self) -> np.ndarray:
         """Flat map index row * W + col ``(T,)``."""
         return self.row * self.shape[1] + self.col
+
+    @property
+    def uv(self) -> np.ndarray:
+        """uv of each texel's centre ``(T, 2)`` (``io.maps.texel_uv``)."""
+        return texel_uv(self.shape)[self.row, self.col]
+
+    def image(self, values: np.ndarray, known: np.ndarray | None = None) -> np.ndarray:
+        """``values (T, C)`` as an ``(H, W, C)`` map; texels not ``known (T,)`` (default: all are)
+        and those no triangle covers take the nearest known texel's (``io.maps.fill_missing``)."""
+        seen = np.zeros(self.shape, bool)
+        seen[self.row, self.col] = True if known is None else known
+        img = np.zeros(self.shape + (values.shape[1],))
+        img[self.row, self.col] = values
+        return fill_missing(img, seen)
 
 
 def _uv_tangents(mesh: Mesh, mesh_uv: np.ndarray) -> np.ndarray:

@@ -30,7 +30,7 @@ import numpy as np
 from ..io.atomic import write_text_atomic
 from ..io.errors import NtpInputError
 from ..io.images import read_image, write_png
-from ..io.maps import SVBRDFMaps, fill_missing
+from ..io.maps import SVBRDFMaps
 from ..io.mesh import Mesh
 from ..pipeline.texels import Texels, rasterize
 
@@ -147,16 +147,7 @@ def label_image(mesh: Mesh, labeller: Painter, resolution: int) -> tuple[Texels,
     uint8 (uncovered texels take the nearest label)."""
     tex = rasterize(mesh, (resolution, resolution))
     label = labeller(tex)
-    return tex, label, np.rint(_texel_image(tex, label[:, None].astype(np.float64))[..., 0]).astype(np.uint8)
-
-
-def _texel_image(tex: Texels, values: np.ndarray) -> np.ndarray:
-    """``values (T, C)`` of the covered texels as an image ``(H, W, C)``, gaps filled by the nearest."""
-    known = np.zeros(tex.shape, bool)
-    known[tex.row, tex.col] = True
-    img = np.zeros(tex.shape + (values.shape[1],))
-    img[tex.row, tex.col] = values
-    return fill_missing(img, known)
+    return tex, label, np.rint(tex.image(label[:, None].astype(np.float64))[..., 0]).astype(np.uint8)
 
 
 def paint(mesh: Mesh, materials: list[Material], labeller: Painter, resolution: int) -> tuple[SVBRDFMaps, np.ndarray]:
@@ -180,11 +171,11 @@ def paint(mesh: Mesh, materials: list[Material], labeller: Painter, resolution: 
         alpha[sel] = np.clip(a, 0.006, 0.5)
         tangent[sel] = _tangent_field(m.tangents, tex, sel, centre)
     maps = SVBRDFMaps(
-        _texel_image(tex, rho_d),
-        _texel_image(tex, rho_s),
-        _unit(_texel_image(tex, tex.normal)),
-        _unit(_texel_image(tex, tangent)),
-        _texel_image(tex, alpha),
+        tex.image(rho_d),
+        tex.image(rho_s),
+        _unit(tex.image(tex.normal)),
+        _unit(tex.image(tangent)),
+        tex.image(alpha),
     )
     return maps, labels
 

@@ -98,3 +98,20 @@ def test_uv_per_metre_says_where_a_step_on_the_surface_lands_in_the_map():
     degenerate = Mesh(np.zeros((3, 3)), np.array([[0, 1, 2]]), uv[:3], np.tile([0.0, 0, 1], (3, 1)))
     up, along = np.array([[0.0, 0, 1]]), np.array([[1.0, 0, 0]])
     assert np.abs(uv_per_metre(degenerate, np.array([0]), up, along)).max() == 0
+
+
+def test_a_texel_image_fills_what_is_not_known_from_the_nearest_known_texel():
+    """``Texels.image``: the values at their texels; texels not known and uncovered ones take the
+    nearest known value. ``Texels.uv``: each texel's centre as ``io.maps.texel_uv`` says."""
+    v = np.array([[0, 0, 0], [0.1, 0, 0], [0.1, 0.1, 0]])  # one triangle: half the square uncovered
+    f = np.array([[0, 1, 2]])
+    tx = rasterize(Mesh(v, f, v[:, :2] / 0.1, smooth_normals(v, f)), (8, 8))
+    np.testing.assert_array_equal(tx.uv, texel_uv((8, 8))[tx.row, tx.col])
+    values = tx.col[:, None].astype(np.float64) * np.ones(2)
+    img = tx.image(values)
+    np.testing.assert_array_equal(img[tx.row, tx.col], values)
+    assert len(tx) < 64 and np.isfinite(img).all()
+    known = tx.col >= 6  # only the right-hand columns known: every other texel takes 6 or 7
+    part = tx.image(values, known)
+    np.testing.assert_array_equal(part[tx.row[known], tx.col[known]], values[known])
+    assert set(np.unique(part)) <= {6.0, 7.0}
