@@ -300,8 +300,9 @@ def refine_fit(
     """``fit_traces``'s result refined by analysis-by-synthesis (``fit.refine``) against every entry
     of every observed trace (``traces``: linear pixels as captured), dark and clipped ones included;
     with ``texels`` and ``settings.albedo_blend``, the texels whose pixels may blend a neighbour's
-    albedo (``with_albedo_blend``, from the first pass's albedos) refined again with that blend as
-    noise, and every later step reading it so;
+    albedo (``with_albedo_blend``, from the first pass's albedos) refined again from their start
+    with that blend as noise (a lobe sought only where the first pass kept one), and every later
+    step reading it so;
     adds ``std (N, 4)``, the 1-sigma uncertainties of normal (deg), tangent (deg), log alpha,
     log rho_s (NaN where no trace reached), and ``noise_scale`` (the noise model's calibration
     factor, from a first pass over a sample).
@@ -333,13 +334,17 @@ def refine_fit(
     _refine_texels(scanner, traces, fit, start, todo, settings, progress, texels, support, "refine")
     if settings.albedo_blend and texels is not None and texels.uv_per_metre is not None:
         # the albedos just refined say where the edges are; the texels whose pixels may blend a
-        # neighbour's are refined again from their start with that blend as noise
+        # neighbour's are refined again with that blend as noise
         traces = with_albedo_blend(scanner, traces, fit["rho_d"], texels)
         assert traces.albedo_blend is not None
         per_trace = np.zeros(traces.num_traces, np.float32)  # each trace's largest blend
         texel = np.repeat(np.arange(traces.num_traces), traces.lengths.numpy())
         np.maximum.at(per_trace, texel, traces.albedo_blend.amax(1).numpy())
         edges = todo[torch.as_tensor(per_trace[todo.numpy()] > 0)]
+        # a texel that kept no lobe in the first pass seeks none: noise on some of its entries
+        # shows no lobe that all of them together did not
+        lobeless = (fit["flags"] & FLAG_SPECULAR_UNCONSTRAINED) != 0
+        start["flags"][lobeless] |= FLAG_NO_HIGHLIGHT
         _refine_texels(scanner, traces, fit, start, edges, settings, progress, texels, support, "albedo edges")
     if settings.materials:
         _material_pass(scanner, traces, fit, todo, settings, progress, texels, support)

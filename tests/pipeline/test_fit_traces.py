@@ -206,6 +206,52 @@ def test_each_entry_gets_the_albedo_its_pixel_may_blend_in_near_an_edge_only(mon
     assert (out >= 0).all() and 0.005 < out[~far].max().item() <= 0.4
 
 
+def test_the_edge_pass_seeks_a_lobe_only_where_the_first_pass_kept_one(monkeypatch):
+    """``refine_fit`` on a flat square of two albedos (0.3 | 0.7) seen in two views: the texels next
+    to the edge are refined again with the blend as noise, from their start, and those whose first
+    pass kept no lobe seek none there (their start says no highlight); their answers have none."""
+    from ntp_engine.fit.geometry import FLAG_NO_HIGHLIGHT
+    from ntp_engine.fit.refine import FLAG_SPECULAR_UNCONSTRAINED, RefineSettings
+    from ntp_engine.io.mesh import Mesh, smooth_normals
+    from ntp_engine.pipeline.texels import rasterize
+
+    v = np.array([[0, 0, 0], [0.016, 0, 0], [0.016, 0.016, 0], [0, 0.016, 0.0]])  # 0.5 mm texels
+    f = np.array([[0, 1, 2], [0, 2, 3]])
+    tx = rasterize(Mesh(v, f, v[:, :2] / 0.016, smooth_normals(v, f)), (32, 32), curvature=True)
+    dev = load_scanner()
+    rows = []
+    for shift in (0.0, 0.0013):
+        R = np.diag([1.0, -1.0, -1.0])
+        x = tx.position @ R.T + [-0.008 + shift, 0.008, 0.8]
+        n, t = np.tile(R @ [0, 0, 1.0], (len(tx), 1)), np.tile(R @ [1.0, 0, 0], (len(tx), 1))
+        y = np.where(tx.col[:, None] < 16, 0.02, 0.05) * np.ones(3)
+        rows.append(np.concatenate([y, x, n, t], 1))
+    traces = RaggedTraces(
+        torch.as_tensor(np.stack(rows, 1).reshape(-1, 12), dtype=torch.float32),
+        torch.arange(0, 2 * len(tx) + 1, 2),
+    )
+    N = len(tx)
+    start = {"n_loc": np.tile([0.0, 0, 1], (N, 1)), "t_loc": np.tile([1.0, 0, 0], (N, 1))}
+    start |= {"alpha": np.full((N, 2), 0.2), "rho_d": np.full((N, 3), 0.5), "rho_s": np.full((N, 3), 1.0)}
+    start["flags"] = np.zeros(N, np.int64)
+    calls = []
+    real = fit_traces_module._refine_texels
+
+    def spy(scanner, traces, fit, start, todo, settings, progress, texels, support, name):
+        calls.append((name, todo.numpy().copy(), start["flags"].copy(), fit["flags"].copy()))
+        real(scanner, traces, fit, start, todo, settings, progress, texels, support, name)
+
+    monkeypatch.setattr(fit_traces_module, "_refine_texels", spy)
+    out = fit_traces_module.refine_fit(dev, traces, start, RefineSettings(materials=False), texels=tx)
+    assert [c[0] for c in calls] == ["refine", "albedo edges"]
+    _, edges, told, first = calls[1]
+    assert 0 < len(edges) < N
+    lobeless = first[edges] & FLAG_SPECULAR_UNCONSTRAINED != 0
+    assert lobeless.any()
+    np.testing.assert_array_equal(told[edges] & FLAG_NO_HIGHLIGHT != 0, lobeless)
+    assert (out["rho_s"][edges[lobeless]] == 0).all()
+
+
 def _map(tx, values):
     img = np.zeros((*tx.shape, values.shape[1]))
     img[tx.row, tx.col] = values
