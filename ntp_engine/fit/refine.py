@@ -4,8 +4,8 @@ explain the trace's own pixels through Eq. 1 and the camera model, starting from
 Model of one entry j (a view of the texel) and camera channel c, in linear pixel units (1 = code 255):
     y_jc = exposure * sum_k P[k, c] w_jk (wi_jk . n)+ (rho_d,c / pi + rho_s,c lobe(wi_jk, wo_j; t, ax, ay))
 over the emitter samples k (``measurement``'s factorised Eq. 1, falloff w = w_q Psi / r^2). The
-camera is the sensor model ``SensorNoise``: an entry whose 8-bit code is above ``CENSOR_CODE`` may be
-clipped (or bilinearly mixed with a clipped pixel) and only says "at least this bright" (censored);
+camera is the sensor model ``SensorNoise``: an entry channel whose 8-bit code is above ``CENSOR_CODE``
+may be clipped (or bilinearly mixed with a clipped pixel) and only says "at least this bright" (censored);
 dark entries keep their information with an absolute noise floor instead of being dropped. On a
 curved surface an entry's pixel sample spans several normals and sees the lobe widened, and near an
 albedo edge it may blend the neighbours' albedo, which counts as noise on its diffuse light
@@ -65,7 +65,7 @@ from .support_light import (
     support_specular_emitters,
 )
 
-VERSION = 22  # of the method: part of the pipeline's cache key (bump when results change for the same settings)
+VERSION = 23  # of the method: part of the pipeline's cache key (bump when results change for the same settings)
 CENSOR_CODE = VALID_CODE[1]  # above this an 8-bit code may be (or border) a clipped pixel: a lower bound
 EXPANDED_BLOCKS = 4  # emitter blocks per entry summed sample by sample (the rest as coarse emitters)
 SELECT_WIDEN, SELECT_FLOOR = 3.0, 0.03  # emitters are chosen under alphas x3 (at least 0.03)
@@ -228,7 +228,9 @@ class _Trace:
         y = entries[..., :3]
         self.y = torch.where(mask[..., None], y, torch.zeros_like(y))
         code = 255.0 * self.y
-        self.censored = (code > CENSOR_CODE).any(-1, keepdim=True).expand(N, V, 3) & mask[..., None]
+        # per channel: the camera clips each channel on its own (``scanner.camera.encode``), so a
+        # pixel whose red clips still measures its green and blue exactly
+        self.censored = (code > CENSOR_CODE) & mask[..., None]
         self.mask = mask[..., None].expand(N, V, 3)
         self.inv_sigma = torch.where(self.mask, 1.0 / noise.sigma(self.y), torch.zeros_like(self.y))
         self.support = None if support is None else support.scene

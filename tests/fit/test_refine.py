@@ -3,6 +3,7 @@ Eq. 1, quantised to 8 bits with clipping) from a perturbed start, and never retu
 
 import math
 
+import numpy as np
 import pytest
 import torch
 
@@ -443,3 +444,20 @@ def test_the_neighbours_albedo_a_pixel_may_blend_in_weighs_its_entry_down():
     assert (told.rho_s.amax(1) > 0).float().mean() <= 0.05
     assert blind_err.median() > 0.015 and (blind.rho_s.amax(1) > 0).float().mean() > 0.2  # the case is real
     assert torch.isfinite(told.rho_d).all() and torch.isfinite(told.frame).all()
+
+
+def test_a_clipped_channel_is_a_lower_bound_alone():
+    """The camera clips each channel on its own (``scanner.camera.encode``): an entry whose red code
+    is above ``CENSOR_CODE`` says "at least this bright" in red only; its green and blue, in range,
+    are measurements (read as lower bounds too, a bright red material's green and blue would say
+    nothing where its red clips)."""
+    from ntp_engine.fit.refine import CENSOR_CODE, _Trace
+
+    entries, mask, _ = _traces(8, 23, (0.5, 0.3, 0.2), (0.0, 0.0, 0.0), (0.3, 0.3))
+    entries = entries.clone()
+    red = torch.rand(mask.shape, generator=torch.Generator().manual_seed(0)) < 0.5
+    entries[..., 0] = torch.where(red, (CENSOR_CODE + 10) / 255, 0.5)
+    entries[..., 1:3] = 0.4
+    tr = _Trace(DEV, entries, mask, SensorNoise(), None)
+    np.testing.assert_array_equal(tr.censored[..., 0].numpy(), (red & mask).numpy())
+    assert not tr.censored[..., 1:].any()

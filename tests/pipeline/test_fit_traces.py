@@ -171,27 +171,37 @@ def test_a_materials_lobe_is_isotropic_unless_its_members_traces_together_show_o
         np.testing.assert_allclose(got.alpha, [truth], rtol=0.15)
 
 
+def _square_in_two_views(distance: float, pixels: tuple[float, float]):
+    """A flat 16 mm square's atlas (32², 0.5 mm texels) and its traces: two views ``distance`` (m)
+    straight above it, a fraction of a pixel apart, every pixel ``pixels[0]`` left of the middle and
+    ``pixels[1]`` right of it (grey)."""
+    from ntp_engine.io.mesh import Mesh, smooth_normals
+    from ntp_engine.pipeline.texels import rasterize
+
+    v = np.array([[0, 0, 0], [0.016, 0, 0], [0.016, 0.016, 0], [0, 0.016, 0.0]])
+    f = np.array([[0, 1, 2], [0, 2, 3]])
+    tx = rasterize(Mesh(v, f, v[:, :2] / 0.016, smooth_normals(v, f)), (32, 32), curvature=True)
+    y = np.where(tx.col[:, None] < 16, *pixels) * np.ones(3)
+    rows = []
+    for shift in (0.0, 0.0013):
+        R = np.diag([1.0, -1.0, -1.0])
+        x = tx.position @ R.T + [-0.008 + shift, 0.008, distance]
+        n, t = np.tile(R @ [0, 0, 1.0], (len(tx), 1)), np.tile(R @ [1.0, 0, 0], (len(tx), 1))
+        rows.append(np.concatenate([y, x, n, t], 1))
+    entries = torch.as_tensor(np.stack(rows, 1).reshape(-1, 12), dtype=torch.float32)
+    return tx, RaggedTraces(entries, torch.arange(0, 2 * len(tx) + 1, 2))
+
+
 def test_each_entry_gets_the_albedo_its_pixel_may_blend_in_near_an_edge_only(monkeypatch):
     """``with_albedo_blend`` on a flat square seen from two poses, the albedo 0.3 left of the middle
     and 0.7 right of it: entries of texels two or more texels from the edge blend nothing, some next
     to it up to the step; in blocks it is the same as every entry at once."""
     from ntp_engine.fit.footprint import albedo_blend, sample_points
     from ntp_engine.io.maps import texel_uv
-    from ntp_engine.io.mesh import Mesh, smooth_normals
-    from ntp_engine.pipeline.texels import rasterize
 
-    v = np.array([[0, 0, 0], [0.016, 0, 0], [0.016, 0.016, 0], [0, 0.016, 0.0]])  # 0.5 mm texels
-    f = np.array([[0, 1, 2], [0, 2, 3]])
-    tx = rasterize(Mesh(v, f, v[:, :2] / 0.016, smooth_normals(v, f)), (32, 32), curvature=True)
+    tx, traces = _square_in_two_views(0.3, (0.5, 0.5))
+    entries = traces.entries
     rho_d = np.where(tx.col[:, None] < 16, 0.3, 0.7) * np.ones(3)
-    rows = []
-    for shift in (0.0, 0.0013):  # two views, a fraction of a pixel apart
-        R = np.diag([1.0, -1.0, -1.0])
-        x = tx.position @ R.T + [-0.008 + shift, 0.008, 0.3]
-        n, t = np.tile(R @ [0, 0, 1.0], (len(tx), 1)), np.tile(R @ [1.0, 0, 0], (len(tx), 1))
-        rows.append(np.concatenate([np.full((len(tx), 3), 0.5), x, n, t], 1))
-    entries = torch.as_tensor(np.stack(rows, 1).reshape(-1, 12), dtype=torch.float32)
-    traces = RaggedTraces(entries, torch.arange(0, 2 * len(tx) + 1, 2))
     monkeypatch.setattr(fit_traces_module, "BLEND_ENTRIES", 7)
     dev = load_scanner()
     out = fit_traces_module.with_albedo_blend(dev, traces, rho_d, tx).albedo_blend
@@ -212,24 +222,9 @@ def test_the_edge_pass_seeks_a_lobe_only_where_the_first_pass_kept_one(monkeypat
     pass kept no lobe seek none there (their start says no highlight); their answers have none."""
     from ntp_engine.fit.geometry import FLAG_NO_HIGHLIGHT
     from ntp_engine.fit.refine import FLAG_SPECULAR_UNCONSTRAINED, RefineSettings
-    from ntp_engine.io.mesh import Mesh, smooth_normals
-    from ntp_engine.pipeline.texels import rasterize
 
-    v = np.array([[0, 0, 0], [0.016, 0, 0], [0.016, 0.016, 0], [0, 0.016, 0.0]])  # 0.5 mm texels
-    f = np.array([[0, 1, 2], [0, 2, 3]])
-    tx = rasterize(Mesh(v, f, v[:, :2] / 0.016, smooth_normals(v, f)), (32, 32), curvature=True)
+    tx, traces = _square_in_two_views(0.8, (0.02, 0.05))  # farther: a pixel spans ~a texel
     dev = load_scanner()
-    rows = []
-    for shift in (0.0, 0.0013):
-        R = np.diag([1.0, -1.0, -1.0])
-        x = tx.position @ R.T + [-0.008 + shift, 0.008, 0.8]
-        n, t = np.tile(R @ [0, 0, 1.0], (len(tx), 1)), np.tile(R @ [1.0, 0, 0], (len(tx), 1))
-        y = np.where(tx.col[:, None] < 16, 0.02, 0.05) * np.ones(3)
-        rows.append(np.concatenate([y, x, n, t], 1))
-    traces = RaggedTraces(
-        torch.as_tensor(np.stack(rows, 1).reshape(-1, 12), dtype=torch.float32),
-        torch.arange(0, 2 * len(tx) + 1, 2),
-    )
     N = len(tx)
     start = {"n_loc": np.tile([0.0, 0, 1], (N, 1)), "t_loc": np.tile([1.0, 0, 0], (N, 1))}
     start |= {"alpha": np.full((N, 2), 0.2), "rho_d": np.full((N, 3), 0.5), "rho_s": np.full((N, 3), 1.0)}
