@@ -83,6 +83,10 @@ class BasisMaterials:
         """The materials ``to_arrays`` wrote."""
         return BasisMaterials(*(np.asarray(z[prefix + k]) for k in _NAMES))
 
+    def subset(self, keep: np.ndarray) -> BasisMaterials:
+        """The materials ``keep`` (bool ``(K,)`` or indices), in order."""
+        return BasisMaterials(*(v[keep] for v in _fields(self)))
+
 
 _NAMES = ("rho_d", "alpha", "rho_s", "colour_sigma", "log_alpha_sigma", "rho_s_sigma", "share")
 
@@ -289,6 +293,22 @@ def estimated_matte_share(costs: np.ndarray, materials: BasisMaterials) -> float
         if done:
             break
     return float(np.clip(share, *MATTE_SHARE_RANGE))
+
+
+def colour_held(materials: BasisMaterials, members: np.ndarray, rho_d: np.ndarray) -> tuple[BasisMaterials, np.ndarray]:
+    """The lobe materials that hold texels with a lobe of their own (``rho_d (n, 3)``), and the
+    clustered texels' ``members (m,)`` renumbered to them (-1: in none). Such a texel is labelled by
+    its colour (``class_costs``' likeliest class); a material it falls to fewer than ``MIN_MEMBERS``
+    times holds none. Why: a cluster whose members' colours all fall to another material (the same
+    colour, a larger share) is another reading of that material's traces — the box's line-brushed
+    metal seen through one LED solves isotropic and sharp and clusters apart, and 31% of its lobeless
+    texels took that lobe, their tangents lost (docs/accuracy.md)."""
+    if len(materials) == 0:
+        return materials, members
+    label = np.argmin(class_costs(rho_d, materials), 1) - 1
+    held = np.bincount(label[label >= 0], minlength=len(materials)) >= MIN_MEMBERS
+    index = np.where(held, np.cumsum(held) - 1, -1)
+    return materials.subset(held), np.where(members >= 0, index[members.clip(0)], -1)
 
 
 def candidates(prior: np.ndarray) -> np.ndarray:

@@ -28,6 +28,7 @@ from ..fit.materials import (
     candidates,
     class_shares,
     colour_costs,
+    colour_held,
     estimated_matte_share,
     lobe_clusters,
     pooled_scale,
@@ -527,6 +528,9 @@ def _material_pass(
     clear = own & (fit["flags"] & FLAG_MARGINAL == 0)
     rows = np.nonzero(clear)[0]
     basis, members = lobe_clusters(fit["rho_d"][rows], fit["alpha"][rows], fit["rho_s"][rows], fit["highlight"][rows])
+    # the texels with a lobe of their own are labelled by colour (below): a cluster that holds none
+    # of them is no material of its own, and its members join no pool
+    basis, members = colour_held(basis, members, fit["rho_d"][own])
     basis = pooled_widths(scanner, traces, fit, rows, members, basis, settings, texels, support)
     if len(basis) == 0:  # too few texels kept a lobe to make a material of: all matte
         fit["material"][i_obs] = -1

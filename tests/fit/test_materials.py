@@ -10,6 +10,7 @@ from ntp_engine.fit.materials import (
     candidates,
     class_costs,
     clusters,
+    colour_held,
     estimated_matte_share,
     lobe_clusters,
     material_weight,
@@ -181,3 +182,28 @@ def test_the_matte_share_is_the_objects_own():
     assert np.argmin(class_costs(grey, one)[0]) == 1
     far = np.array([[0.265, 0.265, 0.265]])  # 2.5 sigma off the material's colour
     assert np.argmin(class_costs(far, one, 0.5)[0]) == 0 and np.argmin(class_costs(far, one, 0.05)[0]) == 1
+
+
+def test_a_cluster_whose_colour_another_material_holds_is_none():
+    rng = np.random.default_rng(5)
+    rho_d, alpha, rho_s = _two_materials(rng)
+    # a third cluster: the grey material's colour, its lobe read isotropic and sharp (one LED)
+    n = 60
+    sharp_d = np.tile([0.2, 0.2, 0.2], (n, 1)) * np.exp(0.05 * rng.standard_normal((n, 3)))
+    sharp_a = np.full((n, 2), 0.008) * np.exp(0.05 * rng.standard_normal((n, 2)))
+    rho_d, alpha = np.concatenate([rho_d, sharp_d]), np.concatenate([alpha, sharp_a])
+    rho_s = np.concatenate([rho_s, np.full((n, 3), 1.0)])
+    m, members = lobe_clusters(rho_d, alpha, rho_s)
+    assert len(m) == 3  # by the features: three materials
+    held, renumbered = colour_held(m, members, rho_d)
+    # by colour its members fall to the grey material with the larger share: two materials hold texels
+    assert len(held) == 2
+    assert sorted(np.round(held.alpha[:, 0], 2)) == sorted(np.round(m.alpha[m.share > m.share.min(), 0], 2))
+    sharp = int(np.argmin(m.share))
+    assert (renumbered[members == sharp] == -1).all()
+    assert (renumbered >= 0).sum() == (members != sharp).sum()
+    kept = renumbered >= 0
+    assert np.allclose(held.alpha[renumbered[kept]], m.alpha[members[kept]])
+    # none to hold: as given
+    empty, none = colour_held(BasisMaterials.empty(), np.full(4, -1), rho_d[:4])
+    assert len(empty) == 0 and (none == -1).all()
