@@ -479,20 +479,41 @@ def _widths_from_materials(
     settings: RefineSettings,
     texels: Texels | None,
     support: SupportScene | None,
+    turn: np.ndarray | None = None,
 ) -> None:
     """Texels ``idx`` with a lobe of their own in a lobe material (``fit["material"]``) take its
     width where their trace explains it within ``WIDTH_PARAMS`` of their own (both with the
     texel's frame and albedos re-solved, ``refine.lobe_costs``): alphas the material's, rho_d and
-    rho_s re-solved, flagged ``FLAG_WIDTH_FROM_MATERIAL``. Updates ``fit`` in place."""
-    for k in np.array_split(idx, -(-len(idx) // REFINE_BATCH)) if len(idx) else []:
+    rho_s re-solved, flagged ``FLAG_WIDTH_FROM_MATERIAL``. ``turn (len(idx),)`` (radians, NaN:
+    none): where the material's lobe is also tried turned so about the normal — an isotropic lobe
+    of its own has no tangent to offer an anisotropic material's lobe (its neighbours' is the guess,
+    ``_neighbour_turns``); the better of the two is kept, and its tangent with it. Updates ``fit``
+    in place."""
+    turn = np.full(len(idx), np.nan) if turn is None else turn
+    for rows in np.array_split(np.arange(len(idx)), -(-len(idx) // REFINE_BATCH)) if len(idx) else []:
+        k = idx[rows]
         inp = refine_inputs(scanner, traces, torch.as_tensor(k), fit, support, texels)
         alphas = np.stack([fit["alpha"][k], basis.alpha[fit["material"][k]]], 1)  # (n, 2 candidates, 2)
         c, rd, rs = _lobe_costs(scanner, inp, alphas, settings)
+        turned = np.nonzero(np.isfinite(turn[rows]))[0]
+        angle = np.zeros(len(k))
+        if len(turned):  # the material's lobe at the turned tangents
+            sub = refine_inputs(scanner, traces, torch.as_tensor(k[turned]), fit, support, texels)
+            a = torch.as_tensor(turn[rows][turned], dtype=sub.start.tangent.dtype)[:, None]
+            t, n = sub.start.tangent, sub.start.normal
+            sub = sub._replace(start=sub.start._replace(tangent=a.cos() * t + a.sin() * torch.cross(n, t, dim=1)))
+            c_t, rd_t, rs_t = _lobe_costs(scanner, sub, alphas[turned, 1:], settings)
+            better = (c_t[:, 0] < c[turned, 1]).numpy()
+            j = turned[better]
+            c[j, 1], rd[j, 1], rs[j, 1] = c_t[better, 0], rd_t[better, 0], rs_t[better, 0]
+            angle[j] = turn[rows][j]
         take = (c[:, 1] <= c[:, 0] + WIDTH_PARAMS).numpy()
         t = k[take]
         fit["alpha"][t] = alphas[take, 1]
         fit["rho_d"][t], fit["rho_s"][t] = rd[take, 1].numpy(), rs[take, 1].numpy()
         fit["flags"][t] |= FLAG_WIDTH_FROM_MATERIAL
+        a_t, t_t, n_t = angle[take][:, None], fit["t_loc"][t], fit["n_loc"][t]
+        fit["t_loc"][t] = np.cos(a_t) * t_t + np.sin(a_t) * np.cross(n_t, t_t)
 
 
 def _store(fit: dict[str, np.ndarray], idx: torch.Tensor, r: Refined, marginal: torch.Tensor) -> None:
@@ -581,7 +602,17 @@ def _material_pass(
     label[rest] = np.argmin(costs[rest] + prior[rest], 1) - 1  # -1: matte
     fit["material"][i_obs] = label
     fit.update(basis.to_arrays())
-    _widths_from_materials(scanner, traces, fit, i_obs[own[i_obs] & (label >= 0)], basis, settings, texels, support)
+    # own lobes in lobe materials: an isotropic one in an anisotropic material is also tried at the
+    # turn its neighbours of the material point along
+    with_own = np.nonzero(own[i_obs] & (label >= 0))[0]
+    alpha_own, alpha_mat = fit["alpha"][i_obs[with_own]], basis.alpha[label[with_own]]
+    ask = (alpha_own[:, 0] < ISOTROPIC_RATIO * alpha_own[:, 1]) & (alpha_mat[:, 0] >= ISOTROPIC_RATIO * alpha_mat[:, 1])
+    turn = np.full(len(with_own), np.nan)
+    around = _neighbour_turns(texels, fit, i_obs, label, own[i_obs], with_own[ask], len(basis), spacing)
+    if around is not None:
+        pick = np.arange(ask.sum()), label[with_own[ask]]
+        turn[ask] = np.where(around[1][pick] > 0, around[0][pick], np.nan)  # agree 0: no neighbours
+    _widths_from_materials(scanner, traces, fit, i_obs[with_own], basis, settings, texels, support, turn)
     # texels without a lobe of their own in a lobe material: toward its lobe
     takes = np.zeros(N, bool)
     takes[i_obs] = (label >= 0) & ~own[i_obs]

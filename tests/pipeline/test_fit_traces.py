@@ -154,6 +154,40 @@ def test_a_materials_width_comes_from_its_members_traces_together():
     assert abs(np.median(out["rho_d"][took]) - 0.05) < 0.01
 
 
+def test_an_isotropic_own_lobe_takes_its_anisotropic_materials_width_at_its_neighbours_turn():
+    """Brushed traces (0.3 x 0.03) whose own answers came out isotropic (0.1), their tangents 60 deg
+    off: the material's lobe at that tangent costs many of the traces more than their own, and where
+    taken points 60 deg off; tried at the turn their neighbours point along (here: the truth's), it
+    explains them better — they take the material's width and that tangent."""
+    from ntp_engine.fit.refine import RefineSettings
+    from ntp_engine.pipeline.fit_traces import FLAG_WIDTH_FROM_MATERIAL, _widths_from_materials
+
+    n = 64
+    dev, traces, start = _lobe_traces(n, 16, (0.3, 0.03), 0.1, 3.0, 11)
+    truth = start["t_loc"].copy()
+    turn = np.radians(60.0)
+    t, nrm = start["t_loc"], start["n_loc"]
+    start["t_loc"] = np.cos(turn) * t + np.sin(turn) * np.cross(nrm, t)
+    start["alpha"][:] = 0.1
+    start["material"] = np.zeros(n, np.int64)
+    taken = []
+    for back in (None, np.full(n, -turn)):
+        fit = {k: v.copy() for k, v in start.items()}
+        _widths_from_materials(
+            dev, traces, fit, np.arange(n), _material((0.3, 0.03)), RefineSettings(), None, None, back
+        )
+        took = fit["flags"] & FLAG_WIDTH_FROM_MATERIAL != 0
+        taken.append(took.mean())
+        if back is None:  # only its own tangent: the lobe, where taken, points 60 deg off
+            np.testing.assert_allclose(fit["t_loc"], start["t_loc"])
+            continue
+        np.testing.assert_allclose(fit["alpha"][took], np.broadcast_to([0.3, 0.03], (took.sum(), 2)))
+        cos = np.abs((fit["t_loc"][took] * truth[took]).sum(1))
+        error = np.degrees(np.arccos(np.clip(cos, 0, 1)))
+        assert (error < 1.0).mean() > 0.9  # the rest: traces that cannot tell the two apart
+    assert taken[1] > 0.9 and taken[1] > taken[0] + 0.2
+
+
 def test_a_materials_lobe_is_isotropic_unless_its_members_traces_together_show_otherwise():
     """A sharp isotropic lobe (alpha 0.02, the lacquer's kind) whose members' median came out
     0.16 x 0.04 pools isotropic at the truth (profiled axis by axis from the median, it stayed
