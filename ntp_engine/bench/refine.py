@@ -115,9 +115,10 @@ def run(out: Path, bench: RefineBench | None = None, json_path: Path | None = No
                 inp = refine_inputs(scan.scanner, traces, torch.as_tensor(sel), fit, None, texels)
                 ent, mask, start, specular, shadow = inp.entries, inp.mask, inp.start, inp.specular, inp.shadow
                 footprint = inp.footprint
-                noise = rf.calibrated_noise(
+                tuned = rf.calibrated(
                     scan.scanner, ent, mask, start, specular, rf.RefineSettings(), shadow, None, footprint
                 )
+                noise = tuned.noise
                 answers = {
                     "network + fit": (
                         fit["n_loc"][sel],
@@ -128,7 +129,7 @@ def run(out: Path, bench: RefineBench | None = None, json_path: Path | None = No
                     )
                 }
                 for label_v, st in VARIANTS:
-                    st = replace(st, noise=noise)
+                    st = replace(st, noise=noise, normal_prior_at_mesh=tuned.normal_prior_at_mesh)
                     t0 = time.perf_counter()
                     r = rf.refine(scan.scanner, ent, mask, start, specular, st, shadow, None, footprint)
                     seconds = time.perf_counter() - t0
@@ -171,7 +172,7 @@ def run(out: Path, bench: RefineBench | None = None, json_path: Path | None = No
                         )
                 baseline.append(
                     _baseline(
-                        noise, scan.scanner, ent, mask, shadow, footprint, fit, sel, specular, frame, true, bench, rng
+                        tuned, scan.scanner, ent, mask, shadow, footprint, fit, sel, specular, frame, true, bench, rng
                     )
                 )
     record = {"bench": asdict(bench), "rows": rows, "speed": speed, "baseline": baseline}
@@ -185,7 +186,7 @@ def run(out: Path, bench: RefineBench | None = None, json_path: Path | None = No
 
 
 def _baseline(
-    noise: rf.SensorNoise,
+    tuned: rf.RefineSettings,
     scanner: Scanner,
     ent: torch.Tensor,
     mask: torch.Tensor,
@@ -205,7 +206,7 @@ def _baseline(
     pick = np.sort(rng.choice(spec_idx, min(bench.baseline_texels, len(spec_idx)), replace=False))
     if len(pick) == 0:
         return {}
-    st = rf.RefineSettings(noise=noise)
+    st = rf.RefineSettings(noise=tuned.noise, normal_prior_at_mesh=tuned.normal_prior_at_mesh)
     sub_ent, sub_mask = ent[pick].double(), mask[pick]
     idx = sel[pick]
     t0 = time.perf_counter()
@@ -265,13 +266,13 @@ def _scipy_texel(
     la0 = torch.as_tensor(np.log(np.clip(start["alpha"], rf.ALPHA_MIN, rf.ALPHA_MAX)))
     rnd = rf._Round(tr, frame0, la0, True)
     c, sa, sn = st.noise.robust, st.log_alpha_prior_sigma, math.radians(st.normal_prior_deg)
-    n_start = frame0[:, 2]
+    n_prior = rf._normal_prior(frame0, st)
 
     def fun(x: np.ndarray) -> np.ndarray:
         q = torch.as_tensor(x)[None]
         d, s = rnd.bases(q[:, rf.P_OMEGA], q[:, rf.P_LOGA])
         r, _ = rf._residuals(tr, d, s, q)
-        u = rf._start_normal_in(frame0, n_start, q[:, rf.P_OMEGA])
+        u = rf._prior_normal_in(frame0, n_prior, q[:, rf.P_OMEGA])
         return np.concatenate([r.flatten().numpy(), ((q[0, rf.P_LOGA] - la0[0]) / sa).numpy(), (u[0, :2] / sn).numpy()])
 
     x0 = np.concatenate(

@@ -65,14 +65,17 @@ from .support_light import (
     support_specular_emitters,
 )
 
-VERSION = 25  # of the method: part of the pipeline's cache key (bump when results change for the same settings)
+VERSION = 26  # of the method: part of the pipeline's cache key (bump when results change for the same settings)
 CENSOR_CODE = VALID_CODE[1]  # above this an 8-bit code may be (or border) a clipped pixel: a lower bound
 EXPANDED_BLOCKS = 4  # emitter blocks per entry summed sample by sample (the rest as coarse emitters)
 SELECT_WIDEN, SELECT_FLOOR = 3.0, 0.03  # emitters are chosen under alphas x3 (at least 0.03)
 MAX_TRIES = 3  # damping increases per LM iteration before the texel waits for the next one
-# bounds of the noise model's calibration factor (``calibrated_noise``): it inflates the model, never
+# bounds of the noise model's calibration factor (``calibrated``): it inflates the model, never
 # tightens it — tighter than 1 let the data tip normals against the priors (gallery, docs/refinement.md)
 NOISE_SCALE = (1.0, 10.0)
+# a texel whose normal's 1-sigma is below this (deg) has it from its photos, not the prior
+# (``calibrated``: where the normal's pull centres), and this many such texels decide
+NORMAL_FIXED_DEG, NORMAL_FIXED_TEXELS = 1.0, 16
 CONVERGED = 1e-4  # a texel whose LM step lowers its cost by less than this (relative) is done
 SHARP_START = 0.25  # the multi-start's sharper lobe: alphas times this
 ALBEDO_ITERATIONS = 3  # reweighted least squares of the albedos under the robust cost (lobe_costs)
@@ -122,7 +125,11 @@ class RefineSettings:
     starts: bool = True  # multi-start in the first round: tangent turned 90 deg, a 4x sharper lobe
     noise: SensorNoise = field(default_factory=SensorNoise)
     log_alpha_prior_sigma: float = 3.0  # a weak pull to the start's alphas (natural log units)
-    normal_prior_deg: float = 3.0  # a weak pull to the start's normal: a lobe seen in few views cannot tip it far
+    # a weak pull to the start's normal, or the mesh's (``normal_prior_at_mesh``): a lobe seen in few
+    # views cannot tip it far
+    normal_prior_deg: float = 3.0
+    # the pull centres on the mesh's normal, not the start's (``calibrated`` decides per scan)
+    normal_prior_at_mesh: bool = False
     materials: bool = True  # basis materials for texels whose own trace does not show their lobe (fit.materials)
     # the neighbours' albedo each entry's pixel may blend in, as noise on its diffuse light (fit.footprint)
     albedo_blend: bool = True
@@ -391,12 +398,12 @@ def _cost(r: Tensor, c: float) -> Tensor:
 
 
 class _Prior(NamedTuple):
-    """Gaussian pulls per texel: the normal toward ``n_start (N, 3)`` (geometric frame, weight
+    """Gaussian pulls per texel: the normal toward ``n_mesh (N, 3)`` (geometric frame, weight
     ``n_w = 1 / sigma^2`` in rad^-2), log alphas toward ``la0 (N, 2)`` (``la_w (N,)``) and rho_s
     toward ``rs0 (N, 3)`` (``rs_w (N,)``; 0 = none): the start's, or a basis material's. ``tie_w
     (N,)``: a pull of log alpha_x to log alpha_y (``ISOTROPIC_TIE``: an isotropic lobe; 0 = none)."""
 
-    n_start: Tensor
+    n_mesh: Tensor
     n_w: float
     la0: Tensor
     la_w: Tensor
@@ -406,7 +413,7 @@ class _Prior(NamedTuple):
 
     def rows(self, idx: Tensor) -> _Prior:
         return _Prior(
-            self.n_start[idx], self.n_w, self.la0[idx], self.la_w[idx], self.rs0[idx], self.rs_w[idx], self.tie_w[idx]
+            self.n_mesh[idx], self.n_w, self.la0[idx], self.la_w[idx], self.rs0[idx], self.rs_w[idx], self.tie_w[idx]
         )
 
     def tied(self, isotropic: Tensor) -> _Prior:
@@ -415,10 +422,11 @@ class _Prior(NamedTuple):
 
     @classmethod
     def weak(cls, frame: Tensor, p: Tensor, settings: RefineSettings) -> _Prior:
-        """The weak pulls to the start ``frame``, ``p`` (``RefineSettings``); none on rho_s."""
+        """The weak pulls (``RefineSettings``) to the start ``frame``, ``p`` — the normal to the
+        mesh's instead with ``settings.normal_prior_at_mesh`` —; none on rho_s."""
         N = p.shape[0]
         return cls(
-            frame[:, 2].clone(),
+            _normal_prior(frame, settings),
             math.radians(settings.normal_prior_deg) ** -2,
             p[:, P_LOGA].clone(),
             torch.full((N,), settings.log_alpha_prior_sigma**-2, dtype=p.dtype),
@@ -435,16 +443,26 @@ def _prior(p: Tensor, prior: _Prior) -> Tensor:
     return la + 0.5 * prior.rs_w * ((p[:, P_RHO_S] - prior.rs0) ** 2).sum(1)
 
 
-def _start_normal_in(frame: Tensor, n_start: Tensor, omega: Tensor) -> Tensor:
-    """The start normal ``(N, 3)`` (geometric frame) in the shading frame R(omega)^T F ``(N, 3)``."""
-    u = (frame @ n_start[:, :, None])[..., 0]
+def _normal_prior(frame: Tensor, settings: RefineSettings) -> Tensor:
+    """Where the normal's weak pull centres ``(N, 3)`` (geometric frame): the normal of the start
+    ``frame (N, 3, 3)``, or the mesh's (+z) with ``settings.normal_prior_at_mesh``."""
+    if not settings.normal_prior_at_mesh:
+        return frame[:, 2].clone()
+    out = torch.zeros_like(frame[:, 2])
+    out[:, 2] = 1
+    return out
+
+
+def _prior_normal_in(frame: Tensor, n_prior: Tensor, omega: Tensor) -> Tensor:
+    """The prior's normal ``n_prior (N, 3)`` (geometric frame) in the shading frame R(omega)^T F ``(N, 3)``."""
+    u = (frame @ n_prior[:, :, None])[..., 0]
     return (rotation_from_vector(omega).transpose(-1, -2) @ u[:, :, None])[..., 0]
 
 
 def _cost_at(rnd: _Round, q: Tensor, prior: _Prior, settings: RefineSettings) -> Tensor:
     """The objective per texel at ``q (N, 11)``: robust data cost plus the priors."""
     d, s = rnd.bases(q[:, P_OMEGA], q[:, P_LOGA])
-    u = _start_normal_in(rnd.frame0, prior.n_start, q[:, P_OMEGA])
+    u = _prior_normal_in(rnd.frame0, prior.n_mesh, q[:, P_OMEGA])
     tilt = 0.5 * prior.n_w * (u[:, :2] ** 2).sum(1)
     data = _cost(_residuals(rnd.tr, d, s, q)[0], settings.noise.robust)
     return data + _prior(q, prior) + tilt
@@ -525,9 +543,9 @@ def _lm_step(
     H[:, 4, 3] -= tie_w
     g[:, 3] += tie_w * spread
     g[:, 4] -= tie_w * spread
-    # the normal prior: residuals u_x, u_y / sigma of the start normal u in the shading frame,
+    # the normal prior: residuals u_x, u_y / sigma of the mesh's normal u in the shading frame,
     # d u / d omega_k = u x e_k
-    u = _start_normal_in(rnd.frame0, prior.n_start, torch.zeros_like(p[:, P_OMEGA])).double()
+    u = _prior_normal_in(rnd.frame0, prior.n_mesh, torch.zeros_like(p[:, P_OMEGA])).double()
     zero = torch.zeros_like(u[:, 0])
     sn = prior.n_w**-0.5
     ju = torch.stack([torch.stack([zero, -u[:, 2], u[:, 1]], 1), torch.stack([u[:, 2], zero, -u[:, 0]], 1)], 1) / sn
@@ -975,7 +993,7 @@ def refine_toward(
     p[:, P_RHO_D] = start.rho_d.to(dtype).clamp(0, RHO_D_MAX)
     p[:, P_RHO_S] = prior.rho_s.to(dtype).clamp(0, RHO_S_MAX)
     pulls = _Prior(
-        frame[:, 2].clone(),
+        _normal_prior(frame, settings),
         math.radians(settings.normal_prior_deg) ** -2,
         p[:, P_LOGA].clone(),
         prior.log_alpha_sigma.to(dtype).clamp_min(1e-3) ** -2,
@@ -989,7 +1007,7 @@ def refine_toward(
     return _finish(f, q, H, cost, _highlight(tr, f, q), from_material=torch.ones(N, dtype=torch.bool))
 
 
-def calibrated_noise(
+def calibrated(
     scanner: Scanner,
     entries: Tensor,
     mask: Tensor,
@@ -999,12 +1017,17 @@ def calibrated_noise(
     shadow: Tensor | None = None,
     support: SupportView | None = None,
     footprint: Footprint | None = None,
-) -> SensorNoise:
-    """The sensor noise model scaled (within ``NOISE_SCALE``) so that a refinement of these sample
-    traces leaves residuals of unit robust scale — 1.4826 x the median |normalised residual| of the
-    answer over its entries is 1 when the model is right (Monte Carlo renders and unmodelled effects
-    give more): data from a noisier source then weigh against the priors as much as they deserve.
-    A quieter source keeps the model as it is (``NOISE_SCALE``'s floor of 1)."""
+) -> RefineSettings:
+    """``settings`` calibrated on a refinement of these sample traces. The noise model is scaled
+    (within ``NOISE_SCALE``) so that the answer's residuals have unit robust scale — 1.4826 x the
+    median |normalised residual| over its entries is 1 when the model is right (Monte Carlo renders
+    and unmodelled effects give more): data from a noisier source then weigh against the priors as
+    much as they deserve; a quieter source keeps the model as it is (``NOISE_SCALE``'s floor of 1).
+    And the normal's weak pull centres on the mesh's normal where the sample's texels whose own
+    photos fix their normals (1-sigma below ``NORMAL_FIXED_DEG``, at least ``NORMAL_FIXED_TEXELS``
+    of them) lie nearer it than to their start's in the median — the start (the network's answer)
+    reads the same photos, and where it errs a pull to it keeps the error on the texels the photos
+    say little about (docs/refinement.md)."""
     tr = _Trace(scanner, entries, mask, settings.noise, emitter_blocks(scanner), shadow, support, footprint)
     r = _refine(tr, start, specular, settings)
     p = torch.cat([torch.zeros_like(r.rho_d), r.log_alpha, r.rho_d, r.rho_s], 1)
@@ -1012,7 +1035,16 @@ def calibrated_noise(
     vals = res[active].abs()
     k = float(1.4826 * vals.median()) if len(vals) else 1.0
     k = min(max(k, NOISE_SCALE[0]), NOISE_SCALE[1])
-    return SensorNoise(settings.noise.read_code * k, settings.noise.relative * k, settings.noise.robust)
+    noise = SensorNoise(settings.noise.read_code * k, settings.noise.relative * k, settings.noise.robust)
+    fixed = r.std[:, 0] < NORMAL_FIXED_DEG
+    at_mesh = settings.normal_prior_at_mesh
+    if int(fixed.sum()) >= NORMAL_FIXED_TEXELS:
+        n = r.frame[fixed, 2]
+        from_mesh = torch.acos(n[:, 2].clamp(-1, 1)).median()
+        n0 = torch.nn.functional.normalize(start.normal[fixed].to(n.dtype), dim=1)
+        from_start = torch.acos((n * n0).sum(1).clamp(-1, 1)).median()
+        at_mesh = bool(from_mesh < from_start)
+    return dataclasses.replace(settings, noise=noise, normal_prior_at_mesh=at_mesh)
 
 
 def _predict(tr: _Trace, frame: Tensor, p: Tensor) -> tuple[Tensor, Tensor]:

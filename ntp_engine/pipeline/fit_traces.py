@@ -44,7 +44,7 @@ from ..fit.refine import (
     Refined,
     RefineSettings,
     Start,
-    calibrated_noise,
+    calibrated,
     lobe_costs,
     material_costs,
     refine,
@@ -74,7 +74,9 @@ REFINE_VIEWS = 24  # entries per texel the refinement reads (spread evenly over 
 # a texel with this many clear entries (neither shadowed by its mesh nor grazing) refines on those
 # alone; with fewer it reads its marginal ones too (``refine_inputs``)
 MIN_CLEAR_ENTRIES = 1
-CALIBRATION_TEXELS = 512  # texels refined first to calibrate the noise model (fit.refine.calibrated_noise)
+CALIBRATION_TEXELS = (
+    512  # texels refined first to calibrate the noise model and the normal's pull (fit.refine.calibrated)
+)
 BLEND_ENTRIES = 1 << 18  # entries per block of with_albedo_blend (its float64 temporaries ~100 MB)
 REFINE_BATCH = 512  # texels per refinement batch: (batch, views, emitters) tensors stay ~100 MB
 FLAG_MARGINAL = 128  # refined on entries the mesh shadows or sees at grazing angles (too few others)
@@ -324,11 +326,11 @@ def refine_fit(
         gen = torch.Generator().manual_seed(0)
         sample = todo[torch.randperm(len(todo), generator=gen)[:CALIBRATION_TEXELS]].sort().values
         inp = refine_inputs(scanner, traces, sample, fit, support, texels)
-        noise = calibrated_noise(
+        settings = calibrated(
             scanner, inp.entries, inp.mask, inp.start, inp.specular, settings, inp.shadow, inp.support, inp.footprint
         )
-        settings = dataclasses.replace(settings, noise=noise)
-        fit["noise_scale"] = np.array(noise.relative / RefineSettings().noise.relative)
+        fit["noise_scale"] = np.array(settings.noise.relative / RefineSettings().noise.relative)
+        fit["normal_prior_at_mesh"] = np.array(settings.normal_prior_at_mesh)
     fit["std"] = np.full((traces.num_traces, 4), np.nan)
     fit["highlight"] = np.zeros(traces.num_traces, np.float32)
     start = {k: v.copy() for k, v in fit.items()}  # where every texel's own refinement starts

@@ -450,6 +450,8 @@ def refine_summary(fitted: dict[str, np.ndarray]) -> dict:
     out: dict = {}
     if "noise_scale" in fitted:
         out["noise_scale"] = float(fitted["noise_scale"])
+    if "normal_prior_at_mesh" in fitted:  # where the normal's weak pull centred (fit.refine.calibrated)
+        out["normal_prior"] = "mesh" if bool(fitted["normal_prior_at_mesh"]) else "start"
     if "material" in fitted:
         out["basis_materials"] = int(len(fitted["material_share"]))
         if "material_matte_share" in fitted:  # the matte class's share estimated on this object
