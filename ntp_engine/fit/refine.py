@@ -398,12 +398,13 @@ def _cost(r: Tensor, c: float) -> Tensor:
 
 
 class _Prior(NamedTuple):
-    """Gaussian pulls per texel: the normal toward ``n_mesh (N, 3)`` (geometric frame, weight
-    ``n_w = 1 / sigma^2`` in rad^-2), log alphas toward ``la0 (N, 2)`` (``la_w (N,)``) and rho_s
-    toward ``rs0 (N, 3)`` (``rs_w (N,)``; 0 = none): the start's, or a basis material's. ``tie_w
-    (N,)``: a pull of log alpha_x to log alpha_y (``ISOTROPIC_TIE``: an isotropic lobe; 0 = none)."""
+    """Gaussian pulls per texel: the normal toward ``n_prior (N, 3)`` (the start's or the mesh's,
+    ``_normal_prior``; geometric frame, weight ``n_w = 1 / sigma^2`` in rad^-2), log alphas toward
+    ``la0 (N, 2)`` (``la_w (N,)``) and rho_s toward ``rs0 (N, 3)`` (``rs_w (N,)``; 0 = none): the
+    start's, or a basis material's. ``tie_w (N,)``: a pull of log alpha_x to log alpha_y
+    (``ISOTROPIC_TIE``: an isotropic lobe; 0 = none)."""
 
-    n_mesh: Tensor
+    n_prior: Tensor
     n_w: float
     la0: Tensor
     la_w: Tensor
@@ -413,7 +414,7 @@ class _Prior(NamedTuple):
 
     def rows(self, idx: Tensor) -> _Prior:
         return _Prior(
-            self.n_mesh[idx], self.n_w, self.la0[idx], self.la_w[idx], self.rs0[idx], self.rs_w[idx], self.tie_w[idx]
+            self.n_prior[idx], self.n_w, self.la0[idx], self.la_w[idx], self.rs0[idx], self.rs_w[idx], self.tie_w[idx]
         )
 
     def tied(self, isotropic: Tensor) -> _Prior:
@@ -462,7 +463,7 @@ def _prior_normal_in(frame: Tensor, n_prior: Tensor, omega: Tensor) -> Tensor:
 def _cost_at(rnd: _Round, q: Tensor, prior: _Prior, settings: RefineSettings) -> Tensor:
     """The objective per texel at ``q (N, 11)``: robust data cost plus the priors."""
     d, s = rnd.bases(q[:, P_OMEGA], q[:, P_LOGA])
-    u = _prior_normal_in(rnd.frame0, prior.n_mesh, q[:, P_OMEGA])
+    u = _prior_normal_in(rnd.frame0, prior.n_prior, q[:, P_OMEGA])
     tilt = 0.5 * prior.n_w * (u[:, :2] ** 2).sum(1)
     data = _cost(_residuals(rnd.tr, d, s, q)[0], settings.noise.robust)
     return data + _prior(q, prior) + tilt
@@ -543,9 +544,9 @@ def _lm_step(
     H[:, 4, 3] -= tie_w
     g[:, 3] += tie_w * spread
     g[:, 4] -= tie_w * spread
-    # the normal prior: residuals u_x, u_y / sigma of the mesh's normal u in the shading frame,
+    # the normal prior: residuals u_x, u_y / sigma of the prior's normal u in the shading frame,
     # d u / d omega_k = u x e_k
-    u = _prior_normal_in(rnd.frame0, prior.n_mesh, torch.zeros_like(p[:, P_OMEGA])).double()
+    u = _prior_normal_in(rnd.frame0, prior.n_prior, torch.zeros_like(p[:, P_OMEGA])).double()
     zero = torch.zeros_like(u[:, 0])
     sn = prior.n_w**-0.5
     ju = torch.stack([torch.stack([zero, -u[:, 2], u[:, 1]], 1), torch.stack([u[:, 2], zero, -u[:, 0]], 1)], 1) / sn

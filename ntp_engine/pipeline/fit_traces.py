@@ -74,9 +74,7 @@ REFINE_VIEWS = 24  # entries per texel the refinement reads (spread evenly over 
 # a texel with this many clear entries (neither shadowed by its mesh nor grazing) refines on those
 # alone; with fewer it reads its marginal ones too (``refine_inputs``)
 MIN_CLEAR_ENTRIES = 1
-CALIBRATION_TEXELS = (
-    512  # texels refined first to calibrate the noise model and the normal's pull (fit.refine.calibrated)
-)
+CALIBRATION_TEXELS = 512  # texels refined first to calibrate the noise and the normal's pull (fit.refine.calibrated)
 BLEND_ENTRIES = 1 << 18  # entries per block of with_albedo_blend (its float64 temporaries ~100 MB)
 REFINE_BATCH = 512  # texels per refinement batch: (batch, views, emitters) tensors stay ~100 MB
 FLAG_MARGINAL = 128  # refined on entries the mesh shadows or sees at grazing angles (too few others)
