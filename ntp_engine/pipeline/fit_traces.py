@@ -224,6 +224,20 @@ class RefineInputs(NamedTuple):
     support: SupportView | None  # the support's light on them (``fit.support_light``), or None
     footprint: Footprint | None  # what each entry's pixel sample spans (``fit.footprint``)
 
+    def rows(self, idx: torch.Tensor) -> RefineInputs:
+        """The same for the texels ``idx`` (rows) only."""
+        view = self.support
+        return RefineInputs(
+            self.entries[idx],
+            self.mask[idx],
+            Start(*(v[idx] for v in self.start)),
+            self.specular[idx],
+            self.shadow[idx],
+            self.marginal[idx],
+            None if view is None else view._replace(position=view.position[idx], frame_world=view.frame_world[idx]),
+            None if self.footprint is None else self.footprint.rows(idx),
+        )
+
 
 def refine_inputs(
     scanner: Scanner,
@@ -498,7 +512,7 @@ def _widths_from_materials(
         turned = np.nonzero(np.isfinite(turn[rows]))[0]
         angle = np.zeros(len(k))
         if len(turned):  # the material's lobe at the turned tangents
-            sub = refine_inputs(scanner, traces, torch.as_tensor(k[turned]), fit, support, texels)
+            sub = inp.rows(torch.as_tensor(turned))
             a = torch.as_tensor(turn[rows][turned], dtype=sub.start.tangent.dtype)[:, None]
             t, n = sub.start.tangent, sub.start.normal
             sub = sub._replace(start=sub.start._replace(tangent=a.cos() * t + a.sin() * torch.cross(n, t, dim=1)))
@@ -512,8 +526,13 @@ def _widths_from_materials(
         fit["alpha"][t] = alphas[take, 1]
         fit["rho_d"][t], fit["rho_s"][t] = rd[take, 1].numpy(), rs[take, 1].numpy()
         fit["flags"][t] |= FLAG_WIDTH_FROM_MATERIAL
-        a_t, t_t, n_t = angle[take][:, None], fit["t_loc"][t], fit["n_loc"][t]
-        fit["t_loc"][t] = np.cos(a_t) * t_t + np.sin(a_t) * np.cross(n_t, t_t)
+        fit["t_loc"][t] = _turned(fit["t_loc"][t], fit["n_loc"][t], angle[take])
+
+
+def _turned(t_loc: np.ndarray, n_loc: np.ndarray, turn: np.ndarray) -> np.ndarray:
+    """Tangents ``t_loc (M, 3)`` turned by ``turn (M,)`` radians about their normals ``n_loc (M, 3)``
+    (right-handed, as ``physics.frame.turned_about_normal``)."""
+    return np.cos(turn)[:, None] * t_loc + np.sin(turn)[:, None] * np.cross(n_loc, t_loc)
 
 
 def _store(fit: dict[str, np.ndarray], idx: torch.Tensor, r: Refined, marginal: torch.Tensor) -> None:
@@ -644,8 +663,7 @@ def _take_material_lobes(
     k_takes = np.nonzero(takes[i_obs])[0]
     turn = turns[k_takes, label[k_takes]]
     i_takes = i_obs[k_takes]
-    t, n = fit["t_loc"][i_takes], fit["n_loc"][i_takes]
-    fit["t_loc"][i_takes] = np.cos(turn)[:, None] * t + np.sin(turn)[:, None] * np.cross(n, t)
+    fit["t_loc"][i_takes] = _turned(fit["t_loc"][i_takes], fit["n_loc"][i_takes], turn)
     sel = torch.as_tensor(np.nonzero(takes)[0])
     bar = progress.counter("material lobes", len(sel), "texel")
     for idx in sel.split(REFINE_BATCH):
@@ -717,7 +735,6 @@ def _fuse_tangents(
         ).numpy()
         objects = c[:, 1] - c[:, 0] >= TURN_OBJECTION
         turn[k[objects]], fused[k[objects]] = 0.0, std[k[objects]]
-    t, n = fit["t_loc"][i_obs], fit["n_loc"][i_obs]
-    fit["t_loc"][i_obs] = np.cos(turn)[:, None] * t + np.sin(turn)[:, None] * np.cross(n, t)
+    fit["t_loc"][i_obs] = _turned(fit["t_loc"][i_obs], fit["n_loc"][i_obs], turn)
     changed = anisotropic & np.isfinite(fused)
     fit["std"][i_obs[changed], 1] = np.degrees(fused[changed])
