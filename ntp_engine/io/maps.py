@@ -5,7 +5,9 @@ Files (linear float EXR): ``diffuse_albedo.exr`` (RGB rho_d), ``specular_albedo.
 along it), ``roughness.exr`` (R = alpha_x, G = alpha_y, B = 0).
 Convention: texel (row, col) of an H x W map has its centre at uv = ((col + 0.5) / W,
 1 - (row + 0.5) / H): row 0 is the top of the file and v = 1 (Blender's UV origin is bottom-left).
-Sampling is bilinear with clamped edges; normal/tangent samples are re-normalised.
+Sampling is bilinear with clamped edges; normal/tangent samples are re-normalised. A tangent is an
+axis (t and -t are the same lobe), so a written tangent map is signed to agree between neighbouring
+texels (``consistent_axes``): bilinear filtering of opposite vectors cancels them.
 """
 
 from __future__ import annotations
@@ -143,6 +145,39 @@ def bilinear_pixels(img: np.ndarray, r: np.ndarray, c: np.ndarray, taps: np.ndar
     wt /= wt.sum(1, keepdims=True)
     out[some] = sum(wt[:, k : k + 1] * v[k][some] for k in range(4))
     return out
+
+
+def consistent_axes(axes: np.ndarray, weight: np.ndarray | None = None) -> np.ndarray:
+    """``axes (H, W, 3)`` (unit, axial: a and -a mean the same) each multiplied by +-1 so that
+    neighbouring texels point the same way wherever the field allows. A filtered lookup between an
+    axis and its negation cancels to a vector off both (a sharp anisotropic highlight broken into
+    streaks between texels), so signs are propagated over the maximum spanning tree of the image's
+    4-neighbour grid under edge weights ``|a_i . a_j| min(w_i, w_j)``: the best-agreeing pairs
+    decide, and where the axial field cannot be signed (a turn of 180 deg around a point) the
+    disagreement falls between texels that agree least. ``weight (H, W)`` in [0, 1] (default 1):
+    how much a texel's axis matters (its anisotropy: an isotropic lobe's axis is arbitrary).
+    Convention: the texel at the tree's root (row 0, col 0) keeps its sign. Returns a new array."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import breadth_first_order, minimum_spanning_tree
+
+    H, W, _ = axes.shape
+    a = axes.reshape(-1, 3)
+    w = np.ones(H * W) if weight is None else np.clip(weight, 0.0, 1.0).reshape(-1)
+    idx = np.arange(H * W).reshape(H, W)
+    i = np.concatenate([idx[:, :-1].ravel(), idx[:-1, :].ravel()])
+    j = np.concatenate([idx[:, 1:].ravel(), idx[1:, :].ravel()])
+    agree = np.abs((a[i] * a[j]).sum(1)) * np.minimum(w[i], w[j])
+    # a minimum spanning tree over 2 - agreement (every weight > 0: all edges stay in the graph)
+    tree = minimum_spanning_tree(coo_matrix((2.0 - agree, (i, j)), shape=(H * W, H * W)).tocsr())
+    _, parent = breadth_first_order(tree, 0, directed=False, return_predecessors=True)
+    parent[0] = 0  # the grid is connected: only the root has no parent
+    # flip[k]: whether texel k disagrees with the root, the parity of disagreements up its branch
+    # (pointer jumping: log2(depth) vectorised rounds, no loop over texels)
+    flip = (a * a[parent]).sum(1) < 0
+    up = parent
+    while (up != up[up]).any():
+        flip, up = flip ^ flip[up], up[up]
+    return np.where(flip[:, None], -a, a).reshape(H, W, 3)
 
 
 def fill_missing(img: np.ndarray, known: np.ndarray) -> np.ndarray:

@@ -3,7 +3,7 @@ import pytest
 
 from ntp_engine.io.errors import NtpInputError
 from ntp_engine.io.images import write_exr
-from ntp_engine.io.maps import SVBRDFMaps, bilinear, fill_missing, texel_uv, uv_to_pixel
+from ntp_engine.io.maps import SVBRDFMaps, bilinear, consistent_axes, fill_missing, texel_uv, uv_to_pixel
 
 
 def _maps(h=4, w=6):
@@ -74,3 +74,36 @@ def test_bilinear_samples_skip_the_pixels_they_are_told_not_to_read():
     np.testing.assert_allclose(got, ref, rtol=1e-12)
     flat = np.full((6, 7, 1), 0.25)  # weights still sum to 1
     np.testing.assert_allclose(bilinear_pixels(flat, r, c, taps), 0.25, rtol=1e-12)
+
+
+def _axes(angle: np.ndarray) -> np.ndarray:
+    return np.stack([np.cos(angle), np.sin(angle), np.zeros_like(angle)], -1)
+
+
+def _opposed(axes: np.ndarray) -> int:
+    """Neighbouring texel pairs whose axes point opposite ways."""
+    return int(((axes[:, 1:] * axes[:, :-1]).sum(-1) < 0).sum() + ((axes[1:] * axes[:-1]).sum(-1) < 0).sum())
+
+
+def test_consistent_axes_sign_a_field_so_filtering_keeps_it():
+    rng = np.random.default_rng(3)
+    y, x = np.mgrid[0:24, 0:32]
+    smooth = _axes(0.08 * x + 0.05 * y + 0.3 * np.sin(0.2 * y))  # turns ~100 deg over the map
+    signs = rng.choice([-1.0, 1.0], (24, 32, 1))
+    out = consistent_axes(smooth * signs)
+    assert _opposed(smooth * signs) > 300 and _opposed(out) == 0
+    np.testing.assert_allclose(np.abs((out * smooth).sum(-1)), 1.0)  # each only negated, or kept
+    np.testing.assert_array_equal(out[0, 0], (smooth * signs)[0, 0])  # the root keeps its sign
+    midway = bilinear(out, np.array([[1.0 / 32, 1 - 1.5 / 24]]))  # between texels (0..1, 0..1)
+    assert np.linalg.norm(midway) > 0.99  # opposite neighbours would have cancelled
+    # around a point an axis field turns by 180 deg: no signing is consistent, a few pairs disagree
+    vortex = _axes(0.5 * np.arctan2(y - 11.5, x - 15.5)) * signs
+    assert _opposed(consistent_axes(vortex)) <= 24
+    # texels whose axes do not matter (weight 0, random axes) do not break their neighbours' signing
+    noise = rng.uniform(0, np.pi, (24, 32))
+    matters = rng.uniform(size=(24, 32)) < 0.7
+    mixed = np.where(matters[..., None], smooth * signs, _axes(noise))
+    out = consistent_axes(mixed, matters.astype(float))
+    both = matters[:, 1:] & matters[:, :-1]
+    assert ((out[:, 1:] * out[:, :-1]).sum(-1)[both] < 0).sum() == 0
+    assert consistent_axes(_axes(np.zeros((1, 1)))).shape == (1, 1, 3)

@@ -33,3 +33,34 @@ def test_maps_from_given_poses(small_scan, tmp_path):
     assert ((rec.roughness >= 0.006) & (rec.roughness <= 0.5)).all()
     assert json.loads((tmp_path / "rec" / "material.json").read_text())["maps"]["normal"] == "normal.exr"
     assert (tmp_path / "rec" / "previews" / "normal.png").is_file()
+
+
+def test_written_tangents_agree_between_neighbouring_texels(tmp_path):
+    """A brushed plate whose fitted axes come with either sign: the tangent map is signed so a
+    filtered lookup between texels keeps the axis (opposite neighbours would cancel)."""
+    from ntp_engine.io.mesh import Mesh, smooth_normals
+    from ntp_engine.pipeline.result import write_result
+    from ntp_engine.pipeline.texels import rasterize
+
+    v = np.array([[0, 0, 0], [0.1, 0, 0], [0.1, 0.1, 0], [0, 0.1, 0]], float)
+    f = np.array([[0, 1, 2], [0, 2, 3]])
+    mesh = Mesh(v, f, v[:, :2] / 0.1, smooth_normals(v, f))
+    tex = rasterize(mesh, (16, 16))
+    T = len(tex.row)
+    rng = np.random.default_rng(0)
+    turn = 0.6 + 0.02 * tex.col  # in the plate's UV frame, slowly turning
+    sign = rng.choice([-1.0, 1.0], T)[:, None]
+    fitted = {
+        "n_loc": np.tile([0.0, 0.0, 1.0], (T, 1)),
+        "t_loc": sign * np.stack([np.cos(turn), np.sin(turn), np.zeros(T)], 1),
+        "rho_d": np.full((T, 3), 0.1),
+        "rho_s": np.full((T, 3), 2.0),
+        "alpha": np.tile([0.3, 0.02], (T, 1)),
+        "flags": np.zeros(T, np.int64),
+    }
+    write_result(tmp_path, mesh, tex, fitted, np.full(T, 5))
+    t = SVBRDFMaps.load(tmp_path).tangent
+    assert ((t[:, 1:] * t[:, :-1]).sum(-1) > 0.9).all() and ((t[1:] * t[:-1]).sum(-1) > 0.9).all()
+    axis = t[tex.row, tex.col]
+    expected = np.stack([np.cos(turn), np.sin(turn), np.zeros(T)], 1)  # the UV frame is object x, y
+    np.testing.assert_allclose(np.abs((axis * expected).sum(1)), 1.0, atol=1e-5)
