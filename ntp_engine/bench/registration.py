@@ -124,6 +124,8 @@ def run(
                         symmetry_turn_deg=check.symmetry[0] if np.isfinite(check.symmetry[0]) else None,
                         symmetry_mm=check.symmetry[1] if np.isfinite(check.symmetry[1]) else None,
                         kind=refusal_kind(check) or "accepted",
+                        height_from_photos=check.height_from_photos,
+                        pixel_mm=check.pixel_mm,
                     )
                     row["right"] = row["centre_mm"] <= RIGHT_MM and row["rotation_deg"] <= RIGHT_DEG
                     row["diagnosis"] = _diagnosis(row)

@@ -41,6 +41,7 @@ from ..scanner.scanner import Scanner
 from .align import AMBIGUOUS_DEG, Alignment, azimuth_apart, mesh_symmetry, surface_samples, turned_distance
 from .traces import MIN_COS_VIEW, SupportShadow
 
+VERSION = 2  # of the registration: a change that moves the poses bumps it (cached registrations are redone)
 SURFACE_POINTS = 3000  # surface samples of a PhotometricRegistration by default
 CANDIDATE_POINTS = 1500  # ... that compare the candidate azimuths (on SWEEP_PHOTOS photos)
 FINE_POINTS = 8000  # ... and that refine the chosen one: its error is sampling noise (gallery dome, 40 photos:
@@ -317,8 +318,10 @@ class PhotometricRegistration:
         points: int = SURFACE_POINTS,
         seed: int = 0,
         edge_stride: int = 1,
+        free_height: bool = False,
     ):
-        """``edge_stride``: the mesh's image (for the edge distances) is cast every this many pixels."""
+        """``edge_stride``: the mesh's image (for the edge distances) is cast every this many pixels;
+        ``free_height``: on a support, the height moves too (see ``frees_height``)."""
         self.photos, self.scanner = photos, photos.scanner
         self.edge_stride = edge_stride
         self.groups = shading_lights(self.scanner)
@@ -328,14 +331,13 @@ class PhotometricRegistration:
         self.centre, self.size = (lo + hi) / 2, float(np.linalg.norm(hi - lo))
         self.shadow = SupportShadow(self.scanner, support_z) if support_z is not None else None
         # on a support the plane (hundreds of SfM points) fixed tilt and height: the correction keeps
-        # it, turning about the vertical and scaling about the object's foot on the plane, so free are
-        # azimuth, the in-plane shift and scale. Freeing the height let the scale drift: the object's
-        # own image fixes it weakly (edges are excluded), and at the true poses of the gallery the
-        # cost's minimum lay 0.1-0.5% off in scale (1.1-1.3 mm of camera centre; about the foot 0.0-0.13%)
+        # the tilt, turning about the vertical and scaling about the object's foot on the plane, so free
+        # are azimuth, the in-plane shift and scale, and the height where the photos are sharp enough
+        # to set it (``frees_height``: SfM's support points lie 0.5-0.8 px low)
         self.pivot = self.centre.copy()
         if support_z is not None:
             self.pivot[2] = support_z
-        self.free = np.array([support_z is None] * 2 + [True] * 3 + [support_z is None, True])
+        self.free = np.array([support_z is None] * 2 + [True] * 3 + [support_z is None or free_height, True])
         # each photo's shading field's basis: 1 and the point's position (see ``_eliminated``)
         rel = (self.points - self.centre) / self.size
         self.field = torch.as_tensor(np.concatenate([np.ones((len(rel), 1)), rel], 1), dtype=WORK)
@@ -647,6 +649,9 @@ class PhotometricRegistration:
         return Correction(params[:3].copy(), params[3:6] * self.size, float(params[6]), self.pivot.copy())
 
 
+# photos this sharp at the object move the height too (``frees_height``): between the demo's working
+# pixel (0.53 mm; the scanner's photos averaged to 640 px at the sweep's distance) and the gallery's (1.05 mm)
+HEIGHT_PIXEL_M = 0.75e-3
 SHARPNESS_SHIFT_PX = 4.0  # the registration moved this far along each mesh axis: beyond the edge clearance
 SHARPNESS_SIGMA_PX = 1.0  # the blur the sharpness is measured at (its threshold was set at this blur)
 CANDIDATE_ROUNDS = 2  # re-linearisations a candidate gets before the candidates are compared
@@ -655,6 +660,15 @@ MAX_PHOTOS = 40  # photos (evenly spread over the sweep) that judge and refine a
 # within the coarse refinement's own azimuth grid (+-4 deg), so a rival's basin is not stepped over
 SWEEP_STEP_DEG, SWEEP_PHOTOS, SWEEP_POINTS, SWEEP_EDGE_STRIDE = 3.0, 20, 1000, 3
 EDGE_GRID_WIDTH = 320  # the mesh's image (for edge distances) is cast on a grid at most about this wide
+
+
+def frees_height(pixel_m: float) -> bool:
+    """Whether photos whose working-size pixel spans ``pixel_m`` metres at the object move the height
+    of a registration on a support. SfM's support points, and so the plane the alignment puts the
+    object's foot on, lie 0.5-0.8 px low (docs/pipeline.md); photos this sharp set the height and
+    the scale about the foot together, coarser ones leave them on a valley whose floor the cost's
+    model errors tilt (the gallery dome at 1.05 mm a pixel: 0.4 mm low from the true poses)."""
+    return pixel_m <= HEIGHT_PIXEL_M
 
 
 def edge_stride(photos: PhotoStack) -> int:
@@ -690,6 +704,8 @@ class PhotoCheck:
     # the distance no photo at this size can see (SYMMETRY_PX at the object's distance, mm)
     symmetry: tuple[float, float] = (float("nan"), float("inf"))
     symmetry_tolerance_mm: float = 0.0
+    height_from_photos: bool = False  # on a support: the refinement moved the height (``frees_height``)
+    pixel_mm: float = float("nan")  # a working-size pixel at the object's distance
 
     def to_json(self) -> dict:
         """The check as JSON values (``registration.json`` -> ``photometric``)."""
@@ -705,6 +721,8 @@ class PhotoCheck:
                 "turned_mm": self.symmetry[1] if np.isfinite(self.symmetry[1]) else None,
                 "invisible_below_mm": self.symmetry_tolerance_mm,
             },
+            "height_from_photos": self.height_from_photos,
+            "pixel_mm": self.pixel_mm if np.isfinite(self.pixel_mm) else None,
         }
 
 
@@ -776,7 +794,11 @@ def check_registration(
     # candidates the refinement brought into the chosen one's azimuth are the same answer, not rivals
     others = [fit.cost for c, (_, fit) in zip(change, trials, strict=True) if abs(c) > AMBIGUOUS_DEG]
     margin = (min(others) - trials[chosen][1].cost) / trials[chosen][1].cost if others else float("inf")
-    finisher = PhotometricRegistration(mesh, photos, support_z, points=FINE_POINTS, edge_stride=edge_stride(photos))
+    pixel_m = object_distance(placed(best), judge.centre) / photos.scanner.fx
+    free_height = support_z is not None and frees_height(pixel_m)
+    finisher = PhotometricRegistration(
+        mesh, photos, support_z, points=FINE_POINTS, edge_stride=edge_stride(photos), free_height=free_height
+    )
     g, fit = finisher.refine(placed(best), levels=BLUR_LEVELS_PX[1:])
     best = corrected(best, g)
     sharpness = finisher.sharpness(placed(best), SHARPNESS_SIGMA_PX)
@@ -800,6 +822,8 @@ def check_registration(
         [a for a, _ in trials],
         (turn, 1e3 * turned_m),
         1e3 * SYMMETRY_PX * distance / photos.scanner.fx,
+        free_height,
+        1e3 * pixel_m,
     )
 
 

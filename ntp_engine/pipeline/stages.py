@@ -73,6 +73,7 @@ from .photo_registration import (
     refusal,
     spread,
 )
+from .photo_registration import VERSION as REGISTRATION_VERSION
 from .photo_selection import BLUR_MARGIN, Selection, select_photos
 from .result import write_result
 from .scan_folder import Scan, check_mesh_size, read_photo
@@ -293,6 +294,7 @@ def _register_stage(
         "colmap": content_key(model_files(scan.colmap)) if scan.colmap else None,
         "mesh": content_key([scan.mesh_path]),
         "support": scan.support_plane,
+        "version": REGISTRATION_VERSION,
         "camera": {
             "K": scan.scanner.K,
             "distortion": scan.scanner.distortion,
