@@ -147,6 +147,12 @@ def bilinear_pixels(img: np.ndarray, r: np.ndarray, c: np.ndarray, taps: np.ndar
     return out
 
 
+def axis_weight(alpha: np.ndarray) -> np.ndarray:
+    """How much a lobe's axis matters ``(...)`` from its widths ``alpha (..., 2)``: its anisotropy
+    1 - alpha_min / alpha_max (0: isotropic, the axis is arbitrary) — ``consistent_axes``' weight."""
+    return 1.0 - alpha.min(-1) / np.maximum(alpha.max(-1), 1e-12)
+
+
 def consistent_axes(axes: np.ndarray, weight: np.ndarray | None = None) -> np.ndarray:
     """``axes (H, W, 3)`` (unit, axial: a and -a mean the same) each multiplied by +-1 so that
     neighbouring texels point the same way wherever the field allows. A filtered lookup between an

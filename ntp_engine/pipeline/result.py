@@ -17,7 +17,7 @@ from ..fit.geometry import FLAG_NO_LOBE
 from ..fit.materials import BasisMaterials
 from ..io.atomic import write_text_atomic
 from ..io.images import write_exr, write_png
-from ..io.maps import MAP_FILES, SVBRDFMaps, consistent_axes
+from ..io.maps import MAP_FILES, SVBRDFMaps, axis_weight, consistent_axes
 from ..io.mesh import Mesh, save_obj
 from ..physics.brdf import ALPHA_MAX, F0_DIELECTRIC, RHO_S_MAX
 from .texels import Texels
@@ -67,8 +67,7 @@ def write_result(out: Path, mesh: Mesh, texels: Texels, fitted: dict[str, np.nda
     t_map -= (t_map * n_map).sum(-1, keepdims=True) * n_map
     t_map /= np.maximum(np.linalg.norm(t_map, axis=-1, keepdims=True), 1e-12)
     alpha_map = to_map(fitted["alpha"])
-    anisotropy = 1.0 - alpha_map.min(-1) / np.maximum(alpha_map.max(-1), 1e-12)  # 0: the axis is arbitrary
-    t_map = consistent_axes(t_map, anisotropy)
+    t_map = consistent_axes(t_map, axis_weight(alpha_map))
     maps = SVBRDFMaps(to_map(fitted["rho_d"]), to_map(fitted["rho_s"]), n_map, t_map, alpha_map)
     out.mkdir(parents=True, exist_ok=True)
     maps.save(out)

@@ -290,7 +290,11 @@ def relit_budget(
     def ssim_with_truth(where: np.ndarray, names: tuple[str, ...]) -> float:
         maps = {k: getattr(rec, k).reshape(-1, getattr(rec, k).shape[-1]).copy() for k in MAP_FILES}
         for k in names:
-            maps[k][where] = true[k][where]
+            swapped = true[k][where]
+            if k == "tangent":  # an axis: the truth's sign turned to the (signed) result's, texel by
+                # texel, or a swapped material's boundary would hold opposed neighbours (``consistent_axes``)
+                swapped = swapped * np.where((swapped * maps[k][where]).sum(-1, keepdims=True) < 0, -1.0, 1.0)
+            maps[k][where] = swapped
         scene.maps = SVBRDFMaps(**{k: v.reshape(*shape, -1) for k, v in maps.items()})
         return float(np.mean(_relit_scores(scene, views)))
 

@@ -3,7 +3,7 @@ import pytest
 
 from ntp_engine.io.errors import NtpInputError
 from ntp_engine.io.images import write_exr
-from ntp_engine.io.maps import SVBRDFMaps, bilinear, consistent_axes, fill_missing, texel_uv, uv_to_pixel
+from ntp_engine.io.maps import SVBRDFMaps, axis_weight, bilinear, consistent_axes, fill_missing, texel_uv, uv_to_pixel
 
 
 def _maps(h=4, w=6):
@@ -83,6 +83,12 @@ def _axes(angle: np.ndarray) -> np.ndarray:
 def _opposed(axes: np.ndarray) -> int:
     """Neighbouring texel pairs whose axes point opposite ways."""
     return int(((axes[:, 1:] * axes[:, :-1]).sum(-1) < 0).sum() + ((axes[1:] * axes[:-1]).sum(-1) < 0).sum())
+
+
+def test_axis_weight_is_the_lobes_anisotropy():
+    alpha = np.array([[0.2, 0.2], [0.1, 0.4], [0.4, 0.1]])
+    assert np.allclose(axis_weight(alpha), [0.0, 0.75, 0.75])  # either order
+    assert np.isfinite(axis_weight(np.zeros((1, 2)))).all()  # no NaN where nothing was fitted
 
 
 def test_consistent_axes_sign_a_field_so_filtering_keeps_it():

@@ -213,3 +213,17 @@ def test_the_relit_budget_finds_the_material_and_maps_that_lose_ssim(tmp_path):
         assert np.abs(others).max() < 1e-6, rows[name]  # the truth at the centres: the same maps
     for name in ("plastic_glossy", "lacquer_mirror"):
         assert np.abs([v for g, v in rows[name].items() if g != "material"]).max() < 1e-6, rows[name]
+
+
+def test_the_relit_budget_swaps_tangents_without_opposing_the_results_signs(tmp_path):
+    """A lobe's axis has no sign: a result whose tangents are all the truth's negated renders as the
+    truth does, and swapping one material's true tangents into it gains nothing — the swapped axes
+    take the result's sign, or that material's boundary would hold opposed neighbours."""
+    result, truth = _result_from_truth(tmp_path)
+    maps = SVBRDFMaps.load(result)
+    maps.tangent *= -1.0
+    maps.save(result)
+    b = relit_budget(result, truth.parent / "mesh.obj", truth, lights=1, scale=0.1)
+    assert b["relit_ssim"] == pytest.approx(1.0)
+    for row in b["materials"]:
+        assert abs(row["tangent"]) < 1e-6, row
