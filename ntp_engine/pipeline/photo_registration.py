@@ -16,8 +16,8 @@ pose because photos are sampled bilinearly after a Gaussian blur (coarse to fine
 ``refine`` moves a similarity correction G (rotation about the object's centre, shift, scale) that
 acts on every camera at once — the SfM model's own relative poses are kept, so the photos of the
 whole sweep vote on the 7 degrees of freedom SfM cannot know (4 on a support, whose plane already
-fixed tilt and height: G turns about the vertical and scales about the object's foot) — then scores
-the result:
+fixed tilt and height: G turns about the vertical and scales about the object's foot; 5 where the
+photos are sharp enough to set the height too, ``frees_height``) — then scores the result:
 ``agreement`` is the fraction of observations within ``AGREE_LOG`` of their point's albedo (and
 their photo's field).
 """
