@@ -89,13 +89,45 @@ def diffuse_basis(normal: Tensor, wi: Tensor, falloff: Tensor, drive: Tensor) ->
     """The diffuse basis ``(N, V, 3, 3)`` (module docstring) for the normals ``normal (N, 3)`` that
     decide which emitters are above the horizon, ``wi (N, V, K, 3)``, ``falloff (N, V, K)`` and one
     drive for every entry ``(K, 3)``."""
-    N, V, K = falloff.shape
+    return diffuse_basis_and_margin(normal, wi, falloff, drive)[0]
+
+
+def diffuse_basis_and_margin(normal: Tensor, wi: Tensor, falloff: Tensor, drive: Tensor) -> tuple[Tensor, Tensor]:
+    """``diffuse_basis`` and each entry's horizon margin ``(N, V)``: the smallest |wi . n| over its
+    lit emitters (inf where none). A normal that moves by less than the margin (``|n' - n|``)
+    leaves every emitter on its side of the horizon, so the basis the same (``diffuse_basis_near``)."""
+    N, V, _ = falloff.shape
+    todo = np.ones((N, V), np.bool_)
+    out = np.zeros((N, V, 3, 3), torch.empty(0, dtype=wi.dtype).numpy().dtype)
+    margin = np.full((N, V), np.inf, out.dtype)
+    _diffuse(normal, wi, falloff, drive, todo, out, margin)
+    return torch.from_numpy(out), torch.from_numpy(margin)
+
+
+def diffuse_basis_near(
+    normal: Tensor, wi: Tensor, falloff: Tensor, drive: Tensor, known: Tensor, known_normal: Tensor, margin: Tensor
+) -> Tensor:
+    """``diffuse_basis`` for ``normal (N, 3)`` from ``known (N, V, 3, 3)``, the basis at
+    ``known_normal (N, 3)`` with its ``margin (N, V)`` (``diffuse_basis_and_margin``): only the
+    entries an emitter may cross the horizon of are summed again (a refined normal moves by a few
+    degrees; most entries' emitters are far from their horizon). Equal to ``diffuse_basis``."""
+    moved = torch.linalg.vector_norm(normal.to(margin.dtype) - known_normal.to(margin.dtype), dim=-1)
+    # rounding of the dot products (|wi| = 1 to float precision) must not hide a crossing
+    todo = margin <= moved[:, None] * (1 + 1e-3) + 1e-6
+    out = known.clone()
+    if bool(todo.any()):
+        _diffuse(normal, wi, falloff, drive, todo.numpy(), out.numpy(), np.empty_like(margin.numpy()))
+    return out
+
+
+def _diffuse(
+    normal: Tensor, wi: Tensor, falloff: Tensor, drive: Tensor, todo: np.ndarray, out: np.ndarray, margin: np.ndarray
+) -> None:
+    """The compiled loop's call: fills ``out`` and ``margin`` where ``todo (N, V)``."""
     d = wi.dtype
-    wi_np = _arr(wi, d)
-    out = np.zeros((N, V, 3, 3), wi_np.dtype)
     with numba_threads_as_torch():
-        _diffuse_loop(_arr(normal, d), wi_np, _arr(falloff, d), _arr(drive, d), out)
-    return torch.from_numpy(out)
+        arrays = [_arr(x, d) for x in (normal, wi, falloff, drive)]
+        _diffuse_loop(*arrays, np.ascontiguousarray(todo), out, margin)
 
 
 def specular_basis(
@@ -195,19 +227,25 @@ def selected_emitters(
 
 
 @numba.njit(parallel=True, fastmath=True, cache=True)
-def _diffuse_loop(normal, wi, falloff, drive, out):  # pragma: no cover - compiled
-    """Fills ``out (N, V, 3, 3)`` (see ``diffuse_basis``)."""
+def _diffuse_loop(normal, wi, falloff, drive, todo, out, margin):  # pragma: no cover - compiled
+    """Fills ``out (N, V, 3, 3)`` and ``margin (N, V)`` where ``todo (N, V)`` (see
+    ``diffuse_basis_and_margin``)."""
     N, V, K = falloff.shape
     for n in numba.prange(N):
         n0, n1, n2 = float(normal[n, 0]), float(normal[n, 1]), float(normal[n, 2])
         for v in range(V):
+            if not todo[n, v]:
+                continue
             a00 = a01 = a02 = a10 = a11 = a12 = a20 = a21 = a22 = 0.0
+            low = math.inf
             for k in range(K):
                 f = falloff[n, v, k]
                 if f == 0.0:
                     continue
                 x, y, z = wi[n, v, k, 0], wi[n, v, k, 1], wi[n, v, k, 2]
-                if n0 * x + n1 * y + n2 * z <= 0.0:
+                c = n0 * x + n1 * y + n2 * z
+                low = min(low, abs(c))
+                if c <= 0.0:
                     continue
                 d0, d1, d2 = f * drive[k, 0], f * drive[k, 1], f * drive[k, 2]
                 a00 += d0 * x
@@ -223,6 +261,7 @@ def _diffuse_loop(normal, wi, falloff, drive, out):  # pragma: no cover - compil
             out[n, v, 0, 0], out[n, v, 0, 1], out[n, v, 0, 2] = a00 * c, a01 * c, a02 * c
             out[n, v, 1, 0], out[n, v, 1, 1], out[n, v, 1, 2] = a10 * c, a11 * c, a12 * c
             out[n, v, 2, 0], out[n, v, 2, 1], out[n, v, 2, 2] = a20 * c, a21 * c, a22 * c
+            margin[n, v] = low
 
 
 @numba.njit(parallel=True, fastmath=True, cache=True)

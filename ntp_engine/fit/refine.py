@@ -50,7 +50,8 @@ from .emitter_blocks import EmitterBlocks, emitter_blocks, shadow_groups
 from .footprint import Footprint, widening
 from .highlights import parked_positions
 from .pixel_bases import (
-    diffuse_basis,
+    diffuse_basis_and_margin,
+    diffuse_basis_near,
     emitter_directions,
     lobe_weights,
     selected_emitters,
@@ -248,17 +249,31 @@ class _Trace:
             self.support_diffuse = support_diffuse_basis(
                 support, scanner, self.sources, self.x_cam, self.frame_cam, self.live
             ).to(self.wi.dtype)
+        # the diffuse basis at the geometric normal (+z here) and how far a normal may move before an
+        # emitter crosses an entry's horizon: a round's basis sums again only the entries that crossed
+        self.diffuse_z, self.horizon_margin = diffuse_basis_and_margin(self._up(), self.wi, self.falloff, self.drive)
         if footprint is not None and footprint.albedo_blend is not None:
             self._blend_noise(footprint.albedo_blend)
+
+    def _up(self) -> Tensor:
+        """The geometric normal ``(N, 3)``: +z in the texel's frame."""
+        up = torch.zeros(self.N, 3, dtype=self.wi.dtype)
+        up[:, 2] = 1
+        return up
+
+    def diffuse_basis(self, normal: Tensor) -> Tensor:
+        """The diffuse basis ``(N, V, 3, 3)`` (``pixel_bases``) for the normals ``normal (N, 3)``, the
+        support's light included."""
+        known = (self.diffuse_z, self._up(), self.horizon_margin)
+        d = diffuse_basis_near(normal, self.wi, self.falloff, self.drive, *known)
+        return d if self.support is None else d + self.support_diffuse
 
     def _blend_noise(self, albedo_blend: Tensor) -> None:
         """The albedo each entry's pixel may blend in of the neighbours' (``albedo_blend (N, V, 3)``,
         ``fit.footprint``) as noise on its diffuse light, added in quadrature to the sensor's: its
         diffuse basis at the geometric normal (a refined normal a degree or two off moves it by its
         cosine) times the blend. The censoring stays the pixel's as captured."""
-        up = torch.zeros(self.N, 3, dtype=self.wi.dtype)
-        up[:, 2] = 1
-        basis = diffuse_basis(up, self.wi, self.falloff, self.drive)[..., 2]  # (N, V, 3 channels)
+        basis = self.diffuse_z[..., 2]  # (N, V, 3 channels)
         if self.support is not None:
             basis = basis + self.support_diffuse[..., 2]
         blend = albedo_blend.to(self.y.dtype) * basis.to(self.y.dtype)
@@ -300,11 +315,7 @@ class _Round:
         self.tr, self.specular, self.frame0 = tr, specular, frame0
         # diffuse basis per channel: linear in the shading normal (emitters above F0's horizon);
         # ``diffuse``: given by a round of the same normal
-        if diffuse is None:
-            diffuse = diffuse_basis(frame0[:, 2], tr.wi, tr.falloff, tr.drive)  # (N, V, 3, 3), wi's dtype
-            if tr.support is not None:
-                diffuse = diffuse + tr.support_diffuse
-        self.diffuse = diffuse
+        self.diffuse = tr.diffuse_basis(frame0[:, 2]) if diffuse is None else diffuse  # (N, V, 3, 3), wi's dtype
         self.wo, self.row = tr.wo, torch.arange(tr.N)  # the per-entry arrays' rows of the round's texels
         self.widening: Tensor | None = None
         if not specular:

@@ -12,6 +12,8 @@ import torch
 
 from ntp_engine.fit.pixel_bases import (
     diffuse_basis,
+    diffuse_basis_and_margin,
+    diffuse_basis_near,
     emitter_directions,
     lobe_weights,
     selected_emitters,
@@ -199,6 +201,22 @@ def test_diffuse_basis_sums_the_emitters_above_the_horizon():
     torch.testing.assert_close(out, ref, rtol=1e-9, atol=1e-12 * float(ref.abs().max()))
     out32 = diffuse_basis(normal.float(), wi.float(), falloff.float(), drive_k.float())
     torch.testing.assert_close(out32.double(), ref, rtol=1e-4, atol=1e-6 * float(ref.abs().max()))
+
+
+def test_a_diffuse_basis_near_a_known_one_is_summed_again_only_where_an_emitter_crosses():
+    frame, wi, _, _, ff, drive, _ = _case(5, N=40, V=6, M=60)
+    known_normal, drive_k = frame[:, 2], drive[0, 0]
+    known, margin = diffuse_basis_and_margin(known_normal, wi, ff, drive_k)
+    cos = (wi * known_normal[:, None, None]).sum(-1).abs()
+    ref_margin = torch.where(ff != 0, cos, torch.full_like(cos, math.inf)).amin(-1)
+    torch.testing.assert_close(margin, ref_margin)
+    g = torch.Generator().manual_seed(6)
+    for tilt in (1e-4, 0.03, 0.3):  # from no entry crossing to most
+        normal = safe_normalize(known_normal + tilt * torch.randn(known_normal.shape, generator=g, dtype=wi.dtype))
+        whole = diffuse_basis(normal, wi, ff, drive_k)
+        assert torch.equal(diffuse_basis_near(normal, wi, ff, drive_k, known, known_normal, margin), whole)
+        changed = (whole != known).flatten(2).any(-1).float().mean()
+        assert (changed == 0) if tilt < 1e-3 else (changed > 0)
 
 
 def _tabulated(scanner):
