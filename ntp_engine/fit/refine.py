@@ -66,7 +66,7 @@ from .support_light import (
     support_specular_emitters,
 )
 
-VERSION = 26  # of the method: part of the pipeline's cache key (bump when results change for the same settings)
+VERSION = 27  # of the method: part of the pipeline's cache key (bump when results change for the same settings)
 CENSOR_CODE = VALID_CODE[1]  # above this an 8-bit code may be (or border) a clipped pixel: a lower bound
 EXPANDED_BLOCKS = 4  # emitter blocks per entry summed sample by sample (the rest as coarse emitters)
 SELECT_WIDEN, SELECT_FLOOR = 3.0, 0.03  # emitters are chosen under alphas x3 (at least 0.03)
@@ -134,6 +134,9 @@ class RefineSettings:
     materials: bool = True  # basis materials for texels whose own trace does not show their lobe (fit.materials)
     # the neighbours' albedo each entry's pixel may blend in, as noise on its diffuse light (fit.footprint)
     albedo_blend: bool = True
+    # each normal fused with its neighbours' as far as the normal field is smooth (fit.normal_field; needs the
+    # texels, so ``pipeline.fit_traces.refine_fit`` does it)
+    normal_field: bool = True
 
 
 class Start(NamedTuple):

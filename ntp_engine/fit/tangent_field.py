@@ -23,21 +23,15 @@ import math
 import numpy as np
 from scipy.spatial import cKDTree
 
+from .surface_fields import field_pairs, semivariogram, texel_spacing
+
 NEIGHBOURS = 16  # nearest sources averaged per texel
 REACH = 10.0  # a source's weight falls as a Gaussian of this many texel spacings (median nearest-texel distance)
 DOUBT = 0.25  # added to the sources' weights (a source in the texel's plane weighs 1): one source is not many
 # fused_turns: a texel's own tangent with its nearest neighbours', as far as the field is smooth
 FUSE_NEIGHBOURS = 24
-VARIATION_BINS = 12  # field_variation's distances: 1, 2, 4, ... 2048 texel spacings
-VARIATION_PAIRS = 8  # pairs per source: its nearest others, and as many random ones
-MIN_PAIRS = 16  # pairs a distance bin needs (else it takes the nearer bin's value)
 GATE = 3.0  # sigmas of disagreement beyond which a texel's own tangent and its neighbours' are not fused
 MIN_STD = math.radians(0.5)  # no trace fixes a tangent better (a floor under the LM's std: 0.3 deg ones erred 0.4)
-
-
-def texel_spacing(position: np.ndarray) -> float:
-    """The median distance (m) from each of ``position (N, 3)`` to its nearest other (0 for one)."""
-    return float(np.median(cKDTree(position).query(position, k=2)[0][:, 1])) if len(position) > 1 else 0.0
 
 
 def _object_axes(t_loc: np.ndarray, normal: np.ndarray, tangent: np.ndarray) -> np.ndarray:
@@ -114,36 +108,17 @@ def field_variation(
 ) -> tuple[np.ndarray, np.ndarray]:
     """How far one material's tangent field turns with distance, measured on its ``source``
     texels (those whose traces fixed their tangents, 1-sigma ``std (N,)`` radians): distances
-    ``(B,)`` (m; ``VARIATION_BINS`` of them, doubling from one texel spacing) and the field's
-    semivariogram there ``(B,)`` (rad^2) — half the mean squared angle between two texels' axes
-    beyond what their own errors explain; robust (from the median), non-decreasing, 0 without two
-    sources. Pairs: each source with its ``VARIATION_PAIRS`` nearest others and as many seeded
-    random ones (far pairs too)."""
+    ``(B,)`` (m) and the field's semivariogram there ``(B,)`` (rad^2) — half the mean squared angle
+    between two texels' axes beyond what their own errors explain (``surface_fields.semivariogram``
+    over the sources' ``field_pairs``; 0 without two sources)."""
     spacing = texel_spacing(position) if spacing is None else spacing
-    dist_bins = max(spacing, 1e-9) * 2.0 ** np.arange(VARIATION_BINS)
-    gamma = np.zeros(VARIATION_BINS)
-    S = len(source)
-    if S < 2:
-        return dist_bins, gamma
+    if len(source) < 2:
+        return semivariogram(np.zeros(0), np.zeros(0), np.zeros(0), spacing, 1)
     axes = _object_axes(t_loc[source], normal[source], tangent[source])
-    k = min(VARIATION_PAIRS + 1, S)
-    _, near = cKDTree(position[source]).query(position[source], k=k)
-    rng = np.random.default_rng(0)
-    i = np.repeat(np.arange(S), 2 * (k - 1))
-    j = np.concatenate([near[:, 1:], rng.integers(0, S, (S, k - 1))], 1).reshape(-1)
-    keep = i != j
-    i, j = i[keep], j[keep]
-    d = np.linalg.norm(position[source[i]] - position[source[j]], axis=1)
+    i, j, d = field_pairs(position[source])
     angle = np.arccos(np.clip(np.abs((axes[i] * axes[j]).sum(1)), 0.0, 1.0))  # axial
     noise = np.maximum(std[source[i]], MIN_STD) ** 2 + np.maximum(std[source[j]], MIN_STD) ** 2
-    b = np.clip(np.round(np.log2(np.maximum(d / max(spacing, 1e-9), 1.0))).astype(int), 0, VARIATION_BINS - 1)
-    for n in range(VARIATION_BINS):
-        sel = b == n
-        if sel.sum() >= MIN_PAIRS:  # median of a chi^2_1 is 0.455 of its mean
-            gamma[n] = max(0.0, float(np.median(angle[sel] ** 2)) / 0.455 - float(np.median(noise[sel]))) / 2
-        elif n:
-            gamma[n] = gamma[n - 1]
-    return dist_bins, np.maximum.accumulate(gamma)
+    return semivariogram(d, angle**2, noise, spacing, 1)
 
 
 def fused_turns(

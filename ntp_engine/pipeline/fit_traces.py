@@ -34,6 +34,7 @@ from ..fit.materials import (
     pooled_scale,
     pooled_votes,
 )
+from ..fit.normal_field import fused_normals
 from ..fit.refine import (
     ANISOTROPY_PARAMS,
     FLAG_FROM_MATERIAL,
@@ -52,7 +53,8 @@ from ..fit.refine import (
     turn_costs,
 )
 from ..fit.support_light import SupportScene, SupportView
-from ..fit.tangent_field import field_variation, fused_turns, neighbour_turns, texel_spacing
+from ..fit.surface_fields import texel_spacing
+from ..fit.tangent_field import field_variation, fused_turns, neighbour_turns
 from ..io.progress import QUIET, Progress
 from ..learn.inference import predict
 from ..learn.network import TraceNet
@@ -363,7 +365,31 @@ def refine_fit(
         _refine_texels(scanner, traces, fit, start, edges, settings, progress, texels, support, "albedo edges")
     if settings.materials:
         _material_pass(scanner, traces, fit, todo, settings, progress, texels, support)
+    if settings.normal_field and texels is not None:
+        fuse_normals(fit, texels, todo.numpy())
     return fit
+
+
+def fuse_normals(fit: dict[str, np.ndarray], texels: Texels, i_obs: np.ndarray) -> None:
+    """The observed texels' ``i_obs`` normals each fused with its neighbours' of the same material
+    label (``fit["material"]`` where the material pass ran; else all one group) as far as the
+    normal field is smooth (``fit.normal_field.fused_normals``), their tangents kept orthogonal and
+    ``std``'s normal column the fused one. A texel with no finite normal std keeps its normal.
+    Updates ``fit`` in place (trace i = texel i of ``texels``)."""
+    frame = np.stack([texels.tangent, np.cross(texels.normal, texels.tangent), texels.normal], 1)[i_obs]  # rows
+    refined = np.einsum("tji,tj->ti", frame, fit["n_loc"][i_obs])
+    std = np.radians(fit["std"][i_obs, 0])
+    label = fit["material"][i_obs] if "material" in fit else np.zeros(len(i_obs), np.int64)
+    position, normal = texels.position[i_obs], texels.normal[i_obs]
+    for m in np.unique(label):
+        source = np.nonzero((label == m) & np.isfinite(std))[0]
+        n_obj, n_std = fused_normals(position, normal, refined, std, source)
+        k = i_obs[source]
+        n_loc = np.einsum("tij,tj->ti", frame[source], n_obj)
+        t = fit["t_loc"][k]
+        t = t - (t * n_loc).sum(1, keepdims=True) * n_loc
+        fit["n_loc"][k], fit["t_loc"][k] = n_loc, t / np.linalg.norm(t, axis=1, keepdims=True)
+        fit["std"][k, 0] = np.degrees(n_std)
 
 
 def _refine_texels(

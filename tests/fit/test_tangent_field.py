@@ -5,7 +5,8 @@ import math
 import numpy as np
 import pytest
 
-from ntp_engine.fit.tangent_field import MIN_STD, field_variation, fused_turns, neighbour_turns, texel_spacing
+from ntp_engine.fit.surface_fields import texel_spacing
+from ntp_engine.fit.tangent_field import MIN_STD, field_variation, fused_turns, neighbour_turns
 
 
 def _plane(n: int = 20, spacing: float = 0.002):
