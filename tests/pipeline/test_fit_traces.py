@@ -285,3 +285,41 @@ def _map(tx, values):
     img = np.zeros((*tx.shape, values.shape[1]))
     img[tx.row, tx.col] = values
     return img
+
+
+def test_normals_are_fused_within_each_material_with_tangents_kept_orthogonal():
+    from ntp_engine.pipeline.fit_traces import fuse_normals
+    from ntp_engine.pipeline.texels import Texels
+
+    n = 24
+    g = np.stack(np.meshgrid(np.arange(n), np.arange(n), indexing="ij"), -1).reshape(-1, 2)
+    N = len(g)
+    position = np.concatenate([g * 0.001, np.zeros((N, 1))], 1)
+    # geometric frames turned about +z texel by texel: the local normals differ from object space
+    phi = np.linspace(0.0, 2.0, N)
+    tangent = np.stack([np.cos(phi), np.sin(phi), np.zeros(N)], 1)
+    texels = Texels((n, n), g[:, 0], g[:, 1], np.zeros(N, int), np.full((N, 3), 1 / 3), position,
+                    np.tile([0.0, 0.0, 1.0], (N, 1)), tangent)  # fmt: skip
+    rng = np.random.default_rng(0)
+    n_loc = np.concatenate([rng.normal(0.0, 0.02, (N, 2)), np.ones((N, 1))], 1)
+    n_loc /= np.linalg.norm(n_loc, axis=1, keepdims=True)
+    material = np.where(g[:, 0] < n // 2, 0, -1)  # two groups, fused apart
+    n_loc[material == -1] = [0.0, 0.0, 1.0]
+    t_loc = np.array([1.0, 0.0, 0.0]) - n_loc[:, :1] * n_loc
+    t_loc /= np.linalg.norm(t_loc, axis=1, keepdims=True)
+    fit = {
+        "n_loc": n_loc.copy(),
+        "t_loc": t_loc,
+        "std": np.tile([np.degrees(0.02 * np.sqrt(2)), 5.0, 0.1, 0.1], (N, 1)),
+        "material": material,
+    }
+    fit["std"][0, 0] = np.nan  # no normal std: kept
+    fuse_normals(fit, texels, np.arange(N))
+    tilt_before = np.degrees(np.arccos(n_loc[material == 0, 2]))
+    tilt_after = np.degrees(np.arccos(np.clip(fit["n_loc"][material == 0, 2], -1, 1)))
+    assert np.median(tilt_after) < 0.5 * np.median(tilt_before)
+    np.testing.assert_allclose(fit["n_loc"][material == -1], n_loc[material == -1], atol=1e-12)  # not the other's
+    np.testing.assert_allclose(fit["n_loc"][0], n_loc[0])
+    np.testing.assert_allclose((fit["n_loc"] * fit["t_loc"]).sum(1), 0.0, atol=1e-12)
+    np.testing.assert_allclose(np.linalg.norm(fit["t_loc"], axis=1), 1.0)
+    assert np.nanmedian(fit["std"][material == 0, 0]) < 0.5 * np.degrees(0.02 * np.sqrt(2))
