@@ -92,7 +92,10 @@ def write_result(out: Path, mesh: Mesh, texels: Texels, fitted: dict[str, np.nda
                 "B": "log alpha (the larger)",
                 "A": "log rho_s (channel mean)",
             },
-            "meaning": "1-sigma of each parameter given the texel's photos (Gauss-Newton at the refined answer)",
+            "meaning": (
+                "1-sigma of each parameter given the texel's photos (Gauss-Newton at the refined answer); "
+                "normal and tangent: after fusing with the neighbours' where the field is smooth"
+            ),
             "unconstrained": f">= {UNCONSTRAINED_STD:g}: the photos do not determine it (or no photo saw the texel)",
         }
     previews = out / "previews"
