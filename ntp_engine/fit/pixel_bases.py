@@ -19,8 +19,9 @@ F D G / (4 cos_i cos_o) cos_i falloff in the cancelled Smith form of ``physics.b
 q = (h_x/ax)^2 + (h_y/ay)^2 + h_z^2 and L = |(ax v_x, ay v_y, v_z)| in the shading frame.
 Derivatives are by (omega_x, omega_y, omega_z, log alpha_x, log alpha_y), omega a rotation of the
 shading frame at 0 (a shading-frame vector v turns by v x omega, so d/d omega = g x v for
-g = d log(lobe) / d v, summed over wi, h and wo). ``rows (N,)``, where given: frame and alpha n
-belong to row ``rows[n]`` of the per-entry arrays (a subset of texels without copying them).
+g = d log(lobe) / d v, summed over wi, h and wo). ``rows (N,)``, where given: texel n's inputs
+(frame, alpha, normal) belong to row ``rows[n]`` of the per-entry arrays (a subset of texels
+without copying them); outputs have N rows.
 Results in the dtype of ``wi`` (float32 or float64: the scipy baseline differentiates them
 numerically), sums in float64.
 """
@@ -92,20 +93,29 @@ def diffuse_basis(normal: Tensor, wi: Tensor, falloff: Tensor, drive: Tensor) ->
     return diffuse_basis_and_margin(normal, wi, falloff, drive)[0]
 
 
-def diffuse_basis_and_margin(normal: Tensor, wi: Tensor, falloff: Tensor, drive: Tensor) -> tuple[Tensor, Tensor]:
+def diffuse_basis_and_margin(
+    normal: Tensor, wi: Tensor, falloff: Tensor, drive: Tensor, rows: Tensor | None = None
+) -> tuple[Tensor, Tensor]:
     """``diffuse_basis`` and each entry's horizon margin ``(N, V)``: the smallest |wi . n| over its
     lit emitters (inf where none). A normal that moves by less than the margin (``|n' - n|``)
     leaves every emitter on its side of the horizon, so the basis the same (``diffuse_basis_near``)."""
-    N, V, _ = falloff.shape
+    N, V = len(normal), falloff.shape[1]
     todo = np.ones((N, V), np.bool_)
     out = np.zeros((N, V, 3, 3), torch.empty(0, dtype=wi.dtype).numpy().dtype)
     margin = np.full((N, V), np.inf, out.dtype)
-    _diffuse(normal, wi, falloff, drive, todo, out, margin)
+    _diffuse(normal, wi, falloff, drive, todo, out, margin, rows)
     return torch.from_numpy(out), torch.from_numpy(margin)
 
 
 def diffuse_basis_near(
-    normal: Tensor, wi: Tensor, falloff: Tensor, drive: Tensor, known: Tensor, known_normal: Tensor, margin: Tensor
+    normal: Tensor,
+    wi: Tensor,
+    falloff: Tensor,
+    drive: Tensor,
+    known: Tensor,
+    known_normal: Tensor,
+    margin: Tensor,
+    rows: Tensor | None = None,
 ) -> Tensor:
     """``diffuse_basis`` for ``normal (N, 3)`` from ``known (N, V, 3, 3)``, the basis at
     ``known_normal (N, 3)`` with its ``margin (N, V)`` (``diffuse_basis_and_margin``): only the
@@ -116,18 +126,30 @@ def diffuse_basis_near(
     todo = margin <= moved[:, None] * (1 + 1e-3) + 1e-6
     out = known.clone()
     if bool(todo.any()):
-        _diffuse(normal, wi, falloff, drive, todo.numpy(), out.numpy(), np.empty_like(margin.numpy()))
+        _diffuse(normal, wi, falloff, drive, todo.numpy(), out.numpy(), np.empty_like(margin.numpy()), rows)
     return out
 
 
+def _rows(n: int, rows: Tensor | None) -> np.ndarray:
+    """The per-entry arrays' row of each of ``n`` texels (all of them in order by default)."""
+    return np.arange(n, dtype=np.int64) if rows is None else np.ascontiguousarray(rows.numpy().astype(np.int64))
+
+
 def _diffuse(
-    normal: Tensor, wi: Tensor, falloff: Tensor, drive: Tensor, todo: np.ndarray, out: np.ndarray, margin: np.ndarray
+    normal: Tensor,
+    wi: Tensor,
+    falloff: Tensor,
+    drive: Tensor,
+    todo: np.ndarray,
+    out: np.ndarray,
+    margin: np.ndarray,
+    rows: Tensor | None,
 ) -> None:
     """The compiled loop's call: fills ``out`` and ``margin`` where ``todo (N, V)``."""
     d = wi.dtype
     with numba_threads_as_torch():
         arrays = [_arr(x, d) for x in (normal, wi, falloff, drive)]
-        _diffuse_loop(*arrays, np.ascontiguousarray(todo), out, margin)
+        _diffuse_loop(_rows(len(normal), rows), *arrays, np.ascontiguousarray(todo), out, margin)
 
 
 def specular_basis(
@@ -178,7 +200,7 @@ def _specular(
     arrays = [_arr(x, wi.dtype) for x in (frame, wi, h, wo, fresnel_falloff, drive, alpha)]
     # per entry in the loop: small torch ops between compiled loops cost ~1 ms each (thread wake-ups)
     wide = np.zeros((0, 0, 2), arrays[1].dtype) if widening is None else _arr(widening, wi.dtype)
-    row = np.arange(N, dtype=np.int64) if rows is None else np.ascontiguousarray(rows.numpy().astype(np.int64))
+    row = _rows(N, rows)
     spec = np.zeros((N, V, 3), arrays[1].dtype)
     ds = np.zeros((N, V, N_DERIVATIVES, 3) if derivatives else (0, 0, N_DERIVATIVES, 3), spec.dtype)
     with numba_threads_as_torch():
@@ -186,18 +208,32 @@ def _specular(
     return torch.from_numpy(spec), torch.from_numpy(ds)
 
 
-def lobe_weights(frame: Tensor, wi: Tensor, h: Tensor, wo: Tensor, fresnel_falloff: Tensor, alpha: Tensor) -> Tensor:
+def lobe_weights(
+    frame: Tensor,
+    wi: Tensor,
+    h: Tensor,
+    wo: Tensor,
+    fresnel_falloff: Tensor,
+    alpha: Tensor,
+    rows: Tensor | None = None,
+) -> Tensor:
     """Each emitter's lobe for unit drive ``(N, V, M)`` (module docstring; ``fit.refine`` ranks the
     emitter blocks by it) in one compiled pass instead of a dozen (N, V, M) torch temporaries."""
     arrays = [_arr(x, wi.dtype) for x in (frame, wi, h, wo, fresnel_falloff, alpha)]
-    out = np.zeros(fresnel_falloff.shape, arrays[1].dtype)
+    N = len(frame)
+    out = np.zeros((N, *fresnel_falloff.shape[1:]), arrays[1].dtype)
     with numba_threads_as_torch():
-        _lobe_loop(*arrays, out)
+        _lobe_loop(_rows(N, rows), *arrays, out)
     return torch.from_numpy(out)
 
 
 def selected_emitters(
-    order: Tensor, members: Tensor, expanded: int, fine: tuple[Tensor, ...], coarse: tuple[Tensor, ...]
+    order: Tensor,
+    members: Tensor,
+    expanded: int,
+    fine: tuple[Tensor, ...],
+    coarse: tuple[Tensor, ...],
+    rows: Tensor | None = None,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """The specular basis' per-entry emitters when blocks of samples are summed sample by sample
     only where the lobe is: per entry, the samples of the first ``expanded`` blocks in ``order (N,
@@ -213,6 +249,7 @@ def selected_emitters(
     ff, drive = torch.empty(N, V, M, dtype=dt), torch.empty(N, V, M, 3, dtype=dt)
     with numba_threads_as_torch():
         _select_loop(
+            _rows(N, rows),
             _arr(order, torch.int64),
             _arr(members, torch.int64),
             expanded,
@@ -227,11 +264,12 @@ def selected_emitters(
 
 
 @numba.njit(parallel=True, fastmath=True, cache=True)
-def _diffuse_loop(normal, wi, falloff, drive, todo, out, margin):  # pragma: no cover - compiled
+def _diffuse_loop(rows, normal, wi, falloff, drive, todo, out, margin):  # pragma: no cover - compiled
     """Fills ``out (N, V, 3, 3)`` and ``margin (N, V)`` where ``todo (N, V)`` (see
-    ``diffuse_basis_and_margin``)."""
-    N, V, K = falloff.shape
+    ``diffuse_basis_and_margin``), texel n from row ``rows[n]`` of ``wi`` and ``falloff``."""
+    N, V, K = out.shape[0], falloff.shape[1], falloff.shape[2]
     for n in numba.prange(N):
+        r = rows[n]
         n0, n1, n2 = float(normal[n, 0]), float(normal[n, 1]), float(normal[n, 2])
         for v in range(V):
             if not todo[n, v]:
@@ -239,10 +277,10 @@ def _diffuse_loop(normal, wi, falloff, drive, todo, out, margin):  # pragma: no 
             a00 = a01 = a02 = a10 = a11 = a12 = a20 = a21 = a22 = 0.0
             low = math.inf
             for k in range(K):
-                f = falloff[n, v, k]
+                f = falloff[r, v, k]
                 if f == 0.0:
                     continue
-                x, y, z = wi[n, v, k, 0], wi[n, v, k, 1], wi[n, v, k, 2]
+                x, y, z = wi[r, v, k, 0], wi[r, v, k, 1], wi[r, v, k, 2]
                 c = n0 * x + n1 * y + n2 * z
                 low = min(low, abs(c))
                 if c <= 0.0:
@@ -370,43 +408,45 @@ def _specular_loop(rows, frame, wi, h, wo, ff, drive, alpha, widening, derivativ
 
 
 @numba.njit(parallel=True, fastmath=True, cache=True)
-def _lobe_loop(frame, wi, h, wo, ff, alpha, out):  # pragma: no cover - compiled
-    """Fills ``out (N, V, M)`` (see ``lobe_weights``)."""
-    N, V, M = ff.shape
+def _lobe_loop(rows, frame, wi, h, wo, ff, alpha, out):  # pragma: no cover - compiled
+    """Fills ``out (N, V, M)`` (see ``lobe_weights``), texel n from row ``rows[n]`` of the per-entry arrays."""
+    N, V, M = out.shape
     for n in numba.prange(N):
+        r = rows[n]
         ax, ay = float(alpha[n, 0]), float(alpha[n, 1])
         t0, t1, t2 = float(frame[n, 0, 0]), float(frame[n, 0, 1]), float(frame[n, 0, 2])
         b0, b1, b2 = float(frame[n, 1, 0]), float(frame[n, 1, 1]), float(frame[n, 1, 2])
         n0, n1, n2 = float(frame[n, 2, 0]), float(frame[n, 2, 1]), float(frame[n, 2, 2])
         for v in range(V):
-            oz = n0 * wo[n, v, 0] + n1 * wo[n, v, 1] + n2 * wo[n, v, 2]
+            oz = n0 * wo[r, v, 0] + n1 * wo[r, v, 1] + n2 * wo[r, v, 2]
             if oz <= 0.0:
                 continue
-            ox = t0 * wo[n, v, 0] + t1 * wo[n, v, 1] + t2 * wo[n, v, 2]
-            oy = b0 * wo[n, v, 0] + b1 * wo[n, v, 1] + b2 * wo[n, v, 2]
+            ox = t0 * wo[r, v, 0] + t1 * wo[r, v, 1] + t2 * wo[r, v, 2]
+            oy = b0 * wo[r, v, 0] + b1 * wo[r, v, 1] + b2 * wo[r, v, 2]
             seen = 1.0 / (math.pi * ax * ay * (oz + math.sqrt(max((ax * ox) ** 2 + (ay * oy) ** 2 + oz * oz, 1e-20))))
             for m in range(M):
-                iz = n0 * wi[n, v, m, 0] + n1 * wi[n, v, m, 1] + n2 * wi[n, v, m, 2]
-                if iz <= 0.0 or ff[n, v, m] == 0.0:
+                iz = n0 * wi[r, v, m, 0] + n1 * wi[r, v, m, 1] + n2 * wi[r, v, m, 2]
+                if iz <= 0.0 or ff[r, v, m] == 0.0:
                     continue
-                ix = t0 * wi[n, v, m, 0] + t1 * wi[n, v, m, 1] + t2 * wi[n, v, m, 2]
-                iy = b0 * wi[n, v, m, 0] + b1 * wi[n, v, m, 1] + b2 * wi[n, v, m, 2]
-                hx = (t0 * h[n, v, m, 0] + t1 * h[n, v, m, 1] + t2 * h[n, v, m, 2]) / ax
-                hy = (b0 * h[n, v, m, 0] + b1 * h[n, v, m, 1] + b2 * h[n, v, m, 2]) / ay
-                hz = n0 * h[n, v, m, 0] + n1 * h[n, v, m, 1] + n2 * h[n, v, m, 2]
+                ix = t0 * wi[r, v, m, 0] + t1 * wi[r, v, m, 1] + t2 * wi[r, v, m, 2]
+                iy = b0 * wi[r, v, m, 0] + b1 * wi[r, v, m, 1] + b2 * wi[r, v, m, 2]
+                hx = (t0 * h[r, v, m, 0] + t1 * h[r, v, m, 1] + t2 * h[r, v, m, 2]) / ax
+                hy = (b0 * h[r, v, m, 0] + b1 * h[r, v, m, 1] + b2 * h[r, v, m, 2]) / ay
+                hz = n0 * h[r, v, m, 0] + n1 * h[r, v, m, 1] + n2 * h[r, v, m, 2]
                 q = hx * hx + hy * hy + hz * hz
                 lam_i = math.sqrt(max((ax * ix) ** 2 + (ay * iy) ** 2 + iz * iz, 1e-20))
-                out[n, v, m] = iz * ff[n, v, m] * seen / (q * q * (iz + lam_i))
+                out[n, v, m] = iz * ff[r, v, m] * seen / (q * q * (iz + lam_i))
 
 
 @numba.njit(parallel=True, cache=True)
 def _select_loop(
-    order, members, expanded, wi, h, ff, drive, wi_c, h_c, ff_c, drive_c, o_wi, o_h, o_ff, o_drive
+    rows, order, members, expanded, wi, h, ff, drive, wi_c, h_c, ff_c, drive_c, o_wi, o_h, o_ff, o_drive
 ):  # pragma: no cover
-    """Fills ``o_*`` (see ``selected_emitters``)."""
+    """Fills ``o_*`` (see ``selected_emitters``), texel n from row ``rows[n]`` of the per-sample arrays."""
     N, V, C = order.shape
     S = members.shape[1]
     for n in numba.prange(N):
+        r = rows[n]
         for v in range(V):
             j = 0
             for b in range(C):
@@ -416,20 +456,20 @@ def _select_loop(
                         k = members[c, s]
                         for i in range(3):
                             o_wi[n, v, j, i], o_h[n, v, j, i], o_drive[n, v, j, i] = (
-                                wi[n, v, k, i],
-                                h[n, v, k, i],
+                                wi[r, v, k, i],
+                                h[r, v, k, i],
                                 drive[k, i],
                             )
-                        o_ff[n, v, j] = ff[n, v, k]
+                        o_ff[n, v, j] = ff[r, v, k]
                         j += 1
                 else:
                     for i in range(3):
                         o_wi[n, v, j, i], o_h[n, v, j, i], o_drive[n, v, j, i] = (
-                            wi_c[n, v, c, i],
-                            h_c[n, v, c, i],
+                            wi_c[r, v, c, i],
+                            h_c[r, v, c, i],
                             drive_c[c, i],
                         )
-                    o_ff[n, v, j] = ff_c[n, v, c]
+                    o_ff[n, v, j] = ff_c[r, v, c]
                     j += 1
 
 

@@ -182,11 +182,17 @@ class LobePrior(NamedTuple):
     rho_s_sigma: Tensor
 
 
+# the trace's per-sample arrays: shared between a chunk and its subsets (``_Trace.rows``)
+SAMPLE_ARRAYS = ("wo", "wi", "h", "falloff", "fresnel_falloff", "wi_c", "h_c", "ff_c")
+
+
 class _Trace:
     """One chunk of traces, ready for the model: every entry's directions to each emitter sample
     (and, with ``blocks``, to each block's coarse emitter), half vectors and Fresnel-weighted falloff
     in the texel's geometric frame — none depends on the parameters (a shading frame only rotates
-    them). Sample index K is padding: it emits nothing. ``shadow (N, V)``: the emitter groups the
+    them). Sample index K is padding: it emits nothing. Those per-sample arrays (``SAMPLE_ARRAYS``)
+    are shared by a subset of the texels (``rows``), which reads its rows ``srow`` of them instead of
+    copying them. ``shadow (N, V)``: the emitter groups the
     mesh hides from each entry (``learn.ragged``), whose falloff is 0. ``footprint``: what each
     entry's pixel sample spans (``fit.footprint``): the slope spread, which widens the lobe it sees,
     and the neighbours' albedo it may blend in, noise on its diffuse light."""
@@ -217,6 +223,7 @@ class _Trace:
 
         # sample index K: padding (any direction, no light)
         self.wo, self.wi, self.h, self.falloff, self.fresnel_falloff = directions(scanner, True)
+        self.srow = torch.arange(N)  # each texel's row of the per-sample arrays
         Q = scanner.emitter_samples(x.dtype)[1].shape[1]
         p_eff = torch.as_tensor(scanner.effective_pattern(), dtype=x.dtype)
         drive = exposure * p_eff.repeat_interleave(Q, 0)  # per sample (the falloff holds w_q)
@@ -268,7 +275,7 @@ class _Trace:
         """The diffuse basis ``(N, V, 3, 3)`` (``pixel_bases``) for the normals ``normal (N, 3)``, the
         support's light included."""
         known = (self.diffuse_z, self._up(), self.horizon_margin)
-        d = diffuse_basis_near(normal, self.wi, self.falloff, self.drive, *known)
+        d = diffuse_basis_near(normal, self.wi, self.falloff, self.drive, *known, rows=self.srow)
         return d if self.support is None else d + self.support_diffuse
 
     def _blend_noise(self, albedo_blend: Tensor) -> None:
@@ -289,8 +296,9 @@ class _Trace:
         if self.support is None:
             return None
         view = SupportView(self.support, self.position, self.frame_world)
+        wo = self.wo[self.srow]
         return support_specular_emitters(
-            view, self.scanner, self.sources, self.x_cam, self.frame_cam, self.live, self.wo, frame0, alpha
+            view, self.scanner, self.sources, self.x_cam, self.frame_cam, self.live, wo, frame0, alpha
         )
 
     def light_rows(self, idx: Tensor) -> _Trace:
@@ -302,10 +310,12 @@ class _Trace:
         return out
 
     def rows(self, idx: Tensor) -> _Trace:
-        """The same chunk for the texels ``idx`` only."""
+        """The same chunk for the texels ``idx`` only: per-texel arrays copied, the per-sample ones
+        shared (``srow``: the subset's rows of them)."""
         out = object.__new__(_Trace)
         for k, v in vars(self).items():
-            setattr(out, k, v[idx] if isinstance(v, Tensor) and k not in ("drive", "drive_c") else v)
+            per_texel = isinstance(v, Tensor) and k not in ("drive", "drive_c") and k not in SAMPLE_ARRAYS
+            setattr(out, k, v[idx] if per_texel else v)
         out.N = len(idx)
         return out
 
@@ -319,22 +329,23 @@ class _Round:
         # diffuse basis per channel: linear in the shading normal (emitters above F0's horizon);
         # ``diffuse``: given by a round of the same normal
         self.diffuse = tr.diffuse_basis(frame0[:, 2]) if diffuse is None else diffuse  # (N, V, 3, 3), wi's dtype
-        self.wo, self.row = tr.wo, torch.arange(tr.N)  # the per-entry arrays' rows of the round's texels
+        # the round's per-entry emitters are its own (N rows; the LM's subsets read their rows ``row``)
+        self.wo, self.row = tr.wo[tr.srow], torch.arange(tr.N)
         self.widening: Tensor | None = None
         if not specular:
             return
         # what each entry's sample adds to the round's alpha_x^2, alpha_y^2 (``fit.footprint``)
         if tr.spread is not None:
             self.widening = widening(tr.spread, frame0)
-        if tr.blocks is None:
-            self.wi, self.h, self.ff = tr.wi, tr.h, tr.fresnel_falloff
+        if tr.blocks is None:  # a small device: every sample exactly
+            self.wi, self.h, self.ff = tr.wi[tr.srow], tr.h[tr.srow], tr.fresnel_falloff[tr.srow]
             self.drive = tr.drive.expand(tr.N, tr.V, -1, 3)
         else:
             seen = log_alpha.exp()
             if self.widening is not None:  # the widest lobe any entry sees
                 seen = torch.sqrt(seen**2 + self.widening.amax(1))
             wide = (SELECT_WIDEN * seen).clamp(SELECT_FLOOR, ALPHA_MAX)
-            score = lobe_weights(frame0, tr.wi_c, tr.h_c, tr.wo, tr.ff_c, wide)  # (N, V, C)
+            score = lobe_weights(frame0, tr.wi_c, tr.h_c, tr.wo, tr.ff_c, wide, tr.srow)  # (N, V, C)
             order = score.argsort(-1, descending=True)
             self.wi, self.h, self.ff, self.drive = selected_emitters(
                 order,
@@ -342,6 +353,7 @@ class _Round:
                 EXPANDED_BLOCKS,
                 (tr.wi, tr.h, tr.fresnel_falloff, tr.drive),
                 (tr.wi_c, tr.h_c, tr.ff_c, tr.drive_c),
+                tr.srow,
             )
         # the support's light: more emitters, drawn for this round's lobe
         support = tr.support_specular(frame0, log_alpha.exp())

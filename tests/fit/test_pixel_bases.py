@@ -143,6 +143,25 @@ def test_rows_read_a_subset_without_copying_it():
     )
     assert torch.equal(spec, want) and torch.equal(ds, want_ds) and want.abs().max() > 0
     assert torch.equal(specular_basis(frame[rows], wi, h, wo, ff, drive, alpha[rows], rows), want)
+    # the diffuse basis (and its horizon margins), the block ranking and the emitter selection too
+    n, drive_k = frame[rows, 2], drive[0, 0]
+    got, margin = diffuse_basis_and_margin(n, wi, ff, drive_k, rows)
+    want, want_margin = diffuse_basis_and_margin(n, wi[rows], ff[rows], drive_k)
+    assert torch.equal(got, want) and torch.equal(margin, want_margin) and want.abs().max() > 0
+    tilted = safe_normalize(n + 0.2)
+    assert torch.equal(
+        diffuse_basis_near(tilted, wi, ff, drive_k, got, n, margin, rows),
+        diffuse_basis(tilted, wi[rows], ff[rows], drive_k),
+    )
+    want = lobe_weights(frame[rows], wi[rows], h[rows], wo[rows], ff[rows], alpha[rows])
+    assert torch.equal(lobe_weights(frame[rows], wi, h, wo, ff, alpha[rows], rows), want)
+    order = want[..., :8].argsort(-1, descending=True)  # 8 blocks of 5 samples
+    members = torch.arange(40).view(8, 5)
+    fine, coarse = (wi, h, ff, drive[0, 0, :40]), (wi[:, :, :8], h[:, :, :8], ff[:, :, :8], drive[0, 0, :8])
+    got = selected_emitters(order, members, 2, fine, coarse, rows)
+    picked = (wi[rows], h[rows], ff[rows], drive[0, 0, :40])
+    want = selected_emitters(order, members, 2, picked, tuple(x[rows] for x in coarse[:3]) + coarse[3:])
+    assert all(torch.equal(a, b) for a, b in zip(got, want))
 
 
 def test_selected_emitters_are_the_expanded_blocks_then_the_coarse_ones():
