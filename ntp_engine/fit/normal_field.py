@@ -23,7 +23,7 @@ import math
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .surface_fields import field_pairs, semivariogram, texel_spacing
+from .surface_fields import field_pairs, fused_with_neighbours, semivariogram, texel_spacing
 
 NEIGHBOURS = 24  # nearest texels of the group fused with each
 RANGE = 1.0  # a neighbour whose offset differs by s sigmas (both errors) weighs exp(-s^2 / 2 RANGE^2) more or less
@@ -62,17 +62,11 @@ def fused_normals(
     apart2 = ((offset[near] - offset[:, None]) ** 2).sum(-1) / (own[:, None] ** 2 + own[near] ** 2)
     w = np.exp(-0.5 * apart2 / RANGE**2) / (own[near] ** 2 + field)
     w = w * (near != np.arange(S)[:, None])  # a texel is not its own neighbour
-    total = w.sum(1)
-    has = total > 0
-    safe = np.maximum(total, 1e-300)
+    safe = np.maximum(w.sum(1), 1e-300)
     mean = (w[..., None] * offset[near]).sum(1) / safe[:, None]
     spread = (w * ((offset[near] - mean[:, None]) ** 2).sum(-1)).sum(1) / safe
-    effective = total**2 / np.maximum((w * w).sum(1), 1e-300)
-    mean_var = np.maximum(spread / np.maximum(effective, 1.0), 1.0 / safe)
-    own_var = own**2
-    fuse = has & (((mean - offset) ** 2).sum(1) <= GATE**2 * (own_var + mean_var))
-    share = np.where(fuse, own_var / (own_var + mean_var), 0.0)
+    share, fused_var, _ = fused_with_neighbours(own**2, w, spread, ((mean - offset) ** 2).sum(1), GATE)
     fused = normal[source] + offset + share[:, None] * (mean - offset)
     fused /= np.linalg.norm(fused, axis=1, keepdims=True)
-    fused_std = np.where(fuse, np.sqrt(own_var * mean_var / (own_var + mean_var)), own)
+    fused_std = np.sqrt(fused_var)
     return fused, fused_std

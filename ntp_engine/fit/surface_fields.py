@@ -62,3 +62,23 @@ def semivariogram(
         elif n:
             gamma[n] = gamma[n - 1]
     return bins, np.maximum.accumulate(gamma)
+
+
+def fused_with_neighbours(
+    own_var: np.ndarray, w: np.ndarray, spread: np.ndarray, distance2: np.ndarray, gate: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A texel's own value (variance ``own_var (M,)``, inf: unknown) and its neighbours' weighted
+    mean (weights ``w (M, k)``, 1 / their variances as predictors; the neighbours' ``spread (M,)``
+    about their mean) combined by inverse variance: the mean counts as one measurement whose
+    variance is its standard error, at least the spread over the effective number of neighbours
+    and at least 1 / their total weight. Where the two lie more than ``gate`` sigmas apart together
+    (``distance2 (M,)``: their squared difference) or no neighbour weighs, the texel keeps its own
+    (the field changes there). Returns the mean's share in the fused value ``(M,)``, the fused
+    variance ``(M,)`` and where it fused ``(M,)``."""
+    total = w.sum(1)
+    effective = total**2 / np.maximum((w * w).sum(1), 1e-300)
+    mean_var = np.maximum(spread / np.maximum(effective, 1.0), 1.0 / np.maximum(total, 1e-300))
+    fuse = (total > 0) & ~(distance2 > gate**2 * (own_var + mean_var))
+    share = np.where(fuse, 1.0 / (1.0 + mean_var / own_var), 0.0)  # 1 where the own is unknown (inf)
+    fused_var = np.where(fuse, 1.0 / (1.0 / own_var + 1.0 / mean_var), own_var)
+    return share, fused_var, fuse

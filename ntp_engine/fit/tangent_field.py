@@ -23,7 +23,7 @@ import math
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .surface_fields import field_pairs, semivariogram, texel_spacing
+from .surface_fields import field_pairs, fused_with_neighbours, semivariogram, texel_spacing
 
 NEIGHBOURS = 16  # nearest sources averaged per texel
 REACH = 10.0  # a source's weight falls as a Gaussian of this many texel spacings (median nearest-texel distance)
@@ -155,18 +155,13 @@ def fused_turns(
     w = w * (source[near] != target[:, None])  # a texel is not its own neighbour
     total = w.sum(1)
     c, s = (w * np.cos(2 * psi)).sum(1), (w * np.sin(2 * psi)).sum(1)
-    has = total > 0
     mean = 0.5 * np.arctan2(s, c)  # the neighbours' axis, from the target's own
     resultant = np.clip(np.hypot(c, s) / np.maximum(total, 1e-300), 1e-12, 1.0)
     spread = -0.5 * np.log(resultant)  # variance of the axes (doubled angles' circular variance / 4)
-    effective = total**2 / np.maximum((w * w).sum(1), 1e-300)
-    mean_var = np.maximum(spread / np.maximum(effective, 1.0), 1.0 / np.maximum(total, 1e-300))
     own_var = np.maximum(std[target], MIN_STD) ** 2
-    share = 1.0 / (1.0 + mean_var / own_var)  # 1 where the texel's own is unconstrained (inf)
     # a texel that disagrees with its neighbours beyond both their errors sits where the field turns
     # (an edge of brushing): its own trace says so, and it keeps its tangent
-    apart = mean**2 > GATE**2 * (own_var + mean_var)
-    fuse = has & ~apart
+    share, fused_var, fuse = fused_with_neighbours(own_var, w, spread, mean**2, GATE)
     turn[fuse] = (share * mean)[fuse]
-    fused[fuse] = np.sqrt(1.0 / (1.0 / own_var + 1.0 / mean_var))[fuse]
+    fused[fuse] = np.sqrt(fused_var)[fuse]
     return turn, fused
