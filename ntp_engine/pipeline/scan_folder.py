@@ -2,8 +2,9 @@
 photos folder, the device file and, optionally, a poses file (camera-from-world 4x4 per photo name;
 SfM is skipped with it) or a COLMAP model folder (``colmap = "sparse/0"``: SfM is skipped, the
 model is aligned to the mesh) and ``support_plane = false`` when the object does not stand on a flat
-support at the mesh's lowest z (default true: SfM alignment uses the support, and photos whose
-LEDs the support shadows are skipped), and ``support_light = false`` when the photos hold no light
+support at the mesh's lowest z (default true: SfM alignment uses the support, and the entries of
+photos whose LEDs the support shadows are kept out of the network's range with those LEDs masked),
+and ``support_light = false`` when the photos hold no light
 the support reflects onto the object (a renderer of Eq. 1's direct light alone: the refinement then
 leaves it out; default: as ``support_plane``).
 

@@ -588,6 +588,7 @@ def _traces_stage(
         "min_cos_grazing": trace_assembly.MIN_COS_GRAZING,  # grazing entries: kept, flagged
         "max_tap_tilt_deg": trace_assembly.MAX_TAP_TILT_DEG,  # pixels that see another surface: not read
         "out_of_range_kept": True,
+        "support_shadowed_kept": True,  # the support's shadow: entries kept out of range, its groups masked
         "files": trace_assembly.TABLE_FILES,
         "device": scanner_to_dict(scan.scanner),
     }

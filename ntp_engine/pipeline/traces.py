@@ -82,7 +82,8 @@ class TraceStats:
 class SupportShadow:
     """Whether the support (the plane z = ``support_z`` under the object) blocks emitters carrying
     more than ``MAX_SHADOWED_DRIVE`` of the pattern's drive in a photo — for every point of the
-    object at once, which Eq. 1 (and the network) do not model."""
+    object at once, which Eq. 1 as the network learnt it does not model — and which emitter groups
+    it blocks (``mask``): an emitter below the plane is hidden from every point above it."""
 
     def __init__(self, scanner: Scanner, support_z: float):
         self.points, self.drive = sample_drive(scanner)
@@ -93,6 +94,14 @@ class SupportShadow:
         R, t = camera_from_world[:3, :3], camera_from_world[:3, 3]
         below = ((self.points - t) @ R)[..., 2] < self.support_z  # emitter samples in world: R^T (p - t)
         return bool(self.drive[below].sum() > MAX_SHADOWED_DRIVE)
+
+    def mask(self, camera_from_world: np.ndarray, groups: ShadowGroups) -> int:
+        """The int64 shadow mask (bit g: ``groups``' group g) of the groups whose centres lie below
+        the support in the photo taken from ``camera_from_world`` — hidden or not as their centres,
+        as ``EmitterShadow``'s; needs ``groups.fits``."""
+        R, t = camera_from_world[:3, :3], camera_from_world[:3, 3]
+        below = np.nonzero(((groups.points - t) @ R)[:, 2] < self.support_z)[0]
+        return int(np.bitwise_or.reduce(np.left_shift(1, below.astype(np.int64)), initial=0))
 
 
 class EmitterShadow:
@@ -268,9 +277,11 @@ def assemble(
 ) -> tuple[RaggedTraces, TraceStats]:
     """Traces of all texels. ``photos``: 8-bit ``(H, W, 3)`` arrays (any iterable: they are read
     one at a time, once); ``poses``: 4x4 camera-from-world, one per photo. ``support_z``: the
-    object stands on a plane z = support_z; a photo in which emitters carrying more than
-    ``MAX_SHADOWED_DRIVE`` of the pattern's drive are below that plane is skipped — the support
-    blocks their light for every point of the object, which Eq. 1 (and the network) do not model.
+    object stands on a plane z = support_z; in a photo where emitters carrying more than
+    ``MAX_SHADOWED_DRIVE`` of the pattern's drive are below that plane the support blocks their
+    light for every point of the object, which Eq. 1 as the network learnt it does not model: its
+    entries are kept out of range with those emitters' groups in their shadow masks (the
+    refinement models them), or, on a device whose groups do not fit a mask, the photo is skipped.
 
     Two passes: the first decides from geometry alone which texels each view measures (kept as
     int32 indices, 4 bytes per entry against the table's 48) and counts them per texel; the second
@@ -291,6 +302,7 @@ def assemble(
         "mixed_pixel_resampled": 0,
         "pixel_range": 0,
         "support_shadow_views": 0,
+        "support_shadowed": 0,  # entries of those views: kept, flagged, the support's groups masked
         "emitter_shadow": 0,
     }
     support_shadow = SupportShadow(scanner, support_z) if support_z is not None else None
@@ -298,15 +310,21 @@ def assemble(
     # entries the mesh shadows are kept with their masks, found in the second pass; on a device
     # with more groups than a mask holds, this pass leaves them out
     drops = None if self_shadow.groups.fits else self_shadow
+    # a view the support shadows: its entries kept with the groups below the support masked, out
+    # of range for the network (the refinement reads them where a texel has nothing else); on a
+    # device with more groups than a mask holds, left out whole
+    support_masks = np.zeros(len(poses), np.int64)
     seen: list[np.ndarray | None] = []
     partial: list[tuple[np.ndarray, np.ndarray]] = []  # per view: which taps see another surface (``_pack_taps``)
     counts = np.zeros(n_tex, np.int64)
-    for pose in progress.track(poses, "visibility", total=len(poses), unit="photo"):
+    for j, pose in enumerate(progress.track(poses, "visibility", total=len(poses), unit="photo")):
         if support_shadow is not None and support_shadow(pose):
             rejected["support_shadow_views"] += 1
-            seen.append(None)
-            partial.append(_pack_taps(np.zeros((0, 4), bool)))
-            continue
+            if drops is not None:  # no mask can hold the groups
+                seen.append(None)
+                partial.append(_pack_taps(np.zeros((0, 4), bool)))
+                continue
+            support_masks[j] = support_shadow.mask(pose, self_shadow.groups)
         idx, taps = _visible(texels, pose, scanner, caster, eps, rejected, drops)
         counts[idx] += 1
         seen.append(idx.astype(np.int32) if len(idx) else None)
@@ -363,6 +381,10 @@ def assemble(
             dark = shadowed(self_shadow.groups, torch.from_numpy(masks)).numpy()
             rejected["emitter_shadow"] += int(dark.sum())
             in_range[rows], shadow[rows] = ok & ~dark, masks
+        if support_masks[k]:  # the support's shadow on every entry of the view: none for the network
+            in_range[rows] = False
+            shadow[rows] = shadow[rows] | support_masks[k]
+            rejected["support_shadowed"] += len(idx)
     stats = TraceStats(views_used, int(in_range.sum()), int((counts > 0).sum()), rejected)
     if folder is None:
         return RaggedTraces(*(torch.from_numpy(a) for a in (entries, offsets, in_range, shadow))), stats

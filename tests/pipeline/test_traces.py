@@ -74,7 +74,9 @@ def test_traces_from_a_virtual_scan_match_the_renderer_and_respect_the_filters()
     assert np.median(rel) < 0.03
 
 
-def test_photos_whose_leds_the_support_shadows_are_skipped():
+def test_photos_whose_leds_the_support_shadows_keep_their_entries_out_of_range_with_those_leds_masked():
+    from ntp_engine.fit.emitter_blocks import shadow_groups
+
     mesh, _, _, _ = load_asset(None, None, None)
     cam = resampled(load_scanner(), 0.05)
     tx = rasterize(mesh, (16, 16))
@@ -84,10 +86,19 @@ def test_photos_whose_leds_the_support_shadows_are_skipped():
     level = look_at(np.array([0.31, 0.0, 0.01]), np.array([0.0, 0.0, 0.01]))  # half the panel below it
     photos = [np.full((cam.height, cam.width, 3), 100.0)] * 2
     caster = RayCaster([mesh.triangles])
-    _, st = assemble(tx, photos, [above, level], cam, caster, support_z=0.0)
-    assert st.rejected["support_shadow_views"] == 1 and st.views_used == 1
-    _, st = assemble(tx, photos, [above, level], cam, caster)  # no support declared: both used
-    assert st.rejected["support_shadow_views"] == 0 and st.views_used == 2
+    free, st_free = assemble(tx, [photos[1]], [level], cam, caster)  # no support declared
+    assert st_free.rejected["support_shadow_views"] == 0 and free.in_range.any()
+    tr, st = assemble(tx, photos, [above, level], cam, caster, support_z=0.0)
+    assert st.rejected["support_shadow_views"] == 1 and st.views_used == 2
+    # the level view's entries: all of them kept, none for the network, the groups below the table masked
+    level_only, _ = assemble(tx, [photos[1]], [level], cam, caster, support_z=0.0)
+    assert len(level_only.entries) == len(free.entries) == st.rejected["support_shadowed"] > 0
+    assert not level_only.in_range.any()
+    groups = shadow_groups(cam)
+    world_z = ((groups.points - level[:3, 3]) @ level[:3, :3])[:, 2]
+    below = (groups.hidden(level_only.shadow) & ~groups.hidden(free.shadow)).any(0).numpy()
+    np.testing.assert_array_equal(below, world_z < 0.0)
+    assert groups.hidden(level_only.shadow)[:, world_z < 0.0].all()
 
 
 def _reference_assemble(tx, photos, poses, cam, caster):
