@@ -314,6 +314,7 @@ def assemble(
     # of range for the network (the refinement reads them where a texel has nothing else); on a
     # device with more groups than a mask holds, left out whole
     support_masks = np.zeros(len(poses), np.int64)
+    support_views = np.zeros(len(poses), bool)  # out of range even where no group's centre is below
     seen: list[np.ndarray | None] = []
     partial: list[tuple[np.ndarray, np.ndarray]] = []  # per view: which taps see another surface (``_pack_taps``)
     counts = np.zeros(n_tex, np.int64)
@@ -324,7 +325,7 @@ def assemble(
                 seen.append(None)
                 partial.append(_pack_taps(np.zeros((0, 4), bool)))
                 continue
-            support_masks[j] = support_shadow.mask(pose, self_shadow.groups)
+            support_views[j], support_masks[j] = True, support_shadow.mask(pose, self_shadow.groups)
         idx, taps = _visible(texels, pose, scanner, caster, eps, rejected, drops)
         counts[idx] += 1
         seen.append(idx.astype(np.int32) if len(idx) else None)
@@ -381,7 +382,7 @@ def assemble(
             dark = shadowed(self_shadow.groups, torch.from_numpy(masks)).numpy()
             rejected["emitter_shadow"] += int(dark.sum())
             in_range[rows], shadow[rows] = ok & ~dark, masks
-        if support_masks[k]:  # the support's shadow on every entry of the view: none for the network
+        if support_views[k]:  # the support's shadow on every entry of the view: none for the network
             in_range[rows] = False
             shadow[rows] = shadow[rows] | support_masks[k]
             rejected["support_shadowed"] += len(idx)
