@@ -376,7 +376,7 @@ def fuse_normals(fit: dict[str, np.ndarray], texels: Texels, i_obs: np.ndarray) 
     normal field is smooth (``fit.normal_field.fused_normals``), their tangents kept orthogonal and
     ``std``'s normal column the fused one. A texel with no finite normal std keeps its normal.
     Updates ``fit`` in place (trace i = texel i of ``texels``)."""
-    frame = np.stack([texels.tangent, np.cross(texels.normal, texels.tangent), texels.normal], 1)[i_obs]  # rows
+    frame = texels.frame[i_obs]
     refined = np.einsum("tji,tj->ti", frame, fit["n_loc"][i_obs])
     std = np.radians(fit["std"][i_obs, 0])
     label = fit["material"][i_obs] if "material" in fit else np.zeros(len(i_obs), np.int64)

@@ -52,7 +52,7 @@ def write_result(out: Path, mesh: Mesh, texels: Texels, fitted: dict[str, np.nda
     Texels without a trace keep the geometric frame and get their values from the nearest observed
     texel (seams and holes dilated)."""
     observed = lengths > 0
-    frame = np.stack([texels.tangent, np.cross(texels.normal, texels.tangent), texels.normal], 1)  # rows
+    frame = texels.frame
     n_obj = np.einsum("tji,tj->ti", frame, fitted["n_loc"])
     t_obj = np.einsum("tji,tj->ti", frame, fitted["t_loc"])
     n_obj = np.where(observed[:, None], n_obj, texels.normal)

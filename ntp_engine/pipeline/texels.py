@@ -50,6 +50,12 @@ class Texels:
         return self.row * self.shape[1] + self.col
 
     @property
+    def frame(self) -> np.ndarray:
+        """Each texel's geometric frame ``(T, 3, 3)``, rows t^, b^ = n^ x t^, n^ (object space): a
+        local vector v is ``frame^T v`` in object space (the refinement's ``n_loc``, ``t_loc``)."""
+        return np.stack([self.tangent, np.cross(self.normal, self.tangent), self.normal], 1)
+
+    @property
     def uv(self) -> np.ndarray:
         """uv of each texel's centre ``(T, 2)`` (``io.maps.texel_uv``)."""
         return texel_uv(self.shape)[self.row, self.col]

@@ -30,6 +30,11 @@ def test_dome_texels_lie_on_the_surface_with_outward_frames():
     assert np.abs(r * r + z * z - 1).max() < 0.02  # on the dome's surface (faceted)
     assert (tx.normal[:, 2] >= -1e-9).all()
     assert np.abs((tx.normal * tx.tangent).sum(1)).max() < 1e-9
+    # the geometric frame: rows t, b = n x t, n, orthonormal and right-handed
+    f = tx.frame
+    np.testing.assert_allclose(f @ f.transpose(0, 2, 1), np.broadcast_to(np.eye(3), f.shape), atol=1e-9)
+    np.testing.assert_allclose(np.linalg.det(f), 1.0, atol=1e-9)
+    assert np.array_equal(f[:, 0], tx.tangent) and np.array_equal(f[:, 2], tx.normal)
 
 
 def test_shape_operators_are_zero_on_a_plane_and_one_over_the_radius_on_a_sphere():
