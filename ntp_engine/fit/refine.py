@@ -66,7 +66,7 @@ from .support_light import (
     support_specular_emitters,
 )
 
-VERSION = 27  # of the method: part of the pipeline's cache key (bump when results change for the same settings)
+VERSION = 28  # of the method: part of the pipeline's cache key (bump when results change for the same settings)
 CENSOR_CODE = VALID_CODE[1]  # above this an 8-bit code may be (or border) a clipped pixel: a lower bound
 EXPANDED_BLOCKS = 4  # emitter blocks per entry summed sample by sample (the rest as coarse emitters)
 SELECT_WIDEN, SELECT_FLOOR = 3.0, 0.03  # emitters are chosen under alphas x3 (at least 0.03)
@@ -656,10 +656,12 @@ def _solve(
     specular: bool,
     settings: RefineSettings,
     prior: _Prior | None = None,
+    weak: _Prior | None = None,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """All rounds for one group of texels (all with a lobe, or all diffuse-only); returns frame,
-    p, cost and the last Gauss-Newton Hessian. ``prior``: the weak pulls to the start unless given
-    (a basis material's lobe: then no multi-start, and the first round keeps the prior's rho_s)."""
+    p, cost and the last Gauss-Newton Hessian. ``prior``: the weak pulls (``weak``, else to the
+    start) unless given (a basis material's lobe: then no multi-start, and the first round keeps the
+    prior's rho_s)."""
     N = p.shape[0]
     free = torch.ones(N, N_PARAMS, dtype=torch.bool)
     if not specular:
@@ -669,7 +671,8 @@ def _solve(
         p = p.clone()
         p[:, P_RHO_S] = 0.0
     given = prior is not None
-    prior = prior if prior is not None else _Prior.weak(frame, p, settings)
+    if prior is None:
+        prior = weak if weak is not None else _Prior.weak(frame, p, settings)
     H = torch.zeros(N, N_PARAMS, N_PARAMS, dtype=torch.float64)
     cost = torch.zeros(N, dtype=p.dtype)
     first = 0
@@ -727,8 +730,10 @@ def refine(
     shadow: Tensor | None = None,
     support: SupportView | None = None,
     footprint: Footprint | None = None,
+    centre: Start | None = None,
 ) -> Refined:
-    """Refine N texels from ``start``. ``entries (N, V, 12)`` as captured with ``mask (N, V)`` and
+    """Refine N texels from ``start``, the weak pulls centred on ``centre`` (default: the start).
+    ``entries (N, V, 12)`` as captured with ``mask (N, V)`` and
     ``shadow (N, V)`` (the emitter groups the mesh hides from each entry: ``learn.ragged``);
     ``specular (N,)``: texels whose lobe is solved. A texel without one, or whose solved lobe no
     entry shows (below ``MIN_SPECULAR_SHARE`` of every pixel), gets a diffuse-only solve from its
@@ -737,35 +742,43 @@ def refine(
     lobe it sees, and the neighbours' albedo it may blend in. Never NaN: a failed solve keeps the start."""
     settings = settings or RefineSettings()
     tr = _Trace(scanner, entries, mask, settings.noise, emitter_blocks(scanner), shadow, support, footprint)
-    return _refine(tr, start, specular, settings)
+    return _refine(tr, start, specular, settings, centre)
 
 
-def _refine(tr: _Trace, start: Start, specular: Tensor, settings: RefineSettings) -> Refined:
-    """``refine`` on traces already prepared with ``settings.noise``."""
-    dtype = tr.y.dtype
-    N = tr.N
+def _parameters(start: Start, dtype: torch.dtype) -> tuple[Tensor, Tensor]:
+    """``start`` as the solver's frame ``(N, 3, 3)`` and parameters ``p (N, 11)`` (omega 0), in range."""
     frame = frame_from_normal_tangent(start.normal.to(dtype), start.tangent.to(dtype))
-    p = torch.zeros(N, N_PARAMS, dtype=dtype)
+    p = torch.zeros(len(frame), N_PARAMS, dtype=dtype)
     p[:, P_LOGA] = start.alpha.to(dtype).clamp(ALPHA_MIN, ALPHA_MAX).log()
     p[:, P_RHO_D] = start.rho_d.to(dtype).clamp(0, RHO_D_MAX)
     p[:, P_RHO_S] = start.rho_s.to(dtype).clamp(0, RHO_S_MAX)
+    return frame, p
+
+
+def _refine(
+    tr: _Trace, start: Start, specular: Tensor, settings: RefineSettings, centre: Start | None = None
+) -> Refined:
+    """``refine`` on traces already prepared with ``settings.noise``."""
+    dtype = tr.y.dtype
+    N = tr.N
+    frame, p = _parameters(start, dtype)
+    weak = _Prior.weak(*(_parameters(centre, dtype) if centre is not None else (frame, p)), settings)
     # every texel's diffuse-only answer (cheap: no lobe), then the lobe where one is sought; the lobe
     # stays where an entry shows it and it lowers the cost by more than ``lobe_evidence``
-    out_frame, out_p, cost, H = _solve(tr, frame, p, False, settings)
+    out_frame, out_p, cost, H = _solve(tr, frame, p, False, settings, weak=weak)
     highlight = torch.zeros(N, dtype=dtype)
     evidence = lobe_evidence(tr.mask.sum((1, 2)))
     idx = (specular & _lobe_can_pass(cost, evidence)).nonzero().squeeze(1)
     if len(idx):
         sub = tr if len(idx) == N else tr.rows(idx)  # idx sorted: all texels or a subset
-        f, q, c, h = _solve(sub, frame[idx], p[idx], True, settings)
+        f, q, c, h = _solve(sub, frame[idx], p[idx], True, settings, weak=weak.rows(idx))
         peak = _highlight(sub, f, q)
         keep = (peak >= MIN_SPECULAR_SHARE) & (c < cost[idx] - evidence[idx])
         diffuse_cost = cost[idx[keep]]
         highlight[idx] = torch.where(keep, peak, torch.zeros_like(peak))
         k = idx[keep]
         out_frame[k], out_p[k], cost[k], H[k] = f[keep], q[keep], c[keep], h[keep]
-        pulls = _Prior.weak(frame[k], p[k], settings)
-        sel, f, q, c, h, peak = _prefer_isotropic(tr, k, out_frame[k], out_p[k], cost[k], pulls, settings)
+        sel, f, q, c, h, peak = _prefer_isotropic(tr, k, out_frame[k], out_p[k], cost[k], weak.rows(k), settings)
         ok = c < diffuse_cost[sel] - evidence[k[sel]]  # the isotropic lobe still passes the lobe test
         j = k[sel[ok]]
         out_frame[j], out_p[j], cost[j], H[j], highlight[j] = f[ok], q[ok], c[ok], h[ok], peak[ok]

@@ -78,6 +78,8 @@ REFINE_VIEWS = 24  # entries per texel the refinement reads (spread evenly over 
 MIN_CLEAR_ENTRIES = 1
 CALIBRATION_TEXELS = 512  # texels refined first to calibrate the noise and the normal's pull (fit.refine.calibrated)
 BLEND_ENTRIES = 1 << 18  # entries per block of with_albedo_blend (its float64 temporaries ~100 MB)
+# LM rounds of the albedo-edge pass (from the first pass's answers): 1 -> docs/refinement.md, "Speed"
+EDGE_ROUNDS = 1
 REFINE_BATCH = 512  # texels per refinement batch: (batch, views, emitters) tensors stay ~100 MB
 FLAG_MARGINAL = 128  # refined on entries the mesh shadows or sees at grazing angles (too few others)
 MAX_SOURCE_STD = np.radians(20.0)  # a tangent known worse than this tells its neighbours nothing (_fuse_tangents)
@@ -358,11 +360,14 @@ def refine_fit(
         texel = np.repeat(np.arange(traces.num_traces), traces.lengths.numpy())
         np.maximum.at(per_trace, texel, traces.albedo_blend.amax(1).numpy())
         edges = todo[torch.as_tensor(per_trace[todo.numpy()] > 0)]
-        # a texel that kept no lobe in the first pass seeks none: noise on some of its entries
-        # shows no lobe that all of them together did not
-        lobeless = (fit["flags"] & FLAG_SPECULAR_UNCONSTRAINED) != 0
-        start["flags"][lobeless] |= FLAG_NO_HIGHLIGHT
-        _refine_texels(scanner, traces, fit, start, edges, settings, progress, texels, support, "albedo edges")
+        # from the first pass's answers, in EDGE_ROUNDS and no multi-start: the blend only reweighs
+        # some entries. The weak pulls still centre on the start (centred on the first pass's normal,
+        # which the blended entries had tipped, they held the matte normals there). A texel that
+        # kept no lobe seeks none: noise on some of its entries shows no lobe that all did not
+        warm = {k: v.copy() for k, v in fit.items()}
+        warm["flags"][(fit["flags"] & FLAG_SPECULAR_UNCONSTRAINED) != 0] |= FLAG_NO_HIGHLIGHT
+        again = dataclasses.replace(settings, rounds=EDGE_ROUNDS, starts=False)
+        _refine_texels(scanner, traces, fit, warm, edges, again, progress, texels, support, "albedo edges", start)
     if settings.materials:
         _material_pass(scanner, traces, fit, todo, settings, progress, texels, support)
     if settings.normal_field and texels is not None:
@@ -403,13 +408,25 @@ def _refine_texels(
     texels: Texels | None,
     support: SupportScene | None,
     name: str,
+    centre: dict[str, np.ndarray] | None = None,
 ) -> None:
-    """The texels ``todo`` refined from ``start`` (``refine_fit``'s first pass), into ``fit``."""
+    """The texels ``todo`` refined from ``start`` into ``fit``, the weak pulls centred on ``centre``
+    (default: the start)."""
     bar = progress.counter(name, len(todo), "texel")
     for idx in todo.split(REFINE_BATCH):
         inp = refine_inputs(scanner, traces, idx, start, support, texels)
+        pulls = None if centre is None else Start.from_fit(centre, idx.numpy())
         r = refine(
-            scanner, inp.entries, inp.mask, inp.start, inp.specular, settings, inp.shadow, inp.support, inp.footprint
+            scanner,
+            inp.entries,
+            inp.mask,
+            inp.start,
+            inp.specular,
+            settings,
+            inp.shadow,
+            inp.support,
+            inp.footprint,
+            pulls,
         )
         _store(fit, idx, r, inp.marginal)
         bar.update(len(idx))

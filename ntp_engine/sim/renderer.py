@@ -167,18 +167,21 @@ class Scene:
             return (~occ).reshape(len(p_w), *pts.shape[:2]).astype(np.float64)
         return (~occ)[:, self.cluster_of].astype(np.float64)
 
-    def _shade_backdrop(self, x_w: np.ndarray, R, tr) -> np.ndarray:
-        """Diffuse backdrop lit by the emitter clusters (their summed drive), unshadowed."""
-        albedo = marker_albedo(x_w)
-        x_c = torch.as_tensor(x_w @ R.T + tr, dtype=torch.float32)
+    def _shade_backdrop(self, x_w: np.ndarray, R, tr, chunk: int = 4096) -> np.ndarray:
+        """Diffuse backdrop lit by the emitter clusters (their summed drive), unshadowed; ``chunk``
+        points at a time (their (chunk, C) terms stay in cache: 3x faster than all at once)."""
         n_c = torch.as_tensor(R[:, 2], dtype=torch.float32)  # world +z in camera space
         c = torch.as_tensor(self.cluster_centres, dtype=torch.float32)
         nl = torch.as_tensor(self.cluster_normal, dtype=torch.float32)
-        r2 = ((c * c).sum(-1)[None] - 2 * x_c @ c.T + (x_c * x_c).sum(-1, keepdim=True)).clamp_min(1e-8)
-        inv_r = torch.rsqrt(r2)
-        cos_p = ((c @ n_c)[None] - (x_c @ n_c)[:, None]) * inv_r
-        cos_l = ((x_c @ nl)[:, None] - (c @ nl)[None]) * inv_r
-        psi = self.scanner.psi(cos_l)
-        irr = (cos_p.clamp_min(0) * psi / r2) @ torch.as_tensor(self.cluster_drive, dtype=torch.float32)
-        seen = ((-x_c) @ n_c > 0).to(torch.float32)[:, None]
-        return albedo[:, None] / math.pi * (irr * seen).double().numpy()
+        drive = torch.as_tensor(self.cluster_drive, dtype=torch.float32)
+        out = np.empty((len(x_w), 3))
+        for s in range(0, len(x_w), chunk):
+            x_c = torch.as_tensor(x_w[s : s + chunk] @ R.T + tr, dtype=torch.float32)
+            r2 = ((c * c).sum(-1)[None] - 2 * x_c @ c.T + (x_c * x_c).sum(-1, keepdim=True)).clamp_min(1e-8)
+            inv_r = torch.rsqrt(r2)
+            cos_p = ((c @ n_c)[None] - (x_c @ n_c)[:, None]) * inv_r
+            cos_l = ((x_c @ nl)[:, None] - (c @ nl)[None]) * inv_r
+            irr = (cos_p.clamp_min(0) * self.scanner.psi(cos_l) / r2) @ drive
+            seen = ((-x_c) @ n_c > 0).to(torch.float32)[:, None]
+            out[s : s + chunk] = (irr * seen).double().numpy()
+        return marker_albedo(x_w)[:, None] / math.pi * out

@@ -250,10 +250,11 @@ def test_each_entry_gets_the_albedo_its_pixel_may_blend_in_near_an_edge_only(mon
     assert (out >= 0).all() and 0.005 < out[~far].max().item() <= 0.4
 
 
-def test_the_edge_pass_seeks_a_lobe_only_where_the_first_pass_kept_one(monkeypatch):
+def test_the_edge_pass_starts_from_the_first_pass_and_seeks_a_lobe_only_where_it_kept_one(monkeypatch):
     """``refine_fit`` on a flat square of two albedos (0.3 | 0.7) seen in two views: the texels next
-    to the edge are refined again with the blend as noise, from their start, and those whose first
-    pass kept no lobe seek none there (their start says no highlight); their answers have none."""
+    to the edge are refined again with the blend as noise, from the first pass's answers in
+    ``EDGE_ROUNDS`` without the multi-start, the pulls centred on the start; those whose first pass
+    kept no lobe seek none there (their warm start says no highlight); their answers have none."""
     from ntp_engine.fit.geometry import FLAG_NO_HIGHLIGHT
     from ntp_engine.fit.refine import FLAG_SPECULAR_UNCONSTRAINED, RefineSettings
 
@@ -266,18 +267,23 @@ def test_the_edge_pass_seeks_a_lobe_only_where_the_first_pass_kept_one(monkeypat
     calls = []
     real = fit_traces_module._refine_texels
 
-    def spy(scanner, traces, fit, start, todo, settings, progress, texels, support, name):
-        calls.append((name, todo.numpy().copy(), start["flags"].copy(), fit["flags"].copy()))
-        real(scanner, traces, fit, start, todo, settings, progress, texels, support, name)
+    def spy(scanner, traces, fit, start, todo, settings, progress, texels, support, name, centre=None):
+        calls.append((name, todo.numpy().copy(), {k: v.copy() for k, v in start.items()}, settings, centre))
+        calls[-1] += ({k: v.copy() for k, v in fit.items()},)
+        real(scanner, traces, fit, start, todo, settings, progress, texels, support, name, centre)
 
     monkeypatch.setattr(fit_traces_module, "_refine_texels", spy)
     out = fit_traces_module.refine_fit(dev, traces, start, RefineSettings(materials=False), texels=tx)
     assert [c[0] for c in calls] == ["refine", "albedo edges"]
-    _, edges, told, first = calls[1]
+    _, edges, warm, settings, centre, first = calls[1]
     assert 0 < len(edges) < N
-    lobeless = first[edges] & FLAG_SPECULAR_UNCONSTRAINED != 0
+    assert settings.rounds == fit_traces_module.EDGE_ROUNDS and not settings.starts
+    for key in ("n_loc", "t_loc", "alpha", "rho_d", "rho_s"):
+        np.testing.assert_array_equal(warm[key], first[key])  # the first pass's answers
+        np.testing.assert_array_equal(centre[key], start[key])  # the pulls: the start's
+    lobeless = first["flags"][edges] & FLAG_SPECULAR_UNCONSTRAINED != 0
     assert lobeless.any()
-    np.testing.assert_array_equal(told[edges] & FLAG_NO_HIGHLIGHT != 0, lobeless)
+    np.testing.assert_array_equal(warm["flags"][edges] & FLAG_NO_HIGHLIGHT != 0, lobeless)
     assert (out["rho_s"][edges[lobeless]] == 0).all()
 
 
