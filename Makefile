@@ -14,6 +14,8 @@ $(STAMP): requirements.txt pyproject.toml
 	$(BIN)/python -m pip install -q torch==2.13.0
 	$(BIN)/python -m pip install -q -r requirements.txt
 	$(BIN)/python -m pip install -q --no-deps -e .
+	# the engine's numba loops compiled into their cache now, not in the first run (~20 s)
+	$(BIN)/python -m ntp_engine.pipeline.precompile
 	# the Khronos glTF validator for the add-on's tests, where node/npm exist (pinned)
 	if command -v npm >/dev/null; then npm install --silent --no-audit --no-fund --prefix $(VENV)/node gltf-validator@2.0.0-dev.3.10; fi
 	touch $(STAMP)

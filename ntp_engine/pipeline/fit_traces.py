@@ -78,8 +78,9 @@ REFINE_VIEWS = 24  # entries per texel the refinement reads (spread evenly over 
 MIN_CLEAR_ENTRIES = 1
 CALIBRATION_TEXELS = 512  # texels refined first to calibrate the noise and the normal's pull (fit.refine.calibrated)
 BLEND_ENTRIES = 1 << 18  # entries per block of with_albedo_blend (its float64 temporaries ~100 MB)
-# LM rounds of the albedo-edge pass (from the first pass's answers): 1 -> docs/refinement.md, "Speed"
-EDGE_ROUNDS = 1
+# rounds of the albedo-edge pass (from the first pass's answers); 1 lost the engine box's mirror
+# lacquer lobe (|log alpha| 0.002 -> 1.29) — docs/refinement.md, "Speed"
+EDGE_ROUNDS = 2
 REFINE_BATCH = 512  # texels per refinement batch: (batch, views, emitters) tensors stay ~100 MB
 FLAG_MARGINAL = 128  # refined on entries the mesh shadows or sees at grazing angles (too few others)
 MAX_SOURCE_STD = np.radians(20.0)  # a tangent known worse than this tells its neighbours nothing (_fuse_tangents)
@@ -360,7 +361,7 @@ def refine_fit(
         texel = np.repeat(np.arange(traces.num_traces), traces.lengths.numpy())
         np.maximum.at(per_trace, texel, traces.albedo_blend.amax(1).numpy())
         edges = todo[torch.as_tensor(per_trace[todo.numpy()] > 0)]
-        # from the first pass's answers, in EDGE_ROUNDS and no multi-start: the blend only reweighs
+        # from the first pass's answers, EDGE_ROUNDS and no multi-start: the blend only reweighs
         # some entries. The weak pulls still centre on the start (centred on the first pass's normal,
         # which the blended entries had tipped, they held the matte normals there). A texel that
         # kept no lobe seeks none: noise on some of its entries shows no lobe that all did not
