@@ -25,8 +25,9 @@ def test_help_lists_commands():
 def test_demo_runs_end_to_end_and_reports_errors(tmp_path):
     d = tmp_path / "demo"
     out = ntp(
-        "demo", "--out", str(d), "--views", "8", "--scale", "0.1", "--resolution", "24", "--known-poses", "--quiet"
-    )
+        "demo", "--out", str(d), "--views", "8", "--scale", "0.1", "--resolution", "24", "--known-poses", "--quiet",
+        "--no-refine",
+    )  # fmt: skip
     assert out.returncode == 0, out.stderr
     assert "relit_ssim" in out.stdout and "normal_median_deg" in out.stdout
     summary = json.loads((d / "demo.json").read_text())
@@ -51,16 +52,17 @@ def test_demo_runs_end_to_end_and_reports_errors(tmp_path):
         "--known-poses",
         "--quiet",
         "--no-blend",
+        "--no-refine",
     )
     assert again.returncode == 0, again.stderr
     rep = json.loads((d / "result" / "report.json").read_text())
     assert rep["cached_stages"] == ["select", "atlas", "traces", "fit"]
     assert not json.loads((d / "demo.json").read_text())["config"]["refine"]
     assert not (d / "result" / "uncertainty.exr").exists()
-    # --refine: the same cached stages, then the refinement (its uncertainties, its report)
+    # by default: the same cached stages, then the refinement (its uncertainties, its report)
     refined = ntp(
         "demo", "--out", str(d), "--views", "8", "--scale", "0.1", "--resolution", "24", "--known-poses", "--quiet",
-        "--no-blend", "--refine",
+        "--no-blend",
     )  # fmt: skip
     assert refined.returncode == 0, refined.stderr
     rep = json.loads((d / "result" / "report.json").read_text())

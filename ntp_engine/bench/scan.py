@@ -28,7 +28,9 @@ def run(
     with tempfile.TemporaryDirectory(prefix="ntp-bench-scan-") as tmp:
         for views, res in sizes:
             out = (work or Path(tmp)) / f"v{views}_r{res}"
-            s = demo.run(out, views=views, resolution=res, known_poses=known_poses, progress=QUIET, blend=False)
+            s = demo.run(
+                out, views=views, resolution=res, known_poses=known_poses, progress=QUIET, blend=False, refine=False
+            )
             st = s["seconds"]["stages"]
             r = {
                 "photos": views,

@@ -6,9 +6,10 @@ against the ground truth (``evaluate``): relit SSIM, normal median angle, diffus
 coverage, camera pose error. Everything goes to ``DIR/demo.json``; the relit comparisons (truth
 left, reconstruction right) to ``DIR/relit/``; with bpy installed, the add-on's batch export writes
 ``DIR/asset.blend``, ``DIR/asset.glb`` and a Cycles ``DIR/preview.png``. Re-running resumes: the scan is kept when its
-settings match, and the pipeline's stages are cached. With ``refine`` the reconstruction adds the
-analysis-by-synthesis refinement (``ntp reconstruct --refine``): on the defaults a better answer
-for ~3 more minutes, past the 5-minute goal (docs/accuracy.md).
+settings match, and the pipeline's stages are cached. The reconstruction includes the
+analysis-by-synthesis refinement (``ntp reconstruct --refine``; ``refine=False`` leaves it out): on
+the defaults ~2 of the run's ~4.5 minutes on 2 cores, and what meets the demo's quality goals
+(docs/accuracy.md).
 """
 
 from __future__ import annotations
@@ -29,7 +30,7 @@ from ..pipeline.stages import MIN_RESOLUTION, reconstruct, register_photos
 from .evaluate import map_errors, pose_error, relit_ssim
 from .virtual_scan import ScanConfig, scan_folder_is_current, virtual_scan
 
-DEMO_VIEWS, DEMO_SCALE, DEMO_RESOLUTION = 60, 0.25, 256  # `ntp demo`'s defaults: under 5 minutes on 2 cores
+DEMO_VIEWS, DEMO_SCALE, DEMO_RESOLUTION = 60, 0.25, 256  # `ntp demo`'s defaults: under 5 minutes on 2 cores, refined
 
 GOALS = {
     "relit_ssim": (">=", 0.97),
@@ -77,7 +78,7 @@ def run(
     model: str | None = None,
     progress: Progress = QUIET,
     blend: bool = True,
-    refine: bool = False,
+    refine: bool = True,
 ) -> dict:
     """Virtual scan, reconstruction, errors and export into ``out`` (see the module docstring);
     returns the summary (also ``out/demo.json``) and prints it."""
