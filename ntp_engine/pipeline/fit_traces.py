@@ -362,9 +362,9 @@ def refine_fit(
         np.maximum.at(per_trace, texel, traces.albedo_blend.amax(1).numpy())
         edges = todo[torch.as_tensor(per_trace[todo.numpy()] > 0)]
         # from the first pass's answers, EDGE_ROUNDS and no multi-start: the blend only reweighs
-        # some entries. The weak pulls still centre on the start (centred on the first pass's normal,
-        # which the blended entries had tipped, they held the matte normals there). A texel that
-        # kept no lobe seeks none: noise on some of its entries shows no lobe that all did not
+        # some entries. The weak pulls still centre on the start: centred on the first pass's
+        # normal, which the blended entries had tipped, they held the matte normals there. A texel
+        # that kept no lobe seeks none: noise on some of its entries shows no lobe that all did not
         warm = {k: v.copy() for k, v in fit.items()}
         warm["flags"][(fit["flags"] & FLAG_SPECULAR_UNCONSTRAINED) != 0] |= FLAG_NO_HIGHLIGHT
         again = dataclasses.replace(settings, rounds=EDGE_ROUNDS, starts=False)
