@@ -20,7 +20,6 @@ from .bench import scan as bench_scan
 from .bench import sfm as bench_sfm
 from .bench import stability as bench_stability
 from .bench import virtual_scan as bench_virtual_scan
-from .io.allocator import keep_freed_memory
 from .io.errors import NtpInputError, error_line
 from .io.progress import Progress
 from .learn import models
@@ -58,7 +57,6 @@ def main(argv: list[str] | None = None) -> int:
     stderr for bad input or a file that cannot be read or written (read-only, disk full), 130 for
     Ctrl-C."""
     args = _parser().parse_args(argv)
-    keep_freed_memory()  # the refinement's per-batch arrays reuse freed memory (io.allocator)
     try:
         return args.func(args)
     except (NtpInputError, OSError) as err:

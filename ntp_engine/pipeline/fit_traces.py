@@ -55,6 +55,7 @@ from ..fit.refine import (
 from ..fit.support_light import SupportScene, SupportView
 from ..fit.surface_fields import texel_spacing
 from ..fit.tangent_field import field_variation, fused_turns, neighbour_turns
+from ..io.allocator import freed_memory_kept
 from ..io.progress import QUIET, Progress
 from ..learn.inference import predict
 from ..learn.network import TraceNet
@@ -335,7 +336,21 @@ def refine_fit(
     the tangent turn its trace liked best (``fit.refine.material_costs``) — with ``texels`` (the
     atlas the traces were assembled for, trace i = texel i), weighing most the turn its neighbours
     of the material point along (``fit.tangent_field``). With ``support`` (and ``texels``), Eq. 1
-    gains the light the support reflects onto the object (``fit.support_light``)."""
+    gains the light the support reflects onto the object (``fit.support_light``). Its batches'
+    arrays reuse the memory the previous ones freed (``io.allocator``)."""
+    with freed_memory_kept():
+        return _refine_fit(scanner, traces, fit, settings, progress, texels, support)
+
+
+def _refine_fit(
+    scanner: Scanner,
+    traces: RaggedTraces,
+    fit: dict[str, np.ndarray],
+    settings: RefineSettings | None,
+    progress: Progress,
+    texels: Texels | None,
+    support: SupportScene | None,
+) -> dict[str, np.ndarray]:
     fit = {k: v.copy() for k, v in fit.items()}
     todo = (traces.lengths > 0).nonzero().squeeze(1)
     settings = settings or RefineSettings()
