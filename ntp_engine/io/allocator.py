@@ -21,7 +21,9 @@ from collections.abc import Callable, Iterator
 
 M_TRIM_THRESHOLD, M_MMAP_MAX = -1, -4  # glibc's mallopt parameters (malloc.h)
 TRIM_THRESHOLD = 1 << 30  # within the block: free memory at the heap's top beyond this goes back
-DEFAULT_TRIM_THRESHOLD, DEFAULT_MMAP_MAX = 128 * 1024, 65536  # glibc's defaults, restored after it
+# glibc's default values, set again after the block; any mallopt leaves glibc's dynamic mmap threshold
+# where it stands from then on (it rises only up to 32 MB, below the refinement's blocks anyway)
+DEFAULT_TRIM_THRESHOLD, DEFAULT_MMAP_MAX = 128 * 1024, 65536
 
 
 @functools.cache
@@ -37,7 +39,8 @@ def _mallopt() -> Callable[[int, int], int] | None:
 @contextlib.contextmanager
 def freed_memory_kept() -> Iterator[bool]:
     """Within the block, large blocks from the heap and freed memory kept (module docstring); yields
-    whether glibc took the settings. After it, glibc's default mapping and trimming again."""
+    whether glibc took the settings. After it, glibc's default mapping count and trim threshold again
+    (its mmap threshold no longer adapts: fixed where the run had taken it)."""
     mallopt = _mallopt()
     kept = mallopt is not None and bool(mallopt(M_MMAP_MAX, 0)) and bool(mallopt(M_TRIM_THRESHOLD, TRIM_THRESHOLD))
     try:
