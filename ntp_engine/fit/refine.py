@@ -66,7 +66,7 @@ from .support_light import (
     support_specular_emitters,
 )
 
-VERSION = 29  # of the method: part of the pipeline's cache key (bump when results change for the same settings)
+VERSION = 30  # of the method: part of the pipeline's cache key (bump when results change for the same settings)
 CENSOR_CODE = VALID_CODE[1]  # above this an 8-bit code may be (or border) a clipped pixel: a lower bound
 EXPANDED_BLOCKS = 4  # emitter blocks per entry summed sample by sample (the rest as coarse emitters)
 SELECT_WIDEN, SELECT_FLOOR = 3.0, 0.03  # emitters are chosen under alphas x3 (at least 0.03)
@@ -134,6 +134,9 @@ class RefineSettings:
     materials: bool = True  # basis materials for texels whose own trace does not show their lobe (fit.materials)
     # the neighbours' albedo each entry's pixel may blend in, as noise on its diffuse light (fit.footprint)
     albedo_blend: bool = True
+    # the albedos near edges solved jointly from the entries' pixel samples (fit.albedo_map; needs the texels, so
+    # ``pipeline.fit_traces.refine_fit`` does it)
+    albedo_map: bool = True
     # each normal fused with its neighbours' as far as the normal field is smooth (fit.normal_field; needs the
     # texels, so ``pipeline.fit_traces.refine_fit`` does it)
     normal_field: bool = True
@@ -1085,6 +1088,29 @@ def calibrated(
         from_start = torch.acos((n * n0).sum(1).clamp(-1, 1)).median()
         at_mesh = bool(from_mesh < from_start)
     return dataclasses.replace(settings, noise=noise, normal_prior_at_mesh=at_mesh)
+
+
+def predicted_light(
+    scanner: Scanner,
+    entries: Tensor,
+    mask: Tensor,
+    answer: Start,
+    settings: RefineSettings | None = None,
+    shadow: Tensor | None = None,
+    support: SupportView | None = None,
+    footprint: Footprint | None = None,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Eq. 1 at N texels' ``answer`` (taken as it is), as ``refine`` models their entries: each
+    entry's unit-albedo diffuse light, its lobe's light (the answer's rho_s times the specular basis)
+    and its sensor 1/sigma (``settings.noise``; 0 where masked or clipped), each ``(N, V, 3)``.
+    ``footprint``'s slope spread widens the lobe; its albedo blend is left out (the sensor's noise only)."""
+    settings = settings or RefineSettings()
+    spread = None if footprint is None else Footprint(footprint.spread, None)
+    tr = _Trace(scanner, entries, mask, settings.noise, emitter_blocks(scanner), shadow, support, spread)
+    frame, p = _parameters(answer, tr.y.dtype)
+    diffuse, spec = _predict(tr, frame, p)
+    inv_sigma = torch.where(tr.censored, torch.zeros_like(tr.inv_sigma), tr.inv_sigma)
+    return diffuse, p[:, None, P_RHO_S] * spec, inv_sigma
 
 
 def _predict(tr: _Trace, frame: Tensor, p: Tensor) -> tuple[Tensor, Tensor]:

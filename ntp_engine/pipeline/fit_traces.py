@@ -20,6 +20,7 @@ import numpy as np
 import torch
 
 from ..fit.albedo import highlights_and_albedo
+from ..fit.albedo_map import sharpened_albedos, tap_texels
 from ..fit.emitter_blocks import shadow_groups
 from ..fit.footprint import Footprint, albedo_blend, sample_points, slope_spread
 from ..fit.geometry import FALLBACK_ALPHA, FLAG_NO_HIGHLIGHT, fit_geometry
@@ -48,6 +49,7 @@ from ..fit.refine import (
     calibrated,
     lobe_costs,
     material_costs,
+    predicted_light,
     refine,
     refine_toward,
     turn_costs,
@@ -367,6 +369,7 @@ def _refine_fit(
     fit["highlight"] = np.zeros(traces.num_traces, np.float32)
     start = {k: v.copy() for k, v in fit.items()}  # where every texel's own refinement starts
     _refine_texels(scanner, traces, fit, start, todo, settings, progress, texels, support, "refine")
+    edges = None
     if settings.albedo_blend and texels is not None and texels.uv_per_metre is not None:
         # the albedos just refined say where the edges are; the texels whose pixels may blend a
         # neighbour's are refined again with that blend as noise
@@ -388,7 +391,47 @@ def _refine_fit(
         _material_pass(scanner, traces, fit, todo, settings, progress, texels, support)
     if settings.normal_field and texels is not None:
         fuse_normals(fit, texels, todo.numpy())
+    if settings.albedo_map and edges is not None and texels is not None:
+        sharpen_albedos(scanner, traces, fit, edges, settings, texels, support, progress)
     return fit
+
+
+def sharpen_albedos(
+    scanner: Scanner,
+    traces: RaggedTraces,
+    fit: dict[str, np.ndarray],
+    idx: torch.Tensor,
+    settings: RefineSettings,
+    texels: Texels,
+    support: SupportScene | None = None,
+    progress: Progress = QUIET,
+) -> None:
+    """The albedos of the texels ``idx`` (those whose pixels may blend a neighbour's) solved
+    jointly from their entries' pixel samples at ``fit``'s answers (``fit.albedo_map``): each entry
+    (those ``refine_inputs`` reads) as its diffuse light times the albedos its taps land in, its
+    lobe's light taken out. ``texels`` need ``uv_per_metre``; updates ``fit["rho_d"]`` in place."""
+    assert texels.uv_per_metre is not None
+    index = np.full(texels.shape, -1, np.int64)
+    index[texels.row, texels.col] = np.arange(len(texels))
+    uv = texels.uv
+    parts: list[tuple[np.ndarray, ...]] = []
+    bar = progress.counter("albedo map", len(idx), "texel")
+    for batch in idx.split(REFINE_BATCH):
+        inp = refine_inputs(scanner, traces, batch, fit, support, texels)
+        diffuse, lobe, inv_sigma = predicted_light(
+            scanner, inp.entries, inp.mask, inp.start, settings, inp.shadow, inp.support, inp.footprint
+        )
+        delta, weight = sample_points(scanner, inp.entries, inp.mask)
+        i = batch.numpy()
+        taps, w = tap_texels(delta.numpy(), weight.numpy(), uv[i], texels.uv_per_metre[i], index)
+        live = inp.mask.numpy()
+        target = inp.entries[..., :3].to(lobe.dtype) - lobe
+        parts.append(tuple(a[live] for a in (diffuse.numpy(), target.numpy(), inv_sigma.numpy(), taps, w)))
+        bar.update(len(batch))
+    bar.close()
+    if parts:
+        d, y, s, t, w = (np.concatenate(col) for col in zip(*parts, strict=True))
+        fit["rho_d"] = sharpened_albedos(d, y, s, t, w, fit["rho_d"], idx.numpy()).astype(fit["rho_d"].dtype)
 
 
 def fuse_normals(fit: dict[str, np.ndarray], texels: Texels, i_obs: np.ndarray) -> None:
