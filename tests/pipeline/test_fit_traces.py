@@ -329,3 +329,86 @@ def test_normals_are_fused_within_each_material_with_tangents_kept_orthogonal():
     np.testing.assert_allclose((fit["n_loc"] * fit["t_loc"]).sum(1), 0.0, atol=1e-12)
     np.testing.assert_allclose(np.linalg.norm(fit["t_loc"], axis=1), 1.0)
     assert np.nanmedian(fit["std"][material == 0, 0]) < 0.5 * np.degrees(0.02 * np.sqrt(2))
+
+
+def test_the_albedos_next_to_an_edge_come_back_sharper_from_the_entries_pixel_samples():
+    """A flat square 0.2 | 0.8 seen from 8 poses a fraction of a pixel apart (a pixel spans ~a
+    texel), each entry's pixel the diffuse light times the albedos its four taps see (as the camera
+    samples them): each texel's own answer is blurred next to the edge; ``sharpen_albedos`` on the
+    texels beside it brings them back more than half way, holds the rest, and never gives NaN."""
+    from ntp_engine.fit.albedo_map import tap_texels
+    from ntp_engine.fit.footprint import sample_points
+    from ntp_engine.fit.refine import RefineSettings, Start, predicted_light
+    from ntp_engine.io.mesh import Mesh, smooth_normals
+    from ntp_engine.pipeline.texels import rasterize
+
+    v = np.array([[0, 0, 0], [0.016, 0, 0], [0.016, 0.016, 0], [0, 0.016, 0.0]])
+    f = np.array([[0, 1, 2], [0, 2, 3]])
+    tx = rasterize(Mesh(v, f, v[:, :2] / 0.016, smooth_normals(v, f)), (32, 32), curvature=True)
+    N, V = len(tx), 8
+    truth = np.where(tx.col[:, None] < 16, 0.2, 0.8) * np.ones(3)
+    R = np.diag([1.0, -1.0, -1.0])
+    rows = []
+    for k in range(V):
+        x = tx.position @ R.T + [-0.008 + 1.3e-4 * k, 0.008 + 0.7e-4 * k, 0.8]
+        n, t = np.tile(R @ [0, 0, 1.0], (N, 1)), np.tile(R @ [1.0, 0, 0], (N, 1))
+        rows.append(np.concatenate([np.ones((N, 3)), x, n, t], 1))
+    entries = torch.as_tensor(np.stack(rows, 1), dtype=torch.float32)
+    mask = torch.ones(N, V, dtype=torch.bool)
+    dev = load_scanner()
+    fit = {"n_loc": np.tile([0.0, 0, 1], (N, 1)), "t_loc": np.tile([1.0, 0, 0], (N, 1))}
+    fit |= {"alpha": np.full((N, 2), 0.2), "rho_d": truth.copy(), "rho_s": np.zeros((N, 3))}
+    fit["flags"] = np.zeros(N, np.int64)
+    diffuse, _, _ = predicted_light(dev, entries, mask, Start.from_fit(fit, np.arange(N)))
+    delta, weight = sample_points(dev, entries, mask)
+    index = np.full(tx.shape, -1, np.int64)
+    index[tx.row, tx.col] = np.arange(N)
+    taps, w = tap_texels(delta.numpy(), weight.numpy(), tx.uv, tx.uv_per_metre, index)
+    y = diffuse.numpy() * (w[..., None] * truth[taps]).sum(2)
+    entries[..., :3] = torch.as_tensor(y, dtype=torch.float32)
+    d = diffuse.numpy()
+    fit["rho_d"] = (d * y).sum(1) / (d * d).sum(1)  # each texel's own answer
+    traces = RaggedTraces(entries.reshape(-1, 12), torch.arange(0, V * N + 1, V))
+    beside = np.nonzero(np.abs(tx.col + 0.5 - 16) < 3)[0]
+    own = fit["rho_d"].copy()
+    assert np.abs(own[beside] - truth[beside]).max() > 0.02  # blurred
+    fit_traces_module.sharpen_albedos(dev, traces, fit, torch.as_tensor(beside), RefineSettings(), tx)
+    out = fit["rho_d"]
+    assert np.isfinite(out).all()
+    np.testing.assert_array_equal(np.delete(out, beside, 0), np.delete(own, beside, 0))
+    before, after = (np.sqrt(((a[beside] - truth[beside]) ** 2).mean()) for a in (own, out))
+    assert after < 0.5 * before
+
+
+def test_refine_fit_sharpens_the_albedos_of_the_edge_pass_texels_only_when_asked(monkeypatch):
+    """``refine_fit`` solves the albedo map (``sharpen_albedos``) over the texels the edge pass
+    refined, after every other step; ``RefineSettings(albedo_map=False)`` leaves it out."""
+    from ntp_engine.fit.refine import RefineSettings
+
+    tx, traces = _square_in_two_views(0.8, (0.02, 0.05))
+    dev = load_scanner()
+    N = len(tx)
+    start = {"n_loc": np.tile([0.0, 0, 1], (N, 1)), "t_loc": np.tile([1.0, 0, 0], (N, 1))}
+    start |= {"alpha": np.full((N, 2), 0.2), "rho_d": np.full((N, 3), 0.5), "rho_s": np.full((N, 3), 1.0)}
+    start["flags"] = np.zeros(N, np.int64)
+    passes, sharpened = [], []
+    real_pass, real_sharpen = fit_traces_module._refine_texels, fit_traces_module.sharpen_albedos
+
+    def spy_pass(scanner, traces, fit, start, todo, settings, progress, texels, support, name, centre=None):
+        passes.append((name, todo.numpy().copy()))
+        real_pass(scanner, traces, fit, start, todo, settings, progress, texels, support, name, centre)
+
+    def spy_sharpen(scanner, traces, fit, idx, *args, **kwargs):
+        sharpened.append((idx.numpy().copy(), fit["n_loc"].copy()))
+        real_sharpen(scanner, traces, fit, idx, *args, **kwargs)
+
+    monkeypatch.setattr(fit_traces_module, "_refine_texels", spy_pass)
+    monkeypatch.setattr(fit_traces_module, "sharpen_albedos", spy_sharpen)
+    out = fit_traces_module.refine_fit(dev, traces, start, RefineSettings(materials=False), texels=tx)
+    assert [p[0] for p in passes] == ["refine", "albedo edges"] and len(sharpened) == 1
+    np.testing.assert_array_equal(sharpened[0][0], passes[1][1])
+    np.testing.assert_array_equal(sharpened[0][1], out["n_loc"])  # after the normals were fused
+    assert np.isfinite(out["rho_d"]).all()
+    passes.clear()
+    fit_traces_module.refine_fit(dev, traces, start, RefineSettings(materials=False, albedo_map=False), texels=tx)
+    assert len(sharpened) == 1
