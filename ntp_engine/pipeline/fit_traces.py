@@ -20,7 +20,7 @@ import numpy as np
 import torch
 
 from ..fit.albedo import highlights_and_albedo
-from ..fit.albedo_map import sharpened_albedos, tap_texels
+from ..fit.albedo_map import MIN_BLEND, sharpened_albedos, tap_texels
 from ..fit.emitter_blocks import shadow_groups
 from ..fit.footprint import Footprint, albedo_blend, sample_points, slope_spread
 from ..fit.geometry import FALLBACK_ALPHA, FLAG_NO_HIGHLIGHT, fit_geometry
@@ -338,7 +338,9 @@ def refine_fit(
     the tangent turn its trace liked best (``fit.refine.material_costs``) — with ``texels`` (the
     atlas the traces were assembled for, trace i = texel i), weighing most the turn its neighbours
     of the material point along (``fit.tangent_field``). With ``support`` (and ``texels``), Eq. 1
-    gains the light the support reflects onto the object (``fit.support_light``). Its batches'
+    gains the light the support reflects onto the object (``fit.support_light``). Last, the albedos
+    of the edge pass's texels that may blend ``MIN_BLEND`` or more of a neighbour's are solved
+    jointly from their entries' pixel samples (``sharpen_albedos``, ``settings.albedo_map``). Its batches'
     arrays reuse the memory the previous ones freed (``io.allocator``)."""
     with freed_memory_kept():
         return _refine_fit(scanner, traces, fit, settings, progress, texels, support)
@@ -369,7 +371,7 @@ def _refine_fit(
     fit["highlight"] = np.zeros(traces.num_traces, np.float32)
     start = {k: v.copy() for k, v in fit.items()}  # where every texel's own refinement starts
     _refine_texels(scanner, traces, fit, start, todo, settings, progress, texels, support, "refine")
-    edges = None
+    sharpened = None
     if settings.albedo_blend and texels is not None and texels.uv_per_metre is not None:
         # the albedos just refined say where the edges are; the texels whose pixels may blend a
         # neighbour's are refined again with that blend as noise
@@ -379,6 +381,7 @@ def _refine_fit(
         texel = np.repeat(np.arange(traces.num_traces), traces.lengths.numpy())
         np.maximum.at(per_trace, texel, traces.albedo_blend.amax(1).numpy())
         edges = todo[torch.as_tensor(per_trace[todo.numpy()] > 0)]
+        sharpened = todo[torch.as_tensor(per_trace[todo.numpy()] > MIN_BLEND)]  # the albedo map's texels
         # from the first pass's answers, EDGE_ROUNDS and no multi-start: the blend only reweighs
         # some entries. The weak pulls still centre on the start: centred on the first pass's
         # normal, which the blended entries had tipped, they held the matte normals there. A texel
@@ -391,8 +394,8 @@ def _refine_fit(
         _material_pass(scanner, traces, fit, todo, settings, progress, texels, support)
     if settings.normal_field and texels is not None:
         fuse_normals(fit, texels, todo.numpy())
-    if settings.albedo_map and edges is not None and texels is not None:
-        sharpen_albedos(scanner, traces, fit, edges, settings, texels, support, progress)
+    if settings.albedo_map and sharpened is not None and texels is not None:
+        sharpen_albedos(scanner, traces, fit, sharpened, settings, texels, support, progress)
     return fit
 
 
@@ -406,7 +409,7 @@ def sharpen_albedos(
     support: SupportScene | None = None,
     progress: Progress = QUIET,
 ) -> None:
-    """The albedos of the texels ``idx`` (those whose pixels may blend a neighbour's) solved
+    """The albedos of the texels ``idx`` (those whose pixels may blend ``MIN_BLEND`` of a neighbour's) solved
     jointly from their entries' pixel samples at ``fit``'s answers (``fit.albedo_map``): each entry
     (those ``refine_inputs`` reads) as its diffuse light times the albedos its taps land in, its
     lobe's light taken out. ``texels`` need ``uv_per_metre``; updates ``fit["rho_d"]`` in place."""

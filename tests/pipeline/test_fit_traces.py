@@ -205,16 +205,21 @@ def test_a_materials_lobe_is_isotropic_unless_its_members_traces_together_show_o
         np.testing.assert_allclose(got.alpha, [truth], rtol=0.15)
 
 
-def _square_in_two_views(distance: float, pixels: tuple[float, float]):
-    """A flat 16 mm square's atlas (32², 0.5 mm texels) and its traces: two views ``distance`` (m)
-    straight above it, a fraction of a pixel apart, every pixel ``pixels[0]`` left of the middle and
-    ``pixels[1]`` right of it (grey)."""
+def _square():
+    """A flat 16 mm square's atlas (32², 0.5 mm texels) with its curvature and uv per metre."""
     from ntp_engine.io.mesh import Mesh, smooth_normals
     from ntp_engine.pipeline.texels import rasterize
 
     v = np.array([[0, 0, 0], [0.016, 0, 0], [0.016, 0.016, 0], [0, 0.016, 0.0]])
     f = np.array([[0, 1, 2], [0, 2, 3]])
-    tx = rasterize(Mesh(v, f, v[:, :2] / 0.016, smooth_normals(v, f)), (32, 32), curvature=True)
+    return rasterize(Mesh(v, f, v[:, :2] / 0.016, smooth_normals(v, f)), (32, 32), curvature=True)
+
+
+def _square_in_two_views(distance: float, pixels: tuple[float, float]):
+    """``_square``'s atlas and its traces: two views ``distance`` (m) straight above it, a fraction
+    of a pixel apart, every pixel ``pixels[0]`` left of the middle and ``pixels[1]`` right of it
+    (grey)."""
+    tx = _square()
     y = np.where(tx.col[:, None] < 16, *pixels) * np.ones(3)
     rows = []
     for shift in (0.0, 0.0013):
@@ -339,12 +344,8 @@ def test_the_albedos_next_to_an_edge_come_back_sharper_from_the_entries_pixel_sa
     from ntp_engine.fit.albedo_map import tap_texels
     from ntp_engine.fit.footprint import sample_points
     from ntp_engine.fit.refine import RefineSettings, Start, predicted_light
-    from ntp_engine.io.mesh import Mesh, smooth_normals
-    from ntp_engine.pipeline.texels import rasterize
 
-    v = np.array([[0, 0, 0], [0.016, 0, 0], [0.016, 0.016, 0], [0, 0.016, 0.0]])
-    f = np.array([[0, 1, 2], [0, 2, 3]])
-    tx = rasterize(Mesh(v, f, v[:, :2] / 0.016, smooth_normals(v, f)), (32, 32), curvature=True)
+    tx = _square()
     N, V = len(tx), 8
     truth = np.where(tx.col[:, None] < 16, 0.2, 0.8) * np.ones(3)
     R = np.diag([1.0, -1.0, -1.0])
@@ -381,11 +382,12 @@ def test_the_albedos_next_to_an_edge_come_back_sharper_from_the_entries_pixel_sa
 
 
 def test_refine_fit_sharpens_the_albedos_of_the_edge_pass_texels_only_when_asked(monkeypatch):
-    """``refine_fit`` solves the albedo map (``sharpen_albedos``) over the texels the edge pass
-    refined, after every other step; ``RefineSettings(albedo_map=False)`` leaves it out."""
+    """``refine_fit`` solves the albedo map (``sharpen_albedos``) over texels the edge pass refined
+    (those that may blend ``MIN_BLEND`` or more), after every other step;
+    ``RefineSettings(albedo_map=False)`` leaves it out."""
     from ntp_engine.fit.refine import RefineSettings
 
-    tx, traces = _square_in_two_views(0.8, (0.02, 0.05))
+    tx, traces = _square_in_two_views(0.8, (0.05, 0.3))
     dev = load_scanner()
     N = len(tx)
     start = {"n_loc": np.tile([0.0, 0, 1], (N, 1)), "t_loc": np.tile([1.0, 0, 0], (N, 1))}
@@ -406,7 +408,7 @@ def test_refine_fit_sharpens_the_albedos_of_the_edge_pass_texels_only_when_asked
     monkeypatch.setattr(fit_traces_module, "sharpen_albedos", spy_sharpen)
     out = fit_traces_module.refine_fit(dev, traces, start, RefineSettings(materials=False), texels=tx)
     assert [p[0] for p in passes] == ["refine", "albedo edges"] and len(sharpened) == 1
-    np.testing.assert_array_equal(sharpened[0][0], passes[1][1])
+    assert 0 < len(sharpened[0][0]) and np.isin(sharpened[0][0], passes[1][1]).all()
     np.testing.assert_array_equal(sharpened[0][1], out["n_loc"])  # after the normals were fused
     assert np.isfinite(out["rho_d"]).all()
     passes.clear()
