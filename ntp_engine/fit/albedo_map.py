@@ -27,6 +27,7 @@ from scipy.sparse.linalg import cg
 
 from ..io.maps import uv_to_pixel
 from ..physics.brdf import RHO_D_MAX
+from .footprint import tap_uv
 
 # the pull to the texel's own answer, per median texel's data weight: 0.05 / 0.2 / 0.5 gave the demo ρd RMSE
 # 0.0165 / 0.0173 / 0.0182 (0.0199 without), the Cycles gallery's cells a net loss / even / a small gain
@@ -49,13 +50,12 @@ def tap_texels(
     ``delta (N, V, 4, 2)``, ``weight (N, V, 4)``: the taps as ``fit.footprint.sample_points`` gives
     them (metres along the texel's (t^, b^)); ``uv (N, 2)``, ``uv_per_metre (N, 2, 2)``: the texels'
     (``pipeline.texels``); ``texel_index (H, W)``: each map pixel's texel, -1 where none. A tap
-    lands at uv + (d uv / d(t, b)) delta, in the texel whose square holds it; one that leaves the
+    lands at ``fit.footprint.tap_uv``, in the texel whose square holds it; one that leaves the
     atlas counts for its own texel (``own``), as does every tap of an entry none of whose taps is
     weighed (padding, edge-on: weight 1 on the first)."""
     N, V = weight.shape[:2]
     H, W = texel_index.shape
-    at = uv[:, None, None, :] + np.einsum("nij,nvaj->nvai", uv_per_metre, delta)
-    r, c = uv_to_pixel(at.reshape(-1, 2), (H, W))
+    r, c = uv_to_pixel(tap_uv(delta, uv, uv_per_metre).reshape(-1, 2), (H, W))
     row, col = np.rint(r).astype(np.int64), np.rint(c).astype(np.int64)
     inside = (row >= 0) & (row < H) & (col >= 0) & (col < W)
     hit = np.where(inside, texel_index[row.clip(0, H - 1), col.clip(0, W - 1)], -1).reshape(N, V, 4)

@@ -119,6 +119,13 @@ def sample_points(scanner: Scanner, entries: Tensor, mask: Tensor) -> tuple[Tens
     return torch.where(seen[..., None, None], delta, torch.zeros_like(delta)), weight * seen[..., None]
 
 
+def tap_uv(delta: np.ndarray, uv: np.ndarray, uv_per_metre: np.ndarray) -> np.ndarray:
+    """Where each tap ``delta (N, V, 4, 2)`` (``sample_points``, metres along (t^, b^)) of texels at
+    ``uv (N, 2)`` with ``uv_per_metre (N, 2, 2)`` (``pipeline.texels``) lands in the map: uv + (d uv /
+    d(t, b)) delta, ``(N, V, 4, 2)`` (first order: on the texel's tangent plane)."""
+    return uv[:, None, None, :] + np.einsum("nij,nvaj->nvai", uv_per_metre, delta)
+
+
 def albedo_blend(delta: Tensor, weight: Tensor, uv: np.ndarray, uv_per_metre: np.ndarray, albedo: np.ndarray) -> Tensor:
     """How much of its neighbours' albedo each entry's pixel sample may blend in ``(N, V, 3)``:
     sqrt(sum_a w_a d_a^2), d_a = rho(uv_a) - rho(uv) soft-thresholded by ``BLEND_NOISE``, over the
@@ -127,7 +134,7 @@ def albedo_blend(delta: Tensor, weight: Tensor, uv: np.ndarray, uv_per_metre: np
     3)`` sampled bilinearly (its unobserved texels filled). 0 where no tap is weighed or the map is
     uniform within ``BLEND_NOISE``."""
     N, V = weight.shape[:2]
-    at = uv[:, None, None, :] + np.einsum("nij,nvaj->nvai", uv_per_metre, delta.numpy())
+    at = tap_uv(delta.numpy(), uv, uv_per_metre)
     taps = bilinear(albedo, at.reshape(-1, 2)).reshape(N, V, 4, -1)
     d = taps - bilinear(albedo, uv)[:, None, None, :]
     d = np.maximum(np.abs(d) - BLEND_NOISE, 0.0)
