@@ -4,7 +4,8 @@ scanner and Cycles) x poses (true, structure from motion) — reported per mater
 Per run: pose error (SfM), relit SSIM under novel point lights (object pixels), seconds per stage;
 per material (``sim.evaluate.material_errors``): the share of its surface texels some photo sees
 (true poses), coverage (of those, the share some trace reached), normal angle, tangent angle mod 180 on
-anisotropic texels, |log alpha ratio|, rho_d RMSE and ratio, |log rho_s ratio|, spurious-lobe
+anisotropic texels, |log alpha ratio|, rho_d RMSE and ratio, the share of texels on a material
+border and the rho_d RMSE of the others, |log rho_s ratio|, spurious-lobe
 rate on matte. With ``budget`` (``--budget``), where each run's relit SSIM is lost: the SSIM gained
 by one group of maps of one material taken from the truth (``sim.evaluate.relit_budget``). Writes
 ``OUT/gallery.json``, ``OUT/gallery.md`` (the tables) and
@@ -49,6 +50,8 @@ METRICS = (
     "log_alpha",
     "rho_d_rmse",
     "rho_d_ratio",
+    "border",
+    "rho_d_rmse_inside",
     "log_rho_s",
     "spurious_lobe",
 )

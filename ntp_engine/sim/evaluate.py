@@ -13,7 +13,9 @@
   **coverage** (the share of the seen ones that some trace reached), normal angle,
   tangent angle mod 180 deg between the axes of the larger alpha (texels whose true anisotropy is
   >= 2:1), |log alpha ratio| of the sorted alphas (larger with larger), rho_d RMSE and ratio (mean
-  reconstructed / mean true), |log rho_s ratio| (channel means), and on matte materials the
+  reconstructed / mean true), **border** (the share of texels on a material border,
+  ``material_border``) and the rho_d RMSE of the others (**rho_d_rmse_inside**: where the rho_d
+  error lies, not a target), |log rho_s ratio| (channel means), and on matte materials the
   spurious-lobe rate: the fraction of texels given rho_s > ``SPURIOUS_RHO_S``. Medians over the
   material's observed texels (the truth at each texel's centre, ``truth_at_texels``); NaN where a
   metric does not apply or nothing was observed.
@@ -92,10 +94,27 @@ def truth_at_texels(truth: SVBRDFMaps, labels: np.ndarray, uv: np.ndarray) -> tu
     texels, and the one containing it (its nearest) is half a truth texel off: on the gallery's
     curved objects 1-2 deg of normal (docs/accuracy.md)."""
     label = _nearest(labels[..., None], uv)[:, 0]
+    return truth.sample(uv, _own_material_taps(labels, uv, label)[0]), label
+
+
+def _own_material_taps(labels: np.ndarray, uv: np.ndarray, label: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Which of the four truth texels a bilinear sample at ``uv (N, 2)`` reads (``bilinear_corners``'
+    order) hold the centre's own ``label (N,)`` ``(N, 4)`` bool (the containing texel always one),
+    and their bilinear weights ``(N, 4)``."""
     h, w = labels.shape
-    rows, cols, _, _ = bilinear_corners(h, w, *uv_to_pixel(uv, (h, w)))
-    taps = labels[rows, cols] == label[:, None]  # the containing texel is one of the four
-    return truth.sample(uv, taps), label
+    rows, cols, fr, fc = bilinear_corners(h, w, *uv_to_pixel(uv, (h, w)))
+    weight = np.concatenate([(1 - fr) * (1 - fc), (1 - fr) * fc, fr * (1 - fc), fr * fc], 1)
+    return labels[rows, cols] == label[:, None], weight
+
+
+def material_border(labels: np.ndarray, uv: np.ndarray, label: np.ndarray) -> np.ndarray:
+    """Whether a result texel centred at ``uv (N, 2)`` straddles a material border: ``(N,)`` bool,
+    True where the bilinear sample at its centre weighs a truth texel of another material than the
+    centre's ``label (N,)`` (a result as fine as the truth: never). Its photos see both materials
+    there and the texel holds one value: its rho_d comes out between them, scored against its
+    centre's material (docs/accuracy.md, "Texels on a material border")."""
+    own, weight = _own_material_taps(labels, uv, label)
+    return (~own & (weight > 0)).any(1)
 
 
 def _major_axis(maps: dict[str, np.ndarray]) -> np.ndarray:
@@ -178,6 +197,7 @@ def material_errors(
     seen = surface if scanner is None or poses is None else seen_texels(mesh, shape, scanner, poses)
     labels, table = load_labels(truth)
     true, label = truth_at_texels(SVBRDFMaps.load(truth), labels, uv)
+    border = material_border(labels, uv, label)
     rec = {k: getattr(rec_maps, k).reshape(-1, getattr(rec_maps, k).shape[-1]) for k in MAP_FILES}
     rows = []
     for k, mat in enumerate(table):
@@ -192,13 +212,29 @@ def material_errors(
         nan = float("nan")
         row.update(
             dict.fromkeys(
-                ("normal_deg", "tangent_deg", "log_alpha", "rho_d_rmse", "rho_d_ratio", "log_rho_s", "spurious_lobe"),
+                (
+                    "normal_deg",
+                    "tangent_deg",
+                    "log_alpha",
+                    "rho_d_rmse",
+                    "rho_d_ratio",
+                    "border",
+                    "rho_d_rmse_inside",
+                    "log_rho_s",
+                    "spurious_lobe",
+                ),
                 nan,
             )
         )
         if sel.any():
             rec_sel = {key: v[sel] for key, v in rec.items()}
             row.update(parameter_errors(rec_sel, {key: v[sel] for key, v in true.items()}, mat["matte"]))
+            # where its rho_d error lies: texels on a material border (a diagnostic; the target is rho_d_rmse)
+            row["border"] = float(border[sel].mean())
+            inside = sel & ~border
+            if inside.any():
+                err = rec["diffuse_albedo"][inside] - true["diffuse_albedo"][inside]
+                row["rho_d_rmse_inside"] = float(np.sqrt((err**2).mean()))
         rows.append(row)
     return rows
 

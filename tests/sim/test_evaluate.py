@@ -13,6 +13,7 @@ from ntp_engine.scanner.camera import look_at
 from ntp_engine.scanner.device_file import load_scanner
 from ntp_engine.sim.evaluate import (
     compare_images,
+    material_border,
     material_errors,
     pose_error,
     relit_budget,
@@ -95,6 +96,28 @@ def test_the_truth_is_taken_at_each_texels_centre(tmp_path):
     for r in material_errors(result, asset / "ground_truth"):
         assert r["normal_deg"] < 0.01, r
         assert np.nan_to_num(r["log_alpha"]) < 0.01 and np.nan_to_num(r["tangent_deg"]) < 0.1
+
+
+def test_texels_on_a_material_border_are_told_apart(tmp_path):
+    """A result at half the truth's resolution holding the truth's bilinear samples: its texels on a
+    material border hold a blend of two materials' albedos, scored against their centre's material;
+    the others score none. As fine as the truth, no texel is on a border."""
+    asset = build_asset("knot", tmp_path / "asset", 64)
+    result = tmp_path / "result"
+    result.mkdir()
+    shutil.copy(asset / "mesh.obj", result / "mesh.obj")
+    res = 32
+    samples = SVBRDFMaps.load(asset / "ground_truth").sample(texel_uv((res, res)).reshape(-1, 2))
+    SVBRDFMaps(*(samples[k].reshape(res, res, -1) for k in MAP_FILES)).save(result)
+    write_exr(result / "confidence.exr", np.ones((res, res, 3)))
+    rows = material_errors(result, asset / "ground_truth")
+    for r in rows:
+        assert 0 < r["border"] < 0.5, r
+        assert r["rho_d_rmse_inside"] < 1e-5 and r["rho_d_rmse"] > 10 * r["rho_d_rmse_inside"] + 1e-3, r
+    labels, _ = load_labels(asset / "ground_truth")
+    uv = texel_uv(labels.shape).reshape(-1, 2)
+    assert not material_border(labels, uv, labels.reshape(-1)).any()
+    assert all(r["border"] == 0 for r in material_errors(*_result_from_truth(tmp_path / "same", name="knot")))
 
 
 def test_material_errors_see_each_kind_of_error(tmp_path):
