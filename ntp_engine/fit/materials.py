@@ -9,8 +9,12 @@ mixture model): the data cost of its trace under each material's lobe or none
 (``refine.material_costs``), plus the colour's cost — a lobe material's Gaussian in log rho_d with its
 members' spread, the matte class's a broad one — minus the log of the class's share. So a texel
 whose trace cannot tell (its entries miss the lobe) joins the lobe material of its colour, one of
-another colour stays matte, and where the trace tells, it decides. Only the lobe materials whose
-colour cost is within ``CANDIDATE_MARGIN`` of the texel's best are judged by its trace. The matte
+another colour stays matte, and where the trace tells, it decides. Its colour under a material is
+its rho_d re-solved under that material's lobe, held to the members' rho_d under the same lobe
+(``judged_colour_costs``): a broad lobe's light looks diffuse, and judged without it a rough metal
+is as bright as its lobe makes it (the gallery's knot: ρd 0.16 for 0.05, taken for matte). A
+texel's trace judges the lobe materials within ``CANDIDATE_MARGIN`` of its likeliest by that
+colour, and every broad one (``BROAD_ALPHA``), whose colour it cannot know before. The matte
 class's share is the object's own (``estimated_matte_share``: the mixture's maximum likelihood,
 by EM from ``MATTE_SHARE``): an object with little matte surface gives a texel that cannot tell
 to its colour's lobe material, one with much keeps it matte.
@@ -25,6 +29,7 @@ refinement's canonical lobe); costs in half chi-square units like the refinement
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -50,6 +55,8 @@ MIN_HIGHLIGHT = 0.4  # a lobe that made this share of some pixel or more showed 
 # rho_s of a dielectric's lobe at most (Schlick F0 <= 0.06, IOR <= ~1.65): such a lobe shows itself faintly
 DIELECTRIC_RHO_S = 1.5
 CANDIDATE_MARGIN = math.log(1000.0)  # lobe materials this much less likely by colour than the best are not judged
+# a lobe whose smaller alpha is this or more spreads its light like a diffuse term: judged for every texel (candidates)
+BROAD_ALPHA = 0.2
 POOL_CLIP = 2.0  # a texel's vote on its material's lobe width: its cost above its best, clipped here (pooled_scale)
 
 
@@ -64,6 +71,8 @@ class BasisMaterials:
     log_alpha_sigma: np.ndarray  # (K,)
     rho_s_sigma: np.ndarray  # (K,) linear units
     share: np.ndarray  # (K,) prior share: (1 - MATTE_SHARE) x material_weight / all lobe texels
+    # (K, 3) its members' rho_d under its own lobe (``rho_d`` is their own answers', whose lobes may be narrower)
+    lobe_rho_d: np.ndarray
 
     def __len__(self) -> int:
         return len(self.share)
@@ -72,7 +81,7 @@ class BasisMaterials:
     def empty() -> BasisMaterials:
         """No materials (K = 0)."""
         z2, z1 = np.zeros((0, 3)), np.zeros(0)
-        return BasisMaterials(z2, np.zeros((0, 2)), z2, z1, z1, z1, z1)
+        return BasisMaterials(z2, np.zeros((0, 2)), z2, z1, z1, z1, z1, z2)
 
     def to_arrays(self, prefix: str = "material_") -> dict[str, np.ndarray]:
         """Flat arrays for an ``.npz`` (``from_arrays`` reads them back)."""
@@ -88,7 +97,7 @@ class BasisMaterials:
         return BasisMaterials(*(v[keep] for v in _fields(self)))
 
 
-_NAMES = ("rho_d", "alpha", "rho_s", "colour_sigma", "log_alpha_sigma", "rho_s_sigma", "share")
+_NAMES = ("rho_d", "alpha", "rho_s", "colour_sigma", "log_alpha_sigma", "rho_s_sigma", "share", "lobe_rho_d")
 
 
 def _fields(m: BasisMaterials) -> tuple[np.ndarray, ...]:
@@ -204,6 +213,7 @@ def lobe_clusters(
                 max(_mad(la), MIN_LOG_ALPHA_SIGMA),
                 max(_mad(rs.mean(1)), MIN_RHO_S_SIGMA * rs_mean),
                 (1 - MATTE_SHARE) * weight / len(rho_d),
+                np.median(rho_d[m], 0),
             )
         )
     if not rows:
@@ -256,6 +266,19 @@ def colour_costs(rho_d: np.ndarray, materials: BasisMaterials) -> np.ndarray:
     """Negative log density ``(N, 1 + K)`` of each texel's ``rho_d (N, 3)`` under the broad matte
     class (column 0) and each lobe material, without the classes' shares."""
     return np.concatenate([np.full((len(rho_d), 1), _BROAD_COLOUR), _colour_costs(rho_d, materials)], 1)
+
+
+def judged_colour_costs(rho_d: np.ndarray, materials: BasisMaterials) -> np.ndarray:
+    """``colour_costs`` ``(N, 1 + K)`` of each texel's rho_d under each model ``rho_d (N, 1 + K, 3)``
+    (no lobe, then each lobe material's; ``fit.refine.material_costs``): a texel's rho_d is only
+    defined with its lobe, and a broad lobe's light looks diffuse — a rough metal judged without its
+    lobe is as bright as its lobe makes it. Where a material was not judged (NaN), the rho_d without
+    a lobe stands in."""
+    own = np.where(np.isnan(rho_d[:, 1:]), rho_d[:, :1], rho_d[:, 1:])  # (N, K, 3)
+    K = len(materials.alpha)
+    under = dataclasses.replace(materials, rho_d=materials.lobe_rho_d)  # the members' colour under the same lobe
+    lobe = np.stack([_colour_costs(own[:, k], under)[:, k] for k in range(K)], 1) if K else own[:, :, 0]
+    return np.concatenate([np.full((len(rho_d), 1), _BROAD_COLOUR), lobe], 1)
 
 
 def class_shares(materials: BasisMaterials, matte_share: float = MATTE_SHARE) -> np.ndarray:
@@ -311,8 +334,11 @@ def colour_held(materials: BasisMaterials, members: np.ndarray, rho_d: np.ndarra
     return materials.subset(held), np.where(members >= 0, index[members.clip(0)], -1)
 
 
-def candidates(prior: np.ndarray) -> np.ndarray:
-    """The lobe materials ``(N, K)`` worth judging by a texel's trace, from ``class_costs``: those
-    within ``CANDIDATE_MARGIN`` of its likeliest by colour."""
+def candidates(prior: np.ndarray, materials: BasisMaterials) -> np.ndarray:
+    """The lobe materials ``(N, K)`` worth judging by a texel's trace, from ``class_costs`` at its
+    rho_d without a lobe: those within ``CANDIDATE_MARGIN`` of its likeliest by colour, and the
+    broad ones (smaller alpha >= ``BROAD_ALPHA``): under such a lobe the texel's rho_d may be far
+    darker than without one (a sharp lobe the trace misses leaves it as it is)."""
     lobe = prior[:, 1:]
-    return lobe <= lobe.min(1, keepdims=True, initial=math.inf) + CANDIDATE_MARGIN
+    near = lobe <= lobe.min(1, keepdims=True, initial=math.inf) + CANDIDATE_MARGIN
+    return near | (materials.alpha[:, 1] >= BROAD_ALPHA)[None]

@@ -66,7 +66,7 @@ from .support_light import (
     support_specular_emitters,
 )
 
-VERSION = 32  # of the method: part of the pipeline's cache key (bump when results change for the same settings)
+VERSION = 33  # of the method: part of the pipeline's cache key (bump when results change for the same settings)
 CENSOR_CODE = VALID_CODE[1]  # above this an 8-bit code may be (or border) a clipped pixel: a lower bound
 EXPANDED_BLOCKS = 4  # emitter blocks per entry summed sample by sample (the rest as coarse emitters)
 SELECT_WIDEN, SELECT_FLOOR = 3.0, 0.03  # emitters are chosen under alphas x3 (at least 0.03)
@@ -834,6 +834,14 @@ def lobe_evidence(residuals: Tensor) -> Tensor:
     return (0.5 * LOBE_PARAMS * residuals.clamp_min(1).to(torch.float32).log()).clamp_min(LOBE_EVIDENCE)
 
 
+class MaterialCosts(NamedTuple):
+    """``material_costs``' answer: per texel and model (no lobe, then each material)."""
+
+    cost: Tensor  # (N, 1 + K) robust data cost; inf: not judged
+    turn: Tensor  # (N, K) the best turn of each material's tangent (radians)
+    rho_d: Tensor  # (N, 1 + K, 3) the rho_d re-solved under each model; NaN: not judged
+
+
 def material_costs(
     scanner: Scanner,
     entries: Tensor,
@@ -847,15 +855,16 @@ def material_costs(
     turn_prior: tuple[Tensor, Tensor] | None = None,
     support: SupportView | None = None,
     footprint: Footprint | None = None,
-) -> tuple[Tensor, Tensor]:
+) -> MaterialCosts:
     """How well K basis materials' lobes (``alpha (K, 2)``, ``rho_s (K, 3)``) explain N traces:
     the robust data cost ``(N, 1 + K)`` of each texel's trace under no lobe (column 0) and under each
     material's lobe where ``candidates (N, K)`` (default all; elsewhere inf), with the texel's own
-    normal and its rho_d re-solved (bounded least squares), and the turn ``(N, K)`` (radians, about
-    the normal from ``start``'s tangent) that fits best. An anisotropic lobe at the texel's start
-    tangent is a guess (a UV direction), so it is tried at ``TANGENT_TURNS`` turns over 180 deg and
-    its cost is the negative log of their mean likelihood (uniform over turns; the cheapest alone
-    would let a lobe hide in the noise by choosing where to point). ``turn_prior`` = (turn, agree)
+    normal and its rho_d re-solved (bounded least squares; ``(N, 1 + K, 3)``, NaN where not judged),
+    and the turn ``(N, K)`` (radians, about the normal from ``start``'s tangent) that fits best (its
+    rho_d the one at that turn). An anisotropic lobe at the texel's start tangent is a guess (a UV
+    direction), so it is tried at ``TANGENT_TURNS`` turns over 180 deg and its cost is the negative
+    log of their mean likelihood (uniform over turns; the cheapest alone would let a lobe hide in
+    the noise by choosing where to point). ``turn_prior`` = (turn, agree)
     ``(N, K)``: where the texel's neighbours say material k points (``fit.tangent_field``) — that
     turn is tried too and weighs ``agree`` in the mean, the others ``(1 - agree) / TANGENT_TURNS``
     (agree 0: uniform; the turns stay anchored at the start tangent, a UV direction, which is the
@@ -867,16 +876,17 @@ def material_costs(
     N, K = tr_all.N, alpha.shape[0]
     frame_all = frame_from_normal_tangent(start.normal.to(dtype), start.tangent.to(dtype))
     cost = torch.full((N, 1 + K), math.inf, dtype=dtype)
+    rho_d = torch.full((N, 1 + K, 3), math.nan, dtype=dtype)
     turn = torch.zeros(N, K, dtype=dtype)
     candidates = torch.ones(N, K, dtype=torch.bool) if candidates is None else candidates
 
-    def judged(tr: _Trace, f: Tensor, m: int, diffuse: Tensor | None) -> tuple[Tensor, Tensor]:
-        """The cost under material m (0: no lobe), and the round's diffuse basis."""
+    def judged(tr: _Trace, f: Tensor, m: int, diffuse: Tensor | None) -> tuple[Tensor, Tensor, Tensor]:
+        """The cost under material m (0: no lobe), the round's diffuse basis and the rho_d."""
         a, r = (alpha[m - 1], rho_s[m - 1]) if m else (alpha.new_ones(2), rho_s.new_zeros(3))
         return _given_lobe_cost(tr, f, a.expand(tr.N, 2), r.expand(tr.N, 3), m > 0, diffuse, settings)
 
     # every model shares the texel's normal, so its diffuse basis
-    cost[:, 0], diffuse = judged(tr_all, frame_all, 0, None)
+    cost[:, 0], diffuse, rho_d[:, 0] = judged(tr_all, frame_all, 0, None)
     for m in range(1, K + 1):
         idx = candidates[:, m - 1].nonzero().squeeze(1)
         if len(idx) == 0:
@@ -890,11 +900,14 @@ def material_costs(
             agree = turn_prior[1][idx, m - 1].to(dtype).clamp(0, 1)[:, None]
             angles = torch.cat([angles, turn_prior[0][idx, m - 1].to(dtype)[:, None]], 1)
             weight = torch.cat([weight * (1 - agree), agree], 1)
-        c = torch.stack([judged(tr, turned_about_normal(frame, a), m, d)[0] for a in angles.unbind(1)], 1)
+        each = [judged(tr, turned_about_normal(frame, a), m, d) for a in angles.unbind(1)]
+        c = torch.stack([e[0] for e in each], 1)
         score = torch.log(weight) - c  # log of each turn's share of the likelihood (a weight of 0: none)
+        best = score.argmax(1)
         cost[idx, m] = -torch.logsumexp(score, 1)
-        turn[idx, m - 1] = angles.gather(1, score.argmax(1, keepdim=True))[:, 0]
-    return cost, turn
+        turn[idx, m - 1] = angles.gather(1, best[:, None])[:, 0]
+        rho_d[idx, m] = torch.stack([e[2] for e in each], 1)[torch.arange(len(idx)), best]
+    return MaterialCosts(cost, turn, rho_d)
 
 
 def _given_lobe_cost(
@@ -905,10 +918,11 @@ def _given_lobe_cost(
     specular: bool,
     diffuse: Tensor | None,
     settings: RefineSettings,
-) -> tuple[Tensor, Tensor]:
+) -> tuple[Tensor, Tensor, Tensor]:
     """The robust data cost ``(N,)`` of traces under the lobes ``alpha (N, 2)``, ``rho_s (N, 3)``
     (``specular`` False: none) in ``frame``, rho_d re-solved (bounded least squares; inf where not
-    finite), and the round's diffuse basis (``diffuse``: one of the same normal, reused)."""
+    finite), the round's diffuse basis (``diffuse``: one of the same normal, reused) and that rho_d
+    ``(N, 3)``."""
     dtype = tr.y.dtype
     p = torch.zeros(tr.N, N_PARAMS, dtype=dtype)
     if specular:
@@ -918,7 +932,7 @@ def _given_lobe_cost(
     bases = rnd.bases(p[:, P_OMEGA], p[:, P_LOGA])
     p = _albedo_start(rnd, p, specular, keep_rho_s=True, bases=bases)
     c = _cost(_residuals(tr, *bases, p)[0], settings.noise.robust)
-    return torch.nan_to_num(c, nan=math.inf), rnd.diffuse
+    return torch.nan_to_num(c, nan=math.inf), rnd.diffuse, p[:, P_RHO_D]
 
 
 def turn_costs(
@@ -941,7 +955,7 @@ def turn_costs(
     frame = frame_from_normal_tangent(start.normal.to(dtype), start.tangent.to(dtype))
     costs, diffuse = [], None
     for a in turns.to(dtype).unbind(1):
-        c, diffuse = _given_lobe_cost(
+        c, diffuse, _ = _given_lobe_cost(
             tr, turned_about_normal(frame, a), start.alpha, start.rho_s, True, diffuse, settings
         )
         costs.append(c)

@@ -31,6 +31,7 @@ from ..fit.materials import (
     colour_costs,
     colour_held,
     estimated_matte_share,
+    judged_colour_costs,
     lobe_clusters,
     pooled_scale,
     pooled_votes,
@@ -546,7 +547,7 @@ def pooled_widths(
     LED or two measures one axis, and each member's own solve leaves the other by its start (the
     gallery's vase alpha 0.02 plastic: |log alpha| 0.10 per axis, 0.02 so). rho_s: the members'
     median at the chosen width."""
-    alpha, rho_s = basis.alpha.copy(), basis.rho_s.copy()
+    alpha, rho_s, lobe_rho_d = basis.alpha.copy(), basis.rho_s.copy(), basis.lobe_rho_d.copy()
     S = len(POOL_SCALES)
     for k in range(len(basis)):
         ids = clear[members == k]
@@ -567,7 +568,7 @@ def pooled_widths(
             c, _, _ = _lobe_costs(scanner, inp, aniso * np.stack([POOL_SCALES, np.ones(S)], 1), settings)
             widths.append(aniso * np.array([pooled_scale(c.numpy(), POOL_SCALES), 1.0]))
         cand = -np.sort(-np.clip(widths, ALPHA_MIN, ALPHA_MAX), 1)  # alpha_x >= alpha_y
-        c, _, rs = _lobe_costs(scanner, inp, cand, settings)
+        c, rd, rs = _lobe_costs(scanner, inp, cand, settings)
         j = 0  # the isotropic lobe, unless the anisotropic one wins the vote
         if len(cand) == 2:
             votes = pooled_votes(c.numpy())
@@ -576,7 +577,8 @@ def pooled_widths(
             paid = ANISOTROPY_PARAMS * (cand[1, 0] >= ISOTROPIC_RATIO * cand[1, 1])
             j = int(votes[1] + paid < votes[0])
         alpha[k], rho_s[k] = cand[j], rs[:, j].median(0).values.numpy()
-    return dataclasses.replace(basis, alpha=alpha, rho_s=rho_s)
+        lobe_rho_d[k] = rd[:, j].median(0).values.numpy()
+    return dataclasses.replace(basis, alpha=alpha, rho_s=rho_s, lobe_rho_d=lobe_rho_d)
 
 
 def _lobe_costs(
@@ -681,13 +683,16 @@ def _material_pass(
         fit["material"][i_obs] = -1
         fit.update(basis.to_arrays())
         return
-    # the texels without a lobe of their own: their traces judge their colour's lobe materials and
-    # no lobe; the colours weigh in where the traces cannot tell
+    # the texels without a lobe of their own: their traces judge no lobe and the lobe materials of
+    # their colour and the broad ones, each with its rho_d re-solved; their colours under each weigh in
+    # where the traces cannot tell (judged without the lobe, a broad lobe's texels looked matte:
+    # the knot's rough metal, docs/accuracy.md)
     colour = colour_costs(fit["rho_d"][i_obs], basis)
     prior = colour - np.log(class_shares(basis))
     rest = np.nonzero(~own[i_obs])[0]
     costs = np.full((len(i_obs), 1 + len(basis)), np.inf)
     turns = np.zeros((len(i_obs), len(basis)))
+    judged_rho_d = np.full((len(i_obs), 1 + len(basis), 3), np.nan)
     alpha, rho_s = torch.as_tensor(basis.alpha), torch.as_tensor(basis.rho_s)
     label = np.full(len(i_obs), -1)
     label[own[i_obs]] = np.argmin(prior[own[i_obs]], 1) - 1  # a texel with its own lobe: by its colour
@@ -696,9 +701,9 @@ def _material_pass(
     bar = progress.counter("materials", len(rest), "texel")
     for k in np.array_split(np.arange(len(rest)), -(-len(rest) // REFINE_BATCH)) if len(rest) else []:
         inp = refine_inputs(scanner, traces, torch.as_tensor(i_obs[rest[k]]), fit, support, texels)
-        maybe = torch.as_tensor(candidates(prior[rest[k]]))
+        maybe = torch.as_tensor(candidates(prior[rest[k]], basis))
         near = None if field is None else (torch.as_tensor(field[0][k]), torch.as_tensor(field[1][k]))
-        c, t = material_costs(
+        c, t, rd = material_costs(
             scanner,
             inp.entries,
             inp.mask,
@@ -712,11 +717,12 @@ def _material_pass(
             inp.support,
             inp.footprint,
         )
-        costs[rest[k]], turns[rest[k]] = c.numpy(), t.numpy()
+        costs[rest[k]], turns[rest[k]], judged_rho_d[rest[k]] = c.numpy(), t.numpy(), rd.numpy()
         bar.update(len(k))
     bar.close()
     # the matte share is this object's: the likeliest given every texel's colour and, where judged,
     # its trace (a texel with its own lobe is no matte one) — the prior above only chose candidates
+    colour[rest] = judged_colour_costs(judged_rho_d[rest], basis)
     likelihood = colour.copy()
     likelihood[rest] += costs[rest]
     likelihood[own[i_obs], 0] = np.inf

@@ -36,7 +36,7 @@ def basis_materials_doc(materials: BasisMaterials) -> dict:
         "a texel whose own photos did not show its lobe has its material's, refined against its photos",
         "table": [
             {
-                "rho_d": [round(float(v), 4) for v in materials.rho_d[k]],
+                "rho_d": [round(float(v), 4) for v in materials.lobe_rho_d[k]],  # under its own lobe
                 "alpha": [round(float(v), 4) for v in materials.alpha[k]],
                 "rho_s": [round(float(v), 4) for v in materials.rho_s[k]],
                 "share": round(float(materials.share[k]), 3),

@@ -1,6 +1,8 @@
 """Basis materials: clusters of the texels that kept a lobe, their lobe rates, and the class costs
 that assign every texel a lobe material or none."""
 
+import dataclasses
+
 import numpy as np
 
 from ntp_engine.fit.materials import (
@@ -12,6 +14,7 @@ from ntp_engine.fit.materials import (
     clusters,
     colour_held,
     estimated_matte_share,
+    judged_colour_costs,
     lobe_clusters,
     material_weight,
     pooled_scale,
@@ -152,11 +155,37 @@ def test_class_costs_follow_colour_and_share():
     assert np.argmin(c[1]) == 2 - blue
     assert np.argmin(c[2]) == 0  # red: the broad matte class, by far
     assert c[2, 1:].min() - c[2, 0] > 10
-    # only the materials of a texel's colour are worth its trace's judgement
-    cand = candidates(c)
+    # only the materials of a texel's colour are worth its trace's judgement, and the broad ones
+    cand = candidates(c, m)
     assert cand.shape == (3, 2) and cand[0, blue] and not cand[0, 1 - blue] and cand[1, 1 - blue]
+    broad = dataclasses.replace(m, alpha=np.where(np.arange(2)[:, None] == 1 - blue, 0.3, m.alpha))
+    assert candidates(class_costs(probe, broad), broad)[:, 1 - blue].all()
     assert class_costs(probe, BasisMaterials.empty()).shape == (3, 1)
-    assert candidates(class_costs(probe, BasisMaterials.empty())).shape == (3, 0)
+    assert candidates(class_costs(probe, BasisMaterials.empty()), BasisMaterials.empty()).shape == (3, 0)
+
+
+def test_a_texel_judged_under_a_lobe_is_coloured_as_under_it():
+    """A broad lobe's members answered 0.16 by their own (narrower) lobes, 0.05 under the material's
+    pooled one (``lobe_rho_d``); a texel judged without a lobe at 0.16 re-solves to 0.05 under it:
+    that is the colour held to the material's under the same lobe — a perfect match, where against
+    the members' own answers it would be far off. A material not judged for a texel (NaN) holds the
+    texel's rho_d without a lobe to its colour under its lobe."""
+    rho_d, alpha, rho_s = _two_materials(np.random.default_rng(3))
+    m = lobe_clusters(rho_d, alpha, rho_s)[0]
+    np.testing.assert_allclose(m.lobe_rho_d, m.rho_d)  # until the widths are pooled
+    grey = int(np.argmax(m.alpha[:, 0]))
+    m.rho_d[grey], m.lobe_rho_d[grey] = 0.16, 0.05
+    judged = np.full((2, 3, 3), np.nan)
+    judged[:, 0] = 0.16  # without a lobe
+    judged[0, 1 + grey] = 0.05  # under the grey material's lobe
+    c = judged_colour_costs(judged, m)
+    assert c.shape == (2, 3) and np.isfinite(c).all()
+    shares = np.log(np.concatenate([[MATTE_SHARE], m.share]))
+    np.testing.assert_allclose(c[:, 0], class_costs(judged[:1, 0], m)[0, 0] + shares[0])
+    np.testing.assert_allclose(c[0, 1 + grey], 3 * np.log(m.colour_sigma[grey]))  # its colour exactly
+    assert class_costs(judged[:1, 1 + grey], m)[0, 1 + grey] + shares[1 + grey] > c[0, 1 + grey] + 10
+    under = dataclasses.replace(m, rho_d=m.lobe_rho_d)
+    np.testing.assert_allclose(c[1, 1:], class_costs(judged[1:, 0], under)[0, 1:] + shares[1:])
 
 
 def test_the_matte_share_is_the_objects_own():
@@ -168,6 +197,7 @@ def test_the_matte_share_is_the_objects_own():
         np.full(1, 0.25),
         np.full(1, 0.25),
         np.array([1 - MATTE_SHARE]),
+        np.full((1, 3), 0.2),
     )
     # 30% of the texels' traces say matte, 20% kept a lobe of their own, half cannot tell: the
     # likeliest share is 0.3 / 0.5 (those that cannot tell follow the prior, whatever it is)

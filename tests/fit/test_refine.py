@@ -317,7 +317,7 @@ def test_material_costs_pick_the_lobe_and_its_tangent():
     start = Start(p["n_local"], t90, torch.full((48, 2), 0.3), p["rho_d"], torch.zeros(48, 3))
     alpha = torch.tensor([[0.2, 0.04], [0.05, 0.05]])
     rho_s = torch.tensor([[3.0] * 3, [10.0] * 3])
-    cost, turn = material_costs(DEV, entries, mask, start, alpha, rho_s)
+    cost, turn, _ = material_costs(DEV, entries, mask, start, alpha, rho_s)
     only_first = material_costs(DEV, entries, mask, start, alpha, rho_s, torch.tensor([[True, False]]).expand(48, 2))[0]
     torch.testing.assert_close(only_first[:, :2], cost[:, :2])
     assert torch.isinf(only_first[:, 2]).all()
@@ -327,6 +327,19 @@ def test_material_costs_pick_the_lobe_and_its_tangent():
     assert (cost[shows].argmin(1) == 1).all()
     assert ((turn[shows, 0] - math.pi / 2).abs() < 0.01).float().mean() > 0.9
     assert (turn[:, 1] == 0).all()  # an isotropic lobe is not turned
+
+
+def test_material_costs_resolve_each_models_albedo():
+    """A rough metal (alpha 0.5, rho_s 9, rho_d 0.05) judged without a lobe is as bright as its broad
+    lobe makes it; under its material's lobe its rho_d comes back; a model not judged has none."""
+    entries, mask, p = _traces(48, 13, (0.05, 0.05, 0.05), (9.0, 9.0, 9.0), (0.5, 0.5))
+    start = Start(p["n_local"], p["t_local"], torch.full((48, 2), 0.3), p["rho_d"], torch.zeros(48, 3))
+    alpha, rho_s = torch.tensor([[0.5, 0.5], [0.02, 0.02]]), torch.tensor([[9.0] * 3, [1.0] * 3])
+    judged = material_costs(DEV, entries, mask, start, alpha, rho_s, torch.tensor([[True, False]]).expand(48, 2))
+    assert judged.rho_d.shape == (48, 3, 3) and torch.isnan(judged.rho_d[:, 2]).all()
+    assert (judged.rho_d[:, 0].mean(1) > 0.1).float().mean() > 0.9  # no lobe: the lobe's light taken for diffuse
+    assert (judged.rho_d[:, 1] - 0.05).abs().max() < 0.01
+    assert torch.isfinite(judged.rho_d[:, :2]).all()
 
 
 def test_material_costs_try_the_turn_the_neighbours_point_along():
@@ -339,9 +352,9 @@ def test_material_costs_try_the_turn_the_neighbours_point_along():
     t0 = turned_about_normal(torch.stack([p["t_local"], cross(p["n_local"], p["t_local"]), p["n_local"]], 1), off)[:, 0]
     start = Start(p["n_local"], t0, torch.full((48, 2), 0.3), p["rho_d"], torch.zeros(48, 3))
     alpha, rho_s = torch.tensor([[0.2, 0.04]]), torch.tensor([[3.0] * 3])
-    uniform, turn_u = material_costs(DEV, entries, mask, start, alpha, rho_s)
+    uniform, turn_u, _ = material_costs(DEV, entries, mask, start, alpha, rho_s)
     told = torch.full((48, 1), math.radians(110.0))
-    cost, turn = material_costs(DEV, entries, mask, start, alpha, rho_s, turn_prior=(told, torch.ones(48, 1)))
+    cost, turn, _ = material_costs(DEV, entries, mask, start, alpha, rho_s, turn_prior=(told, torch.ones(48, 1)))
     shows = uniform[:, 0] - uniform[:, 1] > 10
     assert shows.float().mean() > 0.4
     torch.testing.assert_close(turn[:, 0], told[:, 0].to(turn.dtype))
