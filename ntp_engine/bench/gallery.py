@@ -35,26 +35,21 @@ from ..pipeline.output_folder import claim
 from ..pipeline.scan_folder import load_poses, load_scan
 from ..pipeline.stages import reconstruct, register_photos
 from ..sim.cycles_scan import RENDER_VERSION, CyclesConfig, cycles_scan
-from ..sim.evaluate import BUDGET_GROUPS, material_errors, pose_error, relit_budget, relit_ssim
+from ..sim.evaluate import (
+    BUDGET_GROUPS,
+    PARAMETER_METRICS,
+    material_errors,
+    pose_error,
+    relit_budget,
+    relit_ssim,
+)
 from ..sim.gallery import GALLERY, build_asset
 from ..sim.virtual_scan import ScanConfig, scan_folder_is_current, virtual_scan
 from . import print_table
 
 SCANNERS = ("engine", "cycles")
 POSES = ("true", "sfm")
-METRICS = (
-    "seen",
-    "coverage",
-    "normal_deg",
-    "tangent_deg",
-    "log_alpha",
-    "rho_d_rmse",
-    "rho_d_ratio",
-    "border",
-    "rho_d_rmse_inside",
-    "log_rho_s",
-    "spurious_lobe",
-)
+METRICS = ("seen", "coverage", *PARAMETER_METRICS)
 
 
 @dataclass(frozen=True)

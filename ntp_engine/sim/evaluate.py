@@ -85,6 +85,20 @@ def _nearest(img: np.ndarray, uv: np.ndarray) -> np.ndarray:
     return img[np.clip(((1 - uv[:, 1]) * h).astype(int), 0, h - 1), np.clip((uv[:, 0] * w).astype(int), 0, w - 1)]
 
 
+# the per-material metrics of the observed texels (module docstring), NaN where one does not apply
+PARAMETER_METRICS = (
+    "normal_deg",
+    "tangent_deg",
+    "log_alpha",
+    "rho_d_rmse",
+    "rho_d_ratio",
+    "border",
+    "rho_d_rmse_inside",
+    "log_rho_s",
+    "spurious_lobe",
+)
+
+
 def truth_at_texels(truth: SVBRDFMaps, labels: np.ndarray, uv: np.ndarray) -> tuple[dict[str, np.ndarray], np.ndarray]:
     """The truth where the renderer shades a result's texel centres ``uv (N, 2)``: each map's
     bilinear sample ``(N, C)`` (normal unit, tangent orthogonal to it) over only the truth texels of
@@ -209,23 +223,7 @@ def material_errors(
             "seen": float((member & seen).sum() / max(member.sum(), 1)),
             "coverage": float((sel & seen).sum() / max((member & seen).sum(), 1)),
         }
-        nan = float("nan")
-        row.update(
-            dict.fromkeys(
-                (
-                    "normal_deg",
-                    "tangent_deg",
-                    "log_alpha",
-                    "rho_d_rmse",
-                    "rho_d_ratio",
-                    "border",
-                    "rho_d_rmse_inside",
-                    "log_rho_s",
-                    "spurious_lobe",
-                ),
-                nan,
-            )
-        )
+        row.update(dict.fromkeys(PARAMETER_METRICS, float("nan")))
         if sel.any():
             rec_sel = {key: v[sel] for key, v in rec.items()}
             row.update(parameter_errors(rec_sel, {key: v[sel] for key, v in true.items()}, mat["matte"]))

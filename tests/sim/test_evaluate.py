@@ -67,6 +67,19 @@ def _result_from_truth(tmp_path, name="vase", res=32, observed=None):
     return result, asset / "ground_truth"
 
 
+def _result_sampled_from_truth(tmp_path, name: str, res: int = 32):
+    """A result at half the truth's resolution whose texels hold the truth's bilinear samples at
+    their centres (what the renderer shades there), and the truth's folder."""
+    asset = build_asset(name, tmp_path / "asset", 2 * res)
+    result = tmp_path / "result"
+    result.mkdir()
+    shutil.copy(asset / "mesh.obj", result / "mesh.obj")
+    samples = SVBRDFMaps.load(asset / "ground_truth").sample(texel_uv((res, res)).reshape(-1, 2))
+    SVBRDFMaps(*(samples[k].reshape(res, res, -1) for k in MAP_FILES)).save(result)
+    write_exr(result / "confidence.exr", np.ones((res, res, 3)))
+    return result, asset / "ground_truth"
+
+
 def test_material_errors_of_the_truth_are_zero(tmp_path):
     result, truth = _result_from_truth(tmp_path)
     rows = material_errors(result, truth)
@@ -85,15 +98,8 @@ def test_the_truth_is_taken_at_each_texels_centre(tmp_path):
     centres (the truth's bilinear samples) scores no error in the medians (its albedos blend with
     the neighbouring materials' at borders, as the renderer's do): its centres lie between truth texels,
     and the truth texel containing one is half a truth texel away (on the vase ~1 deg of normal)."""
-    asset = build_asset("vase", tmp_path / "asset", 64)
-    result = tmp_path / "result"
-    result.mkdir()
-    shutil.copy(asset / "mesh.obj", result / "mesh.obj")
-    res = 32
-    samples = SVBRDFMaps.load(asset / "ground_truth").sample(texel_uv((res, res)).reshape(-1, 2))
-    SVBRDFMaps(*(samples[k].reshape(res, res, -1) for k in MAP_FILES)).save(result)
-    write_exr(result / "confidence.exr", np.ones((res, res, 3)))
-    for r in material_errors(result, asset / "ground_truth"):
+    result, truth = _result_sampled_from_truth(tmp_path, "vase")
+    for r in material_errors(result, truth):
         assert r["normal_deg"] < 0.01, r
         assert np.nan_to_num(r["log_alpha"]) < 0.01 and np.nan_to_num(r["tangent_deg"]) < 0.1
 
@@ -102,19 +108,12 @@ def test_texels_on_a_material_border_are_told_apart(tmp_path):
     """A result at half the truth's resolution holding the truth's bilinear samples: its texels on a
     material border hold a blend of two materials' albedos, scored against their centre's material;
     the others score none. As fine as the truth, no texel is on a border."""
-    asset = build_asset("knot", tmp_path / "asset", 64)
-    result = tmp_path / "result"
-    result.mkdir()
-    shutil.copy(asset / "mesh.obj", result / "mesh.obj")
-    res = 32
-    samples = SVBRDFMaps.load(asset / "ground_truth").sample(texel_uv((res, res)).reshape(-1, 2))
-    SVBRDFMaps(*(samples[k].reshape(res, res, -1) for k in MAP_FILES)).save(result)
-    write_exr(result / "confidence.exr", np.ones((res, res, 3)))
-    rows = material_errors(result, asset / "ground_truth")
+    result, truth = _result_sampled_from_truth(tmp_path, "knot")
+    rows = material_errors(result, truth)
     for r in rows:
         assert 0 < r["border"] < 0.5, r
         assert r["rho_d_rmse_inside"] < 1e-5 and r["rho_d_rmse"] > 10 * r["rho_d_rmse_inside"] + 1e-3, r
-    labels, _ = load_labels(asset / "ground_truth")
+    labels, _ = load_labels(truth)
     uv = texel_uv(labels.shape).reshape(-1, 2)
     assert not material_border(labels, uv, labels.reshape(-1)).any()
     assert all(r["border"] == 0 for r in material_errors(*_result_from_truth(tmp_path / "same", name="knot")))
