@@ -29,7 +29,6 @@ refinement's canonical lobe); costs in half chi-square units like the refinement
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -252,10 +251,13 @@ def pooled_scale(costs: np.ndarray, scales: np.ndarray, clip: float = POOL_CLIP)
     return float(scales[j])
 
 
-def _colour_costs(rho_d: np.ndarray, materials: BasisMaterials) -> np.ndarray:
-    """Negative log density ``(N, K)`` of each texel's log(rho_d + COLOUR_FLOOR) under each material."""
-    z = (_log_colour(rho_d)[:, None] - _log_colour(materials.rho_d)[None]) / materials.colour_sigma[None, :, None]
-    return 0.5 * (z**2).sum(-1) + 3 * np.log(materials.colour_sigma)[None]
+def _colour_costs(rho_d: np.ndarray, centre: np.ndarray, sigma: np.ndarray) -> np.ndarray:
+    """Negative log density ``(N, K)`` of each texel's log(rho_d + COLOUR_FLOOR) under each of K
+    materials' colours ``centre (K, 3)`` with spreads ``sigma (K,)``: ``rho_d (N, 3)`` held to every
+    material, or ``(N, K, 3)`` one per material."""
+    rho_d = rho_d[:, None] if rho_d.ndim == 2 else rho_d
+    z = (_log_colour(rho_d) - _log_colour(centre)[None]) / sigma[None, :, None]
+    return 0.5 * (z**2).sum(-1) + 3 * np.log(sigma)[None]
 
 
 # the broad matte class's colour cost, at its expected value (any colour being as likely)
@@ -265,7 +267,8 @@ _BROAD_COLOUR = 1.5 + 3 * math.log(MATTE_COLOUR_SIGMA)
 def colour_costs(rho_d: np.ndarray, materials: BasisMaterials) -> np.ndarray:
     """Negative log density ``(N, 1 + K)`` of each texel's ``rho_d (N, 3)`` under the broad matte
     class (column 0) and each lobe material, without the classes' shares."""
-    return np.concatenate([np.full((len(rho_d), 1), _BROAD_COLOUR), _colour_costs(rho_d, materials)], 1)
+    lobe = _colour_costs(rho_d, materials.rho_d, materials.colour_sigma)
+    return np.concatenate([np.full((len(rho_d), 1), _BROAD_COLOUR), lobe], 1)
 
 
 def judged_colour_costs(rho_d: np.ndarray, materials: BasisMaterials) -> np.ndarray:
@@ -275,9 +278,7 @@ def judged_colour_costs(rho_d: np.ndarray, materials: BasisMaterials) -> np.ndar
     lobe is as bright as its lobe makes it. Where a material was not judged (NaN), the rho_d without
     a lobe stands in."""
     own = np.where(np.isnan(rho_d[:, 1:]), rho_d[:, :1], rho_d[:, 1:])  # (N, K, 3)
-    K = len(materials.alpha)
-    under = dataclasses.replace(materials, rho_d=materials.lobe_rho_d)  # the members' colour under the same lobe
-    lobe = np.stack([_colour_costs(own[:, k], under)[:, k] for k in range(K)], 1) if K else own[:, :, 0]
+    lobe = _colour_costs(own, materials.lobe_rho_d, materials.colour_sigma)  # the members' colour under the same lobe
     return np.concatenate([np.full((len(rho_d), 1), _BROAD_COLOUR), lobe], 1)
 
 

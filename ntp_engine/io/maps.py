@@ -127,6 +127,12 @@ def bilinear_corners(
     return np.stack([r0, r0, r1, r1], 1), np.stack([c0, c1, c0, c1], 1), (r - r0)[:, None], (c - c0)[:, None]
 
 
+def bilinear_weights(fr: np.ndarray, fc: np.ndarray) -> np.ndarray:
+    """The weights ``(N, 4)`` of the four pixels of ``bilinear_corners`` (its order) for the
+    fractions ``fr, fc (N, 1)`` past r0, c0."""
+    return np.concatenate([(1 - fr) * (1 - fc), (1 - fr) * fc, fr * (1 - fc), fr * fc], 1)
+
+
 def bilinear_pixels(img: np.ndarray, r: np.ndarray, c: np.ndarray, taps: np.ndarray | None = None) -> np.ndarray:
     """Bilinear samples ``(N, C)`` of an ``(H, W, C)`` image at continuous (row, col) pixel
     coordinates, pixel centres at integers, clamped to the image. ``taps (N, 4)`` bool, optional:
@@ -140,8 +146,7 @@ def bilinear_pixels(img: np.ndarray, r: np.ndarray, c: np.ndarray, taps: np.ndar
         return out
     some = np.nonzero(~taps.all(1))[0]
     fr, fc = fr[some], fc[some]
-    wt = np.concatenate([(1 - fr) * (1 - fc), (1 - fr) * fc, fr * (1 - fc), fr * fc], 1)
-    wt = np.maximum(wt, 1e-6) * taps[some]
+    wt = np.maximum(bilinear_weights(fr, fc), 1e-6) * taps[some]
     wt /= wt.sum(1, keepdims=True)
     out[some] = sum(wt[:, k : k + 1] * v[k][some] for k in range(4))
     return out

@@ -33,7 +33,7 @@ import torch
 from skimage.metrics import structural_similarity
 
 from ..io.images import read_image, write_png
-from ..io.maps import MAP_FILES, SVBRDFMaps, bilinear_corners, texel_uv, uv_to_pixel
+from ..io.maps import MAP_FILES, SVBRDFMaps, bilinear_corners, bilinear_weights, texel_uv, uv_to_pixel
 from ..io.mesh import Mesh, load_mesh
 from ..io.raycast import RayCaster
 from ..pipeline.texels import rasterize
@@ -117,8 +117,7 @@ def _own_material_taps(labels: np.ndarray, uv: np.ndarray, label: np.ndarray) ->
     and their bilinear weights ``(N, 4)``."""
     h, w = labels.shape
     rows, cols, fr, fc = bilinear_corners(h, w, *uv_to_pixel(uv, (h, w)))
-    weight = np.concatenate([(1 - fr) * (1 - fc), (1 - fr) * fc, fr * (1 - fc), fr * fc], 1)
-    return labels[rows, cols] == label[:, None], weight
+    return labels[rows, cols] == label[:, None], bilinear_weights(fr, fc)
 
 
 def material_border(labels: np.ndarray, uv: np.ndarray, label: np.ndarray) -> np.ndarray:

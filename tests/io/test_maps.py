@@ -76,6 +76,20 @@ def test_bilinear_samples_skip_the_pixels_they_are_told_not_to_read():
     np.testing.assert_allclose(bilinear_pixels(flat, r, c, taps), 0.25, rtol=1e-12)
 
 
+def test_bilinear_weights_are_the_samples_own():
+    """The weights of ``bilinear_corners``' four pixels reproduce a bilinear sample and sum to 1."""
+    from ntp_engine.io.maps import bilinear_corners, bilinear_pixels, bilinear_weights
+
+    rng = np.random.default_rng(3)
+    img = rng.random((6, 7, 2))
+    r, c = rng.uniform(0, 5, 30), rng.uniform(0, 6, 30)
+    rows, cols, fr, fc = bilinear_corners(6, 7, r, c)
+    w = bilinear_weights(fr, fc)
+    assert w.shape == (30, 4) and (w >= 0).all()
+    np.testing.assert_allclose(w.sum(1), 1.0, rtol=1e-12)
+    np.testing.assert_allclose((w[..., None] * img[rows, cols]).sum(1), bilinear_pixels(img, r, c), rtol=1e-12)
+
+
 def _axes(angle: np.ndarray) -> np.ndarray:
     return np.stack([np.cos(angle), np.sin(angle), np.zeros_like(angle)], -1)
 
