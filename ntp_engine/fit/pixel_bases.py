@@ -8,20 +8,23 @@ unit ``wi (N, V, M, 3)`` toward the emitter, ``drive`` per camera channel (expos
 padding). Diffuse: ``falloff (N, V, M)`` = w_q Psi / r^2; the basis is linear in the shading normal,
 ``diffuse (N, V, 3 channels, 3)`` = sum_m [wi.n0 > 0] falloff drive_c wi / pi, so a pixel is
 rho_d,c (basis_c . n) for any normal n near the ``n0`` that chose the emitters above the horizon.
-Specular: ``frame (N, 3, 3)`` rows t, b, n of the shading frame; unit ``h (N, V, M, 3)``,
-``fresnel_falloff (N, V, M)`` = F(wi.h) w_q Psi / r^2, ``drive (N, V, M, 3)``, unit ``wo (N, V, 3)``,
-``alpha (N, 2)`` = (alpha_x, alpha_y) along (t, b); ``widening (N, V, 2)``, optional: what each
-entry's pixel sample adds to alpha_x^2, alpha_y^2 on a curved surface (``fit.footprint``), the lobe
-it sees then having sqrt(alpha^2 + widening), derivatives still by the surface's log alphas. The
-lobe toward emitter m is
-F D G / (4 cos_i cos_o) cos_i falloff in the cancelled Smith form of ``physics.brdf.ggx_specular``:
+Specular: ``frame (N, 3, 3)`` rows t, b, n of the shading frame; the emitters packed
+``(N, V, 7, M)`` (``pack_emitters``): rows wi_x, wi_y, wi_z, falloff, drive per channel, each a
+contiguous vector over the M emitters (the loop's body has no branch, so it vectorises); unit
+``wo (N, V, 3)``, ``alpha (N, 2)`` = (alpha_x, alpha_y) along (t, b); ``widening (N, V, 2)``,
+optional: what each entry's pixel sample adds to alpha_x^2, alpha_y^2 on a curved surface
+(``fit.footprint``), the lobe it sees then having sqrt(alpha^2 + widening), derivatives still by
+the surface's log alphas. The lobe toward emitter m is F D G / (4 cos_i cos_o) cos_i falloff in the
+cancelled Smith form of ``physics.brdf.ggx_specular``:
     lobe = cos_i+ F falloff / (pi ax ay q^2 (cos_i+ + L_i) (cos_o+ + L_o)),  0 where cos_o <= 0,
-q = (h_x/ax)^2 + (h_y/ay)^2 + h_z^2 and L = |(ax v_x, ay v_y, v_z)| in the shading frame.
+q = (h_x/ax)^2 + (h_y/ay)^2 + h_z^2 for the unit half vector h, L = |(ax v_x, ay v_y, v_z)| in
+the shading frame, and F Schlick's with F0 0.04 on wi.h = |wi + wo| / 2 (computed in the loops,
+like h: storing them per sample cost more than computing them).
 Derivatives are by (omega_x, omega_y, omega_z, log alpha_x, log alpha_y), omega a rotation of the
 shading frame at 0 (a shading-frame vector v turns by v x omega, so d/d omega = g x v for
-g = d log(lobe) / d v, summed over wi, h and wo). ``rows (N,)``, where given: texel n's inputs
-(frame, alpha, normal) belong to row ``rows[n]`` of the per-entry arrays (a subset of texels
-without copying them); outputs have N rows.
+g = d log(lobe) / d v, summed over wi, h and wo; F depends on wi.h only, which a rotation keeps).
+``rows (N,)``, where given: texel n's inputs (frame, alpha, normal) belong to row ``rows[n]`` of
+the per-entry arrays (a subset of texels without copying them); outputs have N rows.
 Results in the dtype of ``wi`` (float32 or float64: the scipy baseline differentiates them
 numerically), sums in float64.
 """
@@ -41,6 +44,7 @@ from ..physics.pattern_sums import emitter_arrays
 from ..scanner.scanner import Scanner
 
 N_DERIVATIVES = 5  # omega (3), log alpha_x, log alpha_y
+PACKED_ROWS = 7  # a packed emitter: wi (3), falloff, drive (3)
 
 
 def _arr(t: Tensor, dtype: torch.dtype) -> np.ndarray:
@@ -49,41 +53,37 @@ def _arr(t: Tensor, dtype: torch.dtype) -> np.ndarray:
 
 def emitter_directions(
     scanner: Scanner, x: Tensor, frame: Tensor, live: Tensor, padding: bool
-) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+) -> tuple[Tensor, Tensor, Tensor]:
     """The per-sample inputs of the bases for entries at ``x (M, 3)`` (camera space) with geometric
     frames ``frame (M, 3, 3)`` (rows t^, b^, n^) and ``live (M,)`` (False: padding, no light), toward
-    ``scanner``'s K emitter samples: ``wo (M, 3)``, ``wi, h (M, K', 3)``, ``falloff`` = w_q Psi / r^2
-    and ``fresnel_falloff`` = F(wi.h) falloff ``(M, K')``, all in the frame (``measurement.
-    local_emitter_geometry``'s, then the half vector and Schlick's F with F0 0.04). With ``padding``,
+    ``scanner``'s K emitter samples: ``wo (M, 3)``, ``wi (M, K', 3)`` and ``falloff`` = w_q Psi / r^2
+    ``(M, K')``, all in the frame (``measurement.local_emitter_geometry``'s). With ``padding``,
     K' = K + 1: sample K points where sample 0 does and emits nothing. Computed in float64, returned
     in ``x``'s dtype; one compiled pass instead of a dozen (M, K) temporaries."""
     e = emitter_arrays(scanner)
     M, K = len(x), e.points.shape[1]
     out_k = K + 1 if padding else K
     dt = torch.empty(0, dtype=x.dtype).numpy().dtype
-    wo = np.zeros((M, 3), dt)
-    wi, h = np.zeros((M, out_k, 3), dt), np.zeros((M, out_k, 3), dt)
-    falloff, fresnel, cos_l = np.zeros((M, out_k), dt), np.zeros((M, out_k), dt), np.zeros((M, out_k), dt)
+    # every element is written: no zeroing (a third of this pass's time)
+    wo, wi = np.empty((M, 3), dt), np.empty((M, out_k, 3), dt)
+    falloff, cos_l = np.empty((M, out_k), dt), np.empty((M, out_k), dt)
     with numba_threads_as_torch():
         _directions_loop(
             _arr(x, torch.float64),
             _arr(frame, torch.float64),
             np.ascontiguousarray(live.numpy().astype(np.bool_)),
             e.points,
-            e.normals,
             e.weights,
-            F0_DIELECTRIC,
+            e.normals,
             wo,
             wi,
-            h,
             falloff,
-            fresnel,
             cos_l,
         )
     # Psi from its one torch home (the compiled loop leaves it out: numba's disk cache would not see
     # a change to a compiled helper in another module); the padding sample has cos 0: Psi 0
     f = torch.from_numpy(falloff).mul_(scanner.psi(torch.from_numpy(cos_l)))
-    return torch.from_numpy(wo), torch.from_numpy(wi), torch.from_numpy(h), f, torch.from_numpy(fresnel).mul_(f)
+    return torch.from_numpy(wo), torch.from_numpy(wi), f
 
 
 def diffuse_basis(normal: Tensor, wi: Tensor, falloff: Tensor, drive: Tensor) -> Tensor:
@@ -152,115 +152,112 @@ def _diffuse(
         _diffuse_loop(_rows(len(normal), rows), *arrays, np.ascontiguousarray(todo), out, margin)
 
 
+def pack_emitters(wi: Tensor, falloff: Tensor, drive: Tensor) -> Tensor:
+    """Emitters as the specular loop reads them, ``(N, V, 7, M)`` (module docstring): rows wi x, y,
+    z, falloff, drive per channel, each a vector over the M emitters, from ``wi (N, V, M, 3)``,
+    ``falloff (N, V, M)`` and ``drive (N, V, M, 3)`` or one for every entry ``(M, 3)``."""
+    N, V, M = falloff.shape
+    out = torch.empty(N, V, PACKED_ROWS, M, dtype=wi.dtype)
+    out[:, :, :3] = wi.transpose(-1, -2)
+    out[:, :, 3] = falloff
+    out[:, :, 4:] = drive.to(wi.dtype).transpose(-1, -2)
+    return out
+
+
 def specular_basis(
     frame: Tensor,
-    wi: Tensor,
-    h: Tensor,
+    emitters: Tensor,
     wo: Tensor,
-    fresnel_falloff: Tensor,
-    drive: Tensor,
     alpha: Tensor,
     rows: Tensor | None = None,
     widening: Tensor | None = None,
 ) -> Tensor:
-    """The unit-rho_s pixel basis ``(N, V, 3)`` = sum_m lobe_m drive_m (module docstring)."""
-    return _specular(frame, wi, h, wo, fresnel_falloff, drive, alpha, rows, widening, False)[0]
+    """The unit-rho_s pixel basis ``(N, V, 3)`` = sum_m lobe_m drive_m (module docstring) of the
+    packed ``emitters`` (``pack_emitters``)."""
+    return _specular(frame, emitters, wo, alpha, rows, widening, False)[0]
 
 
 def specular_basis_and_derivatives(
     frame: Tensor,
-    wi: Tensor,
-    h: Tensor,
+    emitters: Tensor,
     wo: Tensor,
-    fresnel_falloff: Tensor,
-    drive: Tensor,
     alpha: Tensor,
     rows: Tensor | None = None,
     widening: Tensor | None = None,
 ) -> tuple[Tensor, Tensor]:
     """``specular_basis`` and its derivatives ``(N, V, 5, 3)`` by (omega, log alpha_x, log alpha_y)
     (module docstring), in one pass."""
-    return _specular(frame, wi, h, wo, fresnel_falloff, drive, alpha, rows, widening, True)
+    return _specular(frame, emitters, wo, alpha, rows, widening, True)
 
 
 def _specular(
     frame: Tensor,
-    wi: Tensor,
-    h: Tensor,
+    emitters: Tensor,
     wo: Tensor,
-    fresnel_falloff: Tensor,
-    drive: Tensor,
     alpha: Tensor,
     rows: Tensor | None,
     widening: Tensor | None,
     derivatives: bool,
 ) -> tuple[Tensor, Tensor]:
     """The compiled loop's call; the derivatives ``(0, 0, 5, 3)`` unless asked for."""
-    N, V = len(frame), fresnel_falloff.shape[1]
-    arrays = [_arr(x, wi.dtype) for x in (frame, wi, h, wo, fresnel_falloff, drive, alpha)]
+    N, V = len(frame), emitters.shape[1]
+    dt = emitters.dtype
+    arrays = [_arr(x, dt) for x in (frame, emitters, wo, alpha)]
     # per entry in the loop: small torch ops between compiled loops cost ~1 ms each (thread wake-ups)
-    wide = np.zeros((0, 0, 2), arrays[1].dtype) if widening is None else _arr(widening, wi.dtype)
-    row = _rows(N, rows)
+    wide = np.zeros((0, 0, 2), arrays[1].dtype) if widening is None else _arr(widening, dt)
     spec = np.zeros((N, V, 3), arrays[1].dtype)
     ds = np.zeros((N, V, N_DERIVATIVES, 3) if derivatives else (0, 0, N_DERIVATIVES, 3), spec.dtype)
     with numba_threads_as_torch():
-        _specular_loop(row, *arrays, wide, derivatives, spec, ds)
+        _specular_loop(_rows(N, rows), *arrays, wide, F0_DIELECTRIC, derivatives, spec, ds)
     return torch.from_numpy(spec), torch.from_numpy(ds)
 
 
 def lobe_weights(
     frame: Tensor,
     wi: Tensor,
-    h: Tensor,
     wo: Tensor,
-    fresnel_falloff: Tensor,
+    falloff: Tensor,
     alpha: Tensor,
     rows: Tensor | None = None,
 ) -> Tensor:
     """Each emitter's lobe for unit drive ``(N, V, M)`` (module docstring; ``fit.refine`` ranks the
-    emitter blocks by it) in one compiled pass instead of a dozen (N, V, M) torch temporaries."""
-    arrays = [_arr(x, wi.dtype) for x in (frame, wi, h, wo, fresnel_falloff, alpha)]
+    emitter blocks by it) of ``wi (N', V, M, 3)`` and ``falloff (N', V, M)``, in one compiled pass
+    instead of a dozen (N, V, M) torch temporaries."""
+    arrays = [_arr(x, wi.dtype) for x in (frame, wi, wo, falloff, alpha)]
     N = len(frame)
-    out = np.zeros((N, *fresnel_falloff.shape[1:]), arrays[1].dtype)
+    out = np.zeros((N, *falloff.shape[1:]), arrays[1].dtype)
     with numba_threads_as_torch():
-        _lobe_loop(_rows(N, rows), *arrays, out)
+        _lobe_loop(_rows(N, rows), *arrays, F0_DIELECTRIC, out)
     return torch.from_numpy(out)
 
 
 def selected_emitters(
-    order: Tensor,
+    top: Tensor,
     members: Tensor,
-    expanded: int,
-    fine: tuple[Tensor, ...],
-    coarse: tuple[Tensor, ...],
+    fine: tuple[Tensor, Tensor, Tensor],
+    coarse: tuple[Tensor, Tensor, Tensor],
     rows: Tensor | None = None,
-) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """The specular basis' per-entry emitters when blocks of samples are summed sample by sample
-    only where the lobe is: per entry, the samples of the first ``expanded`` blocks in ``order (N,
-    V, C)`` (``members (C, S)``: a block's sample indices) and the other blocks' coarse emitters,
-    in that order. ``fine`` = (wi, h ``(N, V, K, 3)``, fresnel_falloff ``(N, V, K)``, drive ``(K,
-    3)``) per sample, ``coarse`` the same per block (C). Returns wi, h, fresnel_falloff, drive with
-    M = expanded S + C - expanded emitters per entry, drive ``(N, V, M, 3)``; one compiled pass."""
-    N, V, C = order.shape
-    S = members.shape[1]
-    M = expanded * S + C - expanded
+) -> Tensor:
+    """The specular basis' packed emitters (``pack_emitters``) when blocks of samples are summed
+    sample by sample only where the lobe is: per entry, the samples of its E blocks ``top (N, V,
+    E)`` (``members (C, S)``: a block's sample indices), then the other blocks' coarse emitters in
+    block order. ``fine`` = (wi ``(N', V, K, 3)``, falloff ``(N', V, K)``, drive ``(K, 3)``) per
+    sample, ``coarse`` the same per block (C). Returns ``(N, V, 7, M)`` with M = E S + C - E
+    emitters per entry; one compiled pass."""
+    N, V, E = top.shape
+    C, S = members.shape
     dt = fine[0].dtype
-    wi, h = torch.empty(N, V, M, 3, dtype=dt), torch.empty(N, V, M, 3, dtype=dt)
-    ff, drive = torch.empty(N, V, M, dtype=dt), torch.empty(N, V, M, 3, dtype=dt)
+    out = torch.empty(N, V, PACKED_ROWS, E * S + C - E, dtype=dt)
     with numba_threads_as_torch():
         _select_loop(
             _rows(N, rows),
-            _arr(order, torch.int64),
+            _arr(top, torch.int64),
             _arr(members, torch.int64),
-            expanded,
             *(_arr(x, dt) for x in fine),
             *(_arr(x, dt) for x in coarse),
-            wi.numpy(),
-            h.numpy(),
-            ff.numpy(),
-            drive.numpy(),
+            out.numpy(),
         )
-    return wi, h, ff, drive
+    return out
 
 
 @numba.njit(parallel=True, fastmath=True, cache=True)
@@ -303,9 +300,9 @@ def _diffuse_loop(rows, normal, wi, falloff, drive, todo, out, margin):  # pragm
 
 
 @numba.njit(parallel=True, fastmath=True, cache=True)
-def _specular_loop(rows, frame, wi, h, wo, ff, drive, alpha, widening, derivatives, spec, ds):  # pragma: no cover
+def _specular_loop(rows, frame, emitters, wo, alpha, widening, f0, derivatives, spec, ds):  # pragma: no cover
     """Fills ``spec (N, V, 3)`` and, with ``derivatives``, ``ds (N, V, 5, 3)`` (see the module)."""
-    N, V, M = spec.shape[0], ff.shape[1], ff.shape[2]
+    N, V, M = spec.shape[0], emitters.shape[1], emitters.shape[3]
     for n in numba.prange(N):
         r = rows[n]
         t0, t1, t2 = float(frame[n, 0, 0]), float(frame[n, 0, 1]), float(frame[n, 0, 2])
@@ -319,9 +316,9 @@ def _specular_loop(rows, frame, wi, h, wo, ff, drive, alpha, widening, derivativ
                 ax2 += widening[n, v, 0]
                 ay2 += widening[n, v, 1]
             ax, ay = math.sqrt(ax2), math.sqrt(ay2)
+            iax2, iay2 = 1.0 / ax2, 1.0 / ay2
             # d log(seen alpha) / d log alpha
-            cx, cy = a0x * a0x / ax2, a0y * a0y / ay2
-            norm = 1.0 / (math.pi * ax * ay)
+            cx, cy = a0x * a0x * iax2, a0y * a0y * iay2
             ox = t0 * wo[r, v, 0] + t1 * wo[r, v, 1] + t2 * wo[r, v, 2]
             oy = b0 * wo[r, v, 0] + b1 * wo[r, v, 1] + b2 * wo[r, v, 2]
             oz = n0 * wo[r, v, 0] + n1 * wo[r, v, 1] + n2 * wo[r, v, 2]
@@ -330,90 +327,93 @@ def _specular_loop(rows, frame, wi, h, wo, ff, drive, alpha, widening, derivativ
             so0, so1 = (ax * ox) ** 2, (ay * oy) ** 2
             lam_o = math.sqrt(max(so0 + so1 + oz * oz, 1e-20))
             a_o = oz + lam_o
-            seen = norm / a_o
+            seen = 1.0 / (math.pi * ax * ay * a_o)
+            e = emitters[r, v]
             s0 = s1 = s2 = 0.0
             # per-emitter sums of lobe * d log(lobe) * drive (5 derivatives x 3 channels)
             g00 = g01 = g02 = g10 = g11 = g12 = g20 = g21 = g22 = 0.0
             g30 = g31 = g32 = g40 = g41 = g42 = 0.0
+            # no branch in the body (an emitter below the horizon is multiplied by 0): it vectorises
             for m in range(M):
-                f = ff[r, v, m]
-                if f == 0.0:
-                    continue
-                wx, wy, wz = wi[r, v, m, 0], wi[r, v, m, 1], wi[r, v, m, 2]
-                iz = n0 * wx + n1 * wy + n2 * wz
-                if iz <= 0.0:
-                    continue
+                wx, wy, wz = e[0, m], e[1, m], e[2, m]
                 ix = t0 * wx + t1 * wy + t2 * wz
                 iy = b0 * wx + b1 * wy + b2 * wz
-                hx_, hy_, hz_ = h[r, v, m, 0], h[r, v, m, 1], h[r, v, m, 2]
-                hx = t0 * hx_ + t1 * hy_ + t2 * hz_
-                hy = b0 * hx_ + b1 * hy_ + b2 * hz_
-                hz = n0 * hx_ + n1 * hy_ + n2 * hz_
-                hx2, hy2 = hx * hx / ax2, hy * hy / ay2
-                q = hx2 + hy2 + hz * hz
-                si0, si1 = (ax * ix) ** 2, (ay * iy) ** 2
+                iz = n0 * wx + n1 * wy + n2 * wz
+                # the half vector, unnormalised: q = (h^_x / ax)^2 + (h^_y / ay)^2 + h^_z^2 = hq / h2
+                hx, hy, hz = ix + ox, iy + oy, iz + oz
+                h2 = hx * hx + hy * hy + hz * hz
+                hq = max(hx * hx * iax2 + hy * hy * iay2 + hz * hz, 1e-30)
+                # Schlick's F on wi.h^ = |wi + wo| / 2 (unit wi, wo)
+                u = 1.0 - min(0.5 * math.sqrt(h2), 1.0)
+                fresnel = f0 + (1.0 - f0) * (u * u) * (u * u) * u
+                izp = max(iz, 0.0)
+                si0, si1 = ax2 * ix * ix, ay2 * iy * iy
                 lam_i = math.sqrt(max(si0 + si1 + iz * iz, 1e-20))
-                a_i = iz + lam_i
-                lobe = iz * f * seen / (q * q * a_i)
-                d0, d1, d2 = lobe * drive[r, v, m, 0], lobe * drive[r, v, m, 1], lobe * drive[r, v, m, 2]
+                a_i = izp + lam_i
+                d = h2 / hq
+                lobe = izp * e[3, m] * fresnel * d * d / a_i
+                d0, d1, d2 = lobe * e[4, m], lobe * e[5, m], lobe * e[6, m]
                 s0 += d0
                 s1 += d1
                 s2 += d2
-                if not derivatives:
-                    continue
-                # g = d log(lobe) / d v for v = h (D), wi (cos_i / (cos_i + L_i)); d/d omega = g x v
-                c = -4.0 / q
-                ghx, ghy, ghz = c * hx / ax2, c * hy / ay2, c * hz
-                e = -1.0 / (a_i * lam_i)
-                gix, giy, giz = e * ax2 * ix, e * ay2 * iy, e * iz + 1.0 / max(iz, 1e-12) - 1.0 / a_i
-                w0 = (giy * iz - giz * iy) + (ghy * hz - ghz * hy)
-                w1 = (giz * ix - gix * iz) + (ghz * hx - ghx * hz)
-                w2 = (gix * iy - giy * ix) + (ghx * hy - ghy * hx)
-                la_x = -1.0 + 4.0 * hx2 / q + e * si0
-                la_y = -1.0 + 4.0 * hy2 / q + e * si1
-                g00 += w0 * d0
-                g01 += w0 * d1
-                g02 += w0 * d2
-                g10 += w1 * d0
-                g11 += w1 * d1
-                g12 += w1 * d2
-                g20 += w2 * d0
-                g21 += w2 * d1
-                g22 += w2 * d2
-                g30 += la_x * d0
-                g31 += la_x * d1
-                g32 += la_x * d2
-                g40 += la_y * d0
-                g41 += la_y * d1
-                g42 += la_y * d2
-            spec[n, v, 0], spec[n, v, 1], spec[n, v, 2] = s0, s1, s2
+                if derivatives:
+                    # g = d log(lobe) / d v for v = h (D), wi (cos_i / (cos_i + L_i)); d/d omega = g x v
+                    # (h's length cancels: the unnormalised h serves)
+                    c = -4.0 / hq
+                    ghx, ghy, ghz = c * hx * iax2, c * hy * iay2, c * hz
+                    k = -1.0 / (a_i * lam_i)
+                    gix, giy, giz = k * ax2 * ix, k * ay2 * iy, k * iz + 1.0 / max(iz, 1e-12) - 1.0 / a_i
+                    w0 = (giy * iz - giz * iy) + (ghy * hz - ghz * hy)
+                    w1 = (giz * ix - gix * iz) + (ghz * hx - ghx * hz)
+                    w2 = (gix * iy - giy * ix) + (ghx * hy - ghy * hx)
+                    la_x = -1.0 + 4.0 * hx * hx * iax2 / hq + k * si0
+                    la_y = -1.0 + 4.0 * hy * hy * iay2 / hq + k * si1
+                    g00 += w0 * d0
+                    g01 += w0 * d1
+                    g02 += w0 * d2
+                    g10 += w1 * d0
+                    g11 += w1 * d1
+                    g12 += w1 * d2
+                    g20 += w2 * d0
+                    g21 += w2 * d1
+                    g22 += w2 * d2
+                    g30 += la_x * d0
+                    g31 += la_x * d1
+                    g32 += la_x * d2
+                    g40 += la_y * d0
+                    g41 += la_y * d1
+                    g42 += la_y * d2
+            spec[n, v, 0], spec[n, v, 1], spec[n, v, 2] = s0 * seen, s1 * seen, s2 * seen
             if not derivatives:
                 continue
             # the view side (same for every emitter): g_o = d log(1 / (cos_o + L_o)) / d wo
-            e = -1.0 / (a_o * lam_o)
-            gox, goy, goz = e * ax2 * ox, e * ay2 * oy, e * oz - 1.0 / a_o
+            k = -1.0 / (a_o * lam_o)
+            gox, goy, goz = k * ax2 * ox, k * ay2 * oy, k * oz - 1.0 / a_o
             w0 = goy * oz - goz * oy
             w1 = goz * ox - gox * oz
             w2 = gox * oy - goy * ox
-            la_x, la_y = e * so0, e * so1
+            la_x, la_y = k * so0, k * so1
             ds[n, v, 0, 0], ds[n, v, 0, 1], ds[n, v, 0, 2] = g00 + w0 * s0, g01 + w0 * s1, g02 + w0 * s2
             ds[n, v, 1, 0], ds[n, v, 1, 1], ds[n, v, 1, 2] = g10 + w1 * s0, g11 + w1 * s1, g12 + w1 * s2
             ds[n, v, 2, 0], ds[n, v, 2, 1], ds[n, v, 2, 2] = g20 + w2 * s0, g21 + w2 * s1, g22 + w2 * s2
-            ds[n, v, 3, 0] = cx * (g30 + la_x * s0)
-            ds[n, v, 3, 1] = cx * (g31 + la_x * s1)
-            ds[n, v, 3, 2] = cx * (g32 + la_x * s2)
-            ds[n, v, 4, 0] = cy * (g40 + la_y * s0)
-            ds[n, v, 4, 1] = cy * (g41 + la_y * s1)
-            ds[n, v, 4, 2] = cy * (g42 + la_y * s2)
+            ds[n, v, 3, 0], ds[n, v, 3, 1], ds[n, v, 3, 2] = g30 + la_x * s0, g31 + la_x * s1, g32 + la_x * s2
+            ds[n, v, 4, 0], ds[n, v, 4, 1], ds[n, v, 4, 2] = g40 + la_y * s0, g41 + la_y * s1, g42 + la_y * s2
+            for i in range(3):  # the emitters' sums left out the view side's 1 / (cos_o + L_o)
+                for c in range(3):
+                    ds[n, v, i, c] *= seen
+                ds[n, v, 3, i] *= cx * seen
+                ds[n, v, 4, i] *= cy * seen
 
 
 @numba.njit(parallel=True, fastmath=True, cache=True)
-def _lobe_loop(rows, frame, wi, h, wo, ff, alpha, out):  # pragma: no cover - compiled
+def _lobe_loop(rows, frame, wi, wo, ff, alpha, f0, out):  # pragma: no cover - compiled
     """Fills ``out (N, V, M)`` (see ``lobe_weights``), texel n from row ``rows[n]`` of the per-entry arrays."""
     N, V, M = out.shape
     for n in numba.prange(N):
         r = rows[n]
         ax, ay = float(alpha[n, 0]), float(alpha[n, 1])
+        ax2, ay2 = ax * ax, ay * ay
+        iax2, iay2 = 1.0 / ax2, 1.0 / ay2
         t0, t1, t2 = float(frame[n, 0, 0]), float(frame[n, 0, 1]), float(frame[n, 0, 2])
         b0, b1, b2 = float(frame[n, 1, 0]), float(frame[n, 1, 1]), float(frame[n, 1, 2])
         n0, n1, n2 = float(frame[n, 2, 0]), float(frame[n, 2, 1]), float(frame[n, 2, 2])
@@ -423,61 +423,57 @@ def _lobe_loop(rows, frame, wi, h, wo, ff, alpha, out):  # pragma: no cover - co
                 continue
             ox = t0 * wo[r, v, 0] + t1 * wo[r, v, 1] + t2 * wo[r, v, 2]
             oy = b0 * wo[r, v, 0] + b1 * wo[r, v, 1] + b2 * wo[r, v, 2]
-            seen = 1.0 / (math.pi * ax * ay * (oz + math.sqrt(max((ax * ox) ** 2 + (ay * oy) ** 2 + oz * oz, 1e-20))))
+            seen = 1.0 / (math.pi * ax * ay * (oz + math.sqrt(max(ax2 * ox * ox + ay2 * oy * oy + oz * oz, 1e-20))))
             for m in range(M):
-                iz = n0 * wi[r, v, m, 0] + n1 * wi[r, v, m, 1] + n2 * wi[r, v, m, 2]
-                if iz <= 0.0 or ff[r, v, m] == 0.0:
-                    continue
-                ix = t0 * wi[r, v, m, 0] + t1 * wi[r, v, m, 1] + t2 * wi[r, v, m, 2]
-                iy = b0 * wi[r, v, m, 0] + b1 * wi[r, v, m, 1] + b2 * wi[r, v, m, 2]
-                hx = (t0 * h[r, v, m, 0] + t1 * h[r, v, m, 1] + t2 * h[r, v, m, 2]) / ax
-                hy = (b0 * h[r, v, m, 0] + b1 * h[r, v, m, 1] + b2 * h[r, v, m, 2]) / ay
-                hz = n0 * h[r, v, m, 0] + n1 * h[r, v, m, 1] + n2 * h[r, v, m, 2]
-                q = hx * hx + hy * hy + hz * hz
-                lam_i = math.sqrt(max((ax * ix) ** 2 + (ay * iy) ** 2 + iz * iz, 1e-20))
-                out[n, v, m] = iz * ff[r, v, m] * seen / (q * q * (iz + lam_i))
+                wx, wy, wz = wi[r, v, m, 0], wi[r, v, m, 1], wi[r, v, m, 2]
+                ix = t0 * wx + t1 * wy + t2 * wz
+                iy = b0 * wx + b1 * wy + b2 * wz
+                iz = n0 * wx + n1 * wy + n2 * wz
+                hx, hy, hz = ix + ox, iy + oy, iz + oz
+                h2 = hx * hx + hy * hy + hz * hz
+                d = h2 / max(hx * hx * iax2 + hy * hy * iay2 + hz * hz, 1e-30)
+                u = 1.0 - min(0.5 * math.sqrt(h2), 1.0)
+                fresnel = f0 + (1.0 - f0) * (u * u) * (u * u) * u
+                izp = max(iz, 0.0)
+                lam_i = math.sqrt(max(ax2 * ix * ix + ay2 * iy * iy + iz * iz, 1e-20))
+                out[n, v, m] = izp * ff[r, v, m] * fresnel * seen * d * d / (izp + lam_i)
 
 
 @numba.njit(parallel=True, cache=True)
-def _select_loop(
-    rows, order, members, expanded, wi, h, ff, drive, wi_c, h_c, ff_c, drive_c, o_wi, o_h, o_ff, o_drive
-):  # pragma: no cover
-    """Fills ``o_*`` (see ``selected_emitters``), texel n from row ``rows[n]`` of the per-sample arrays."""
-    N, V, C = order.shape
-    S = members.shape[1]
+def _select_loop(rows, top, members, wi, ff, drive, wi_c, ff_c, drive_c, out):  # pragma: no cover
+    """Fills the packed ``out (N, V, 7, M)`` (see ``selected_emitters``), texel n from row ``rows[n]``
+    of the per-sample arrays."""
+    N, V, E = top.shape
+    C, S = members.shape
     for n in numba.prange(N):
         r = rows[n]
         for v in range(V):
+            o = out[n, v]
             j = 0
-            for b in range(C):
-                c = order[n, v, b]
-                if b < expanded:
-                    for s in range(S):
-                        k = members[c, s]
-                        for i in range(3):
-                            o_wi[n, v, j, i], o_h[n, v, j, i], o_drive[n, v, j, i] = (
-                                wi[r, v, k, i],
-                                h[r, v, k, i],
-                                drive[k, i],
-                            )
-                        o_ff[n, v, j] = ff[r, v, k]
-                        j += 1
-                else:
+            for b in range(E):
+                for s in range(S):
+                    k = members[top[n, v, b], s]
                     for i in range(3):
-                        o_wi[n, v, j, i], o_h[n, v, j, i], o_drive[n, v, j, i] = (
-                            wi_c[r, v, c, i],
-                            h_c[r, v, c, i],
-                            drive_c[c, i],
-                        )
-                    o_ff[n, v, j] = ff_c[r, v, c]
+                        o[i, j], o[4 + i, j] = wi[r, v, k, i], drive[k, i]
+                    o[3, j] = ff[r, v, k]
                     j += 1
+            for c in range(C):
+                expanded = False
+                for b in range(E):
+                    expanded = expanded or top[n, v, b] == c
+                if expanded:
+                    continue
+                for i in range(3):
+                    o[i, j], o[4 + i, j] = wi_c[r, v, c, i], drive_c[c, i]
+                o[3, j] = ff_c[r, v, c]
+                j += 1
 
 
 @numba.njit(parallel=True, fastmath=True, cache=True)
-def _directions_loop(x, frame, live, pts, normals, weights, f0, wo, wi, h, falloff, fresnel, cos_l):  # pragma: no cover
-    """Fills ``wo, wi, h`` (see ``emitter_directions``), ``falloff`` without Psi (w_q / r^2, 0 for
-    padding entries), Schlick's ``fresnel`` and the emitter-side cosine ``cos_l`` clamped to [0, 1];
-    a padding sample (no light, cosine 0) when ``wi`` has K + 1 columns."""
+def _directions_loop(x, frame, live, pts, weights, normals, wo, wi, falloff, cos_l):  # pragma: no cover
+    """Fills ``wo, wi`` (see ``emitter_directions``), ``falloff`` without Psi (w_q / r^2, 0 for
+    padding entries) and the emitter-side cosine ``cos_l`` clamped to [0, 1]; a padding sample (no
+    light, cosine 0) when ``wi`` has K + 1 columns."""
     M, K = x.shape[0], pts.shape[1]
     px, py, pz = pts[0], pts[1], pts[2]
     qx, qy, qz = normals[0], normals[1], normals[2]
@@ -487,30 +483,20 @@ def _directions_loop(x, frame, live, pts, normals, weights, f0, wo, wi, h, fallo
         b0, b1, b2 = frame[m, 1, 0], frame[m, 1, 1], frame[m, 1, 2]
         n0, n1, n2 = frame[m, 2, 0], frame[m, 2, 1], frame[m, 2, 2]
         inv_x = 1.0 / math.sqrt(max(x0 * x0 + x1 * x1 + x2 * x2, 1e-20))
-        ox = -(t0 * x0 + t1 * x1 + t2 * x2) * inv_x
-        oy = -(b0 * x0 + b1 * x1 + b2 * x2) * inv_x
-        oz = -(n0 * x0 + n1 * x1 + n2 * x2) * inv_x
-        wo[m, 0], wo[m, 1], wo[m, 2] = ox, oy, oz
+        wo[m, 0] = -(t0 * x0 + t1 * x1 + t2 * x2) * inv_x
+        wo[m, 1] = -(b0 * x0 + b1 * x1 + b2 * x2) * inv_x
+        wo[m, 2] = -(n0 * x0 + n1 * x1 + n2 * x2) * inv_x
         lit = 1.0 if live[m] else 0.0
         for k in range(K):
             dx, dy, dz = px[k] - x0, py[k] - x1, pz[k] - x2
             r2 = max(dx * dx + dy * dy + dz * dz, 1e-12)
             inv = 1.0 / math.sqrt(r2)
-            ix = (t0 * dx + t1 * dy + t2 * dz) * inv
-            iy = (b0 * dx + b1 * dy + b2 * dz) * inv
-            iz = (n0 * dx + n1 * dy + n2 * dz) * inv
-            wi[m, k, 0], wi[m, k, 1], wi[m, k, 2] = ix, iy, iz
-            hx, hy, hz = ix + ox, iy + oy, iz + oz
-            q = hx * hx + hy * hy + hz * hz
-            ok = q > 1e-20  # physics.frame.safe_normalize: +z where wi = -wo
-            s = 1.0 / math.sqrt(max(q, 1e-20))
-            hx, hy, hz = (hx * s, hy * s, hz * s) if ok else (0.0, 0.0, 1.0)
-            h[m, k, 0], h[m, k, 1], h[m, k, 2] = hx, hy, hz
+            wi[m, k, 0] = (t0 * dx + t1 * dy + t2 * dz) * inv
+            wi[m, k, 1] = (b0 * dx + b1 * dy + b2 * dz) * inv
+            wi[m, k, 2] = (n0 * dx + n1 * dy + n2 * dz) * inv
             cos_l[m, k] = min(max(-(dx * qx[k] + dy * qy[k] + dz * qz[k]) * inv, 0.0), 1.0)
             falloff[m, k] = weights[k] / r2 * lit
-            u = 1.0 - min(max(ix * hx + iy * hy + iz * hz, 0.0), 1.0)
-            fresnel[m, k] = f0 + (1.0 - f0) * (u * u) * (u * u) * u
         if wi.shape[1] > K:  # the padding sample: any direction, no light
             for j in range(3):
-                wi[m, K, j], h[m, K, j] = wi[m, 0, j], h[m, 0, j]
-            falloff[m, K], fresnel[m, K], cos_l[m, K] = 0.0, 0.0, 0.0
+                wi[m, K, j] = wi[m, 0, j]
+            falloff[m, K], cos_l[m, K] = 0.0, 0.0

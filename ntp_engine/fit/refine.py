@@ -48,12 +48,14 @@ from ..scanner.scanner import Scanner
 from .albedo import bounded_ls2
 from .emitter_blocks import EmitterBlocks, emitter_blocks, shadow_groups
 from .footprint import Footprint, widening
+from .gauss_newton import N_PARAMS, normal_equations
 from .highlights import parked_positions
 from .pixel_bases import (
     diffuse_basis_and_margin,
     diffuse_basis_near,
     emitter_directions,
     lobe_weights,
+    pack_emitters,
     selected_emitters,
     specular_basis,
     specular_basis_and_derivatives,
@@ -97,7 +99,7 @@ MIN_SPECULAR_SHARE = 0.05  # a lobe below this share of some entry's pixel was n
 LOBE_PARAMS = 6  # what a texel's own lobe adds to its diffuse-only model: tangent turn, 2 alphas, RGB rho_s
 LOBE_EVIDENCE = 4.0  # a lobe must lower the robust cost (half chi-square units) by at least this much, and
 # by BIC's 0.5 LOBE_PARAMS ln(residuals): a short trace fits any 6 more parameters to its noise
-N_PARAMS = 11
+
 P_OMEGA, P_LOGA, P_RHO_D, P_RHO_S = slice(0, 3), slice(3, 5), slice(5, 8), slice(8, 11)
 FLAG_SPECULAR_UNCONSTRAINED, FLAG_TANGENT_UNCONSTRAINED, FLAG_FROM_MATERIAL = 16, 32, 64
 
@@ -186,16 +188,16 @@ class LobePrior(NamedTuple):
 
 
 # the trace's per-sample arrays: shared between a chunk and its subsets (``_Trace.rows``)
-SAMPLE_ARRAYS = ("wo", "wi", "h", "falloff", "fresnel_falloff", "wi_c", "h_c", "ff_c")
+SAMPLE_ARRAYS = ("wo", "wi", "falloff", "wi_c", "falloff_c")
 
 
 class _Trace:
     """One chunk of traces, ready for the model: every entry's directions to each emitter sample
-    (and, with ``blocks``, to each block's coarse emitter), half vectors and Fresnel-weighted falloff
-    in the texel's geometric frame — none depends on the parameters (a shading frame only rotates
-    them). Sample index K is padding: it emits nothing. Those per-sample arrays (``SAMPLE_ARRAYS``)
-    are shared by a subset of the texels (``rows``), which reads its rows ``srow`` of them instead of
-    copying them. ``shadow (N, V)``: the emitter groups the
+    (and, with ``blocks``, to each block's coarse emitter) and falloff in the texel's geometric
+    frame — none depends on the parameters (a shading frame only rotates them). Sample index K is
+    padding: it emits nothing. Those per-sample arrays (``SAMPLE_ARRAYS``) are shared by a subset of
+    the texels (``rows``), which reads its rows ``srow`` of them instead of copying them. ``shadow
+    (N, V)``: the emitter groups the
     mesh hides from each entry (``learn.ragged``), whose falloff is 0. ``footprint``: what each
     entry's pixel sample spans (``fit.footprint``): the slope spread, which widens the lobe it sees,
     and the neighbours' albedo it may blend in, noise on its diffuse light."""
@@ -218,30 +220,30 @@ class _Trace:
         live = mask.reshape(-1)
         exposure = float(scanner.exposure(scanner.pattern))
 
-        def directions(dev: Scanner, padding: bool) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
-            """wo (N, V, 3), and per emitter sample wi, h (N, V, K, 3), falloff and F * falloff (N, V, K)."""
-            wo, wi, h, falloff, ff = emitter_directions(dev, x, frame, live, padding)
+        def directions(dev: Scanner, padding: bool) -> tuple[Tensor, Tensor, Tensor]:
+            """wo (N, V, 3), and per emitter sample wi (N, V, K, 3) and falloff (N, V, K)."""
+            wo, wi, falloff = emitter_directions(dev, x, frame, live, padding)
             K = falloff.shape[1]
-            return wo.view(N, V, 3), wi.view(N, V, K, 3), h.view(N, V, K, 3), falloff.view(N, V, K), ff.view(N, V, K)
+            return wo.view(N, V, 3), wi.view(N, V, K, 3), falloff.view(N, V, K)
 
         # sample index K: padding (any direction, no light)
-        self.wo, self.wi, self.h, self.falloff, self.fresnel_falloff = directions(scanner, True)
+        self.wo, self.wi, self.falloff = directions(scanner, True)
         self.srow = torch.arange(N)  # each texel's row of the per-sample arrays
         Q = scanner.emitter_samples(x.dtype)[1].shape[1]
         p_eff = torch.as_tensor(scanner.effective_pattern(), dtype=x.dtype)
         drive = exposure * p_eff.repeat_interleave(Q, 0)  # per sample (the falloff holds w_q)
         self.drive = torch.cat([drive, torch.zeros(1, 3, dtype=x.dtype)])  # (K + 1, 3)
         if blocks is not None:
-            _, self.wi_c, self.h_c, _, self.ff_c = directions(blocks.coarse, False)
+            _, self.wi_c, self.falloff_c = directions(blocks.coarse, False)
             self.drive_c = exposure * blocks.coarse_drive.to(x.dtype)
         if shadow is not None and bool((shadow != 0).any()):
             groups = shadow_groups(scanner)
             hidden = groups.hidden(shadow)  # (N, V, P)
             lit = ~hidden.gather(-1, groups.group.expand(N, V, -1))  # per emitter sample (N, V, K)
             lit = torch.cat([lit, torch.ones(N, V, 1, dtype=torch.bool)], -1).to(x.dtype)  # padding
-            self.falloff, self.fresnel_falloff = self.falloff * lit, self.fresnel_falloff * lit
+            self.falloff = self.falloff * lit
             if blocks is not None:  # a block's coarse emitter carries the drive of its visible groups
-                self.ff_c = self.ff_c * groups.block_visibility(shadow, x.dtype)
+                self.falloff_c = self.falloff_c * groups.block_visibility(shadow, x.dtype)
         # the slope spread each entry's pixel sample covers (``fit.footprint``): None on a flat or
         # unknown surface
         spread = None if footprint is None else footprint.spread
@@ -341,29 +343,26 @@ class _Round:
         if tr.spread is not None:
             self.widening = widening(tr.spread, frame0)
         if tr.blocks is None:  # a small device: every sample exactly
-            self.wi, self.h, self.ff = tr.wi[tr.srow], tr.h[tr.srow], tr.fresnel_falloff[tr.srow]
-            self.drive = tr.drive.expand(tr.N, tr.V, -1, 3)
+            self.emitters = pack_emitters(tr.wi[tr.srow], tr.falloff[tr.srow], tr.drive)
         else:
             seen = log_alpha.exp()
             if self.widening is not None:  # the widest lobe any entry sees
                 seen = torch.sqrt(seen**2 + self.widening.amax(1))
             wide = (SELECT_WIDEN * seen).clamp(SELECT_FLOOR, ALPHA_MAX)
-            score = lobe_weights(frame0, tr.wi_c, tr.h_c, tr.wo, tr.ff_c, wide, tr.srow)  # (N, V, C)
-            order = score.argsort(-1, descending=True)
-            self.wi, self.h, self.ff, self.drive = selected_emitters(
-                order,
+            score = lobe_weights(frame0, tr.wi_c, tr.wo, tr.falloff_c, wide, tr.srow)  # (N, V, C)
+            top = score.topk(EXPANDED_BLOCKS, -1, sorted=False).indices
+            self.emitters = selected_emitters(
+                top,
                 tr.blocks.members,
-                EXPANDED_BLOCKS,
-                (tr.wi, tr.h, tr.fresnel_falloff, tr.drive),
-                (tr.wi_c, tr.h_c, tr.ff_c, tr.drive_c),
+                (tr.wi, tr.falloff, tr.drive),
+                (tr.wi_c, tr.falloff_c, tr.drive_c),
                 tr.srow,
             )
         # the support's light: more emitters, drawn for this round's lobe
         support = tr.support_specular(frame0, log_alpha.exp())
         if support is not None:
-            self.wi, self.h = torch.cat([self.wi, support.wi], 2), torch.cat([self.h, support.h], 2)
-            self.ff = torch.cat([self.ff, support.fresnel_falloff], 2)
-            self.drive = torch.cat([self.drive.expand(tr.N, tr.V, -1, 3), support.drive], 2)
+            packed = pack_emitters(support.wi, support.weight, support.drive)
+            self.emitters = torch.cat([self.emitters, packed], 3)
 
     def rows(self, idx: Tensor) -> _Round:
         """The same round for the texels ``idx`` only (the LM drops texels that have converged); the
@@ -379,32 +378,31 @@ class _Round:
         """Fold the rotation ``omega (N, 3)`` into the round's frame (linearise about it next)."""
         self.frame0 = _fold(self.frame0, omega)
 
-    def bases_and_jacobian(self, log_alpha: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-        """``bases`` at omega = 0 and their derivatives ``(N, V, 5, 3)`` by (omega, log alpha)
-        (analytic: ``pixel_bases.specular_basis_and_derivatives``)."""
+    def linearised(self, log_alpha: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """What the LM step's normal equations need at omega = 0 (``gauss_newton``): the diffuse
+        basis in the shading frame ``(N, V, 3, 3)`` (its derivatives by omega follow from it), the
+        specular basis and its derivatives ``(N, V, 5, 3)`` by (omega, log alpha) (analytic:
+        ``pixel_bases.specular_basis_and_derivatives``; empty for a diffuse-only round)."""
         frame = self.frame0
-        g_s = torch.einsum("nij,nvcj->nvci", frame, self.diffuse)  # diffuse basis in the shading frame
-        diffuse = g_s[..., 2]
-        # n(omega) = F0^T R(omega) e_z: d n / d omega_k = F0^T (e_k x e_z) -> (-y, x, 0) in shading coords
-        dd = torch.zeros(*diffuse.shape[:2], 5, 3, dtype=diffuse.dtype)
-        dd[:, :, 0], dd[:, :, 1] = -g_s[..., 1], g_s[..., 0]
+        diffuse = torch.einsum("nij,nvcj->nvci", frame, self.diffuse)
         if not self.specular:
-            return diffuse, torch.zeros_like(diffuse), dd, torch.zeros_like(dd)
+            return diffuse, diffuse[:0, :, 0], diffuse[:0, :, :0]
         alpha = log_alpha.exp()
-        spec, ds = specular_basis_and_derivatives(
-            frame, self.wi, self.h, self.wo, self.ff, self.drive, alpha, self.row, self.widening
-        )
-        return diffuse, spec, dd, ds
+        spec, ds = specular_basis_and_derivatives(frame, self.emitters, self.wo, alpha, self.row, self.widening)
+        return diffuse, spec, ds
 
     def bases(self, omega: Tensor, log_alpha: Tensor) -> tuple[Tensor, Tensor]:
         """Unit-albedo diffuse and specular pixel bases ``(N, V, 3)`` for the rotation ``omega
         (N, 3)`` (shading frame at the round's start) and ``log_alpha (N, 2)``."""
-        frame = rotation_from_vector(omega).transpose(-1, -2) @ self.frame0
+        return self.bases_in(_fold(self.frame0, omega), log_alpha)
+
+    def bases_in(self, frame: Tensor, log_alpha: Tensor) -> tuple[Tensor, Tensor]:
+        """``bases`` in the shading frame ``frame (N, 3, 3)`` (the round's start turned)."""
         diffuse = (self.diffuse * frame[:, None, None, 2, :]).sum(-1)
         if not self.specular:
             return diffuse, torch.zeros_like(diffuse)
         alpha = log_alpha.exp()
-        spec = specular_basis(frame, self.wi, self.h, self.wo, self.ff, self.drive, alpha, self.row, self.widening)
+        spec = specular_basis(frame, self.emitters, self.wo, alpha, self.row, self.widening)
         return diffuse, spec
 
 
@@ -491,8 +489,9 @@ def _prior_normal_in(frame: Tensor, n_prior: Tensor, omega: Tensor) -> Tensor:
 
 def _cost_at(rnd: _Round, q: Tensor, prior: _Prior, settings: RefineSettings) -> Tensor:
     """The objective per texel at ``q (N, 11)``: robust data cost plus the priors."""
-    d, s = rnd.bases(q[:, P_OMEGA], q[:, P_LOGA])
-    u = _prior_normal_in(rnd.frame0, prior.n_prior, q[:, P_OMEGA])
+    frame = _fold(rnd.frame0, q[:, P_OMEGA])  # one rotation for the bases and the normal's pull
+    d, s = rnd.bases_in(frame, q[:, P_LOGA])
+    u = (frame @ prior.n_prior[:, :, None])[..., 0]  # _prior_normal_in
     tilt = 0.5 * prior.n_w * (u[:, :2] ** 2).sum(1)
     data = _cost(_residuals(rnd.tr, d, s, q)[0], settings.noise.robust)
     return data + _prior(q, prior) + tilt
@@ -542,24 +541,11 @@ def _lm_step(
 ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """One LM linearisation (with up to ``MAX_TRIES`` damping increases) for all of ``rnd``'s texels:
     returns p (omega folded into ``rnd.frame0``), cost, the Gauss-Newton Hessian and the damping."""
-    tr, c = rnd.tr, settings.noise.robust
+    tr = rnd.tr
     N = p.shape[0]
     lo, hi = _LO.to(p.dtype), _HI.to(p.dtype)
-    ch = torch.arange(3)
-    d, s, dd, ds = rnd.bases_and_jacobian(p[:, P_LOGA])
-    r, active = _residuals(tr, d, s, p)
-    V = d.shape[1]
-    # d pred / d geometry: rho_d dD + rho_s dS; d pred / d rho: the bases, channel by channel
-    J = torch.zeros(N, V, 3, N_PARAMS, dtype=p.dtype)
-    J[..., :5] = (p[:, None, None, P_RHO_D] * dd + p[:, None, None, P_RHO_S] * ds).transpose(2, 3)
-    J[:, :, ch, 5 + ch] = d
-    J[:, :, ch, 8 + ch] = s
-    J = J * (tr.inv_sigma * active)[..., None]
-    w = 1.0 / (1.0 + (r / c) ** 2)  # Cauchy IRLS weight
-    Jf = J.reshape(N, -1, N_PARAMS).double()
-    wf = w.reshape(N, -1, 1).double()
-    H = Jf.transpose(1, 2) @ (wf * Jf)
-    g = ((Jf * wf).transpose(1, 2) @ r.reshape(N, -1, 1).double())[..., 0]
+    bases = rnd.linearised(p[:, P_LOGA])
+    H, g = normal_equations(*bases, p, tr.y, tr.inv_sigma, tr.mask, tr.censored, settings.noise.robust)
     la_w, rs_w = prior.la_w.double()[:, None], prior.rs_w.double()[:, None]
     H[:, [3, 4], [3, 4]] += la_w  # the alpha and rho_s priors
     H[:, [8, 9, 10], [8, 9, 10]] += rs_w
@@ -575,7 +561,7 @@ def _lm_step(
     g[:, 4] -= tie_w * spread
     # the normal prior: residuals u_x, u_y / sigma of the prior's normal u in the shading frame,
     # d u / d omega_k = u x e_k
-    u = _prior_normal_in(rnd.frame0, prior.n_prior, torch.zeros_like(p[:, P_OMEGA])).double()
+    u = (rnd.frame0 @ prior.n_prior[:, :, None])[..., 0].double()  # _prior_normal_in at omega = 0
     zero = torch.zeros_like(u[:, 0])
     sn = prior.n_w**-0.5
     ju = torch.stack([torch.stack([zero, -u[:, 2], u[:, 1]], 1), torch.stack([u[:, 2], zero, -u[:, 0]], 1)], 1) / sn

@@ -41,7 +41,7 @@ from torch import Tensor
 
 from ..io.maps import bilinear_pixels
 from ..io.raycast import RayCaster
-from ..physics.brdf import ALPHA_MAX, F0_DIELECTRIC, fresnel_schlick, ggx_ndf, smith_g1
+from ..physics.brdf import ALPHA_MAX, ggx_ndf, smith_g1
 from ..scanner import camera
 from ..scanner.scanner import Scanner
 from .emitter_blocks import EmitterBlocks, emitter_blocks
@@ -196,12 +196,12 @@ def cosine_directions(u: Tensor) -> tuple[Tensor, Tensor]:
 
 
 class SupportEmitters(NamedTuple):
-    """Entries' specular support samples as the refinement's emitters (geometric frame): ``wi, h
-    (N, V, S, 3)``, ``fresnel_falloff (N, V, S)``, ``drive (N, V, S, 3)`` (``pixel_bases``' layout)."""
+    """Entries' specular support samples as the refinement's emitters (geometric frame): ``wi (N, V,
+    S, 3)``, ``weight (N, V, S)`` (the sample's, in the place of an emitter's falloff; Fresnel is the
+    pixel bases' own), ``drive (N, V, S, 3)`` (``pixel_bases.pack_emitters``' inputs)."""
 
     wi: Tensor
-    h: Tensor
-    fresnel_falloff: Tensor
+    weight: Tensor
     drive: Tensor
 
 
@@ -249,9 +249,8 @@ def support_specular_emitters(
     position, frame_world = view.position.to(f64), view.frame_world.to(f64)
     live = live & usable.any(-1)
     radiance = _radiance(view.scene, scanner, sources, position, frame_world, x_cam, frame_cam, live, wi)
-    fresnel = fresnel_schlick((wi * halves).sum(-1).clamp(0.0, 1.0), F0_DIELECTRIC)
     dt = wo.dtype
-    return SupportEmitters(wi.to(dt), halves.to(dt), (fresnel * weight).to(dt), radiance.to(dt))
+    return SupportEmitters(wi.to(dt), weight.to(dt), radiance.to(dt))
 
 
 def _radiance(

@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from ntp_engine.fit import support_light as sl
-from ntp_engine.physics.brdf import fresnel_schlick, ggx
+from ntp_engine.physics.brdf import ggx
 from ntp_engine.physics.frame import frame_from_normal_tangent
 from ntp_engine.scanner.camera import look_at
 from ntp_engine.scanner.device_file import load_scanner
@@ -69,10 +69,9 @@ def test_the_support_sums_converge_to_the_integral_over_the_plane(monkeypatch):
         for alpha, ref in zip(alphas, spec_ref):
             a = torch.tensor([alpha], dtype=torch.float64)
             em = sl.support_specular_emitters(view, DEV, sl.Sources.of(DEV), x_cam, fc, live, wo, eye, a)
-            wi, h, ff, drive = em.wi[0, 0], em.h[0, 0], em.fresnel_falloff[0, 0], em.drive[0, 0]
+            wi, weight, drive = em.wi[0, 0], em.weight[0, 0], em.drive[0, 0]
             f = ggx(wi, wo[0, 0].expand_as(wi), torch.zeros(1), torch.ones(1), a[0, 0], a[0, 1])[..., 0]
-            f = f / fresnel_schlick((wi * h).sum(-1).clamp(0, 1))  # ggx has F, and so has fresnel_falloff
-            spec = ((f * wi[:, 2].clamp_min(0) * ff)[:, None] * drive).sum(0)
+            spec = ((f * wi[:, 2].clamp_min(0) * weight)[:, None] * drive).sum(0)
             assert torch.isfinite(spec).all()
             assert ((spec / ref - 1).abs() < tol).all(), (samples, alpha, spec / ref)
 
@@ -103,7 +102,7 @@ def test_the_refinement_with_the_support_recovers_a_glossy_face_it_lights():
     tips the normal by degrees and misreads the lobe."""
     from fit.test_refine import _normal_err, _perturbed, _traces
 
-    from ntp_engine.fit.pixel_bases import specular_basis
+    from ntp_engine.fit.pixel_bases import pack_emitters, specular_basis
     from ntp_engine.fit.refine import Start, refine
 
     n = 32
@@ -123,7 +122,7 @@ def test_the_refinement_with_the_support_recovers_a_glossy_face_it_lights():
         patch.setattr(sl, "SPECULAR_SAMPLES", 512)
         patch.setattr(sl, "DIFFUSE_SAMPLES", 512)
         em = sl.support_specular_emitters(view, DEV, src, x, fc, mask, wo, true_frame, alpha)
-        spec = specular_basis(true_frame, em.wi, em.h, wo, em.fresnel_falloff, em.drive, alpha)
+        spec = specular_basis(true_frame, pack_emitters(em.wi, em.weight, em.drive), wo, alpha)
         diff = (sl.support_diffuse_basis(view, DEV, src, x, fc, mask) * true_frame[:, None, None, 2]).sum(-1)
     extra = p["rho_d"][:, None].double() * diff + p["rho_s"][:, None].double() * spec
     y = entries[..., :3].double() + extra
