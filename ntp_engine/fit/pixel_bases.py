@@ -4,13 +4,13 @@ albedos — diffuse and specular, the specular one with its derivatives — each
 form ~70% of the refinement's time.
 
 Convention: every vector in the texel's geometric frame; per texel n, entry v, emitter sample m:
-unit ``wi (N, V, M, 3)`` toward the emitter, ``drive`` per camera channel (exposure included; 0 for
-padding). Diffuse: ``falloff (N, V, M)`` = w_q Psi / r^2; the basis is linear in the shading normal,
+unit ``wi (N, V, 3, M)`` toward the emitter — components first, each a contiguous vector over the
+emitters (the loops' bodies have no branch, so they vectorise) — and ``drive`` per camera channel
+(exposure included; 0 for padding). Diffuse: ``falloff (N, V, M)`` = w_q Psi / r^2; the basis is linear in the shading normal,
 ``diffuse (N, V, 3 channels, 3)`` = sum_m [wi.n0 > 0] falloff drive_c wi / pi, so a pixel is
 rho_d,c (basis_c . n) for any normal n near the ``n0`` that chose the emitters above the horizon.
 Specular: ``frame (N, 3, 3)`` rows t, b, n of the shading frame; the emitters packed
-``(N, V, 7, M)`` (``pack_emitters``): rows wi_x, wi_y, wi_z, falloff, drive per channel, each a
-contiguous vector over the M emitters (the loop's body has no branch, so it vectorises); unit
+``(N, V, 7, M)`` (``pack_emitters``): rows wi_x, wi_y, wi_z, falloff, drive per channel; unit
 ``wo (N, V, 3)``, ``alpha (N, 2)`` = (alpha_x, alpha_y) along (t, b); ``widening (N, V, 2)``,
 optional: what each entry's pixel sample adds to alpha_x^2, alpha_y^2 on a curved surface
 (``fit.footprint``), the lobe it sees then having sqrt(alpha^2 + widening), derivatives still by
@@ -56,7 +56,7 @@ def emitter_directions(
 ) -> tuple[Tensor, Tensor, Tensor]:
     """The per-sample inputs of the bases for entries at ``x (M, 3)`` (camera space) with geometric
     frames ``frame (M, 3, 3)`` (rows t^, b^, n^) and ``live (M,)`` (False: padding, no light), toward
-    ``scanner``'s K emitter samples: ``wo (M, 3)``, ``wi (M, K', 3)`` and ``falloff`` = w_q Psi / r^2
+    ``scanner``'s K emitter samples: ``wo (M, 3)``, ``wi (M, 3, K')`` and ``falloff`` = w_q Psi / r^2
     ``(M, K')``, all in the frame (``measurement.local_emitter_geometry``'s). With ``padding``,
     K' = K + 1: sample K points where sample 0 does and emits nothing. Computed in float64, returned
     in ``x``'s dtype; one compiled pass instead of a dozen (M, K) temporaries."""
@@ -65,7 +65,7 @@ def emitter_directions(
     out_k = K + 1 if padding else K
     dt = torch.empty(0, dtype=x.dtype).numpy().dtype
     # every element is written: no zeroing (a third of this pass's time)
-    wo, wi = np.empty((M, 3), dt), np.empty((M, out_k, 3), dt)
+    wo, wi = np.empty((M, 3), dt), np.empty((M, 3, out_k), dt)
     falloff, cos_l = np.empty((M, out_k), dt), np.empty((M, out_k), dt)
     with numba_threads_as_torch():
         _directions_loop(
@@ -88,7 +88,7 @@ def emitter_directions(
 
 def diffuse_basis(normal: Tensor, wi: Tensor, falloff: Tensor, drive: Tensor) -> Tensor:
     """The diffuse basis ``(N, V, 3, 3)`` (module docstring) for the normals ``normal (N, 3)`` that
-    decide which emitters are above the horizon, ``wi (N, V, K, 3)``, ``falloff (N, V, K)`` and one
+    decide which emitters are above the horizon, ``wi (N, V, 3, K)``, ``falloff (N, V, K)`` and one
     drive for every entry ``(K, 3)``."""
     return diffuse_basis_and_margin(normal, wi, falloff, drive)[0]
 
@@ -148,17 +148,17 @@ def _diffuse(
     """The compiled loop's call: fills ``out`` and ``margin`` where ``todo (N, V)``."""
     d = wi.dtype
     with numba_threads_as_torch():
-        arrays = [_arr(x, d) for x in (normal, wi, falloff, drive)]
+        arrays = [_arr(x, d) for x in (normal, wi, falloff, drive.T)]
         _diffuse_loop(_rows(len(normal), rows), *arrays, np.ascontiguousarray(todo), out, margin)
 
 
 def pack_emitters(wi: Tensor, falloff: Tensor, drive: Tensor) -> Tensor:
     """Emitters as the specular loop reads them, ``(N, V, 7, M)`` (module docstring): rows wi x, y,
-    z, falloff, drive per channel, each a vector over the M emitters, from ``wi (N, V, M, 3)``,
+    z, falloff, drive per channel, each a vector over the M emitters, from ``wi (N, V, 3, M)``,
     ``falloff (N, V, M)`` and ``drive (N, V, M, 3)`` or one for every entry ``(M, 3)``."""
     N, V, M = falloff.shape
     out = torch.empty(N, V, PACKED_ROWS, M, dtype=wi.dtype)
-    out[:, :, :3] = wi.transpose(-1, -2)
+    out[:, :, :3] = wi
     out[:, :, 3] = falloff
     out[:, :, 4:] = drive.to(wi.dtype).transpose(-1, -2)
     return out
@@ -221,7 +221,7 @@ def lobe_weights(
     rows: Tensor | None = None,
 ) -> Tensor:
     """Each emitter's lobe for unit drive ``(N, V, M)`` (module docstring; ``fit.refine`` ranks the
-    emitter blocks by it) of ``wi (N', V, M, 3)`` and ``falloff (N', V, M)``, in one compiled pass
+    emitter blocks by it) of ``wi (N', V, 3, M)`` and ``falloff (N', V, M)``, in one compiled pass
     instead of a dozen (N, V, M) torch temporaries."""
     arrays = [_arr(x, wi.dtype) for x in (frame, wi, wo, falloff, alpha)]
     N = len(frame)
@@ -241,7 +241,7 @@ def selected_emitters(
     """The specular basis' packed emitters (``pack_emitters``) when blocks of samples are summed
     sample by sample only where the lobe is: per entry, the samples of its E blocks ``top (N, V,
     E)`` (``members (C, S)``: a block's sample indices), then the other blocks' coarse emitters in
-    block order. ``fine`` = (wi ``(N', V, K, 3)``, falloff ``(N', V, K)``, drive ``(K, 3)``) per
+    block order. ``fine`` = (wi ``(N', V, 3, K)``, falloff ``(N', V, K)``, drive ``(K, 3)``) per
     sample, ``coarse`` the same per block (C). Returns ``(N, V, 7, M)`` with M = E S + C - E
     emitters per entry; one compiled pass."""
     N, V, E = top.shape
@@ -263,8 +263,10 @@ def selected_emitters(
 @numba.njit(parallel=True, fastmath=True, cache=True)
 def _diffuse_loop(rows, normal, wi, falloff, drive, todo, out, margin):  # pragma: no cover - compiled
     """Fills ``out (N, V, 3, 3)`` and ``margin (N, V)`` where ``todo (N, V)`` (see
-    ``diffuse_basis_and_margin``), texel n from row ``rows[n]`` of ``wi`` and ``falloff``."""
+    ``diffuse_basis_and_margin``), texel n from row ``rows[n]`` of ``wi`` and ``falloff``; ``drive
+    (3, K)`` one row per channel."""
     N, V, K = out.shape[0], falloff.shape[1], falloff.shape[2]
+    dr0, dr1, dr2 = drive[0], drive[1], drive[2]
     for n in numba.prange(N):
         r = rows[n]
         n0, n1, n2 = float(normal[n, 0]), float(normal[n, 1]), float(normal[n, 2])
@@ -273,16 +275,15 @@ def _diffuse_loop(rows, normal, wi, falloff, drive, todo, out, margin):  # pragm
                 continue
             a00 = a01 = a02 = a10 = a11 = a12 = a20 = a21 = a22 = 0.0
             low = math.inf
+            wx, wy, wz, fv = wi[r, v, 0], wi[r, v, 1], wi[r, v, 2], falloff[r, v]
+            # no branch in the body (an emitter below the horizon is multiplied by 0): it vectorises
             for k in range(K):
-                f = falloff[r, v, k]
-                if f == 0.0:
-                    continue
-                x, y, z = wi[r, v, k, 0], wi[r, v, k, 1], wi[r, v, k, 2]
+                f = fv[k]
+                x, y, z = wx[k], wy[k], wz[k]
                 c = n0 * x + n1 * y + n2 * z
-                low = min(low, abs(c))
-                if c <= 0.0:
-                    continue
-                d0, d1, d2 = f * drive[k, 0], f * drive[k, 1], f * drive[k, 2]
+                low = min(low, abs(c) if f != 0.0 else math.inf)
+                f = f if c > 0.0 else 0.0
+                d0, d1, d2 = f * dr0[k], f * dr1[k], f * dr2[k]
                 a00 += d0 * x
                 a01 += d0 * y
                 a02 += d0 * z
@@ -425,7 +426,7 @@ def _lobe_loop(rows, frame, wi, wo, ff, alpha, f0, out):  # pragma: no cover - c
             oy = b0 * wo[r, v, 0] + b1 * wo[r, v, 1] + b2 * wo[r, v, 2]
             seen = 1.0 / (math.pi * ax * ay * (oz + math.sqrt(max(ax2 * ox * ox + ay2 * oy * oy + oz * oz, 1e-20))))
             for m in range(M):
-                wx, wy, wz = wi[r, v, m, 0], wi[r, v, m, 1], wi[r, v, m, 2]
+                wx, wy, wz = wi[r, v, 0, m], wi[r, v, 1, m], wi[r, v, 2, m]
                 ix = t0 * wx + t1 * wy + t2 * wz
                 iy = b0 * wx + b1 * wy + b2 * wz
                 iz = n0 * wx + n1 * wy + n2 * wz
@@ -454,7 +455,7 @@ def _select_loop(rows, top, members, wi, ff, drive, wi_c, ff_c, drive_c, out):  
                 for s in range(S):
                     k = members[top[n, v, b], s]
                     for i in range(3):
-                        o[i, j], o[4 + i, j] = wi[r, v, k, i], drive[k, i]
+                        o[i, j], o[4 + i, j] = wi[r, v, i, k], drive[k, i]
                     o[3, j] = ff[r, v, k]
                     j += 1
             for c in range(C):
@@ -464,7 +465,7 @@ def _select_loop(rows, top, members, wi, ff, drive, wi_c, ff_c, drive_c, out):  
                 if expanded:
                     continue
                 for i in range(3):
-                    o[i, j], o[4 + i, j] = wi_c[r, v, c, i], drive_c[c, i]
+                    o[i, j], o[4 + i, j] = wi_c[r, v, i, c], drive_c[c, i]
                 o[3, j] = ff_c[r, v, c]
                 j += 1
 
@@ -491,12 +492,12 @@ def _directions_loop(x, frame, live, pts, weights, normals, wo, wi, falloff, cos
             dx, dy, dz = px[k] - x0, py[k] - x1, pz[k] - x2
             r2 = max(dx * dx + dy * dy + dz * dz, 1e-12)
             inv = 1.0 / math.sqrt(r2)
-            wi[m, k, 0] = (t0 * dx + t1 * dy + t2 * dz) * inv
-            wi[m, k, 1] = (b0 * dx + b1 * dy + b2 * dz) * inv
-            wi[m, k, 2] = (n0 * dx + n1 * dy + n2 * dz) * inv
+            wi[m, 0, k] = (t0 * dx + t1 * dy + t2 * dz) * inv
+            wi[m, 1, k] = (b0 * dx + b1 * dy + b2 * dz) * inv
+            wi[m, 2, k] = (n0 * dx + n1 * dy + n2 * dz) * inv
             cos_l[m, k] = min(max(-(dx * qx[k] + dy * qy[k] + dz * qz[k]) * inv, 0.0), 1.0)
             falloff[m, k] = weights[k] / r2 * lit
-        if wi.shape[1] > K:  # the padding sample: any direction, no light
+        if wi.shape[2] > K:  # the padding sample: any direction, no light
             for j in range(3):
-                wi[m, K, j] = wi[m, 0, j]
+                wi[m, j, K] = wi[m, j, 0]
             falloff[m, K], cos_l[m, K] = 0.0, 0.0

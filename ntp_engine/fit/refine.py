@@ -221,10 +221,10 @@ class _Trace:
         exposure = float(scanner.exposure(scanner.pattern))
 
         def directions(dev: Scanner, padding: bool) -> tuple[Tensor, Tensor, Tensor]:
-            """wo (N, V, 3), and per emitter sample wi (N, V, K, 3) and falloff (N, V, K)."""
+            """wo (N, V, 3), and per emitter sample wi (N, V, 3, K) and falloff (N, V, K)."""
             wo, wi, falloff = emitter_directions(dev, x, frame, live, padding)
             K = falloff.shape[1]
-            return wo.view(N, V, 3), wi.view(N, V, K, 3), falloff.view(N, V, K)
+            return wo.view(N, V, 3), wi.view(N, V, 3, K), falloff.view(N, V, K)
 
         # sample index K: padding (any direction, no light)
         self.wo, self.wi, self.falloff = directions(scanner, True)
@@ -361,7 +361,7 @@ class _Round:
         # the support's light: more emitters, drawn for this round's lobe
         support = tr.support_specular(frame0, log_alpha.exp())
         if support is not None:
-            packed = pack_emitters(support.wi, support.weight, support.drive)
+            packed = pack_emitters(support.wi.transpose(-1, -2), support.weight, support.drive)
             self.emitters = torch.cat([self.emitters, packed], 3)
 
     def rows(self, idx: Tensor) -> _Round:

@@ -1,9 +1,9 @@
 """Compile the engine's numba loops into their cache ahead of the first run (``make setup`` runs
 ``python -m ntp_engine.pipeline.precompile``), as a C extension is built at install time.
 
-Every loop (``fit.lobe_loop``, ``physics.pattern_sums``, ``fit.pixel_bases``) is compiled on its
-first call and cached beside its source (``cache=True``); on a fresh clone that first call was in
-the user's first run — ~25 s of the demo's 5 minutes on 2 cores (docs/architecture.md). Here
+Every loop (``fit.lobe_loop``, ``physics.pattern_sums``, ``fit.pixel_bases``, ``fit.gauss_newton``)
+is compiled on its first call and cached beside its source (``cache=True``); on a fresh clone that
+first call was in the user's first run — ~25 s of the demo's 5 minutes on 2 cores (docs/architecture.md). Here
 each is called once on a few synthetic traces through the same public functions the pipeline calls,
 which hand the loops arrays of fixed dtypes and layouts, so the pipeline's calls hit the cache. A
 loop this misses still compiles on its first call in a run: only slower, never wrong.

@@ -122,7 +122,7 @@ def test_the_refinement_with_the_support_recovers_a_glossy_face_it_lights():
         patch.setattr(sl, "SPECULAR_SAMPLES", 512)
         patch.setattr(sl, "DIFFUSE_SAMPLES", 512)
         em = sl.support_specular_emitters(view, DEV, src, x, fc, mask, wo, true_frame, alpha)
-        spec = specular_basis(true_frame, pack_emitters(em.wi, em.weight, em.drive), wo, alpha)
+        spec = specular_basis(true_frame, pack_emitters(em.wi.transpose(-1, -2), em.weight, em.drive), wo, alpha)
         diff = (sl.support_diffuse_basis(view, DEV, src, x, fc, mask) * true_frame[:, None, None, 2]).sum(-1)
     extra = p["rho_d"][:, None].double() * diff + p["rho_s"][:, None].double() * spec
     y = entries[..., :3].double() + extra
