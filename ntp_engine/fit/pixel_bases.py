@@ -6,9 +6,10 @@ form ~70% of the refinement's time.
 Convention: every vector in the texel's geometric frame; per texel n, entry v, emitter sample m:
 unit ``wi (N, V, 3, M)`` toward the emitter — components first, each a contiguous vector over the
 emitters (the loops' bodies have no branch, so they vectorise) — and ``drive`` per camera channel
-(exposure included; 0 for padding). Diffuse: ``falloff (N, V, M)`` = w_q Psi / r^2; the basis is linear in the shading normal,
-``diffuse (N, V, 3 channels, 3)`` = sum_m [wi.n0 > 0] falloff drive_c wi / pi, so a pixel is
-rho_d,c (basis_c . n) for any normal n near the ``n0`` that chose the emitters above the horizon.
+(exposure included; 0 for padding). Diffuse: ``falloff (N, V, M)`` = w_q Psi / r^2; the basis is
+linear in the shading normal, ``diffuse (N, V, 3 channels, 3)`` = sum_m [wi.n0 > 0] falloff drive_c
+wi / pi, so a pixel is rho_d,c (basis_c . n) for any normal n near the ``n0`` that chose the
+emitters above the horizon.
 Specular: ``frame (N, 3, 3)`` rows t, b, n of the shading frame; the emitters packed
 ``(N, V, 7, M)`` (``pack_emitters``): rows wi_x, wi_y, wi_z, falloff, drive per channel; unit
 ``wo (N, V, 3)``, ``alpha (N, 2)`` = (alpha_x, alpha_y) along (t, b); ``widening (N, V, 2)``,
