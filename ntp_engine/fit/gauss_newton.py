@@ -1,7 +1,8 @@
-"""The refinement's Gauss-Newton system (``fit.refine``'s LM step) from its pixel bases, summed in
-one compiled loop (numba, parallel over texels): the robust normal equations J^T W J and J^T W r
-per texel over its entries and channels, without the (texels x entries x 3 x 11) Jacobian and the
-dozen torch operations that built and multiplied it (~40% of an LM step's time).
+"""The refinement's robust data cost and Gauss-Newton system (``fit.refine``'s LM step) from its
+pixel bases, each summed in one compiled loop (numba, parallel over texels): the cost, and the
+normal equations J^T W J and J^T W r per texel over its entries and channels — without the (texels
+x entries x 3 x 11) Jacobian and the dozen torch operations that built and multiplied it (~40% of
+an LM step's time), or the residuals' half dozen.
 
 Convention: parameters p ``(N, 11)`` = (omega (3), log alpha (2), rho_d RGB, rho_s RGB) as in
 ``fit.refine`` (omega a rotation of the shading frame at 0). Per entry v and channel c the
@@ -11,10 +12,13 @@ channel's diffuse basis g_c in the shading frame (d/d omega of g . n(omega) is (
 (``pixel_bases.specular_basis_and_derivatives``; both ``(0, ...)`` for a diffuse-only model). A
 residual is (prediction - y) / sigma, ``inv_sigma (N, V, 3)``, counted where ``mask`` is set and,
 for a ``censored`` pixel (a clipped channel), only while the prediction is below y; each is
-weighted by the Cauchy IRLS weight 1 / (1 + (r / robust)^2). Sums in float64.
+weighted by the Cauchy IRLS weight 1 / (1 + (r / robust)^2); the cost is Cauchy's,
+robust^2 / 2 log(1 + (r / robust)^2). Sums in float64.
 """
 
 from __future__ import annotations
+
+import math
 
 import numba
 import numpy as np
@@ -64,7 +68,62 @@ def normal_equations(
     return torch.from_numpy(H), torch.from_numpy(g)
 
 
-@numba.njit(parallel=True, fastmath=True, cache=True)
+def data_cost(
+    diffuse: Tensor,
+    spec: Tensor,
+    p: Tensor,
+    y: Tensor,
+    inv_sigma: Tensor,
+    mask: Tensor,
+    censored: Tensor,
+    robust: float,
+) -> Tensor:
+    """The robust data cost per texel ``(N,)`` (module docstring) at ``p (N, 11)`` of the unit-albedo
+    pixel bases ``diffuse``, ``spec (N, V, 3)`` (for the normal and lobe ``p`` stands for), in
+    ``y``'s dtype."""
+    dt = y.dtype
+
+    def arr(t: Tensor, dtype: torch.dtype = dt) -> np.ndarray:
+        return np.ascontiguousarray(t.detach().to(dtype).numpy())
+
+    out = np.zeros(len(p))
+    with numba_threads_as_torch():
+        _cost_loop(
+            arr(diffuse),
+            arr(spec),
+            arr(p, torch.float64),
+            arr(y),
+            arr(inv_sigma),
+            arr(mask, torch.bool),
+            arr(censored, torch.bool),
+            float(robust),
+            out,
+        )
+    return torch.from_numpy(out).to(dt)
+
+
+# no fastmath in this module's loops: a solve gone non-finite must give a NaN cost (the LM rejects
+# the step), which fastmath's no-NaN assumption does not promise
+@numba.njit(parallel=True, cache=True)
+def _cost_loop(diffuse, spec, p, y, inv_sigma, mask, censored, robust, out):  # pragma: no cover
+    """Fills ``out (N,)`` (see ``data_cost``)."""
+    N, V = y.shape[0], y.shape[1]
+    c2 = robust * robust
+    for n in numba.prange(N):
+        total = 0.0
+        for v in range(V):
+            for c in range(3):
+                if not mask[n, v, c]:
+                    continue
+                pred = p[n, 5 + c] * diffuse[n, v, c] + p[n, 8 + c] * spec[n, v, c]
+                if censored[n, v, c] and pred >= y[n, v, c]:
+                    continue  # a clipped channel measures only a lower bound
+                r = (pred - y[n, v, c]) * inv_sigma[n, v, c]
+                total += 0.5 * c2 * math.log1p(r * r / c2)
+        out[n] = total
+
+
+@numba.njit(parallel=True, cache=True)
 def _normal_loop(diffuse, spec, ds, p, y, inv_sigma, mask, censored, robust, H, g):  # pragma: no cover
     """Fills ``H (N, 11, 11)`` and ``g (N, 11)`` (see ``normal_equations``)."""
     N, V = y.shape[0], y.shape[1]

@@ -11,7 +11,7 @@ linear in the shading normal, ``diffuse (N, V, 3 channels, 3)`` = sum_m [wi.n0 >
 wi / pi, so a pixel is rho_d,c (basis_c . n) for any normal n near the ``n0`` that chose the
 emitters above the horizon.
 Specular: ``frame (N, 3, 3)`` rows t, b, n of the shading frame; the emitters packed
-``(N, V, 7, M)`` (``pack_emitters``): rows wi_x, wi_y, wi_z, falloff, drive per channel; unit
+``(N, V, 6, M)`` (``pack_emitters``): rows wi_x, wi_y, wi_z, falloff times the drive per channel; unit
 ``wo (N, V, 3)``, ``alpha (N, 2)`` = (alpha_x, alpha_y) along (t, b); ``widening (N, V, 2)``,
 optional: what each entry's pixel sample adds to alpha_x^2, alpha_y^2 on a curved surface
 (``fit.footprint``), the lobe it sees then having sqrt(alpha^2 + widening), derivatives still by
@@ -45,7 +45,7 @@ from ..physics.pattern_sums import emitter_arrays
 from ..scanner.scanner import Scanner
 
 N_DERIVATIVES = 5  # omega (3), log alpha_x, log alpha_y
-PACKED_ROWS = 7  # a packed emitter: wi (3), falloff, drive (3)
+PACKED_ROWS = 6  # a packed emitter: wi (3), falloff times drive (3)
 
 
 def _arr(t: Tensor, dtype: torch.dtype) -> np.ndarray:
@@ -154,14 +154,13 @@ def _diffuse(
 
 
 def pack_emitters(wi: Tensor, falloff: Tensor, drive: Tensor) -> Tensor:
-    """Emitters as the specular loop reads them, ``(N, V, 7, M)`` (module docstring): rows wi x, y,
-    z, falloff, drive per channel, each a vector over the M emitters, from ``wi (N, V, 3, M)``,
-    ``falloff (N, V, M)`` and ``drive (N, V, M, 3)`` or one for every entry ``(M, 3)``."""
+    """Emitters as the specular loop reads them, ``(N, V, 6, M)`` (module docstring): rows wi x, y,
+    z and falloff times the drive per channel, each a vector over the M emitters, from ``wi (N, V,
+    3, M)``, ``falloff (N, V, M)`` and ``drive (N, V, M, 3)`` or one for every entry ``(M, 3)``."""
     N, V, M = falloff.shape
     out = torch.empty(N, V, PACKED_ROWS, M, dtype=wi.dtype)
     out[:, :, :3] = wi
-    out[:, :, 3] = falloff
-    out[:, :, 4:] = drive.to(wi.dtype).transpose(-1, -2)
+    out[:, :, 3:] = falloff[:, :, None] * drive.to(wi.dtype).transpose(-1, -2)
     return out
 
 
@@ -243,7 +242,7 @@ def selected_emitters(
     sample by sample only where the lobe is: per entry, the samples of its E blocks ``top (N, V,
     E)`` (``members (C, S)``: a block's sample indices), then the other blocks' coarse emitters in
     block order. ``fine`` = (wi ``(N', V, 3, K)``, falloff ``(N', V, K)``, drive ``(K, 3)``) per
-    sample, ``coarse`` the same per block (C). Returns ``(N, V, 7, M)`` with M = E S + C - E
+    sample, ``coarse`` the same per block (C). Returns ``(N, V, 6, M)`` with M = E S + C - E
     emitters per entry; one compiled pass."""
     N, V, E = top.shape
     C, S = members.shape
@@ -353,8 +352,8 @@ def _specular_loop(rows, frame, emitters, wo, alpha, widening, f0, derivatives, 
                 lam_i = math.sqrt(max(si0 + si1 + iz * iz, 1e-20))
                 a_i = izp + lam_i
                 d = h2 / hq
-                lobe = izp * e[3, m] * fresnel * d * d / a_i
-                d0, d1, d2 = lobe * e[4, m], lobe * e[5, m], lobe * e[6, m]
+                lobe = izp * fresnel * d * d / a_i  # per unit falloff x drive
+                d0, d1, d2 = lobe * e[3, m], lobe * e[4, m], lobe * e[5, m]
                 s0 += d0
                 s1 += d1
                 s2 += d2
@@ -443,7 +442,7 @@ def _lobe_loop(rows, frame, wi, wo, ff, alpha, f0, out):  # pragma: no cover - c
 
 @numba.njit(parallel=True, cache=True)
 def _select_loop(rows, top, members, wi, ff, drive, wi_c, ff_c, drive_c, out):  # pragma: no cover
-    """Fills the packed ``out (N, V, 7, M)`` (see ``selected_emitters``), texel n from row ``rows[n]``
+    """Fills the packed ``out (N, V, 6, M)`` (see ``selected_emitters``), texel n from row ``rows[n]``
     of the per-sample arrays."""
     N, V, E = top.shape
     C, S = members.shape
@@ -455,9 +454,9 @@ def _select_loop(rows, top, members, wi, ff, drive, wi_c, ff_c, drive_c, out):  
             for b in range(E):
                 for s in range(S):
                     k = members[top[n, v, b], s]
+                    f = ff[r, v, k]
                     for i in range(3):
-                        o[i, j], o[4 + i, j] = wi[r, v, i, k], drive[k, i]
-                    o[3, j] = ff[r, v, k]
+                        o[i, j], o[3 + i, j] = wi[r, v, i, k], f * drive[k, i]
                     j += 1
             for c in range(C):
                 expanded = False
@@ -465,9 +464,9 @@ def _select_loop(rows, top, members, wi, ff, drive, wi_c, ff_c, drive_c, out):  
                     expanded = expanded or top[n, v, b] == c
                 if expanded:
                     continue
+                f = ff_c[r, v, c]
                 for i in range(3):
-                    o[i, j], o[4 + i, j] = wi_c[r, v, i, c], drive_c[c, i]
-                o[3, j] = ff_c[r, v, c]
+                    o[i, j], o[3 + i, j] = wi_c[r, v, i, c], f * drive_c[c, i]
                 j += 1
 
 

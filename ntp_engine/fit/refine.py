@@ -48,7 +48,7 @@ from ..scanner.scanner import Scanner
 from .albedo import bounded_ls2
 from .emitter_blocks import EmitterBlocks, emitter_blocks, shadow_groups
 from .footprint import Footprint, widening
-from .gauss_newton import N_PARAMS, normal_equations
+from .gauss_newton import N_PARAMS, data_cost, normal_equations
 from .highlights import parked_positions
 from .pixel_bases import (
     diffuse_basis_and_margin,
@@ -68,7 +68,7 @@ from .support_light import (
     support_specular_emitters,
 )
 
-VERSION = 34  # of the method: part of the pipeline's cache key (bump when results change for the same settings)
+VERSION = 35  # of the method: part of the pipeline's cache key (bump when results change for the same settings)
 CENSOR_CODE = VALID_CODE[1]  # above this an 8-bit code may be (or border) a clipped pixel: a lower bound
 EXPANDED_BLOCKS = 4  # emitter blocks per entry summed sample by sample (the rest as coarse emitters)
 SELECT_WIDEN, SELECT_FLOOR = 3.0, 0.03  # emitters are chosen under alphas x3 (at least 0.03)
@@ -493,7 +493,8 @@ def _cost_at(rnd: _Round, q: Tensor, prior: _Prior, settings: RefineSettings) ->
     d, s = rnd.bases_in(frame, q[:, P_LOGA])
     u = (frame @ prior.n_prior[:, :, None])[..., 0]  # _prior_normal_in
     tilt = 0.5 * prior.n_w * (u[:, :2] ** 2).sum(1)
-    data = _cost(_residuals(rnd.tr, d, s, q)[0], settings.noise.robust)
+    tr = rnd.tr
+    data = data_cost(d, s, q, tr.y, tr.inv_sigma, tr.mask, tr.censored, settings.noise.robust)
     return data + _prior(q, prior) + tilt
 
 
@@ -917,7 +918,7 @@ def _given_lobe_cost(
     rnd = _Round(tr, frame, p[:, P_LOGA], specular, diffuse)
     bases = rnd.bases(p[:, P_OMEGA], p[:, P_LOGA])
     p = _albedo_start(rnd, p, specular, keep_rho_s=True, bases=bases)
-    c = _cost(_residuals(tr, *bases, p)[0], settings.noise.robust)
+    c = data_cost(*bases, p, tr.y, tr.inv_sigma, tr.mask, tr.censored, settings.noise.robust)
     return torch.nan_to_num(c, nan=math.inf), rnd.diffuse, p[:, P_RHO_D]
 
 

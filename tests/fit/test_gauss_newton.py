@@ -1,10 +1,13 @@
-"""The compiled normal equations equal the torch Jacobian's J^T W J and J^T W r (float64), censored
-channels counting only while the prediction is below the clip, masked ones not at all."""
+"""The compiled data cost and normal equations equal the torch residuals' Cauchy cost and the torch
+Jacobian's J^T W J and J^T W r (float64), censored channels counting only while the prediction is
+below the clip, masked ones not at all; a NaN parameter gives a NaN cost."""
+
+import math
 
 import pytest
 import torch
 
-from ntp_engine.fit.gauss_newton import N_PARAMS, normal_equations
+from ntp_engine.fit.gauss_newton import N_PARAMS, data_cost, normal_equations
 
 
 def _case(seed: int, specular: bool, N=7, V=6):
@@ -68,3 +71,22 @@ def test_clipped_channels_above_their_prediction_count_and_masked_ones_do_not():
     assert not H.any() and not g.any()
     H, g = normal_equations(diffuse, spec, ds, p, y, inv_sigma, torch.zeros_like(mask), censored, 3.0)
     assert not H.any() and not g.any()
+
+
+@pytest.mark.parametrize("specular", [True, False])
+def test_data_cost_is_the_cauchy_cost_of_the_counted_residuals(specular):
+    diffuse, spec, ds, p, y, inv_sigma, mask, censored = _case(5, specular)
+    s = spec if specular else torch.zeros_like(y)
+    d = diffuse[..., 2]
+    pred = p[:, None, 5:8] * d + p[:, None, 8:11] * s
+    active = mask & ~(censored & (pred >= y))
+    r = torch.where(active, (pred - y) * inv_sigma, 0.0)
+    want = (0.5 * 9.0 * torch.log1p((r / 3.0) ** 2)).flatten(1).sum(1)
+    got = data_cost(d, s, p, y, inv_sigma, mask, censored, 3.0)
+    assert got.dtype == torch.float64 and (want > 0).all()
+    torch.testing.assert_close(got, want, rtol=1e-12, atol=0.0)
+    got32 = data_cost(d.float(), s.float(), p.float(), y.float(), inv_sigma.float(), mask, censored, 3.0)
+    assert got32.dtype == torch.float32
+    torch.testing.assert_close(got32.double(), want, rtol=1e-5, atol=0.0)
+    p[0, 5] = math.nan  # a solve gone non-finite: the LM must see it
+    assert torch.isnan(data_cost(d, s, p, y, inv_sigma, mask, censored, 3.0)[0])

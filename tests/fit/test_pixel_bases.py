@@ -76,11 +76,11 @@ def _reference(frame, wi, wo, ff, drive, alpha, x):
 def test_packed_emitters_are_rows_of_vectors_over_the_emitters():
     _, wi, _, ff, drive, _ = _case(7)
     packed = pack_emitters(_soa(wi), ff, drive)
-    assert packed.shape == (*ff.shape[:2], 7, ff.shape[2]) and packed.is_contiguous()
-    assert torch.equal(packed[:, :, :3], wi.transpose(-1, -2)) and torch.equal(packed[:, :, 3], ff)
-    assert torch.equal(packed[:, :, 4:], drive.transpose(-1, -2))
+    assert packed.shape == (*ff.shape[:2], 6, ff.shape[2]) and packed.is_contiguous()
+    assert torch.equal(packed[:, :, :3], wi.transpose(-1, -2))
+    assert torch.equal(packed[:, :, 3:], ff[:, :, None] * drive.transpose(-1, -2))
     one = pack_emitters(_soa(wi), ff, drive[0, 0])  # one drive for every entry
-    assert torch.equal(one[:, :, 4:], drive[0, 0].T.expand(*ff.shape[:2], 3, -1))
+    assert torch.equal(one[:, :, 3:], ff[:, :, None] * drive[0, 0].T)
 
 
 @pytest.mark.parametrize("seed", [0, 1])
@@ -191,7 +191,7 @@ def test_selected_emitters_are_the_expanded_blocks_then_the_others_coarse():
     coarse = (torch.randn(N, V, C, 3, generator=g), torch.rand(N, V, C, generator=g), torch.rand(C, 3, generator=g))
     order = torch.stack([torch.randperm(C, generator=g) for _ in range(N * V)]).view(N, V, C)
     packed = selected_emitters(order[..., :B], members, (_soa(fine[0]), *fine[1:]), (_soa(coarse[0]), *coarse[1:]))
-    assert packed.shape == (N, V, 7, B * S + C - B)
+    assert packed.shape == (N, V, 6, B * S + C - B)
     for n in range(N):
         for v in range(V):
             k = members[order[n, v, :B]].flatten()
