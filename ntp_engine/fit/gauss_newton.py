@@ -44,27 +44,10 @@ def normal_equations(
     """The Gauss-Newton Hessian J^T W J ``(N, 11, 11)`` and gradient J^T W r ``(N, 11)`` (float64)
     of the robust data cost at ``p`` (module docstring)."""
     N = len(p)
-    dt = y.dtype
-
-    def arr(t: Tensor, dtype: torch.dtype = dt) -> np.ndarray:
-        return np.ascontiguousarray(t.detach().to(dtype).numpy())
-
     H = np.zeros((N, N_PARAMS, N_PARAMS))
     g = np.zeros((N, N_PARAMS))
     with numba_threads_as_torch():
-        _normal_loop(
-            arr(diffuse),
-            arr(spec),
-            arr(ds),
-            arr(p, torch.float64),
-            arr(y),
-            arr(inv_sigma),
-            arr(mask, torch.bool),
-            arr(censored, torch.bool),
-            float(robust),
-            H,
-            g,
-        )
+        _normal_loop(*_loop_inputs((diffuse, spec, ds), p, y, inv_sigma, mask, censored), float(robust), H, g)
     return torch.from_numpy(H), torch.from_numpy(g)
 
 
@@ -81,25 +64,24 @@ def data_cost(
     """The robust data cost per texel ``(N,)`` (module docstring) at ``p (N, 11)`` of the unit-albedo
     pixel bases ``diffuse``, ``spec (N, V, 3)`` (for the normal and lobe ``p`` stands for), in
     ``y``'s dtype."""
-    dt = y.dtype
-
-    def arr(t: Tensor, dtype: torch.dtype = dt) -> np.ndarray:
-        return np.ascontiguousarray(t.detach().to(dtype).numpy())
-
     out = np.zeros(len(p))
     with numba_threads_as_torch():
-        _cost_loop(
-            arr(diffuse),
-            arr(spec),
-            arr(p, torch.float64),
-            arr(y),
-            arr(inv_sigma),
-            arr(mask, torch.bool),
-            arr(censored, torch.bool),
-            float(robust),
-            out,
-        )
-    return torch.from_numpy(out).to(dt)
+        _cost_loop(*_loop_inputs((diffuse, spec), p, y, inv_sigma, mask, censored), float(robust), out)
+    return torch.from_numpy(out).to(y.dtype)
+
+
+def _loop_inputs(
+    bases: tuple[Tensor, ...], p: Tensor, y: Tensor, inv_sigma: Tensor, mask: Tensor, censored: Tensor
+) -> list[np.ndarray]:
+    """The loops' arrays: the bases, y and sigma in y's dtype, p in float64, the masks as bools."""
+
+    def arr(t: Tensor, dtype: torch.dtype) -> np.ndarray:
+        return np.ascontiguousarray(t.detach().to(dtype).numpy())
+
+    dt = y.dtype
+    return [*(arr(b, dt) for b in bases), arr(p, torch.float64), arr(y, dt), arr(inv_sigma, dt)] + [
+        arr(m, torch.bool) for m in (mask, censored)
+    ]
 
 
 # no fastmath in this module's loops: a solve gone non-finite must give a NaN cost (the LM rejects
