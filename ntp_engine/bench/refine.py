@@ -272,7 +272,7 @@ def _scipy_texel(
         q = torch.as_tensor(x)[None]
         d, s = rnd.bases(q[:, rf.P_OMEGA], q[:, rf.P_LOGA])
         r, _ = rf._residuals(tr, d, s, q)
-        u = rf._prior_normal_in(frame0, n_prior, q[:, rf.P_OMEGA])
+        u = rf._prior_normal_in(rf._fold(frame0, q[:, rf.P_OMEGA]), n_prior)
         return np.concatenate([r.flatten().numpy(), ((q[0, rf.P_LOGA] - la0[0]) / sa).numpy(), (u[0, :2] / sn).numpy()])
 
     x0 = np.concatenate(

@@ -26,6 +26,7 @@ import torch
 from torch import Tensor
 
 from ..io.thread_pools import numba_threads_as_torch
+from .pixel_bases import loop_array
 
 N_PARAMS = 11  # omega (3), log alpha (2), rho_d (3), rho_s (3)
 
@@ -74,14 +75,9 @@ def _loop_inputs(
     bases: tuple[Tensor, ...], p: Tensor, y: Tensor, inv_sigma: Tensor, mask: Tensor, censored: Tensor
 ) -> list[np.ndarray]:
     """The loops' arrays: the bases, y and sigma in y's dtype, p in float64, the masks as bools."""
-
-    def arr(t: Tensor, dtype: torch.dtype) -> np.ndarray:
-        return np.ascontiguousarray(t.detach().to(dtype).numpy())
-
     dt = y.dtype
-    return [*(arr(b, dt) for b in bases), arr(p, torch.float64), arr(y, dt), arr(inv_sigma, dt)] + [
-        arr(m, torch.bool) for m in (mask, censored)
-    ]
+    floats = [*(loop_array(b, dt) for b in bases), loop_array(p, torch.float64), loop_array(y, dt)]
+    return [*floats, loop_array(inv_sigma, dt), loop_array(mask, torch.bool), loop_array(censored, torch.bool)]
 
 
 # no fastmath in this module's loops: a solve gone non-finite must give a NaN cost (the LM rejects

@@ -48,7 +48,8 @@ N_DERIVATIVES = 5  # omega (3), log alpha_x, log alpha_y
 PACKED_ROWS = 6  # a packed emitter: wi (3), falloff times drive (3)
 
 
-def _arr(t: Tensor, dtype: torch.dtype) -> np.ndarray:
+def loop_array(t: Tensor, dtype: torch.dtype) -> np.ndarray:
+    """``t`` as a compiled loop reads it: a C-contiguous numpy array of ``dtype``."""
     return np.ascontiguousarray(t.detach().to(dtype).numpy())
 
 
@@ -70,8 +71,8 @@ def emitter_directions(
     falloff, cos_l = np.empty((M, out_k), dt), np.empty((M, out_k), dt)
     with numba_threads_as_torch():
         _directions_loop(
-            _arr(x, torch.float64),
-            _arr(frame, torch.float64),
+            loop_array(x, torch.float64),
+            loop_array(frame, torch.float64),
             np.ascontiguousarray(live.numpy().astype(np.bool_)),
             e.points,
             e.weights,
@@ -149,7 +150,7 @@ def _diffuse(
     """The compiled loop's call: fills ``out`` and ``margin`` where ``todo (N, V)``."""
     d = wi.dtype
     with numba_threads_as_torch():
-        arrays = [_arr(x, d) for x in (normal, wi, falloff, drive.T)]
+        arrays = [loop_array(x, d) for x in (normal, wi, falloff, drive.T)]
         _diffuse_loop(_rows(len(normal), rows), *arrays, np.ascontiguousarray(todo), out, margin)
 
 
@@ -202,9 +203,9 @@ def _specular(
     """The compiled loop's call; the derivatives ``(0, 0, 5, 3)`` unless asked for."""
     N, V = len(frame), emitters.shape[1]
     dt = emitters.dtype
-    arrays = [_arr(x, dt) for x in (frame, emitters, wo, alpha)]
+    arrays = [loop_array(x, dt) for x in (frame, emitters, wo, alpha)]
     # per entry in the loop: small torch ops between compiled loops cost ~1 ms each (thread wake-ups)
-    wide = np.zeros((0, 0, 2), arrays[1].dtype) if widening is None else _arr(widening, dt)
+    wide = np.zeros((0, 0, 2), arrays[1].dtype) if widening is None else loop_array(widening, dt)
     spec = np.zeros((N, V, 3), arrays[1].dtype)
     ds = np.zeros((N, V, N_DERIVATIVES, 3) if derivatives else (0, 0, N_DERIVATIVES, 3), spec.dtype)
     with numba_threads_as_torch():
@@ -223,7 +224,7 @@ def lobe_weights(
     """Each emitter's lobe for unit drive ``(N, V, M)`` (module docstring; ``fit.refine`` ranks the
     emitter blocks by it) of ``wi (N', V, 3, M)`` and ``falloff (N', V, M)``, in one compiled pass
     instead of a dozen (N, V, M) torch temporaries."""
-    arrays = [_arr(x, wi.dtype) for x in (frame, wi, wo, falloff, alpha)]
+    arrays = [loop_array(x, wi.dtype) for x in (frame, wi, wo, falloff, alpha)]
     N = len(frame)
     out = np.zeros((N, *falloff.shape[1:]), arrays[1].dtype)
     with numba_threads_as_torch():
@@ -251,10 +252,10 @@ def selected_emitters(
     with numba_threads_as_torch():
         _select_loop(
             _rows(N, rows),
-            _arr(top, torch.int64),
-            _arr(members, torch.int64),
-            *(_arr(x, dt) for x in fine),
-            *(_arr(x, dt) for x in coarse),
+            loop_array(top, torch.int64),
+            loop_array(members, torch.int64),
+            *(loop_array(x, dt) for x in fine),
+            *(loop_array(x, dt) for x in coarse),
             out.numpy(),
         )
     return out

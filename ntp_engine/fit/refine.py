@@ -385,8 +385,9 @@ class _Round:
         ``pixel_bases.specular_basis_and_derivatives``; empty for a diffuse-only round)."""
         frame = self.frame0
         diffuse = torch.einsum("nij,nvcj->nvci", frame, self.diffuse)
-        if not self.specular:
-            return diffuse, diffuse[:0, :, 0], diffuse[:0, :, :0]
+        if not self.specular:  # no specular basis: empty arrays (``gauss_newton``'s convention)
+            V = diffuse.shape[1]
+            return diffuse, diffuse.new_zeros(0, V, 3), diffuse.new_zeros(0, V, 5, 3)
         alpha = log_alpha.exp()
         spec, ds = specular_basis_and_derivatives(frame, self.emitters, self.wo, alpha, self.row, self.widening)
         return diffuse, spec, ds
@@ -481,17 +482,17 @@ def _normal_prior(frame: Tensor, settings: RefineSettings) -> Tensor:
     return out
 
 
-def _prior_normal_in(frame: Tensor, n_prior: Tensor, omega: Tensor) -> Tensor:
-    """The prior's normal ``n_prior (N, 3)`` (geometric frame) in the shading frame R(omega)^T F ``(N, 3)``."""
-    u = (frame @ n_prior[:, :, None])[..., 0]
-    return (rotation_from_vector(omega).transpose(-1, -2) @ u[:, :, None])[..., 0]
+def _prior_normal_in(frame: Tensor, n_prior: Tensor) -> Tensor:
+    """The prior's normal ``n_prior (N, 3)`` (geometric frame) in the shading frame ``frame (N, 3,
+    3)`` (rows t, b, n; a round's start turned by ``_fold``) ``(N, 3)``."""
+    return (frame @ n_prior[:, :, None])[..., 0]
 
 
 def _cost_at(rnd: _Round, q: Tensor, prior: _Prior, settings: RefineSettings) -> Tensor:
     """The objective per texel at ``q (N, 11)``: robust data cost plus the priors."""
     frame = _fold(rnd.frame0, q[:, P_OMEGA])  # one rotation for the bases and the normal's pull
     d, s = rnd.bases_in(frame, q[:, P_LOGA])
-    u = (frame @ prior.n_prior[:, :, None])[..., 0]  # _prior_normal_in
+    u = _prior_normal_in(frame, prior.n_prior)
     tilt = 0.5 * prior.n_w * (u[:, :2] ** 2).sum(1)
     tr = rnd.tr
     data = data_cost(d, s, q, tr.y, tr.inv_sigma, tr.mask, tr.censored, settings.noise.robust)
@@ -562,7 +563,7 @@ def _lm_step(
     g[:, 4] -= tie_w * spread
     # the normal prior: residuals u_x, u_y / sigma of the prior's normal u in the shading frame,
     # d u / d omega_k = u x e_k
-    u = (rnd.frame0 @ prior.n_prior[:, :, None])[..., 0].double()  # _prior_normal_in at omega = 0
+    u = _prior_normal_in(rnd.frame0, prior.n_prior).double()  # at omega = 0
     zero = torch.zeros_like(u[:, 0])
     sn = prior.n_w**-0.5
     ju = torch.stack([torch.stack([zero, -u[:, 2], u[:, 1]], 1), torch.stack([u[:, 2], zero, -u[:, 0]], 1)], 1) / sn
