@@ -41,7 +41,7 @@ from ..scanner.scanner import Scanner
 from .align import AMBIGUOUS_DEG, Alignment, azimuth_apart, mesh_symmetry, surface_samples, turned_distance
 from .traces import MIN_COS_VIEW, SupportShadow
 
-VERSION = 2  # of the registration: a change that moves the poses bumps it (cached registrations are redone)
+VERSION = 3  # of the registration: a change that moves the poses bumps it (cached registrations are redone)
 SURFACE_POINTS = 3000  # surface samples of a PhotometricRegistration by default
 CANDIDATE_POINTS = 1500  # ... that compare the candidate azimuths (on SWEEP_PHOTOS photos)
 FINE_POINTS = 8000  # ... and that refine the chosen one: its error is sampling noise (gallery dome, 40 photos:
@@ -273,15 +273,20 @@ def eliminate_nuisances(field: torch.Tensor, w: torch.Tensor, x: torch.Tensor) -
     the fields' basis at the points (K = 0: albedos only). The result is ``x``'s weighted residual
     (where ``w`` is 0 it is not meaningful). The fields are known up to one field common to all
     photos (the albedos absorb it): a tiny ridge picks one, which leaves the residual unchanged.
-    Where ``w`` is 0, ``x`` is never read (it may be infinite there).
+    Where ``w`` is 0, ``x`` may be infinite: it does not enter.
     """
-    x = torch.where(w[..., None] > 0, x, torch.zeros((), dtype=x.dtype))  # 0 * inf would be NaN
+    # 0 * inf would be NaN: unobserved entries are zeroed where any is not finite (a sum tells, and
+    # costs far less than the masked copy)
+    if not bool(torch.isfinite(x.sum())):
+        x = torch.where(w[..., None] > 0, x, torch.zeros((), dtype=x.dtype))
+    (V, N, _), K, C = w.shape, field.shape[1], x.shape[-1]
     wsum = w.sum(0).clamp_min(1e-12)  # (N, 3)
     share = w / wsum  # photo j's weight share in point p's albedo
-    xt = x - (share[..., None] * x).sum(0)  # the albedos eliminated
-    if field.shape[1] == 0:
-        return xt
-    (V, N, _), K, C = w.shape, field.shape[1], x.shape[-1]
+    # x's big arrays are touched as few times as can be (the cost is their memory traffic): the
+    # albedos (share-weighted means over the photos) accumulated photo by photo, no (V, N, 3, C) temporary
+    albedo = _photo_mean(share, x)  # (N, 3, C)
+    if K == 0:
+        return x - albedo[None]
     # normal equations of the fields b (V K unknowns per channel) with the albedos eliminated:
     # sum_p w_jp phi_pk phi_pl (delta_ij - share_ip), solved in float64 (V K is a few hundred)
     wc = w.permute(2, 1, 0)  # (3, N, V)
@@ -293,16 +298,42 @@ def eliminate_nuisances(field: torch.Tensor, w: torch.Tensor, x: torch.Tensor) -
     M.view(3, V, K, V, K)[:, photo, :, photo, :] += own.double().permute(1, 0, 2, 3)
     ridge = 1e-6 * torch.diagonal(M, dim1=1, dim2=2).mean(1) + 1e-12
     M += ridge[:, None, None] * torch.eye(V * K, dtype=torch.float64)
-    rhs = ((w[..., None] * xt).permute(2, 0, 3, 1) @ field).transpose(2, 3).reshape(3, V * K, C)
+    # right-hand sides sum_p w_jp (x_jp - albedo_p) phi_pk: photo by photo over x (V, N, 3 C), less
+    # the albedos' part per channel
+    own_rhs = (field.T[None] @ (w[..., None] * x).reshape(V, N, 3 * C)).reshape(V, K, 3, C)
+    albedo_phi = (albedo[:, :, None, :] * field[:, None, :, None]).reshape(N, 3, K * C).permute(1, 0, 2)
+    rhs = own_rhs.permute(2, 0, 1, 3) - (w.permute(2, 0, 1) @ albedo_phi).reshape(3, V, K, C)
     # numpy's LU, not torch's: torch 2.13's batched float64 solve of these sizes (V K >= ~160) fails
     # with bogus pivots once torch.set_num_threads has been called (--threads; measured); OpenBLAS on
     # one thread, or it fights torch's threads (io.thread_pools)
     with single_threaded_blas():
-        b_np = np.linalg.solve(M.numpy(), rhs.double().numpy())
-    b = torch.from_numpy(b_np).to(x.dtype).reshape(3, V, K * C)
-    f = (field @ b.reshape(3 * V, K, C).transpose(0, 1).reshape(K, 3 * V * C)).reshape(N, 3, V, C)
-    f_mean = (field[None, :, :, None] * (share.permute(2, 1, 0) @ b).reshape(3, N, K, C)).sum(2)  # (3, N, C)
-    return xt - f.permute(2, 0, 1, 3) + f_mean.permute(1, 0, 2)[None]
+        b_np = np.linalg.solve(M.numpy(), rhs.reshape(3, V * K, C).double().numpy())
+    b = torch.from_numpy(b_np).to(x.dtype).reshape(3, V, K, C)
+    # x - albedo - f + (f's own albedo), f_jp = sum_k phi_pk b_jk: f built photo-major, then in place
+    f = (field[None] @ b.permute(1, 2, 0, 3).reshape(V, K, 3 * C)).reshape(V, N, 3, C)
+    f += (albedo - _photo_mean(share, f))[None]
+    return torch.sub(x, f, out=f)
+
+
+def _photo_mean(share: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+    """``sum_j share[j, ..., None] * x[j]``: ``share (V, N, 3)``, ``x (V, N, 3, C)`` -> ``(N, 3, C)``,
+    accumulated photo by photo (one read of ``x``, no temporary of its size)."""
+    out = torch.zeros(x.shape[1:], dtype=x.dtype)
+    for j in range(len(x)):
+        out.addcmul_(share[j, ..., None], x[j])
+    return out
+
+
+@dataclass
+class _Samples:
+    """A pose's photo samples, kept for its Jacobian: the correction ``params (7,)``, the mesh
+    samples in every camera ``x (V, N, 3)`` (float64), their pixels ``px (V, N, 2)`` and the blurred
+    photos there ``m (V, N, 3)`` (linear, floored at 1e-6)."""
+
+    params: np.ndarray
+    x: np.ndarray
+    px: torch.Tensor
+    m: torch.Tensor
 
 
 class PhotometricRegistration:
@@ -324,6 +355,8 @@ class PhotometricRegistration:
         ``free_height``: on a support, the height moves too (see ``frees_height``)."""
         self.photos, self.scanner = photos, photos.scanner
         self.edge_stride = edge_stride
+        # the pixels whose rays find the mesh's edges (``_observations``), cast every ``edge_stride``
+        self.edge_grid = camera.pixel_rays(self.scanner)[::edge_stride, ::edge_stride]
         self.groups = shading_lights(self.scanner)
         self.points, self.normals = surface_samples(mesh, points, seed=seed, normals=True)
         self.caster = RayCaster([mesh.triangles])
@@ -350,8 +383,7 @@ class PhotometricRegistration:
         V, N = len(poses), len(self.points)
         seen = np.zeros((V, N), bool)
         edge_px = np.zeros((V, N))
-        s, k = self.scanner, self.edge_stride
-        grid = camera.pixel_rays(s)[::k, ::k]
+        s, k, grid = self.scanner, self.edge_stride, self.edge_grid
         rays = grid.reshape(-1, 3)
         for j, pose in enumerate(poses):
             if self.shadow is not None and self.shadow(pose):
@@ -386,7 +418,7 @@ class PhotometricRegistration:
         return seen
 
     def _residual_mask(self, poses, params, sigma, seen) -> tuple[torch.Tensor, torch.Tensor]:
-        r, _, ok = self._linearise(poses, params, sigma, seen, jacobian=False)
+        r, ok, _ = self._residuals(poses, params, sigma, seen)
         return r, ok
 
     def _usable(self, poses, params, sigma, seen, edge_px) -> np.ndarray:
@@ -399,20 +431,24 @@ class PhotometricRegistration:
     def _camera(self, poses: np.ndarray, params: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The mesh samples and their normals in every camera ``(V, N, 3)`` under the correction
         ``params`` (omega, tau / size, lambda): x_cam = R_j R_w^T (x - c0 - tau) + e^lambda (R_j c0 + t_j)."""
+        R = poses[:, :3, :3]
+        return self._camera_points(poses, params), (self.normals @ _rotation(params[:3])) @ R.transpose(0, 2, 1)
+
+    def _camera_points(self, poses: np.ndarray, params: np.ndarray) -> np.ndarray:
+        """``_camera``'s points alone ``(V, N, 3)``."""
         Rw = _rotation(params[:3])
         local = (self.points - self.pivot - params[3:6] * self.size) @ Rw  # R_w^T (x - c0 - tau), rows
         R, t = poses[:, :3, :3], poses[:, :3, 3]
-        x = local @ R.transpose(0, 2, 1) + (np.exp(params[6]) * (R @ self.pivot + t))[:, None, :]
-        return x, (self.normals @ Rw) @ R.transpose(0, 2, 1)
+        return local @ R.transpose(0, 2, 1) + (np.exp(params[6]) * (R @ self.pivot + t))[:, None, :]
 
     def _pixels(self, poses: np.ndarray, params: np.ndarray) -> torch.Tensor:
         """Pixel coordinates ``(V, N, 2)`` of the mesh samples under the correction ``params``."""
-        return camera.project(self.scanner, torch.as_tensor(self._camera(poses, params)[0], dtype=WORK))
+        return camera.project(self.scanner, torch.as_tensor(self._camera_points(poses, params), dtype=WORK))
 
-    def _pixel_jacobian(self, poses: np.ndarray, params: np.ndarray) -> torch.Tensor:
-        """d pixel / d params ``(V, N, 2, 7)``: the chain rule through ``_camera`` (the rotation's own
-        derivative by central differences of the ``(N, 3)`` local points, exact to ~1e-10)."""
-        x, _ = self._camera(poses, params)
+    def _pixel_jacobian(self, poses: np.ndarray, params: np.ndarray, x: np.ndarray) -> torch.Tensor:
+        """d pixel / d params ``(V, N, 2, 7)`` at the camera-space samples ``x`` (``_camera``'s at
+        ``params``): the chain rule through ``_camera`` (the rotation's own derivative by central
+        differences of the ``(N, 3)`` local points, exact to ~1e-10)."""
         Rw = _rotation(params[:3])
         base = self.points - self.pivot - params[3:6] * self.size
         d_local = np.zeros((len(base), 3, 3))  # d (R_w^T (x - c0 - tau)) / d omega_k
@@ -466,29 +502,28 @@ class PhotometricRegistration:
         grid = torch.nan_to_num(grid, nan=-2.0)[:, None]
         return F.grid_sample(images, grid.to(images.dtype), align_corners=True)[:, :, 0].permute(0, 2, 1)
 
-    def _linearise(
-        self,
-        poses: np.ndarray,
-        params: np.ndarray,
-        sigma: float,
-        seen: np.ndarray,
-        jacobian: bool = True,
-    ):
-        """Log residuals r ``(V, N, 3)``, their Jacobian ``(V, N, 3, 7)`` in ``params`` and the usable
-        mask ``(V, N)``: image gradients of the blurred photos times the pixels' central differences."""
-        img = self.photos.blurred(sigma)
-        grads = self.photos.gradients(sigma)
-        px = self._pixels(poses, params)
-        m = self._sample(img, px)
-        g = self._sample(grads, px).reshape(*m.shape[:2], 3, 2)  # d m / d (col, row)
-        ok = torch.as_tensor(seen)  # fixed while the pose moves: a mask that changed would make the cost jump
-        m = m.clamp_min(1e-6)
-        log_d, J_d = self._log_shading(params)
-        if not jacobian:
-            return torch.log(m) - log_d, None, ok
-        J_px = torch.nan_to_num(self._pixel_jacobian(poses, params))  # (V, N, 2, 7)
-        J = (g / m[..., None]) @ J_px - J_d  # (V, N, 3, 7)
-        return torch.log(m) - log_d, J, ok & torch.isfinite(J).all(-1).all(-1)
+    def _residuals(
+        self, poses: np.ndarray, params: np.ndarray, sigma: float, seen: np.ndarray
+    ) -> tuple[torch.Tensor, torch.Tensor, _Samples]:
+        """Log residuals r ``(V, N, 3)`` at ``params``, the usable mask ``(V, N)`` (``seen``: fixed
+        while the pose moves, a mask that changed would make the cost jump) and the samples
+        ``_jacobian`` differentiates."""
+        x = self._camera_points(poses, params)
+        px = camera.project(self.scanner, torch.as_tensor(x, dtype=WORK))
+        m = self._sample(self.photos.blurred(sigma), px).clamp_min(1e-6)
+        log_d, _ = self._log_shading(params)
+        return torch.log(m) - log_d, torch.as_tensor(seen), _Samples(params, x, px, m)
+
+    def _jacobian(
+        self, poses: np.ndarray, at: _Samples, sigma: float, ok: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """The Jacobian ``(V, N, 3, 7)`` of ``_residuals``' log residuals at ``at`` in the parameters,
+        and the mask ``ok`` less where it is not finite: image gradients of the blurred photos times
+        the pixels' derivatives, less the round's shading's."""
+        g = self._sample(self.photos.gradients(sigma), at.px).reshape(*at.m.shape[:2], 3, 2)  # d m / d (col, row)
+        J_px = torch.nan_to_num(self._pixel_jacobian(poses, at.params, at.x))  # (V, N, 2, 7)
+        J = (g / at.m[..., None]) @ J_px - self._shade[2]  # (V, N, 3, 7)
+        return J, ok & torch.isfinite(J).all(-1).all(-1)
 
     def _cost(self, r: torch.Tensor, ok: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, PhotometricFit]:
         """Residuals about each point's albedo and each photo's shading field ``(V, N, 3)`` (0 where
@@ -513,7 +548,7 @@ class PhotometricRegistration:
         """The cost and agreement of ``poses (V, 4, 4)`` as they are."""
         seen = self._usable(np.asarray(poses), np.zeros(7), sigma, *self._observations(poses))
         self._hold_shading(np.asarray(poses), np.zeros(7), seen)
-        r, _, ok = self._linearise(np.asarray(poses), np.zeros(7), sigma, seen, jacobian=False)
+        r, ok, _ = self._residuals(np.asarray(poses), np.zeros(7), sigma, seen)
         return self._cost(r, ok)[2]
 
     def refine(
@@ -564,7 +599,8 @@ class PhotometricRegistration:
     def _descend(self, poses, params, sigma, seen, iterations) -> tuple[np.ndarray, PhotometricFit]:
         """Levenberg-Marquardt steps on the IRLS-weighted least squares with the observations held."""
         damping = 1e-3
-        r, J, ok = self._linearise(poses, params, sigma, seen)
+        r, ok, at = self._residuals(poses, params, sigma, seen)
+        J, ok = self._jacobian(poses, at, sigma, ok)
         e, used, fit = self._cost(r, ok)
         for _ in range(iterations):
             w = used[..., None] / (1 + (e / CAUCHY_LOG) ** 2)  # IRLS weights (V, N, 3)
@@ -587,11 +623,11 @@ class PhotometricRegistration:
                 step = np.zeros(7)
                 step[seen_dir] = -torch.linalg.solve(Af + damping * torch.diag(torch.diag(Af)), b[sd]).numpy()
                 step = _bounded(params + step) - params
-                r2, _, ok2 = self._linearise(poses, params + step, sigma, seen, jacobian=False)
+                r2, ok2, at2 = self._residuals(poses, params + step, sigma, seen)
                 e2, used2, fit2 = self._cost(r2, ok2)
-                if fit2.cost < fit.cost:
-                    params, e, used, fit = params + step, e2, used2, fit2
-                    r, J, _ = self._linearise(poses, params, sigma, seen)
+                if fit2.cost < fit.cost:  # the step taken: its samples give the next Jacobian
+                    params, r, e, used, fit = at2.params, r2, e2, used2, fit2
+                    J, _ = self._jacobian(poses, at2, sigma, ok2)
                     damping = max(damping / 10, 1e-7)
                     improved = True
                     break
@@ -607,7 +643,7 @@ class PhotometricRegistration:
         for a in np.radians(AZIMUTH_GRID_DEG):
             trial = params.copy()
             trial[2] += a
-            r, _, ok = self._linearise(poses, trial, sigma, seen, jacobian=False)
+            r, ok, _ = self._residuals(poses, trial, sigma, seen)
             cost = self._cost(r, ok)[2].cost
             if cost < best_cost:
                 best, best_cost = trial, cost
@@ -623,7 +659,7 @@ class PhotometricRegistration:
             params = np.zeros(7)
             params[2] = np.radians(turn)
             seen = self._held(poses, params, sigma, jacobian=False)
-            r, _, ok = self._linearise(poses, params, sigma, seen, jacobian=False)
+            r, ok, _ = self._residuals(poses, params, sigma, seen)
             fit = self._cost(r, ok)[2]
             if fit.points >= MIN_VIEWS:
                 costs[i] = fit.cost
@@ -638,7 +674,7 @@ class PhotometricRegistration:
         shift = SHARPNESS_SHIFT_PX * distance / self.scanner.fx / self.size
 
         def cost(params: np.ndarray) -> float:
-            r, _, ok = self._linearise(poses, params, sigma, seen, jacobian=False)
+            r, ok, _ = self._residuals(poses, params, sigma, seen)
             return self._cost(r, ok)[2].cost
 
         base = cost(np.zeros(7))
@@ -768,7 +804,9 @@ def check_registration(
     same way, the best chosen and judged (see ``PhotoCheck``)."""
     # candidates are compared on half the photos and fewer points (the chosen one is refined on all)
     pick = [names.index(n) for n in spread(names, SWEEP_PHOTOS)]
-    judge = PhotometricRegistration(mesh, photos.subset(pick), support_z, points=CANDIDATE_POINTS)
+    judge = PhotometricRegistration(
+        mesh, photos.subset(pick), support_z, points=CANDIDATE_POINTS, edge_stride=edge_stride(photos)
+    )
     sfm = np.stack([camera_from_sfm[n] for n in names])
 
     def placed(al: Alignment) -> np.ndarray:

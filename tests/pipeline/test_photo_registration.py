@@ -71,9 +71,13 @@ def test_eliminate_nuisances_removes_albedos_and_photo_fields_and_nothing_else()
     # columns are fitted alike, one by one or together
     both = eliminate_nuisances(field, w, torch.cat([signal, 2 * signal], -1))
     assert torch.allclose(both[..., 1:], 2 * out, atol=1e-4)
-    # an unobserved value is never read, even an infinite one (0 * inf would poison every point)
+    # an unobserved value does not enter, even an infinite one (0 * inf would poison every point)
     poisoned = torch.where(seen, signal, torch.tensor(float("inf")))
     assert torch.allclose(eliminate_nuisances(field, w, poisoned)[seen], out[seen], atol=1e-4)
+    poisoned = torch.where(seen, torch.cat([signal, 2 * signal], -1), torch.tensor([float("nan"), -float("inf")]))
+    assert torch.allclose(
+        eliminate_nuisances(field, w, poisoned)[seen.expand(-1, -1, -1, 2)], both[seen.expand_as(both)], atol=1e-4
+    )
 
 
 def test_eliminate_nuisances_with_many_photos_after_threads_are_set():
@@ -193,6 +197,28 @@ def test_refinement_recovers_a_known_error_and_the_truth_is_sharp(judge):
     picture = outline_picture(photos, true, mesh)
     assert picture.shape == (2 * photos.scanner.height, 2 * photos.scanner.width, 3)
     assert (np.abs(picture - [1.0, 0.1, 0.9]).max(-1) < 1e-6).sum() > 100  # the outline is drawn
+
+
+def test_the_jacobian_is_the_residuals_derivative(judge):
+    pr, names, truth, _, _ = judge
+    poses = np.stack([truth[n] for n in names])
+    params = np.array([0.002, -0.001, 0.01, 0.01, -0.005, 0.0, 0.003])  # away from 0: every term counts
+    sigma = BLUR_LEVELS_PX[1]
+    seen = pr._held(poses, params, sigma)
+    r, ok, at = pr._residuals(poses, params, sigma, seen)
+    J, ok = pr._jacobian(poses, at, sigma, ok)
+    assert ok.sum() > 1000
+    px = pr._pixels(poses, params)
+    for k in np.nonzero(pr.free)[0]:
+        # central differences over a step that moves the samples ~1 px: over less, the bilinear
+        # samples' kinks at pixel edges dominate (the Jacobian is the smooth gradient's; measured
+        # 6-9% apart at 1 px, 13-23% at 0.01-0.3 px; a wrong term: ~100%)
+        h = np.eye(7)[k] * 1e-3
+        h *= 1.0 / float((pr._pixels(poses, params + h) - px).norm(dim=-1)[ok].median())
+        numeric = (
+            pr._residuals(poses, params + h, sigma, seen)[0] - pr._residuals(poses, params - h, sigma, seen)[0]
+        ) / (2 * h[k])
+        assert float((J[..., k] - numeric)[ok].norm() / numeric[ok].norm()) < 0.15, k
 
 
 def test_refinement_ignores_each_photos_exposure_and_smooth_light_it_does_not_model(judge):
