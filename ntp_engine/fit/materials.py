@@ -228,6 +228,16 @@ def pooled_votes(costs: np.ndarray, clip: float = POOL_CLIP) -> np.ndarray:
     return np.minimum(c - c.min(1, keepdims=True), clip).sum(0)
 
 
+def second_wins(costs: np.ndarray, shared: float = 0.0, each: float = 0.0, clip: float = POOL_CLIP) -> bool:
+    """Whether a material's members' traces, together, choose the second of two candidate lobes:
+    ``costs (n, 2)`` of each member's trace under both (``refine.lobe_costs``), votes clipped as in
+    ``pooled_votes``. The second pays for what it adds in half chi-square units, as AIC counts
+    parameters: ``shared`` once (a parameter of the material's: an anisotropic lobe's alpha ratio)
+    and ``each`` in every member's own vote (one per member: its tangent, which its own solve chose)."""
+    votes = pooled_votes(costs + np.array([0.0, each]), clip)
+    return bool(votes[1] + shared < votes[0])
+
+
 def pooled_scale(costs: np.ndarray, scales: np.ndarray, clip: float = POOL_CLIP) -> float:
     """The scale of a material's lobe width that its texels' traces, together, explain best:
     ``costs (n, S)`` of each texel's trace under the lobe at ``scales (S,)`` (ascending,

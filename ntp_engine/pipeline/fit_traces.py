@@ -34,7 +34,7 @@ from ..fit.materials import (
     judged_colour_costs,
     lobe_clusters,
     pooled_scale,
-    pooled_votes,
+    second_wins,
 )
 from ..fit.normal_field import fused_normals
 from ..fit.refine import (
@@ -102,6 +102,7 @@ POOL_SCALES = 2.0 ** np.linspace(-2.0, 2.0, 9)
 # a texel with its own lobe takes its material's width where that costs its trace at most this more
 # than its own (AIC's 1 per parameter for the 2 alphas it would add; half chi-square units)
 WIDTH_PARAMS = 2.0
+TANGENT_PARAMS = 1  # of ANISOTROPY_PARAMS, the tangent's: each member's own (pooled_widths, materials.second_wins)
 # texels per unit of work of the fit stage (a Ray task with --ray): a few seconds of work and ~10 MB
 # of traces at 60 photos; only one block's traces are in memory at a time (the table is on disk)
 FIT_BLOCK = 4096
@@ -543,9 +544,11 @@ def pooled_widths(
     an isotropic lobe scaled over ``POOL_SCALES`` about the members' geometric-mean width and, where
     the members' median lobe is anisotropic, its smaller alpha scaled (the larger at the median),
     then its larger (the smaller at its pooled value). The anisotropic lobe is kept only where its
-    votes beat the isotropic one's by ``ANISOTROPY_PARAMS``: a sharp isotropic lobe seen through an
-    LED or two measures one axis, and each member's own solve leaves the other by its start (the
-    gallery's vase alpha 0.02 plastic: |log alpha| 0.10 per axis, 0.02 so). rho_s: the members'
+    votes beat the isotropic one's by ``ANISOTROPY_PARAMS`` — its ratio once, each member's own
+    tangent (``TANGENT_PARAMS``) in that member's vote (``materials.second_wins``): a sharp
+    isotropic lobe seen through an LED or two measures one axis, and each member's own solve leaves
+    the other by its start (the gallery's vase alpha 0.02 plastic: |log alpha| 0.10 per axis, 0.02
+    so) and turns its tangent with it. rho_s: the members'
     median at the chosen width."""
     alpha, rho_s, lobe_rho_d = basis.alpha.copy(), basis.rho_s.copy(), basis.lobe_rho_d.copy()
     S = len(POOL_SCALES)
@@ -571,11 +574,14 @@ def pooled_widths(
         c, rd, rs = _lobe_costs(scanner, inp, cand, settings)
         j = 0  # the isotropic lobe, unless the anisotropic one wins the vote
         if len(cand) == 2:
-            votes = pooled_votes(c.numpy())
-            # it pays for its two parameters only where it is anisotropic (its larger alpha may have
-            # pooled to the range's end with the smaller: the knot's 0.5 metal)
-            paid = ANISOTROPY_PARAMS * (cand[1, 0] >= ISOTROPIC_RATIO * cand[1, 1])
-            j = int(votes[1] + paid < votes[0])
+            # it pays only where it is anisotropic (its larger alpha may have pooled to the range's
+            # end with the smaller: the knot's 0.5 metal): for the ratio once, and for each member's
+            # own tangent in that member's vote (the gallery box's mirror lacquer, alpha
+            # 0.006: its members' own lobes 0.028 x 0.006, elongated along one diagonal of their
+            # texels; with the tangents unpaid their votes pooled it 0.0098 x 0.006, 43 against 149)
+            anisotropic = cand[1, 0] >= ISOTROPIC_RATIO * cand[1, 1]
+            paid = (ANISOTROPY_PARAMS - TANGENT_PARAMS, TANGENT_PARAMS) if anisotropic else (0, 0)
+            j = int(second_wins(c.numpy(), *paid))
         alpha[k], rho_s[k] = cand[j], rs[:, j].median(0).values.numpy()
         lobe_rho_d[k] = rd[:, j].median(0).values.numpy()
     return dataclasses.replace(basis, alpha=alpha, rho_s=rho_s, lobe_rho_d=lobe_rho_d)

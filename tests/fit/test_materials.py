@@ -19,6 +19,7 @@ from ntp_engine.fit.materials import (
     material_weight,
     pooled_scale,
     pooled_votes,
+    second_wins,
 )
 
 
@@ -114,6 +115,21 @@ def test_pooled_votes_count_each_texel_above_its_own_best_clipped():
     costs = np.array([[1.0, 1.5], [9.0, 4.0], [3.0, np.inf], [np.inf, np.inf]])
     np.testing.assert_allclose(pooled_votes(costs), [2.0, 0.5 + 2.0])
     np.testing.assert_allclose(pooled_votes(costs, clip=10.0), [5.0, 0.5 + 10.0])
+
+
+def test_the_second_lobe_wins_only_where_each_member_pays_for_its_own_parameter():
+    """100 members each explained better by the second candidate by 0.5 (half chi-square units):
+    free, or paying 2 once, it wins (50 votes to 0); paying 1 per member (its own tangent) it loses,
+    0.5 below what it costs each. By 3 each it wins either way; a member inf under the second is a
+    full vote against it."""
+    better = np.stack([np.full(100, 10.5), np.full(100, 10.0)], 1)
+    assert second_wins(better) and second_wins(better, shared=2.0)
+    assert not second_wins(better, shared=1.0, each=1.0)
+    clearly = better - np.array([0.0, 2.5])
+    assert second_wins(clearly, shared=1.0, each=1.0)
+    one_against = np.concatenate([clearly, [[1.0, np.inf]]])
+    assert second_wins(one_against, shared=1.0, each=1.0)  # votes 200 against 2 (+ 1)
+    assert not second_wins(one_against[-2:], shared=1.0, each=1.0)  # one for, one against: 2 against 2 (+ 1)
 
 
 def test_a_cluster_counts_as_a_material_by_how_many_of_its_lobes_showed_themselves():
