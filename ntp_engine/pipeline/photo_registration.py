@@ -417,9 +417,10 @@ class PhotometricRegistration:
         self._hold_shading(poses, params, seen, jacobian)
         return seen
 
-    def _residual_mask(self, poses, params, sigma, seen) -> tuple[torch.Tensor, torch.Tensor]:
+    def _fit_at(self, poses: np.ndarray, params: np.ndarray, sigma: float, seen: np.ndarray) -> PhotometricFit:
+        """The fit (``_cost``'s) of the observations ``seen`` at ``params``."""
         r, ok, _ = self._residuals(poses, params, sigma, seen)
-        return r, ok
+        return self._cost(r, ok)[2]
 
     def _usable(self, poses, params, sigma, seen, edge_px) -> np.ndarray:
         """The observations a level uses: seen, clear of the mesh's edges by the blur, and on pixels
@@ -548,8 +549,7 @@ class PhotometricRegistration:
         """The cost and agreement of ``poses (V, 4, 4)`` as they are."""
         seen = self._usable(np.asarray(poses), np.zeros(7), sigma, *self._observations(poses))
         self._hold_shading(np.asarray(poses), np.zeros(7), seen)
-        r, ok, _ = self._residuals(np.asarray(poses), np.zeros(7), sigma, seen)
-        return self._cost(r, ok)[2]
+        return self._fit_at(np.asarray(poses), np.zeros(7), sigma, seen)
 
     def refine(
         self,
@@ -590,7 +590,7 @@ class PhotometricRegistration:
             if not settled and cos > 0.9 and ratio < 0.95:
                 jump = _bounded(params + step * min(ratio / (1 - ratio), 10.0))
                 seen_j = self._held(poses, jump, sigma)
-                here, there = (self._cost(*self._residual_mask(poses, q, sigma, seen_j))[2] for q in (params, jump))
+                here, there = (self._fit_at(poses, q, sigma, seen_j) for q in (params, jump))
                 if there.cost < here.cost:
                     params, fit = jump, there
             previous = step
@@ -643,8 +643,7 @@ class PhotometricRegistration:
         for a in np.radians(AZIMUTH_GRID_DEG):
             trial = params.copy()
             trial[2] += a
-            r, ok, _ = self._residuals(poses, trial, sigma, seen)
-            cost = self._cost(r, ok)[2].cost
+            cost = self._fit_at(poses, trial, sigma, seen).cost
             if cost < best_cost:
                 best, best_cost = trial, cost
         return best
@@ -659,8 +658,7 @@ class PhotometricRegistration:
             params = np.zeros(7)
             params[2] = np.radians(turn)
             seen = self._held(poses, params, sigma, jacobian=False)
-            r, ok, _ = self._residuals(poses, params, sigma, seen)
-            fit = self._cost(r, ok)[2]
+            fit = self._fit_at(poses, params, sigma, seen)
             if fit.points >= MIN_VIEWS:
                 costs[i] = fit.cost
         return turns, costs
@@ -674,8 +672,7 @@ class PhotometricRegistration:
         shift = SHARPNESS_SHIFT_PX * distance / self.scanner.fx / self.size
 
         def cost(params: np.ndarray) -> float:
-            r, ok, _ = self._residuals(poses, params, sigma, seen)
-            return self._cost(r, ok)[2].cost
+            return self._fit_at(poses, params, sigma, seen).cost
 
         base = cost(np.zeros(7))
         moved = [cost(np.eye(7)[3 + axis] * sign * shift) for axis in range(3) for sign in (-1, 1)]
