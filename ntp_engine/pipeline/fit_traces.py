@@ -26,6 +26,7 @@ from ..fit.footprint import Footprint, albedo_blend, sample_points, slope_spread
 from ..fit.geometry import FALLBACK_ALPHA, FLAG_NO_HIGHLIGHT, fit_geometry
 from ..fit.materials import (
     BasisMaterials,
+    WidthField,
     candidates,
     class_shares,
     colour_costs,
@@ -35,6 +36,7 @@ from ..fit.materials import (
     lobe_clusters,
     pooled_scale,
     second_wins,
+    width_field,
 )
 from ..fit.normal_field import fused_normals
 from ..fit.refine import (
@@ -551,6 +553,7 @@ def pooled_widths(
     so) and turns its tangent with it. rho_s: the members'
     median at the chosen width."""
     alpha, rho_s, lobe_rho_d = basis.alpha.copy(), basis.rho_s.copy(), basis.lobe_rho_d.copy()
+    fields: list[WidthField | None] = []
     S = len(POOL_SCALES)
     for k in range(len(basis)):
         ids = clear[members == k]
@@ -561,13 +564,15 @@ def pooled_widths(
         iso = mean * POOL_SCALES[:, None]
         if a[0] < ISOTROPIC_RATIO * a[1]:
             c, _, _ = _lobe_costs(scanner, inp, iso, settings)
-            widths = [mean * pooled_scale(c.numpy(), POOL_SCALES)]
+            profile = c.numpy()  # the isotropic lobe's
+            widths = [mean * pooled_scale(profile, POOL_SCALES)]
         else:
             # the isotropic profile and the smaller alpha's in one call, then the larger alpha's
             minor = a * np.stack([np.ones(S), POOL_SCALES], 1)
             c, _, _ = _lobe_costs(scanner, inp, np.concatenate([iso, minor]), settings)
             aniso = np.clip(a * np.array([1.0, pooled_scale(c[:, S:].numpy(), POOL_SCALES)]), ALPHA_MIN, ALPHA_MAX)
-            widths = [mean * pooled_scale(c[:, :S].numpy(), POOL_SCALES)]
+            profile = c[:, :S].numpy()
+            widths = [mean * pooled_scale(profile, POOL_SCALES)]
             c, _, _ = _lobe_costs(scanner, inp, aniso * np.stack([POOL_SCALES, np.ones(S)], 1), settings)
             widths.append(aniso * np.array([pooled_scale(c.numpy(), POOL_SCALES), 1.0]))
         cand = -np.sort(-np.clip(widths, ALPHA_MIN, ALPHA_MAX), 1)  # alpha_x >= alpha_y
@@ -584,7 +589,9 @@ def pooled_widths(
             j = int(second_wins(c.numpy(), *paid))
         alpha[k], rho_s[k] = cand[j], rs[:, j].median(0).values.numpy()
         lobe_rho_d[k] = rd[:, j].median(0).values.numpy()
-    return dataclasses.replace(basis, alpha=alpha, rho_s=rho_s, lobe_rho_d=lobe_rho_d)
+        # an isotropic lobe's width may vary over the object (the members' profile says where)
+        fields.append(width_field(profile, texels.position[ids], mean, POOL_SCALES) if j == 0 and texels else None)
+    return dataclasses.replace(basis, alpha=alpha, rho_s=rho_s, lobe_rho_d=lobe_rho_d, width=tuple(fields))
 
 
 def _lobe_costs(
@@ -620,7 +627,8 @@ def _widths_from_materials(
     for rows in np.array_split(np.arange(len(idx)), -(-len(idx) // REFINE_BATCH)) if len(idx) else []:
         k = idx[rows]
         inp = refine_inputs(scanner, traces, torch.as_tensor(k), fit, support, texels)
-        alphas = np.stack([fit["alpha"][k], basis.alpha[fit["material"][k]]], 1)  # (n, 2 candidates, 2)
+        position = None if texels is None else texels.position[k]
+        alphas = np.stack([fit["alpha"][k], basis.alpha_at(fit["material"][k], position)], 1)  # (n, 2 candidates, 2)
         c, rd, rs = _lobe_costs(scanner, inp, alphas, settings)
         turned = np.nonzero(np.isfinite(turn[rows]))[0]
         angle = np.zeros(len(k))
@@ -738,6 +746,7 @@ def _material_pass(
     label[rest] = np.argmin(costs[rest] + prior[rest], 1) - 1  # -1: matte
     fit["material"][i_obs] = label
     fit.update(basis.to_arrays())
+    fit["material_width_varies"] = np.array([f is not None for f in basis.width], bool)
     # own lobes in lobe materials: an isotropic one in an anisotropic material is also tried at the
     # turn its neighbours of the material point along
     with_own = np.nonzero(own[i_obs] & (label >= 0))[0]
@@ -786,8 +795,9 @@ def _take_material_lobes(
     for idx in sel.split(REFINE_BATCH):
         inp = refine_inputs(scanner, traces, idx, fit, support, texels)
         m = fit["material"][idx.numpy()]
+        position = None if texels is None else texels.position[idx.numpy()]
         pull = LobePrior(
-            torch.as_tensor(basis.alpha[m], dtype=torch.float32),
+            torch.as_tensor(basis.alpha_at(m, position), dtype=torch.float32),
             torch.as_tensor(basis.rho_s[m], dtype=torch.float32),
             torch.as_tensor(basis.log_alpha_sigma[m], dtype=torch.float32),
             torch.as_tensor(basis.rho_s_sigma[m], dtype=torch.float32),

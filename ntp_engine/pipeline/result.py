@@ -27,8 +27,10 @@ UNCERTAINTY_FILE = "uncertainty.exr"  # with the refinement: per-parameter 1-sig
 UNCONSTRAINED_STD = 1000.0  # an uncertainty this large or more: the photos do not determine the parameter
 
 
-def basis_materials_doc(materials: BasisMaterials) -> dict:
-    """``material.json``'s description of the basis materials and where each texel's is."""
+def basis_materials_doc(materials: BasisMaterials, width_varies: np.ndarray | None = None) -> dict:
+    """``material.json``'s description of the basis materials and where each texel's is;
+    ``width_varies (K,)``: which materials' widths are fields over the object."""
+    varies = np.zeros(len(materials), bool) if width_varies is None else width_varies
     return {
         "file": "confidence.exr",
         "channel": "B",
@@ -40,6 +42,8 @@ def basis_materials_doc(materials: BasisMaterials) -> dict:
                 "alpha": [round(float(v), 4) for v in materials.alpha[k]],
                 "rho_s": [round(float(v), 4) for v in materials.rho_s[k]],
                 "share": round(float(materials.share[k]), 3),
+                # alpha is then its pooled width; its texels take the width their neighbours' photos show
+                "width_varies": bool(varies[k]),
             }
             for k in range(len(materials))
         ],
@@ -77,7 +81,9 @@ def write_result(out: Path, mesh: Mesh, texels: Texels, fitted: dict[str, np.nda
     documented = {}
     if "material" in fitted:  # the refinement's basis materials (fit.materials, pipeline.fit_traces)
         conf[texels.row, texels.col, 2] = fitted["material"] + 1  # 0: no lobe material (-1 matte, -2 unseen)
-        documented["basis_materials"] = basis_materials_doc(BasisMaterials.from_arrays(fitted))
+        documented["basis_materials"] = basis_materials_doc(
+            BasisMaterials.from_arrays(fitted), fitted.get("material_width_varies")
+        )
     write_exr(out / "confidence.exr", conf)
     if "std" in fitted:  # the refinement's 1-sigma uncertainties (fit.refine.Refined.std)
         unc = np.full((H, W, 4), UNCONSTRAINED_STD)

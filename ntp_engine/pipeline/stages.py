@@ -460,6 +460,8 @@ def refine_summary(fitted: dict[str, np.ndarray]) -> dict:
             out["matte_share"] = round(float(fitted["material_matte_share"]), 4)
         out["texels_lobe_from_material"] = int((fitted["flags"] & FLAG_FROM_MATERIAL != 0).sum())
         out["texels_width_from_material"] = int((fitted["flags"] & FLAG_WIDTH_FROM_MATERIAL != 0).sum())
+        if "material_width_varies" in fitted:  # materials whose width is a field over the object
+            out["materials_width_varies"] = int(fitted["material_width_varies"].sum())
     return out
 
 

@@ -4,6 +4,7 @@ that assign every texel a lobe material or none."""
 import dataclasses
 
 import numpy as np
+import pytest
 
 from ntp_engine.fit.materials import (
     MATTE_SHARE,
@@ -253,3 +254,46 @@ def test_a_cluster_whose_colour_another_material_holds_is_none():
     # none to hold: as given
     empty, none = colour_held(BasisMaterials.empty(), np.full(4, -1), rho_d[:4])
     assert len(empty) == 0 and (none == -1).all()
+
+
+def _votes_at(preferred: np.ndarray, scales: np.ndarray) -> np.ndarray:
+    """Costs ``(n, S)`` of members whose traces prefer the scales ``preferred (n,)``: a parabola in
+    log scale (4 half chi-square units per octave squared)."""
+    return 4.0 * (np.log2(scales)[None] - np.log2(preferred)[:, None]) ** 2
+
+
+def test_best_scales_is_pooled_scales_minimum_row_by_row():
+    from ntp_engine.fit.materials import best_scales, pooled_scale, pooled_votes
+
+    scales = 2.0 ** np.linspace(-2, 2, 9)
+    rng = np.random.default_rng(3)
+    for preferred in (0.6, 1.0, 1.7, 3.9, 5.0):
+        costs = _votes_at(preferred * np.exp(0.1 * rng.standard_normal(20)), scales)
+        got = best_scales(pooled_votes(costs)[None], scales)[0]
+        assert got == pytest.approx(pooled_scale(costs, scales))
+        assert got == pytest.approx(np.clip(preferred, 0.25, 4.0), rel=0.12)
+
+
+def test_a_width_that_varies_over_the_object_becomes_a_field_and_a_constant_one_does_not():
+    """Members along a 10 cm strip whose traces prefer a width running 0.02 -> 0.25 along it (the
+    gallery dome's lacquer): the field's width at a point is the one its neighbours prefer (within
+    12%), where one width for all is 3.5x off at the ends. Members that all prefer one width (with
+    noise): no field."""
+    from ntp_engine.fit.materials import width_field
+
+    scales = 2.0 ** np.linspace(-2, 2, 9)
+    alpha = np.array([0.07, 0.07])
+    rng = np.random.default_rng(5)
+    n = 256
+    x = np.sort(rng.uniform(0, 0.1, n))
+    position = np.stack([x, 0.01 * rng.standard_normal(n), np.zeros(n)], 1)
+    truth = np.exp(np.log(0.02) + (np.log(0.25) - np.log(0.02)) * x / 0.1)
+    noise = np.exp(0.15 * rng.standard_normal(n))
+    field = width_field(_votes_at(truth * noise / 0.07, scales), position, alpha, scales)
+    assert field is not None
+    probe = np.array([[0.01, 0.0, 0.0], [0.05, 0.0, 0.0], [0.09, 0.0, 0.0]])
+    expected = np.exp(np.log(0.02) + (np.log(0.25) - np.log(0.02)) * probe[:, 0] / 0.1)
+    got = field.at(probe)
+    np.testing.assert_allclose(got[:, 0], expected, rtol=0.12)
+    np.testing.assert_allclose(got[:, 0], got[:, 1])
+    assert width_field(_votes_at(1.3 * noise, scales), position, alpha, scales) is None

@@ -95,9 +95,10 @@ def test_refine_inputs_read_marginal_entries_only_where_too_few_others_are_left(
     assert not few[0] and few[1] and mask[2].sum() == 5  # both cases are there
 
 
-def _lobe_traces(n: int, v: int, alpha: tuple[float, float], rho_d: float, rho_s: float, seed: int):
-    """``n`` synthetic traces of ``v`` entries (1% noise, 8-bit) of one material, alpha_x along
-    each texel's true tangent, and a first-pass answer that knows the frames only."""
+def _lobe_traces(n: int, v: int, alpha, rho_d: float, rho_s: float, seed: int):
+    """``n`` synthetic traces of ``v`` entries (1% noise, 8-bit) of one material, ``alpha`` (alpha_x,
+    alpha_y) or ``(n, 2)`` one per texel, alpha_x along each texel's true tangent, and a first-pass
+    answer that knows the frames only."""
     from ntp_engine.physics.frame import cross
     from ntp_engine.physics.measurement import emitter_terms, measure_terms
 
@@ -108,7 +109,8 @@ def _lobe_traces(n: int, v: int, alpha: tuple[float, float], rho_d: float, rho_s
     geo = torch.stack([b.tangent_geo, cross(b.normal_geo, b.tangent_geo), b.normal_geo], -2)
     n_cam = torch.einsum("nvij,ni->nvj", geo, b.params["n_local"])
     t_cam = torch.einsum("nvij,ni->nvj", geo, b.params["t_local"])
-    ax, ay = (torch.full((n, v), a) for a in alpha)
+    widths = torch.as_tensor(np.broadcast_to(np.asarray(alpha, np.float32), (n, 2)).copy())
+    ax, ay = (widths[:, k : k + 1].expand(n, v) for k in range(2))
     a_l, s_l = emitter_terms(dev, b.position, n_cam, t_cam, ax, ay)
     lin = measure_terms(dev, a_l, s_l, torch.full((n, v, 3), rho_d), torch.full((n, v, 3), rho_s))
     lin = dev.exposure(dev.pattern) * lin
@@ -221,6 +223,43 @@ def test_a_materials_lobe_is_isotropic_unless_its_members_traces_together_show_o
             dev, traces, start, np.arange(n), np.zeros(n, np.int64), _material(median), RefineSettings(), None, None
         )
         np.testing.assert_allclose(got.alpha, [truth], rtol=0.15)
+
+
+def test_a_materials_width_that_varies_along_the_object_is_a_field():
+    """A lacquer whose isotropic width runs 0.02 -> 0.25 along a 10 cm strip (the gallery dome's,
+    around it), 16 entries per texel: its members' traces together make a width field, which
+    gives each point the width its neighbours' traces prefer (median |log ratio| < 0.2 where the
+    one pooled width is > 0.6 off); the same lacquer at one width gets none."""
+    from ntp_engine.fit.refine import RefineSettings
+    from ntp_engine.pipeline.fit_traces import pooled_widths
+    from ntp_engine.pipeline.texels import Texels
+
+    n = 192
+    x = np.linspace(0.0, 0.1, n)
+    truth = np.exp(np.log(0.02) + np.log(0.25 / 0.02) * x / 0.1)
+    z = np.zeros(n, np.int64)
+    strip = Texels(
+        (1, n),
+        z,
+        np.arange(n),
+        z,
+        np.tile([1.0, 0, 0], (n, 1)),
+        np.stack([x, 0 * x, 0 * x], 1),
+        np.tile([0, 0, 1.0], (n, 1)),
+        np.tile([1.0, 0, 0], (n, 1)),
+    )
+    for widths in (np.stack([truth, truth], 1), (0.07, 0.07)):
+        dev, traces, start = _lobe_traces(n, 16, widths, 0.1, 3.0, 13)
+        got = pooled_widths(dev, traces, start, np.arange(n), z, _material((0.07, 0.07)), RefineSettings(), strip, None)
+        field = got.width[0]
+        if isinstance(widths, tuple):
+            assert field is None
+            continue
+        assert field is not None
+        at = got.alpha_at(z, strip.position)
+        np.testing.assert_allclose(at[:, 0], at[:, 1])
+        assert np.median(np.abs(np.log(at[:, 0] / truth))) < 0.2
+        assert np.median(np.abs(np.log(got.alpha[0, 0] / truth))) > 0.6
 
 
 def test_members_own_tangents_do_not_make_a_sharp_isotropic_lobe_anisotropic():

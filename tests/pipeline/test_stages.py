@@ -116,8 +116,10 @@ def test_refinement_stage_writes_uncertainty_and_resumes(scan24, tmp_path):
     assert set(np.unique(ids).astype(int)) <= set(range(len(basis["table"]) + 1))
     assert 0 <= rep["refine"]["texels_lobe_from_material"] <= rep["texels"]["observed"]
     assert 0 <= rep["refine"]["texels_width_from_material"] <= rep["texels"]["observed"]
-    if basis["table"]:  # the matte class's share, estimated on this object
+    if basis["table"]:  # the matte class's share, estimated on this object; which widths vary
         assert 0.05 <= rep["refine"]["matte_share"] <= 0.95
+        varies = [m["width_varies"] for m in basis["table"]]
+        assert all(isinstance(v, bool) for v in varies) and sum(varies) == rep["refine"]["materials_width_varies"]
     truth = scan24 / "ground_truth"
     before, after = map_errors(tmp_path / "plain", truth), map_errors(tmp_path / "rec", truth)
     assert after["normal_median_deg"] < before["normal_median_deg"] + 0.3
