@@ -551,7 +551,9 @@ def pooled_widths(
     isotropic lobe seen through an LED or two measures one axis, and each member's own solve leaves
     the other by its start (the gallery's vase alpha 0.02 plastic: |log alpha| 0.10 per axis, 0.02
     so) and turns its tangent with it. rho_s: the members'
-    median at the chosen width."""
+    median at the chosen width. With ``texels``, an isotropic material's width may vary over the
+    object: its members' profile over the scales, where they lie, makes a field where it predicts
+    them better (``materials.width_field``; the result's ``width``, ``BasisMaterials.alpha_at``)."""
     alpha, rho_s, lobe_rho_d = basis.alpha.copy(), basis.rho_s.copy(), basis.lobe_rho_d.copy()
     fields: list[WidthField | None] = []
     S = len(POOL_SCALES)
