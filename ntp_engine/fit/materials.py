@@ -248,8 +248,7 @@ def pooled_votes(costs: np.ndarray, clip: float = POOL_CLIP) -> np.ndarray:
     """The candidates' totals ``(S,)`` of ``costs (n, S)`` (n texels' traces under S candidate
     lobes): each texel's costs above its own best, clipped at ``clip``, summed; the lowest total is
     what the texels together favour. Texels whose every cost is inf do not vote."""
-    c = costs[np.isfinite(costs).any(1)]
-    return np.minimum(c - c.min(1, keepdims=True), clip).sum(0)
+    return clipped_votes(costs, clip).sum(0)
 
 
 def second_wins(costs: np.ndarray, shared: float = 0.0, each: float = 0.0, clip: float = POOL_CLIP) -> bool:
@@ -287,15 +286,16 @@ def best_scales(totals: np.ndarray, scales: np.ndarray) -> np.ndarray:
     curve = y0 - 2 * y1 + y2
     ok = (j == inner) & (curve > 0)
     step = np.where(ok, 0.5 * (y0 - y2) / np.where(ok, curve, 1.0), 0.0)  # grid steps, within (-0.5, 0.5)
-    return np.exp(x[j] + step * (x[np.minimum(j + 1, S - 1)] - x[j]))
+    return np.where(ok, np.exp(x[j] + step * (x[np.minimum(j + 1, S - 1)] - x[j])), scales[j])
 
 
 def clipped_votes(costs: np.ndarray, clip: float = POOL_CLIP) -> np.ndarray:
     """Each texel's vote ``(n, S)`` of ``costs (n, S)``: above its own best, clipped at ``clip``
     (``pooled_votes`` sums them); 0 where every cost is inf (no vote)."""
     live = np.isfinite(costs).any(1)
-    best = np.where(live, np.where(np.isfinite(costs), costs, np.inf).min(1), 0.0)
-    return np.where(live[:, None], np.minimum(costs - best[:, None], clip), 0.0)
+    votes = np.zeros(costs.shape)
+    votes[live] = np.minimum(costs[live] - costs[live].min(1, keepdims=True), clip)
+    return votes
 
 
 def votes_at(votes: np.ndarray, scale: np.ndarray, scales: np.ndarray) -> np.ndarray:
