@@ -3,7 +3,8 @@ photos of an asset through a scanner's emitters, for ``ntp_engine.sim.cycles_sca
 
 The job (written by the engine; see there) names the asset folder (``mesh.obj`` + the five maps),
 the camera's device file, the emitters in camera space (centre, normal, axis, size, RGB drive), the
-camera-from-world poses, samples, bounces and seed, and the calibration patch (centre, normal,
+camera-from-world poses, samples (every pixel; up to max_samples where Cycles' noise estimate is
+above noise_threshold), bounces and seed, and the calibration patch (centre, normal,
 in-plane axis, size). The scene: the asset with the ``NTP Accurate`` material built for co-located
 lights (Diffuse + Glossy GGX of colour rho_s F0, ``material``), the marker backdrop
 (``ntp_engine.sim.renderer.marker_albedo``, one texel per 5 mm cell, closest-texel lookup), and one
@@ -126,6 +127,7 @@ def _calibration(job: dict, out: Path) -> None:
     patch = bpy.data.objects.new("calibration patch", mesh)
     scene.collection.objects.link(patch)
     scene.cycles.samples = c["samples"]
+    scene.cycles.use_adaptive_sampling = False  # a fixed count: the gain of every photo rests on it
     scene.cycles.max_bounces = 0
     _render(scene, out / "calibration.exr")
 
@@ -138,7 +140,11 @@ def run(job_path: Path) -> None:
     bpy.ops.wm.read_factory_settings(use_empty=True)
     scene = bpy.context.scene
     cam = load_scanner(Path(job["device"]))
-    bscene.setup_cycles(scene, cam.width, cam.height, job["samples"])
+    bscene.setup_cycles(scene, cam.width, cam.height, job["max_samples"])
+    # every pixel gets ``samples``; a noisy one (a sharp highlight: rare hits of a small light) more
+    scene.cycles.use_adaptive_sampling = job["max_samples"] > job["samples"]
+    scene.cycles.adaptive_min_samples = job["samples"]
+    scene.cycles.adaptive_threshold = job["noise_threshold"]
     b = job["bounces"]
     scene.cycles.max_bounces = b
     scene.cycles.diffuse_bounces = scene.cycles.glossy_bounces = b

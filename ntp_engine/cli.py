@@ -173,7 +173,13 @@ def _virtual_scan(args: argparse.Namespace) -> int:
         views=args.views, scale=args.scale, seed=args.seed, exposure=args.exposure, blur_fraction=args.blur_fraction
     )
     if args.renderer == "cycles":
-        cycles = CyclesConfig(samples=args.samples, bounces=args.bounces)
+        cycles = CyclesConfig(
+            samples=args.samples,
+            bounces=args.bounces,
+            # by default at least the samples every pixel gets
+            max_samples=max(CyclesConfig.max_samples, args.samples) if args.max_samples is None else args.max_samples,
+            noise_threshold=args.noise_threshold,
+        )
         info = cycles_scan(args.out, args.asset, args.mesh, args.maps, args.device, cfg, cycles, _progress(args))
     else:
         info = virtual_scan(args.out, args.asset, args.mesh, args.maps, args.device, cfg, progress=_progress(args))
@@ -231,6 +237,7 @@ def _bench_gallery(args: argparse.Namespace) -> int:
         scale=args.scale,
         resolution=args.resolution,
         samples=args.samples,
+        max_samples=args.max_samples,
         refine=args.refine or None,
         model=args.model,
         budget=args.budget or None,
@@ -437,6 +444,18 @@ def _parser() -> argparse.ArgumentParser:
     )
     vs.add_argument("--samples", type=int, default=CyclesConfig.samples, help="Cycles samples per pixel")
     vs.add_argument("--bounces", type=int, default=CyclesConfig.bounces, help="Cycles light bounces")
+    vs.add_argument(
+        "--max-samples",
+        type=int,
+        default=None,
+        help=f"Cycles samples per pixel where it sees noise (default {CyclesConfig.max_samples}, at least --samples)",
+    )
+    vs.add_argument(
+        "--noise-threshold",
+        type=float,
+        default=CyclesConfig.noise_threshold,
+        help="Cycles' adaptive-sampling threshold: above it a pixel keeps sampling up to --max-samples",
+    )
     _quiet_and_progress(vs)
     vs.set_defaults(func=_virtual_scan)
 
@@ -520,6 +539,7 @@ def _parser() -> argparse.ArgumentParser:
     bg.add_argument("--scale", type=float, default=None)
     bg.add_argument("--resolution", type=int, default=None)
     bg.add_argument("--samples", type=int, default=None, help="Cycles samples per pixel")
+    bg.add_argument("--max-samples", type=int, default=None, help="Cycles samples per pixel where it still sees noise")
     bg.add_argument("--refine", action="store_true", help=REFINE_HELP + " (results and tables *-refined)")
     bg.add_argument(
         "--model",
