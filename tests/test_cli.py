@@ -120,7 +120,9 @@ def test_cycles_scan_and_gallery_refuse_bad_input(tmp_path):
     lines = out.stderr.strip().splitlines()
     assert out.returncode == 2 and len(lines) == 1 and "narrow.toml" in lines[0] and "Lambertian" in lines[0]
     assert not (tmp_path / "s").exists()
-    out = ntp("virtual-scan", "--out", str(tmp_path / "s"), "--renderer", "cycles", "--samples", "8", "--max-samples", "4")
+    out = ntp(
+        "virtual-scan", "--out", str(tmp_path / "s"), "--renderer", "cycles", "--samples", "8", "--max-samples", "4"
+    )
     lines = out.stderr.strip().splitlines()
     assert out.returncode == 2 and len(lines) == 1 and "max-samples" in lines[0] and not (tmp_path / "s").exists()
     out = ntp("bench", "gallery", "--out", str(tmp_path / "g"), "--objects", "teapot")
