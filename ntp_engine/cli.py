@@ -228,6 +228,9 @@ def _bench_virtual_scan(args: argparse.Namespace) -> int:
 
 
 def _bench_gallery(args: argparse.Namespace) -> int:
+    max_samples = args.max_samples
+    if max_samples is None and args.samples is not None:  # by default at least the samples every pixel gets
+        max_samples = max(args.samples, CyclesConfig.max_samples)
     settings = bench_gallery.settings_for(
         args.quick,
         objects=tuple(args.objects) if args.objects else None,
@@ -237,7 +240,7 @@ def _bench_gallery(args: argparse.Namespace) -> int:
         scale=args.scale,
         resolution=args.resolution,
         samples=args.samples,
-        max_samples=args.max_samples,
+        max_samples=max_samples,
         refine=args.refine or None,
         model=args.model,
         budget=args.budget or None,

@@ -78,7 +78,8 @@ class CyclesConfig:
     the gallery box's mirror lacquer (alpha 0.006): at 12 spp fixed its brightest 1% of pixels read
     a median 0.37 of a 384-spp render's (their mean is right: the rare hits carry it, and the 8-bit
     sensor clips them), and the refinement's rho_s came out 0.34 of the truth; threshold 0.05 up to
-    384 renders them as 384 spp does at ~1.8x the 12-spp time, 0.1 left a tenth of them below 0.75."""
+    384 renders them as 384 spp does (the gallery's scans: ~1.3x the 12-spp time), 0.1 left a tenth
+    of them below 0.75."""
 
     samples: int = 16
     bounces: int = 2
@@ -247,7 +248,7 @@ def cycles_scan(
             "asset": str(folder / "asset"),
             "device": str(folder / "device.toml"),
             "emitters": lights,
-            "watts_per_unit_drive": 1.0,  # any constant: the calibration absorbs it
+            "watts_per_unit_drive": 1.0,  # any constant: the calibration absorbs it (noise_threshold is on it)
             "poses": {n: p.tolist() for n, p in plan.named_poses.items()},
             "samples": cycles.samples,
             "max_samples": cycles.max_samples,
