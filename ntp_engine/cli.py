@@ -176,8 +176,7 @@ def _virtual_scan(args: argparse.Namespace) -> int:
         cycles = CyclesConfig(
             samples=args.samples,
             bounces=args.bounces,
-            # by default at least the samples every pixel gets
-            max_samples=max(CyclesConfig.max_samples, args.samples) if args.max_samples is None else args.max_samples,
+            max_samples=_max_samples(args.max_samples, args.samples),
             noise_threshold=args.noise_threshold,
         )
         info = cycles_scan(args.out, args.asset, args.mesh, args.maps, args.device, cfg, cycles, _progress(args))
@@ -227,10 +226,12 @@ def _bench_virtual_scan(args: argparse.Namespace) -> int:
     return 0
 
 
+def _max_samples(max_samples: int | None, samples: int) -> int:
+    """``--max-samples``, or by default ``CyclesConfig``'s but at least ``--samples``."""
+    return max(samples, CyclesConfig.max_samples) if max_samples is None else max_samples
+
+
 def _bench_gallery(args: argparse.Namespace) -> int:
-    max_samples = args.max_samples
-    if max_samples is None and args.samples is not None:  # by default at least the samples every pixel gets
-        max_samples = max(args.samples, CyclesConfig.max_samples)
     settings = bench_gallery.settings_for(
         args.quick,
         objects=tuple(args.objects) if args.objects else None,
@@ -240,7 +241,8 @@ def _bench_gallery(args: argparse.Namespace) -> int:
         scale=args.scale,
         resolution=args.resolution,
         samples=args.samples,
-        max_samples=max_samples,
+        # without --samples the settings' own maximum stands
+        max_samples=args.max_samples if args.samples is None else _max_samples(args.max_samples, args.samples),
         refine=args.refine or None,
         model=args.model,
         budget=args.budget or None,

@@ -337,8 +337,8 @@ def width_field(costs: np.ndarray, position: np.ndarray, alpha: np.ndarray, scal
     (n, S)`` of its sampled members' traces under its lobe ``alpha (2,)`` times ``scales (S,)``
     (``refine.lobe_costs``), the members at ``position (n, 3)``. Left-one-out: each member's vote at
     the width its ``LOCAL_MEMBERS`` nearest others choose, summed, against the same at the width all
-    the others choose — the field where its neighbours predict the members better by one unit per
-    neighbourhood (``FIELD_UNITS``; the gallery's dome: its lacquer's alpha runs 0.01 to 0.25
+    the others choose — the field where its neighbours predict the members better by ``FIELD_UNITS``
+    per neighbourhood (the gallery's dome: its lacquer's alpha runs 0.01 to 0.25
     around it, 47 against 91 for 8 neighbourhoods).
     Members without a vote (every cost inf) are left out."""
     live = np.isfinite(costs).any(1)

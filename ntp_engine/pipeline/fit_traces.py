@@ -592,7 +592,9 @@ def pooled_widths(
         alpha[k], rho_s[k] = cand[j], rs[:, j].median(0).values.numpy()
         lobe_rho_d[k] = rd[:, j].median(0).values.numpy()
         # an isotropic lobe's width may vary over the object (the members' profile says where)
-        fields.append(width_field(profile, texels.position[ids], mean, POOL_SCALES) if j == 0 and texels else None)
+        fields.append(
+            width_field(profile, texels.position[ids], mean, POOL_SCALES) if j == 0 and texels is not None else None
+        )
     return dataclasses.replace(basis, alpha=alpha, rho_s=rho_s, lobe_rho_d=lobe_rho_d, width=tuple(fields))
 
 
