@@ -27,8 +27,8 @@ g = d log(lobe) / d v, summed over wi, h and wo; F depends on wi.h only, which a
 ``rows (N,)``, where given: texel n's inputs (frame, alpha, normal) belong to row ``rows[n]`` of
 the per-entry arrays (a subset of texels without copying them); outputs have N rows.
 Results, arithmetic and sums in the dtype of ``wi`` (float32 or float64: the scipy baseline
-differentiates them numerically; the specular loop's float32 sums over an entry's ~100 emitters differ from
-float64 ones by ~1e-7 relative, and the demo's refinement is ~10% faster).
+differentiates them numerically; the specular loop's float32 sums over an entry's ~100 emitters
+differ from float64 ones by ~1e-7 relative, and the demo's refinement is ~10% faster).
 """
 
 from __future__ import annotations
