@@ -25,6 +25,16 @@ frame ``frame_world (N, 3, 3)`` (rows t^, b^, n^ in the mesh frame); per entry i
 point ``x_cam (N, V, 3)`` and geometric frame ``frame_cam (N, V, 3, 3)`` (the trace's columns);
 directions and results in the texel's geometric frame (as ``pixel_bases``), drives in linear pixel
 units with the exposure (as the emitters').
+
+The object's light on itself (``SupportScene.face_albedo``): a concave object lights itself — the
+emitters light one face, which reflects onto another, and the refinement explained that light by
+bending lobes (the gallery's knot under Cycles: its glossy plastic's width fell to the 0.006
+floor; rendered without bounces, it came back right — docs/accuracy.md). A sample direction that
+meets the mesh before the support (and within ``MAX_REACH``) carries the radiance of the point p
+it meets: one diffuse bounce, rho_d(p) / pi * E_j(p), rho_d the current answer's albedo of p's
+triangle (``face_albedo``), E_j as the support's, zero where p's face looks away from the texel
+or the mesh hides the camera from p. What p's lobe reflects of the emitters (sharp, and only as
+right as the lobe's estimate) is left out.
 """
 
 from __future__ import annotations
@@ -97,10 +107,25 @@ class SupportAlbedo:
 @dataclass(frozen=True)
 class SupportScene:
     """What the refinement needs of the support: its albedo and, where given, the object's mesh
-    as a ray caster (what it hides from the texels and the scanner; None: nothing hidden)."""
+    as a ray caster (what it hides from the texels and the scanner; None: nothing hidden). With
+    the caster, the mesh's unit ``face_normal (F, 3)`` and ``face_albedo (F, 3)`` (triangles in
+    the caster's order): the object's light on itself too (module docstring)."""
 
     albedo: SupportAlbedo
     caster: RayCaster | None = None
+    face_normal: np.ndarray | None = None
+    face_albedo: np.ndarray | None = None
+
+
+def face_albedo(face_count: int, texel_face: np.ndarray, rho_d: np.ndarray, known: np.ndarray) -> np.ndarray:
+    """Per triangle ``(F, 3)`` the mean ``rho_d (T, 3)`` of its ``known (T,)`` texels (``texel_face
+    (T,)``: each texel's triangle); a triangle with none takes the known texels' median (0 with
+    none known)."""
+    face, values = texel_face[known], np.asarray(rho_d, np.float64)[known]
+    count = np.bincount(face, minlength=face_count).astype(np.float64)
+    total = np.stack([np.bincount(face, values[:, c], minlength=face_count) for c in range(3)], 1)
+    fill = np.median(values, 0) if len(values) else np.zeros(3)
+    return np.where(count[:, None] > 0, total / np.maximum(count, 1.0)[:, None], fill)
 
 
 class SupportView(NamedTuple):
@@ -265,8 +290,8 @@ def _radiance(
     omega: Tensor,
 ) -> Tensor:
     """The support's radiance ``(N, V, S, 3)`` toward each entry's texel along ``omega (N, V, S, 3)``
-    (geometric frame): 0 where the direction misses the support (or the object is in the way).
-    Computed over the directions that reach the support only."""
+    (geometric frame): 0 where the direction misses the support (or the object is in the way),
+    the object's own where ``scene`` has its ``face_albedo`` and the direction meets it first."""
     f64 = torch.float64
     up = frame_world[:, :, 2]  # world z in the texel's frame (N, 3)
     height = (position[:, 2] - scene.albedo.z).clamp_min(RAY_OFFSET)
@@ -278,6 +303,8 @@ def _radiance(
     fw, fc = frame_world[n], frame_cam[n, v].to(f64)
     p_world = position[n] + (p_loc[:, None] @ fw)[:, 0]
     out = torch.zeros(*omega.shape[:3], 3, dtype=f64)
+    if scene.face_albedo is not None:
+        out += _object_radiance(scene, scanner, sources, position, frame_world, x_cam, frame_cam, live, omega, reach)
     if len(n) == 0:
         return out
     xc = x_cam[n, v].to(f64)
@@ -288,6 +315,63 @@ def _radiance(
     up_cam = (up[n][:, None] @ fc)[:, 0]
     e = irradiance(scanner, sources, p_cam[keep], up_cam[keep])
     out[tuple(i[keep] for i in sel)] = scene.albedo.at(p_world[keep, :2]) / math.pi * e
+    return out
+
+
+def _object_radiance(
+    scene: SupportScene,
+    scanner: Scanner,
+    sources: Sources,
+    position: Tensor,
+    frame_world: Tensor,
+    x_cam: Tensor,
+    frame_cam: Tensor,
+    live: Tensor,
+    omega: Tensor,
+    reach: Tensor,
+) -> Tensor:
+    """The object's radiance ``(N, V, S, 3)`` toward each entry's texel along ``omega`` (``_radiance``'s
+    arguments; ``reach (N, V, S)``: how far each direction runs to the support, inf where it does
+    not go down): one diffuse bounce where the direction meets the mesh first (module docstring)."""
+    assert scene.caster is not None and scene.face_normal is not None and scene.face_albedo is not None
+    f64 = torch.float64
+    out = torch.zeros(*omega.shape[:3], 3, dtype=f64)
+    sel = live[..., None].expand(omega.shape[:3]).nonzero(as_tuple=True)
+    if len(sel[0]) == 0:
+        return out
+    n, v = sel[0], sel[1]
+    fw = frame_world[n]
+    d_world = (omega[sel].to(f64)[:, None] @ fw)[:, 0]
+    start = position[n] + RAY_OFFSET * fw[:, 2]
+    hits = scene.caster.intersect(start.numpy(), d_world.numpy())
+    t = torch.from_numpy(hits.t)
+    prim = torch.from_numpy(hits.prim)
+    hit = (torch.from_numpy(hits.geom) >= 0) & (t < reach[sel].clamp_max(MAX_REACH))
+    normal = torch.as_tensor(scene.face_normal, dtype=f64)[prim.clamp_min(0)]
+    hit &= (normal * d_world).sum(-1) < 0  # the face looks toward the texel
+    k = hit.nonzero().squeeze(1)
+    if len(k) == 0:
+        return out
+    n, v, fw, xc, fc = n[k], v[k], fw[k], x_cam[n[k], v[k]].to(f64), frame_cam[n[k], v[k]].to(f64)
+    p_world = start[k] + t[k, None] * d_world[k]
+    # the camera (and the emitters beside it) seen from p
+    camera_world = position[n] + (-(fc @ xc[..., None])[..., 0][:, None] @ fw)[:, 0]
+    to_cam = camera_world - p_world
+    dist = to_cam.norm(dim=-1).clamp_min(1e-12)
+    to_cam = to_cam / dist[:, None]
+    blocked = scene.caster.occluded(
+        (p_world + RAY_OFFSET * to_cam).numpy(), to_cam.numpy(), (dist - 2 * RAY_OFFSET).clamp_min(0.0).numpy()
+    )
+    seen = torch.from_numpy(~blocked)
+    k, n, v, fw, xc, fc, p_world = k[seen], n[seen], v[seen], fw[seen], xc[seen], fc[seen], p_world[seen]
+    if len(k) == 0:
+        return out
+    # p and its face's normal in the entry's camera frame (mesh frame -> texel frame -> camera)
+    p_cam = xc + ((fw @ (p_world - position[n])[..., None])[..., 0][:, None] @ fc)[:, 0]
+    normal_cam = ((fw @ normal[k][..., None])[..., 0][:, None] @ fc)[:, 0]
+    e = irradiance(scanner, sources, p_cam, normal_cam)
+    albedo = torch.as_tensor(scene.face_albedo, dtype=f64)[prim[k]]
+    out[tuple(i[k] for i in sel)] = albedo / math.pi * e
     return out
 
 

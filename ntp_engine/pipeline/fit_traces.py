@@ -57,7 +57,7 @@ from ..fit.refine import (
     refine_toward,
     turn_costs,
 )
-from ..fit.support_light import SupportScene, SupportView
+from ..fit.support_light import SupportScene, SupportView, face_albedo
 from ..fit.surface_fields import texel_spacing
 from ..fit.tangent_field import field_variation, fused_turns, neighbour_turns
 from ..io.allocator import freed_memory_kept
@@ -362,6 +362,7 @@ def _refine_fit(
     fit = {k: v.copy() for k, v in fit.items()}
     todo = (traces.lengths > 0).nonzero().squeeze(1)
     settings = settings or RefineSettings()
+    support = _lit_by_itself(support, texels, fit, todo)  # from the network's albedos
     if len(todo):  # the noise model, calibrated on a seeded sample of the texels
         gen = torch.Generator().manual_seed(0)
         sample = todo[torch.randperm(len(todo), generator=gen)[:CALIBRATION_TEXELS]].sort().values
@@ -375,6 +376,7 @@ def _refine_fit(
     fit["highlight"] = np.zeros(traces.num_traces, np.float32)
     start = {k: v.copy() for k, v in fit.items()}  # where every texel's own refinement starts
     _refine_texels(scanner, traces, fit, start, todo, settings, progress, texels, support, "refine")
+    support = _lit_by_itself(support, texels, fit, todo)  # the object's light from the refined albedos
     sharpened = None
     if settings.albedo_blend and texels is not None and texels.uv_per_metre is not None:
         # the albedos just refined say where the edges are; the texels whose pixels may blend a
@@ -401,6 +403,20 @@ def _refine_fit(
     if settings.albedo_map and sharpened is not None and texels is not None:
         sharpen_albedos(scanner, traces, fit, sharpened, settings, texels, support, progress)
     return fit
+
+
+def _lit_by_itself(
+    support: SupportScene | None, texels: Texels | None, fit: dict[str, np.ndarray], todo: torch.Tensor
+) -> SupportScene | None:
+    """``support`` with the object's light on itself (``fit.support_light``) from ``fit``'s albedos
+    of the observed texels ``todo`` (trace i = texel i of ``texels``), where it has the mesh's face
+    normals; else ``support`` as it is."""
+    if support is None or support.face_normal is None or texels is None:
+        return support
+    known = np.zeros(len(texels), bool)
+    known[todo.numpy()] = True
+    albedo = face_albedo(len(support.face_normal), texels.face, fit["rho_d"], known)
+    return dataclasses.replace(support, face_albedo=albedo)
 
 
 def sharpen_albedos(

@@ -397,7 +397,7 @@ def _reconstruct(
         if scan.support_light:  # the photos hold the support's light: its albedo map, its mesh for the rays
             caster = RayCaster([mesh.triangles])
             support, h_support = _support_stage(scan, cache, mesh, caster, poses, h_atlas, h_pose, progress)
-            scene = SupportScene(support, caster)
+            scene = SupportScene(support, caster, mesh.face_normals())
             report.timed("support", t0)
             t0 = time.perf_counter()
 
