@@ -5,8 +5,8 @@ model is aligned to the mesh) and ``support_plane = false`` when the object does
 support at the mesh's lowest z (default true: SfM alignment uses the support, and the entries of
 photos whose LEDs the support shadows are kept out of the network's range with those LEDs masked),
 and ``support_light = false`` when the photos hold no light
-the support reflects onto the object (a renderer of Eq. 1's direct light alone: the refinement then
-leaves it out; default: as ``support_plane``).
+the support (or the object itself) reflects onto the object (a renderer of Eq. 1's direct light
+alone: the refinement then leaves it out; default: as ``support_plane``).
 
 Every problem is a one-line ``NtpInputError`` naming the file; photos that cannot be read are not
 errors but are left out by photo selection, each named on stderr. A mesh whose size is implausible
@@ -49,7 +49,7 @@ class Scan:
     poses: dict[str, np.ndarray] | None = None
     colmap: Path | None = None  # a COLMAP model folder to use instead of running SfM
     support_plane: bool = True  # the object stands on a flat support at the mesh's lowest z
-    support_light: bool = True  # the photos hold the light that support reflects onto the object
+    support_light: bool = True  # the photos hold the light the support (and the object) reflect onto it
 
     @property
     def input_folders(self) -> tuple[Path, ...]:
