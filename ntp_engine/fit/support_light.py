@@ -60,6 +60,7 @@ SPECULAR_SAMPLES = 16  # per entry, from the round's lobe (widened)
 DIFFUSE_SAMPLES = 32  # per entry, cosine-distributed about n^ (16: -25% on a face seen edge-on)
 SAMPLE_WIDEN, SAMPLE_FLOOR = 1.5, 0.02  # the sampled lobe: the round's alphas x1.5 (at least 0.02)
 MAX_REACH = 1.0  # m: support points farther from the texel carry no light
+PROBE_SAMPLES = 64  # per texel: does it see the object at all (uniform over its hemisphere)
 RAY_OFFSET = 1e-4  # m: rays start this far off the surfaces they leave
 ALBEDO_VERSION = 1  # of estimate_support_albedo's method: part of its stage's cache key (bump when it changes)
 CELL = 0.004  # m: the albedo map's cells
@@ -331,29 +332,34 @@ def _object_radiance(
     reach: Tensor,
 ) -> Tensor:
     """The object's radiance ``(N, V, S, 3)`` toward each entry's texel along ``omega`` (``_radiance``'s
-    arguments; ``reach (N, V, S)``: how far each direction runs to the support, inf where it does
-    not go down): one diffuse bounce where the direction meets the mesh first (module docstring)."""
+    arguments; ``reach (N, V, S)``: how far each direction runs to the support): one diffuse bounce
+    where the direction meets the mesh first (module docstring). Rays only from the texels that see
+    the mesh at all (``_sees_mesh``), one per texel and direction where every entry has the same
+    directions (an expanded ``omega``: the diffuse samples)."""
     assert scene.caster is not None and scene.face_normal is not None and scene.face_albedo is not None
     f64 = torch.float64
-    out = torch.zeros(*omega.shape[:3], 3, dtype=f64)
-    sel = live[..., None].expand(omega.shape[:3]).nonzero(as_tuple=True)
+    N, V, S = omega.shape[:3]
+    out = torch.zeros(N, V, S, 3, dtype=f64)
+    near = _sees_mesh(scene, position, frame_world)
+    sel = (live & near[:, None])[..., None].expand(N, V, S).nonzero(as_tuple=True)
     if len(sel[0]) == 0:
         return out
-    n, v = sel[0], sel[1]
-    fw = frame_world[n]
-    d_world = (omega[sel].to(f64)[:, None] @ fw)[:, 0]
-    start = position[n] + RAY_OFFSET * fw[:, 2]
-    hits = scene.caster.intersect(start.numpy(), d_world.numpy())
-    t = torch.from_numpy(hits.t)
-    prim = torch.from_numpy(hits.prim)
-    hit = (torch.from_numpy(hits.geom) >= 0) & (t < reach[sel].clamp_max(MAX_REACH))
-    normal = torch.as_tensor(scene.face_normal, dtype=f64)[prim.clamp_min(0)]
-    hit &= (normal * d_world).sum(-1) < 0  # the face looks toward the texel
-    k = hit.nonzero().squeeze(1)
+    n, v, s = sel
+    if V > 1 and omega.stride(1) == 0:  # the same directions for every entry: one ray each
+        tex = near.nonzero().squeeze(1)
+        i = tex.repeat_interleave(S)
+        t_, prim_ = _first_hits(scene, position[i], frame_world[i], omega[tex, 0].reshape(-1, 3).to(f64))
+        row = torch.full((N,), -1, dtype=torch.long)
+        row[tex] = torch.arange(len(tex))
+        t, prim = t_[row[n] * S + s], prim_[row[n] * S + s]
+    else:
+        t, prim = _first_hits(scene, position[n], frame_world[n], omega[sel].to(f64))
+    k = ((prim >= 0) & (t < reach[sel].clamp_max(MAX_REACH))).nonzero().squeeze(1)
     if len(k) == 0:
         return out
-    n, v, fw, xc, fc = n[k], v[k], fw[k], x_cam[n[k], v[k]].to(f64), frame_cam[n[k], v[k]].to(f64)
-    p_world = start[k] + t[k, None] * d_world[k]
+    n, v, fw = n[k], v[k], frame_world[n[k]]
+    xc, fc = x_cam[n, v].to(f64), frame_cam[n, v].to(f64)
+    p_world = position[n] + RAY_OFFSET * fw[:, 2] + t[k, None] * (omega[n, v, s[k]].to(f64)[:, None] @ fw)[:, 0]
     # the camera (and the emitters beside it) seen from p
     camera_world = position[n] + (-(fc @ xc[..., None])[..., 0][:, None] @ fw)[:, 0]
     to_cam = camera_world - p_world
@@ -367,12 +373,38 @@ def _object_radiance(
     if len(k) == 0:
         return out
     # p and its face's normal in the entry's camera frame (mesh frame -> texel frame -> camera)
+    normal = torch.as_tensor(scene.face_normal, dtype=f64)[prim[k]]
     p_cam = xc + ((fw @ (p_world - position[n])[..., None])[..., 0][:, None] @ fc)[:, 0]
-    normal_cam = ((fw @ normal[k][..., None])[..., 0][:, None] @ fc)[:, 0]
+    normal_cam = ((fw @ normal[..., None])[..., 0][:, None] @ fc)[:, 0]
     e = irradiance(scanner, sources, p_cam, normal_cam)
     albedo = torch.as_tensor(scene.face_albedo, dtype=f64)[prim[k]]
     out[tuple(i[k] for i in sel)] = albedo / math.pi * e
     return out
+
+
+def _first_hits(scene: SupportScene, position: Tensor, frame_world: Tensor, omega: Tensor) -> tuple[Tensor, Tensor]:
+    """Where rays from texels at world ``position (M, 3)`` (geometric frames ``frame_world (M, 3,
+    3)``) along ``omega (M, 3)`` (that frame) first meet a face of the mesh that looks back at
+    them: the distance ``t (M,)`` (m) and the triangle ``(M,)`` (-1: none)."""
+    assert scene.caster is not None and scene.face_normal is not None
+    d_world = (omega[:, None] @ frame_world)[:, 0]
+    hits = scene.caster.intersect((position + RAY_OFFSET * frame_world[:, 2]).numpy(), d_world.numpy())
+    prim = torch.from_numpy(np.where(hits.geom >= 0, hits.prim, -1))
+    normal = torch.as_tensor(scene.face_normal, dtype=d_world.dtype)[prim.clamp_min(0)]
+    prim[(normal * d_world).sum(-1) >= 0] = -1  # a back face: the inside of the mesh
+    return torch.from_numpy(hits.t), prim
+
+
+def _sees_mesh(scene: SupportScene, position: Tensor, frame_world: Tensor) -> Tensor:
+    """``(N,)`` bool: a texel some of whose ``PROBE_SAMPLES`` directions, uniform over its
+    hemisphere, meet a face of the mesh within ``MAX_REACH`` (on a convex object none does)."""
+    u = _stratified(PROBE_SAMPLES)
+    r, phi = torch.sqrt(1.0 - u[:, 0] ** 2), 2 * math.pi * u[:, 1]
+    probe = torch.stack([r * torch.cos(phi), r * torch.sin(phi), u[:, 0]], -1)  # z uniform: uniform solid angle
+    N = len(position)
+    i = torch.arange(N).repeat_interleave(PROBE_SAMPLES)
+    t, prim = _first_hits(scene, position[i], frame_world[i], probe.repeat(N, 1))
+    return ((prim >= 0) & (t < MAX_REACH)).reshape(N, PROBE_SAMPLES).any(1)
 
 
 def _hidden(

@@ -198,7 +198,8 @@ def test_the_objects_own_light_converges_to_the_integral_over_its_lit_face(monke
     """A face beside a lit wall of the object receives the wall's diffuse light (albedo / pi times
     the scanner's irradiance there): the diffuse basis' share from the wall (with its albedo minus
     without) converges to a dense integral over the wall (measured: 0.84 of it at the shipped 32
-    samples, 0.972 at 256, 0.9999 at 2048); a wall whose face looks away gives none."""
+    samples, 0.972 at 256, 0.9999 at 2048), two entries' sums as each one's alone; a wall whose
+    face looks away gives none."""
     views, x_cam, fc, R, t, pos, fw = _walled_texel()
     g = torch.linspace(0.0, 0.2, 401, dtype=torch.float64)
     X, Z = torch.meshgrid(g[g >= 0.03], g, indexing="ij")
@@ -217,6 +218,19 @@ def test_the_objects_own_light_converges_to_the_integral_over_its_lit_face(monke
             monkeypatch.setattr(sl, "DIFFUSE_SAMPLES", samples)
         lit, dark = (sl.support_diffuse_basis(v, DEV, sl.Sources.of(DEV), x_cam, fc, live)[0, 0, :, 2] for v in views)
         assert ((lit - dark) / ref - 1).abs().max() < tol, (samples, (lit - dark) / ref)
+    # two entries (the same directions for both: one ray each) as each alone
+    _, x2, fc2, *_ = _vertical_texel([0.2, -0.2, 0.1])
+    both = sl.support_diffuse_basis(
+        views[0],
+        DEV,
+        sl.Sources.of(DEV),
+        torch.cat([x_cam, x2], 1),
+        torch.cat([fc, fc2], 1),
+        torch.ones(1, 2, dtype=torch.bool),
+    )
+    for j, (x, f) in enumerate(((x_cam, fc), (x2, fc2))):
+        alone = sl.support_diffuse_basis(views[0], DEV, sl.Sources.of(DEV), x, f, live)[0, 0]
+        torch.testing.assert_close(both[0, j], alone, rtol=1e-12, atol=0.0)
     away, x_cam, fc, *_ = _walled_texel(facing=-1.0)
     lit, dark = (sl.support_diffuse_basis(v, DEV, sl.Sources.of(DEV), x_cam, fc, live) for v in away)
     assert torch.equal(lit, dark)
