@@ -60,7 +60,6 @@ SPECULAR_SAMPLES = 16  # per entry, from the round's lobe (widened)
 DIFFUSE_SAMPLES = 32  # per entry, cosine-distributed about n^ (16: -25% on a face seen edge-on)
 SAMPLE_WIDEN, SAMPLE_FLOOR = 1.5, 0.02  # the sampled lobe: the round's alphas x1.5 (at least 0.02)
 MAX_REACH = 1.0  # m: support points farther from the texel carry no light
-PROBE_SAMPLES = 64  # per texel: does it see the object at all (uniform over its hemisphere)
 RAY_OFFSET = 1e-4  # m: rays start this far off the surfaces they leave
 ALBEDO_VERSION = 1  # of estimate_support_albedo's method: part of its stage's cache key (bump when it changes)
 CELL = 0.004  # m: the albedo map's cells
@@ -333,20 +332,21 @@ def _object_radiance(
 ) -> Tensor:
     """The object's radiance ``(N, V, S, 3)`` toward each entry's texel along ``omega`` (``_radiance``'s
     arguments; ``reach (N, V, S)``: how far each direction runs to the support): one diffuse bounce
-    where the direction meets the mesh first (module docstring). Rays only from the texels that see
-    the mesh at all (``_sees_mesh``), one per texel and direction where every entry has the same
-    directions (an expanded ``omega``: the diffuse samples)."""
+    where the direction meets the mesh first (module docstring). One ray per texel and direction
+    where every entry has the same directions (an expanded ``omega``: the diffuse samples). No
+    texel is left out by a coarser probe: 64 directions uniform over the hemisphere missed 2,180
+    of the 8,064 gallery vase texels that see the vase in 1,024 (its slivers at grazing angles);
+    with it the knot's glossy plastic under Cycles pooled to alpha 0.0121, without 0.0205."""
     assert scene.caster is not None and scene.face_normal is not None and scene.face_albedo is not None
     f64 = torch.float64
     N, V, S = omega.shape[:3]
     out = torch.zeros(N, V, S, 3, dtype=f64)
-    near = _sees_mesh(scene, position, frame_world)
-    sel = (live & near[:, None])[..., None].expand(N, V, S).nonzero(as_tuple=True)
+    sel = live[..., None].expand(N, V, S).nonzero(as_tuple=True)
     if len(sel[0]) == 0:
         return out
     n, v, s = sel
     if V > 1 and omega.stride(1) == 0:  # the same directions for every entry: one ray each
-        tex = near.nonzero().squeeze(1)
+        tex = live.any(1).nonzero().squeeze(1)
         i = tex.repeat_interleave(S)
         t_, prim_ = _first_hits(scene, position[i], frame_world[i], omega[tex, 0].reshape(-1, 3).to(f64))
         row = torch.full((N,), -1, dtype=torch.long)
@@ -393,18 +393,6 @@ def _first_hits(scene: SupportScene, position: Tensor, frame_world: Tensor, omeg
     normal = torch.as_tensor(scene.face_normal, dtype=d_world.dtype)[prim.clamp_min(0)]
     prim[(normal * d_world).sum(-1) >= 0] = -1  # a back face: the inside of the mesh
     return torch.from_numpy(hits.t), prim
-
-
-def _sees_mesh(scene: SupportScene, position: Tensor, frame_world: Tensor) -> Tensor:
-    """``(N,)`` bool: a texel some of whose ``PROBE_SAMPLES`` directions, uniform over its
-    hemisphere, meet a face of the mesh within ``MAX_REACH`` (on a convex object none does)."""
-    u = _stratified(PROBE_SAMPLES)
-    r, phi = torch.sqrt(1.0 - u[:, 0] ** 2), 2 * math.pi * u[:, 1]
-    probe = torch.stack([r * torch.cos(phi), r * torch.sin(phi), u[:, 0]], -1)  # z uniform: uniform solid angle
-    N = len(position)
-    i = torch.arange(N).repeat_interleave(PROBE_SAMPLES)
-    t, prim = _first_hits(scene, position[i], frame_world[i], probe.repeat(N, 1))
-    return ((prim >= 0) & (t < MAX_REACH)).reshape(N, PROBE_SAMPLES).any(1)
 
 
 def _hidden(
