@@ -335,8 +335,7 @@ def _object_radiance(
     where the direction meets the mesh first (module docstring). One ray per texel and direction
     where every entry has the same directions (an expanded ``omega``: the diffuse samples). No
     texel is left out by a coarser probe: 64 directions uniform over the hemisphere missed 2,180
-    of the 8,064 gallery vase texels that see the vase in 1,024 (its slivers at grazing angles);
-    with it the knot's glossy plastic under Cycles pooled to alpha 0.0121, without 0.0205."""
+    of the 8,064 gallery vase texels that see the vase in 1,024 (its slivers at grazing angles)."""
     assert scene.caster is not None and scene.face_normal is not None and scene.face_albedo is not None
     f64 = torch.float64
     N, V, S = omega.shape[:3]
