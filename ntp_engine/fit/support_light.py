@@ -359,15 +359,8 @@ def _object_radiance(
     n, v, fw = n[k], v[k], frame_world[n[k]]
     xc, fc = x_cam[n, v].to(f64), frame_cam[n, v].to(f64)
     p_world = position[n] + RAY_OFFSET * fw[:, 2] + t[k, None] * (omega[n, v, s[k]].to(f64)[:, None] @ fw)[:, 0]
-    # the camera (and the emitters beside it) seen from p
-    camera_world = position[n] + (-(fc @ xc[..., None])[..., 0][:, None] @ fw)[:, 0]
-    to_cam = camera_world - p_world
-    dist = to_cam.norm(dim=-1).clamp_min(1e-12)
-    to_cam = to_cam / dist[:, None]
-    blocked = scene.caster.occluded(
-        (p_world + RAY_OFFSET * to_cam).numpy(), to_cam.numpy(), (dist - 2 * RAY_OFFSET).clamp_min(0.0).numpy()
-    )
-    seen = torch.from_numpy(~blocked)
+    # the camera (and the emitters beside it) seen from p; p itself is the ray's first hit
+    seen = ~_hidden(scene.caster, position[n], fw, xc, fc, p_world, from_texel=False)
     k, n, v, fw, xc, fc, p_world = k[seen], n[seen], v[seen], fw[seen], xc[seen], fc[seen], p_world[seen]
     if len(k) == 0:
         return out
@@ -395,25 +388,31 @@ def _first_hits(scene: SupportScene, position: Tensor, frame_world: Tensor, omeg
 
 
 def _hidden(
-    caster: RayCaster, position: Tensor, frame_world: Tensor, x_cam: Tensor, frame_cam: Tensor, p_world: Tensor
+    caster: RayCaster,
+    position: Tensor,
+    frame_world: Tensor,
+    x_cam: Tensor,
+    frame_cam: Tensor,
+    p_world: Tensor,
+    from_texel: bool = True,
 ) -> Tensor:
     """``(M,)`` bool: the mesh lies between a texel at world ``position (M, 3)`` (geometric frame
-    ``frame_world (M, 3, 3)``) and its support point ``p_world (M, 3)``, or between that point and
-    the camera of the entry (``x_cam``, ``frame_cam``: its point and frame in camera space) — the
-    scanner's light: its emitters sit beside the camera."""
-    start = position + RAY_OFFSET * frame_world[:, 2]
-    d_world = p_world - start
-    dist = d_world.norm(dim=-1).clamp_min(1e-12)
+    ``frame_world (M, 3, 3)``) and the point ``p_world (M, 3)`` it sees (unless ``from_texel`` is
+    False), or between that point and the camera of the entry (``x_cam``, ``frame_cam``: its point
+    and frame in camera space) — the scanner's light: its emitters sit beside the camera."""
     camera_loc = -(frame_cam @ x_cam[..., None])[..., 0]  # camera centre, geometric frame (M, 3)
     to_cam = position + (camera_loc[:, None] @ frame_world)[:, 0] - p_world
     cam_dist = to_cam.norm(dim=-1).clamp_min(1e-12)
     to_cam = to_cam / cam_dist[:, None]
-    o = torch.cat([start, p_world + RAY_OFFSET * to_cam])
-    d = torch.cat([d_world / dist[:, None], to_cam])
-    far = torch.cat([dist - RAY_OFFSET, cam_dist - 2 * RAY_OFFSET]).clamp_min(0.0)
+    o, d, far = p_world + RAY_OFFSET * to_cam, to_cam, (cam_dist - 2 * RAY_OFFSET).clamp_min(0.0)
+    if from_texel:
+        start = position + RAY_OFFSET * frame_world[:, 2]
+        d_world = p_world - start
+        dist = d_world.norm(dim=-1).clamp_min(1e-12)
+        o, d = torch.cat([start, o]), torch.cat([d_world / dist[:, None], d])
+        far = torch.cat([(dist - RAY_OFFSET).clamp_min(0.0), far])
     blocked = torch.from_numpy(caster.occluded(o.numpy(), d.numpy(), far.numpy()))
-    m = len(position)
-    return blocked[:m] | blocked[m:]
+    return blocked.reshape(-1, len(position)).any(0)
 
 
 def estimate_support_albedo(
