@@ -218,8 +218,8 @@ def _specular(
 @functools.cache
 def _constants(dtype: np.dtype) -> np.ndarray:
     """The compiled loops' numbers in their working ``dtype``: 0, 1, 1/2, 4, pi, Schlick's F0 and the
-    guards 1e-30, 1e-20, 1e-12, and inf (a float64 literal would make float32 arithmetic float64: ~1.6x
-    slower on the specular loop, measured)."""
+    guards 1e-30, 1e-20, 1e-12, and inf (a float64 literal would make float32 arithmetic float64: the
+    specular loop 1.54x slower without derivatives, 1.44x with, measured)."""
     return np.array([0.0, 1.0, 0.5, 4.0, math.pi, F0_DIELECTRIC, 1e-30, 1e-20, 1e-12, math.inf], dtype)
 
 
