@@ -12,12 +12,10 @@ same maps.
   grazing, the diffuse is dimmed by the specular layer.
 - ``NTP Accurate``: Diffuse BSDF (rho_d) + Glossy BSDF (GGX) whose colour is rho_s times Schlick's
   Fresnel with F0 = 0.04 on n.v (the engine uses w_i.h; equal at the mirror peak); the object-space
-  normal and tangent maps through Vector Transform nodes; any alpha ratio up to 10^4. Built
-  ``colocated`` (the Cycles scanner's photos: every light next to the camera), the colour is
-  rho_s F0: there w_i.h is ~1 for every light, so Schlick's term vanishes (``ntp_engine.sim.cycles_scan``
-  bounds it), while n.v is small on every surface seen edge-on — Schlick on n.v made a broad lobe's
-  grazing views up to 5x too bright (docs/virtual-scanner.md). No Cycles node puts a Fresnel on
-  w_i.h under a Glossy BSDF's 10^4 anisotropy (the Metallic BSDF caps it at 10:1).
+  normal and tangent maps through Vector Transform nodes; any alpha ratio up to 10^4. No built-in
+  node puts a Fresnel on w_i.h under a Glossy BSDF's 10^4 anisotropy (the Metallic BSDF caps it at
+  10:1). Built ``exact_fresnel`` (the Cycles scanner's photos), the Glossy BSDF is replaced by the
+  engine's lobe itself, an OSL node (``schlick_lobe``: CPU only) fed the alpha map directly.
 
 All inputs are read and derived before any datablock is created: a bad result folder raises
 ``NtpInputError`` naming the file, and nothing half-built is left behind.
@@ -39,6 +37,7 @@ from ntp_engine.physics.brdf import F0_DIELECTRIC
 from ntp_engine.pipeline.output_folder import REPORT, is_complete
 
 from . import derive
+from .schlick_lobe import schlick_lobe_node
 
 PRINCIPLED, ACCURATE = "NTP Principled", "NTP Accurate"
 DEFAULT_VARIANT = "accurate"  # chosen by `ntp bench blender` (docs/blender.md)
@@ -232,8 +231,7 @@ def _principled(ri: ResultInputs, name: str) -> bpy.types.Material:
     return mat
 
 
-def _accurate(ri: ResultInputs, name: str, colocated: bool = False) -> bpy.types.Material:
-    g = ri.glossy
+def _accurate(ri: ResultInputs, name: str, exact_fresnel: bool = False) -> bpy.types.Material:
     mat = bpy.data.materials.get(name) or bpy.data.materials.new(name)
     T = _Tree(mat)
     out = T.node("ShaderNodeOutputMaterial", 3, 0)
@@ -241,9 +239,7 @@ def _accurate(ri: ResultInputs, name: str, colocated: bool = False) -> bpy.types
     T.link(add, 0, out, "Surface")
     diffuse = T.node("ShaderNodeBsdfDiffuse", 1, 1)
     diffuse.inputs["Roughness"].default_value = 0.0
-    glossy = T.node("ShaderNodeBsdfGlossy", 1, -1, distribution="GGX")
     T.link(diffuse, 0, add, 0)
-    T.link(glossy, 0, add, 1)
     T.link(
         T.image(_file_image(ri.folder / "diffuse_albedo.exr", LINEAR, f"{name} diffuse albedo"), -1, 2, "rho_d"),
         "Color",
@@ -262,6 +258,24 @@ def _accurate(ri: ResultInputs, name: str, colocated: bool = False) -> bpy.types
     T.link(t_img, "Color", t_xf, 0)
     T.link(t_xf, 0, t_unit, 0)
     T.link(n_unit, "Vector", diffuse, "Normal")
+    spec_file = _file_image(ri.folder / "specular_albedo.exr", LINEAR, f"{name} specular albedo")
+    spec = T.image(spec_file, -1, 0, "specular albedo")
+    if exact_fresnel:  # the engine's lobe, Fresnel on w_i.h (OSL; module docstring)
+        lobe = schlick_lobe_node(T.nt)
+        lobe.location = (220.0, -200.0)
+        alphas = T.image(_file_image(ri.folder / "roughness.exr", DATA, f"{name} alphas"), -1, -2, "alpha_x, alpha_y")
+        split = T.node("ShaderNodeSeparateColor", 0, -2)
+        T.link(alphas, "Color", split, "Color")
+        T.link(split, "Red", lobe, "alpha_x")
+        T.link(split, "Green", lobe, "alpha_y")
+        T.link(spec, "Color", lobe, "rho_s")
+        T.link(n_unit, "Vector", lobe, "Normal")
+        T.link(t_unit, "Vector", lobe, "Tangent")
+        T.link(lobe, "BSDF", add, 1)
+        return mat
+    g = ri.glossy
+    glossy = T.node("ShaderNodeBsdfGlossy", 1, -1, distribution="GGX")
+    T.link(glossy, 0, add, 1)
     T.link(n_unit, "Vector", glossy, "Normal")
     T.link(t_unit, "Vector", glossy, "Tangent")
     T.link(
@@ -276,14 +290,9 @@ def _accurate(ri: ResultInputs, name: str, colocated: bool = False) -> bpy.types
         glossy,
         "Anisotropy",
     )
-    spec_file = _file_image(ri.folder / "specular_albedo.exr", LINEAR, f"{name} specular albedo")
-    spec = T.image(spec_file, -1, 0, "specular albedo")
     scale = T.node("ShaderNodeVectorMath", 0, 0, "rho_s x Fresnel", operation="SCALE")
     T.link(spec, "Color", scale, 0)
     T.link(scale, "Vector", glossy, "Color")
-    if colocated:  # lights beside the camera: w_i.h ~ 1, F = F0 (module docstring)
-        scale.inputs["Scale"].default_value = F0_DIELECTRIC
-        return mat
     # colour = rho_s * (0.04 + 0.96 (1 - n.v)^5)
     lw = T.node("ShaderNodeLayerWeight", -2, 1, "Schlick: 1 - n.v")
     lw.inputs["Blend"].default_value = 0.5
@@ -303,19 +312,20 @@ def build_materials(
     obj: bpy.types.Object | None = None,
     variant: str = DEFAULT_VARIANT,
     require_report: bool = True,
-    colocated: bool = False,
+    exact_fresnel: bool = False,
 ) -> tuple[bpy.types.Material, bpy.types.Material]:
     """Both materials for a result folder (``read_result``); ``obj`` (if given) gets ``variant`` in
     its first slot. The other material is kept with a fake user so a saved .blend holds both.
     Names derive from the result folder's (``asset_name``); building again replaces both materials
-    and their images in place (no ``.001`` copies, no orphans). ``colocated``: the accurate variant
-    for lights beside the camera (the Cycles scanner's photos; module docstring)."""
+    and their images in place (no ``.001`` copies, no orphans). ``exact_fresnel``: the accurate variant
+    with the engine's Fresnel on w_i.h (OSL: the scene must ``schlick_lobe.use_osl``; the Cycles
+    scanner's photos; module docstring)."""
     if variant not in ("principled", "accurate"):
         raise ValueError(f"variant must be 'principled' or 'accurate', not {variant!r}")
     ri = read_result(result, require_report)  # may raise: nothing created yet
     stem = asset_name(result)
     principled = _principled(ri, f"{PRINCIPLED} ({stem})")
-    accurate = _accurate(ri, f"{ACCURATE} ({stem})", colocated)
+    accurate = _accurate(ri, f"{ACCURATE} ({stem})", exact_fresnel)
     for m in (principled, accurate):
         m.use_fake_user = True
         m["ntp_result"] = str(Path(result).resolve())

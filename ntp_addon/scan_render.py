@@ -5,8 +5,9 @@ The job (written by the engine; see there) names the asset folder (``mesh.obj`` 
 the camera's device file, the emitters in camera space (centre, normal, axis, size, RGB drive), the
 camera-from-world poses, samples (every pixel; up to max_samples where Cycles' noise estimate is
 above noise_threshold), bounces and seed, and the calibration patch (centre, normal,
-in-plane axis, size). The scene: the asset with the ``NTP Accurate`` material built for co-located
-lights (Diffuse + Glossy GGX of colour rho_s F0, ``material``), the marker backdrop
+in-plane axis, size). The scene: the asset with the ``NTP Accurate`` material built with the
+engine's Fresnel (Diffuse + the engine's GGX lobe with Schlick on w_i.h as an OSL node, rendered
+with OSL on the CPU: ``material``, ``schlick_lobe``), the marker backdrop
 (``ntp_engine.sim.renderer.marker_albedo``, one texel per 5 mm cell, closest-texel lookup), and one
 rectangular area light per lit emitter (Lambertian, as the device's cos^1 LEDs), moved with the
 camera for every pose. Direct and indirect light (``bounces``), exact shadows. Each photo is written
@@ -31,6 +32,7 @@ from ntp_engine.sim.renderer import BACKDROP_HALF, BACKDROP_Z, marker_albedo
 
 from . import material
 from . import scene as bscene
+from .schlick_lobe import use_osl
 
 MARKER_CELL = 0.005  # m: the backdrop's small cells (renderer.marker_albedo); its big cells are 3 of them
 
@@ -141,6 +143,7 @@ def run(job_path: Path) -> None:
     scene = bpy.context.scene
     cam = load_scanner(Path(job["device"]))
     bscene.setup_cycles(scene, cam.width, cam.height, job["max_samples"])
+    use_osl(scene)  # the asset's lobe is an OSL node (schlick_lobe)
     # every pixel gets ``samples``; a noisy one (a sharp highlight: rare hits of a small light) more
     scene.cycles.use_adaptive_sampling = job["max_samples"] > job["samples"]
     scene.cycles.adaptive_min_samples = job["samples"]
@@ -150,8 +153,8 @@ def run(job_path: Path) -> None:
     scene.cycles.diffuse_bounces = scene.cycles.glossy_bounces = b
     scene.cycles.transmission_bounces = scene.cycles.volume_bounces = scene.cycles.transparent_max_bounces = 0
     obj = material.import_result_mesh(Path(job["asset"]))
-    # ground truth, not a result; every light beside the camera (the engine checked: cycles_scan)
-    material.build_materials(Path(job["asset"]), obj, "accurate", require_report=False, colocated=True)
+    # ground truth, not a result: the engine's BRDF, its Fresnel on w_i.h on every path (bounces too)
+    material.build_materials(Path(job["asset"]), obj, "accurate", require_report=False, exact_fresnel=True)
     _backdrop(scene.collection)
     camera = bscene.camera_object("scanner camera", cam, np.eye(4))
     scene.camera = camera

@@ -119,7 +119,7 @@ def build(
         shutil.rmtree(stage)
     wheels = stage / "wheels"
     wheels.mkdir(parents=True)
-    for f in (ROOT / "ntp_addon").glob("*.py"):
+    for f in [*(ROOT / "ntp_addon").glob("*.py"), *(ROOT / "ntp_addon").glob("*.osl")]:
         shutil.copy(f, stage / f.name)
     engine_wheel(wheels)
     if with_dependencies:

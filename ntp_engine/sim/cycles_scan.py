@@ -5,17 +5,17 @@ cancel in the evaluation.
 Same trajectory (same seed, same poses), same sensor (``virtual_scan.sensor``) and the same scan
 folder and ``ground_truth/`` as ``virtual_scan``; only the linear images differ. Cycles renders them
 in its own process (``python -m ntp_addon.scan_render``; the engine never imports bpy) with a
-Diffuse + Glossy GGX material (Cycles' height-correlated Smith G — not the engine's separable one),
+diffuse + GGX material (Cycles' height-correlated Smith G — not the engine's separable one),
 interreflections (``bounces``), exact shadows and Monte Carlo noise (``samples`` per pixel, and up to
 ``max_samples`` where Cycles still sees noise: a sharp highlight is a few rare hits of a 2 mm light, so
 at a fixed 12 spp its pixels' median is ~1/3 of their mean and the sensor clips the hits). Each
 emitter is a small Lambertian area light (so only cos^1 emitters can be modelled) driven by the
-pattern through the colour matrix. The Glossy colour is rho_s F0: Schlick's Fresnel on w_i.h, as
-the engine's, because every emitter sits beside the camera, so w_i.h ~ 1 for every direct path
-(``fresnel_term_bound``; a device whose emitters leave more than ``MAX_FRESNEL_TERM`` is refused).
-Blender's nodes cannot put a Fresnel on w_i.h under a 1:80 anisotropic GGX, and the add-on's
-Schlick on n.v (until 2026-11-26 here too) made a broad lobe's grazing views up to 5x too bright —
-no physical surface does that (docs/virtual-scanner.md).
+pattern through the colour matrix. The lobe is the engine's own — rho_s x GGX x Schlick's Fresnel
+on w_i.h — as an OSL node (``ntp_addon.schlick_lobe``; Cycles renders with OSL on the CPU), so
+light the support or the object bounces onto the object reflects with the BRDF's Fresnel too.
+Until 2026-11-29 it was a Glossy BSDF of colour rho_s F0, right for the direct paths (every emitter
+beside the camera: w_i.h ~ 1) but not for bounced light, which arrives from anywhere: the box's
+metals facing the backdrop came out darker than the truth's BRDF makes them (docs/virtual-scanner.md).
 
 Radiometric calibration, as on a real device: Cycles also renders a white Lambertian patch at the
 valid volume's centre facing the panel; the engine predicts that patch's measurement (Eq. 1) for
@@ -46,7 +46,6 @@ from ..io.images import read_image, write_png
 from ..io.maps import MAP_FILES
 from ..io.mesh import save_obj
 from ..io.progress import QUIET, Progress
-from ..physics.brdf import F0_DIELECTRIC
 from ..physics.measurement import measurement_rgb
 from ..pipeline.cache import content_digest, digest
 from ..pipeline.output_folder import claim
@@ -63,11 +62,10 @@ CALIBRATION_PATCH = 0.03  # m: side of the white calibration patch
 # differently): 2 = the Glossy colour rho_s F0 (was rho_s Schlick on n.v); 3 = no clamp on indirect
 # samples, no glossy blur (Cycles' defaults held back most of the light bounced off the support);
 # 4 = adaptive sampling up to ``max_samples`` (was Blender's default: adaptive within ``samples``),
-# the calibration patch at a fixed sample count
-RENDER_VERSION = 4
-# Schlick's (1 - F0)(1 - w_i.h)^5 relative to F0 that the material's F = F0 may leave out, at most
-# (the shipped LED array: 2.5e-4 over its valid volume)
-MAX_FRESNEL_TERM = 1e-3
+# the calibration patch at a fixed sample count; 5 = the engine's lobe as an OSL node, Schlick's
+# Fresnel on w_i.h on every path (was the Glossy colour rho_s F0: light bounced onto the object
+# reflected without the Fresnel's rise)
+RENDER_VERSION = 5
 
 
 @dataclass
@@ -114,21 +112,6 @@ def emitter_lights(scanner: Scanner) -> list[dict]:
         for k in range(scanner.num_emitters)
         if drive[k].max() > 0
     ]
-
-
-def fresnel_term_bound(scanner: Scanner, steps: int = 5) -> float:
-    """The largest (1 - F0)(1 - w_i.h)^5 / F0 of a direct path — emitter to a point of the valid
-    volume (a ``steps``^3 grid over the box) to the camera: what Schlick's Fresnel on w_i.h adds to
-    F0, relative; w_i.h is cos of half the angle between the emitter and the camera there."""
-    grid = (np.stack(np.meshgrid(*[np.linspace(-0.5, 0.5, steps)] * 3, indexing="ij"), -1)).reshape(-1, 3)
-    x = scanner.valid_center + (grid * scanner.valid_size) @ scanner.valid_axes  # (P, 3) camera space
-    wo = -x / np.linalg.norm(x, axis=1, keepdims=True)
-    wi = scanner.emitter_positions[None] - x[:, None]  # (P, L, 3)
-    wi /= np.linalg.norm(wi, axis=2, keepdims=True)
-    h = wi + wo[:, None]
-    h /= np.linalg.norm(h, axis=2, keepdims=True)
-    cos = float(np.clip((wi * h).sum(2).min(), 0.0, 1.0))
-    return (1.0 - F0_DIELECTRIC) * (1.0 - cos) ** 5 / F0_DIELECTRIC
 
 
 def _render(job: dict, folder: Path, progress: Progress) -> None:
@@ -215,12 +198,6 @@ def cycles_scan(
     cam = plan.cam
     if np.any(np.asarray(cam.distortion) != 0):
         raise NtpInputError(device_path or DEVICES_DIR, "the Cycles scanner models a pinhole camera (distortion 0)")
-    if (term := fresnel_term_bound(scanner)) > MAX_FRESNEL_TERM:
-        raise NtpInputError(
-            device_path or DEVICES_DIR,
-            f"emitters too far from the camera for the Cycles scanner's Fresnel (F = F0 leaves out {term:.2g} of "
-            f"F0, at most {MAX_FRESNEL_TERM:g})",
-        )
 
     with claim(out, "scan", inputs=(src_mesh.parent, maps_dir)):
         remove_old_photos(out, plan.names)

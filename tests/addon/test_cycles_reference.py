@@ -20,6 +20,8 @@ import pytest
 import torch
 from mathutils import Matrix  # noqa: E402
 
+from ntp_addon.schlick_lobe import schlick_lobe_node, use_osl
+from ntp_engine.physics.brdf import F0_DIELECTRIC
 from ntp_engine.physics.measurement import physical_lumitexel  # noqa: E402
 from ntp_engine.scanner.device_file import load_scanner  # noqa: E402
 
@@ -36,7 +38,9 @@ def _look_at(pos, target):
     return right, up, f
 
 
-def _render(tmp_path, rho_d, rho_s, alpha) -> np.ndarray:
+def _render(tmp_path, rho_d, rho_s, alpha, cam_pos=CAM_POS, light_pos=LIGHT_POS, schlick=False) -> np.ndarray:
+    """Cycles' picture: Glossy BSDF (no Fresnel) of isotropic ``alpha``, or with ``schlick`` the
+    scanner's lobe node (``ntp_addon.schlick_lobe``), ``alpha`` = (alpha_x along world x, alpha_y)."""
     bpy.ops.wm.read_factory_settings(use_empty=True)
     scene = bpy.context.scene
     scene.render.engine = "CYCLES"
@@ -64,10 +68,18 @@ def _render(tmp_path, rho_d, rho_s, alpha) -> np.ndarray:
     diffuse = nt.nodes.new("ShaderNodeBsdfDiffuse")
     diffuse.inputs["Color"].default_value = (*rho_d, 1.0)
     diffuse.inputs["Roughness"].default_value = 0.0
-    glossy = nt.nodes.new("ShaderNodeBsdfGlossy")
-    glossy.distribution = "GGX"
-    glossy.inputs["Color"].default_value = (*rho_s, 1.0)
-    glossy.inputs["Roughness"].default_value = math.sqrt(alpha)  # Cycles: alpha = roughness^2
+    if schlick:
+        use_osl(scene)
+        glossy = schlick_lobe_node(nt)
+        glossy.inputs["rho_s"].default_value = (*rho_s, 1.0)
+        glossy.inputs["alpha_x"].default_value, glossy.inputs["alpha_y"].default_value = alpha
+        glossy.inputs["Normal"].default_value = (0.0, 0.0, 1.0)
+        glossy.inputs["Tangent"].default_value = (1.0, 0.0, 0.0)
+    else:
+        glossy = nt.nodes.new("ShaderNodeBsdfGlossy")
+        glossy.distribution = "GGX"
+        glossy.inputs["Color"].default_value = (*rho_s, 1.0)
+        glossy.inputs["Roughness"].default_value = math.sqrt(alpha)  # Cycles: alpha = roughness^2
     add = nt.nodes.new("ShaderNodeAddShader")
     nt.links.new(diffuse.outputs[0], add.inputs[0])
     nt.links.new(glossy.outputs[0], add.inputs[1])
@@ -78,15 +90,15 @@ def _render(tmp_path, rho_d, rho_s, alpha) -> np.ndarray:
     light_data.energy = POWER_W
     light_data.shadow_soft_size = 0.0
     light = bpy.data.objects.new("key", light_data)
-    light.location = tuple(LIGHT_POS)
+    light.location = tuple(light_pos)
     scene.collection.objects.link(light)
 
     cam_data = bpy.data.cameras.new("cam")
     cam_data.lens, cam_data.sensor_width, cam_data.sensor_fit = LENS_MM, SENSOR_MM, "HORIZONTAL"
     cam = bpy.data.objects.new("cam", cam_data)
-    right, up, f = _look_at(CAM_POS, TARGET)
+    right, up, f = _look_at(cam_pos, TARGET)
     m = np.eye(4)
-    m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = right, up, -f, CAM_POS  # Blender cameras look down -Z
+    m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = right, up, -f, cam_pos  # Blender cameras look down -Z
     cam.matrix_world = Matrix(m.tolist())
     scene.collection.objects.link(cam)
     scene.camera = cam
@@ -98,20 +110,22 @@ def _render(tmp_path, rho_d, rho_s, alpha) -> np.ndarray:
     return oiio.ImageBuf(str(tmp_path / "cycles.exr")).get_pixels(oiio.FLOAT)[..., :3]
 
 
-def _engine(rho_d, rho_s, alpha):
-    """Per-pixel radiance predicted by the engine, in an OpenCV frame at the camera."""
-    right, up, f = _look_at(CAM_POS, TARGET)
+def _engine(rho_d, rho_s, alpha, cam_pos=CAM_POS, light_pos=LIGHT_POS, f0=1.0):
+    """Per-pixel radiance predicted by the engine, in an OpenCV frame at the camera; ``alpha`` a
+    number (isotropic) or (alpha_x along world x, alpha_y)."""
+    ax, ay = (alpha, alpha) if np.isscalar(alpha) else alpha
+    right, up, f = _look_at(cam_pos, TARGET)
     R = np.stack([right, -up, f])  # world -> OpenCV camera
     fx = LENS_MM / SENSOR_MM * RES
     c = np.arange(RES) + 0.5 - RES / 2
     rows, cols = np.meshgrid(c, c, indexing="ij")
     rays = np.stack([cols / fx, rows / fx, np.ones_like(cols)], -1) @ R  # world directions
-    s = -CAM_POS[2] / rays[..., 2]
-    p_world = CAM_POS + s[..., None] * rays
-    x = (p_world - CAM_POS) @ R.T
+    s = -cam_pos[2] / rays[..., 2]
+    p_world = cam_pos + s[..., None] * rays
+    x = (p_world - cam_pos) @ R.T
     n = np.broadcast_to(R @ [0.0, 0.0, 1.0], x.shape)
     t = np.broadcast_to(R @ [1.0, 0.0, 0.0], x.shape)
-    light_cv = R @ (LIGHT_POS - CAM_POS)
+    light_cv = R @ (light_pos - cam_pos)
     dev = load_scanner()
     dev.emitter_kind = "point"
     dev.emitter_positions = light_cv[None]
@@ -120,17 +134,17 @@ def _engine(rho_d, rho_s, alpha):
     dev.angular_exponent = 0.0  # isotropic, like Blender's point light
     dev.pattern = np.ones((1, 3))
     T = lambda a: torch.as_tensor(np.ascontiguousarray(a), dtype=torch.float64)
-    a = torch.full(x.shape[:2], alpha, dtype=torch.float64)
+    a_x, a_y = (torch.full(x.shape[:2], a, dtype=torch.float64) for a in (ax, ay))
     m = physical_lumitexel(
-        dev, T(x), T(n), T(t), T(rho_d).expand(*x.shape[:2], 3), T(rho_s).expand(*x.shape[:2], 3), a, a, f0=1.0
+        dev, T(x), T(n), T(t), T(rho_d).expand(*x.shape[:2], 3), T(rho_s).expand(*x.shape[:2], 3), a_x, a_y, f0=f0
     )[..., 0, :]
     intensity = POWER_W / (4 * math.pi)  # Blender point light: radiant intensity = P / 4 pi
     # height-correlated / separable Smith G, the one modelled difference
-    wi = LIGHT_POS - p_world
+    wi = light_pos - p_world
     wi /= np.linalg.norm(wi, axis=-1, keepdims=True)
-    wo = CAM_POS - p_world
+    wo = cam_pos - p_world
     wo /= np.linalg.norm(wo, axis=-1, keepdims=True)
-    lam = lambda v: (-1 + np.sqrt(1 + alpha**2 * (1 - v[..., 2] ** 2) / v[..., 2] ** 2)) / 2
+    lam = lambda v: (-1 + np.sqrt(1 + (ax**2 * v[..., 0] ** 2 + ay**2 * v[..., 1] ** 2) / v[..., 2] ** 2)) / 2
     li, lo = lam(wi), lam(wo)
     g_ratio = 1 + li * lo / (1 + li + lo)
     return intensity * m.numpy(), g_ratio
@@ -143,6 +157,10 @@ def _engine(rho_d, rho_s, alpha):
 def test_cycles_render_matches_engine(tmp_path, rho_d, rho_s, alpha):
     cycles = _render(tmp_path, rho_d, rho_s, alpha)
     engine, g_ratio = _engine(rho_d, rho_s, alpha)
+    _assert_matches(cycles, engine, g_ratio)
+
+
+def _assert_matches(cycles: np.ndarray, engine: np.ndarray, g_ratio: np.ndarray) -> None:
     assert cycles.shape == engine.shape == (RES, RES, 3)
     model_diff = float((g_ratio - 1).max())
     assert model_diff < 0.01  # the geometry keeps the G difference small; the test would be weak otherwise
@@ -155,3 +173,23 @@ def test_cycles_render_matches_engine(tmp_path, rho_d, rho_s, alpha):
     assert rel[bright].max() < model_diff + 0.02, f"max rel err {rel[bright].max():.4f}"
     # the highlight is really in the picture: specular dominates somewhere
     assert engine.max() > 3 * np.median(engine)
+
+
+# camera and light on opposite sides, ~35 deg above the patch: w_i.h ~0.6 at the highlight
+GRAZING_CAM, GRAZING_LIGHT = np.array([-0.25, -0.04, 0.18]), np.array([0.24, 0.06, 0.17])
+
+
+@pytest.mark.blender
+@pytest.mark.parametrize("alpha", [(0.09, 0.09), (0.2, 0.03)])
+def test_the_scanners_lobe_is_the_engines_with_its_fresnel_on_wi_h(tmp_path, alpha):
+    """``schlick_lobe``'s node (the Cycles scanner's lobe) against the engine's BRDF, Schlick's
+    Fresnel included, isotropic and 1:6.7 along world x, where the Fresnel is far from F0."""
+    rho_d, rho_s = (0.1, 0.1, 0.1), (3.0, 2.0, 1.0)
+    cycles = _render(tmp_path, rho_d, rho_s, alpha, GRAZING_CAM, GRAZING_LIGHT, schlick=True)
+    engine, g_ratio = _engine(rho_d, rho_s, alpha, GRAZING_CAM, GRAZING_LIGHT, f0=F0_DIELECTRIC)
+    _assert_matches(cycles, engine, g_ratio)
+    # the Fresnel is in the picture: the Glossy colour rho_s F0 (the scanner's lobe until
+    # 2026-11-29) is this much darker at the highlight
+    f0_only, _ = _engine(rho_d, tuple(F0_DIELECTRIC * c for c in rho_s), alpha, GRAZING_CAM, GRAZING_LIGHT)
+    peak = engine > 0.5 * engine.max(axis=(0, 1))
+    assert np.median(1 - f0_only[peak] / engine[peak]) > 0.1
