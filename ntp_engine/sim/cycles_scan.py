@@ -64,7 +64,7 @@ CALIBRATION_PATCH = 0.03  # m: side of the white calibration patch
 # 4 = adaptive sampling up to ``max_samples`` (was Blender's default: adaptive within ``samples``),
 # the calibration patch at a fixed sample count; 5 = the engine's lobe as an OSL node, Schlick's
 # Fresnel on w_i.h on every path (was the Glossy colour rho_s F0: light bounced onto the object
-# reflected without the Fresnel's rise); 6 = that Fresnel rising to F90 = 1 / rho_s, not 1
+# reflected without the Fresnel's rise); 6 = that Fresnel bounded, F90 = min(1, 1 / rho_s)
 RENDER_VERSION = 6
 
 
