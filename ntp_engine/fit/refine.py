@@ -68,7 +68,7 @@ from .support_light import (
     support_specular_emitters,
 )
 
-VERSION = 40  # of the method: part of the pipeline's cache key (bump when results change for the same settings)
+VERSION = 41  # of the method: part of the pipeline's cache key (bump when results change for the same settings)
 CENSOR_CODE = VALID_CODE[1]  # above this an 8-bit code may be (or border) a clipped pixel: a lower bound
 EXPANDED_BLOCKS = 4  # emitter blocks per entry summed sample by sample (the rest as coarse emitters)
 SELECT_WIDEN, SELECT_FLOOR = 3.0, 0.03  # emitters are chosen under alphas x3 (at least 0.03)
@@ -295,15 +295,15 @@ class _Trace:
         sigma = 1.0 / torch.where(self.mask, self.inv_sigma, torch.ones_like(self.inv_sigma))
         self.inv_sigma = torch.where(self.mask, torch.rsqrt(sigma * sigma + blend * blend), self.inv_sigma)
 
-    def support_specular(self, frame0: Tensor, alpha: Tensor) -> SupportEmitters | None:
+    def support_specular(self, frame0: Tensor, alpha: Tensor, rho_s: Tensor | None) -> SupportEmitters | None:
         """The support's light as specular emitters for a round's ``frame0 (N, 3, 3)`` and lobe
-        ``alpha (N, 2)``, or None without a support."""
+        ``alpha (N, 2)`` (``rho_s (N, 3)``: its Fresnel bounded), or None without a support."""
         if self.support is None:
             return None
         view = SupportView(self.support, self.position, self.frame_world)
         wo = self.wo[self.srow]
         return support_specular_emitters(
-            view, self.scanner, self.sources, self.x_cam, self.frame_cam, self.live, wo, frame0, alpha
+            view, self.scanner, self.sources, self.x_cam, self.frame_cam, self.live, wo, frame0, alpha, rho_s
         )
 
     def light_rows(self, idx: Tensor) -> _Trace:
@@ -329,7 +329,17 @@ class _Round:
     """The model of one round: frame F0 fixed; per entry, the emitter blocks brightest under a
     broadened lobe are summed sample by sample, the others as their coarse emitters."""
 
-    def __init__(self, tr: _Trace, frame0: Tensor, log_alpha: Tensor, specular: bool, diffuse: Tensor | None = None):
+    def __init__(
+        self,
+        tr: _Trace,
+        frame0: Tensor,
+        log_alpha: Tensor,
+        specular: bool,
+        diffuse: Tensor | None = None,
+        rho_s: Tensor | None = None,
+    ):
+        """``rho_s (N, 3)``: the lobe's at the round's start, for the bounded Fresnel of the light
+        bounced onto the texel (``support_light.support_specular_emitters``); None: the BRDF's."""
         self.tr, self.specular, self.frame0 = tr, specular, frame0
         # diffuse basis per channel: linear in the shading normal (emitters above F0's horizon);
         # ``diffuse``: given by a round of the same normal
@@ -359,7 +369,7 @@ class _Round:
                 tr.srow,
             )
         # the support's light: more emitters, drawn for this round's lobe
-        support = tr.support_specular(frame0, log_alpha.exp())
+        support = tr.support_specular(frame0, log_alpha.exp(), rho_s)
         if support is not None:
             packed = pack_emitters(support.wi.transpose(-1, -2), support.weight, support.drive)
             self.emitters = torch.cat([self.emitters, packed], 3)
@@ -671,7 +681,7 @@ def _solve(
         frame, p = _multi_start(tr, frame, p, prior, free, settings)
         first = 1
     for k in range(first, settings.rounds):
-        rnd = _Round(tr, frame, p[:, P_LOGA], specular)
+        rnd = _Round(tr, frame, p[:, P_LOGA], specular, rho_s=p[:, P_RHO_S])
         if k == 0:
             p = _albedo_start(rnd, p, specular, keep_rho_s=given)
         p, cost, H = _lm(rnd, p, prior, free, settings.iterations, settings)
@@ -702,7 +712,7 @@ def _multi_start(
             continue
         whole = len(at) == N
         sub, sub_prior, sub_free = (tr, prior, free) if whole else (tr.rows(at), prior.rows(at), free[at])
-        rnd = _Round(sub, f0, q0[:, P_LOGA], True, None if diffuse is None else diffuse[at])
+        rnd = _Round(sub, f0, q0[:, P_LOGA], True, None if diffuse is None else diffuse[at], q0[:, P_RHO_S])
         diffuse = rnd.diffuse if diffuse is None else diffuse
         q, cost, _ = _lm(rnd, _albedo_start(rnd, q0, True), sub_prior, sub_free, settings.iterations, settings)
         better = cost < best_cost[at]
@@ -916,7 +926,7 @@ def _given_lobe_cost(
     if specular:
         p[:, P_LOGA] = alpha.to(dtype).clamp(ALPHA_MIN, ALPHA_MAX).log()
         p[:, P_RHO_S] = rho_s.to(dtype).clamp(0, RHO_S_MAX)
-    rnd = _Round(tr, frame, p[:, P_LOGA], specular, diffuse)
+    rnd = _Round(tr, frame, p[:, P_LOGA], specular, diffuse, p[:, P_RHO_S])
     bases = rnd.bases(p[:, P_OMEGA], p[:, P_LOGA])
     p = _albedo_start(rnd, p, specular, keep_rho_s=True, bases=bases)
     c = data_cost(*bases, p, tr.y, tr.inv_sigma, tr.mask, tr.censored, settings.noise.robust)
@@ -978,7 +988,7 @@ def lobe_costs(
     for k in range(S):
         p = torch.zeros(N, N_PARAMS, dtype=dtype)
         p[:, P_LOGA] = alphas[:, k].to(dtype).clamp(ALPHA_MIN, ALPHA_MAX).log()
-        rnd = _Round(tr, frame, p[:, P_LOGA], True, diffuse)
+        rnd = _Round(tr, frame, p[:, P_LOGA], True, diffuse, start.rho_s.to(dtype))  # its Fresnel: start's rho_s
         diffuse = rnd.diffuse
         bases = rnd.bases(p[:, P_OMEGA], p[:, P_LOGA])
         p, c = _robust_albedos(tr, bases, _albedo_start(rnd, p, True, bases=bases), settings)
@@ -1117,7 +1127,8 @@ def predicted_light(
 
 def _predict(tr: _Trace, frame: Tensor, p: Tensor) -> tuple[Tensor, Tensor]:
     """Unit-albedo diffuse and specular bases ``(N, V, 3)`` of the answer ``frame``, ``p`` (omega 0)."""
-    return _Round(tr, frame, p[:, P_LOGA], True).bases(torch.zeros_like(p[:, P_OMEGA]), p[:, P_LOGA])
+    rnd = _Round(tr, frame, p[:, P_LOGA], True, rho_s=p[:, P_RHO_S])
+    return rnd.bases(torch.zeros_like(p[:, P_OMEGA]), p[:, P_LOGA])
 
 
 def _highlight(tr: _Trace, frame: Tensor, p: Tensor) -> Tensor:

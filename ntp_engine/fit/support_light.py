@@ -51,7 +51,7 @@ from torch import Tensor
 
 from ..io.maps import bilinear_pixels
 from ..io.raycast import RayCaster
-from ..physics.brdf import ALPHA_MAX, ggx_ndf, smith_g1
+from ..physics.brdf import ALPHA_MAX, F0_DIELECTRIC, bounded_f90, fresnel_schlick, ggx_ndf, smith_g1
 from ..scanner import camera
 from ..scanner.scanner import Scanner
 from .emitter_blocks import EmitterBlocks, emitter_blocks
@@ -257,10 +257,13 @@ def support_specular_emitters(
     wo: Tensor,
     frame0: Tensor,
     alpha: Tensor,
+    rho_s: Tensor | None = None,
 ) -> SupportEmitters:
     """The support's light on the entries of ``view``'s N texels as specular emitters (module
     docstring): ``live (N, V)``, ``wo (N, V, 3)`` toward the camera, the round's shading frame
-    ``frame0 (N, 3, 3)`` and lobe ``alpha (N, 2)``; in ``wo``'s dtype."""
+    ``frame0 (N, 3, 3)`` and lobe ``alpha (N, 2)``; in ``wo``'s dtype. With the lobe's ``rho_s (N,
+    3)`` the light reflects with the bounded Fresnel (``physics.brdf.bounded_f90``: the emitters'
+    radiance times its F over the BRDF's, per sample's w_i.h)."""
     f64 = torch.float64
     wo_, f0 = wo.to(f64), frame0.to(f64)
     wide = (SAMPLE_WIDEN * alpha.to(f64)).clamp(SAMPLE_FLOOR, ALPHA_MAX)
@@ -274,6 +277,10 @@ def support_specular_emitters(
     position, frame_world = view.position.to(f64), view.frame_world.to(f64)
     live = live & usable.any(-1)
     radiance = _radiance(view.scene, scanner, sources, position, frame_world, x_cam, frame_cam, live, wi)
+    if rho_s is not None:  # w_i.h = wo.h: wi is wo mirrored about h
+        c = o_h[..., None]
+        f90 = bounded_f90(rho_s.to(f64))[:, None, None, :]
+        radiance = radiance * fresnel_schlick(c, F0_DIELECTRIC, f90) / fresnel_schlick(c, F0_DIELECTRIC)
     dt = wo.dtype
     return SupportEmitters(wi.to(dt), weight.to(dt), radiance.to(dt))
 

@@ -49,11 +49,21 @@ def smith_g1(v: Tensor, alpha_x: Tensor, alpha_y: Tensor) -> Tensor:
     return 2.0 * vz / (vz + smith_lambda_norm(v, alpha_x, alpha_y))
 
 
-def fresnel_schlick(cos_theta: Tensor, f0: float | Tensor = F0_DIELECTRIC) -> Tensor:
-    """Schlick's Fresnel F0 + (1 - F0)(1 - cos)^5; ``cos_theta`` is clamped to [0, 1]."""
+def fresnel_schlick(cos_theta: Tensor, f0: float | Tensor = F0_DIELECTRIC, f90: float | Tensor = 1.0) -> Tensor:
+    """Schlick's Fresnel F0 + (F90 - F0)(1 - cos)^5 (F90 = 1: the BRDF's); ``cos_theta`` is clamped
+    to [0, 1]."""
     m = 1.0 - cos_theta.clamp(0.0, 1.0)
     m2 = m * m
-    return f0 + (1.0 - f0) * (m2 * m2 * m)
+    return f0 + (f90 - f0) * (m2 * m2 * m)
+
+
+def bounded_f90(rho_s: Tensor) -> Tensor:
+    """F90 = min(1, 1 / rho_s): Schlick's F with it keeps rho_s F <= 1, so the lobe reflects at most
+    all the light at grazing w_i.h, where the BRDF's F90 = 1 makes a rho_s = 10 lobe reflect 10x
+    the light. The two differ only where w_i.h < 0.9 for rho_s > 1 (by < 2.5e-4 of F0 above):
+    never for the scanner's own light, whose emitters sit beside the camera, only for light
+    bounced onto the object (``fit.support_light``; the Cycles scanner renders it so)."""
+    return 1.0 / rho_s.clamp_min(1.0)
 
 
 def half_vector(wi: Tensor, wo: Tensor) -> Tensor:

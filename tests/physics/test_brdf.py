@@ -14,6 +14,7 @@ from ntp_engine.physics.brdf import (
     ALPHA_MAX,
     ALPHA_MIN,
     F0_DIELECTRIC,
+    bounded_f90,
     fresnel_schlick,
     ggx,
     ggx_ndf,
@@ -109,6 +110,20 @@ def test_components_closed_form():
     assert float(smith_g1(v, a, a)) == pytest.approx(2 / (1 + math.sqrt(1 + 0.09 * math.tan(0.7) ** 2)))
     assert float(fresnel_schlick(torch.tensor(0.5, dtype=F64))) == pytest.approx(0.04 + 0.96 * 0.5**5)
     assert float(smith_g1(torch.tensor([1.0, 0, 0], dtype=F64), a, a)) == 0.0
+
+
+def test_the_bounded_fresnel_never_reflects_more_than_all_the_light():
+    """rho_s F with F90 = bounded_f90(rho_s) is at most 1 at every w_i.h, is the BRDF's F for rho_s
+    <= 1, and differs from it by < 2.5e-4 of F0 where the scanner's own light arrives (w_i.h >= 0.9)."""
+    c = torch.linspace(0, 1, 101, dtype=F64)[:, None]
+    rho_s = torch.tensor([0.0, 0.08, 0.5, 1.0, 2.0, 5.0, 10.0], dtype=F64)
+    bounded = fresnel_schlick(c, 0.04, bounded_f90(rho_s))
+    assert float((rho_s * bounded).max()) <= 1 + 1e-12
+    assert float((rho_s * fresnel_schlick(c)).max()) == pytest.approx(10.0)  # the BRDF's: 10x
+    low = rho_s <= 1
+    torch.testing.assert_close(bounded[:, low], fresnel_schlick(c).expand(-1, int(low.sum())), rtol=0, atol=0)
+    near = c[:, 0] >= 0.9
+    assert float((fresnel_schlick(c[near]) - bounded[near]).abs().max()) < 2.5e-4 * 0.04
 
 
 def test_anisotropy_orientation():
