@@ -15,7 +15,8 @@ same maps.
   normal and tangent maps through Vector Transform nodes; any alpha ratio up to 10^4. No built-in
   node puts a Fresnel on w_i.h under a Glossy BSDF's 10^4 anisotropy (the Metallic BSDF caps it at
   10:1). Built ``exact_fresnel`` (the Cycles scanner's photos), the Glossy BSDF is replaced by the
-  engine's lobe itself, an OSL node (``schlick_lobe``: CPU only) fed the alpha map directly.
+  engine's lobe itself, Schlick on w_i.h (bounded: F90 = min(1, 1 / rho_s)), an OSL node
+  (``schlick_lobe``: CPU only) fed the alpha map directly.
 
 All inputs are read and derived before any datablock is created: a bad result folder raises
 ``NtpInputError`` naming the file, and nothing half-built is left behind.

@@ -6,7 +6,7 @@ the camera's device file, the emitters in camera space (centre, normal, axis, si
 camera-from-world poses, samples (every pixel; up to max_samples where Cycles' noise estimate is
 above noise_threshold), bounces and seed, and the calibration patch (centre, normal,
 in-plane axis, size). The scene: the asset with the ``NTP Accurate`` material built with the
-engine's Fresnel (Diffuse + the engine's GGX lobe with Schlick on w_i.h as an OSL node, rendered
+engine's Fresnel (Diffuse + the engine's GGX lobe with Schlick on w_i.h, bounded, as an OSL node, rendered
 with OSL on the CPU: ``material``, ``schlick_lobe``), the marker backdrop
 (``ntp_engine.sim.renderer.marker_albedo``, one texel per 5 mm cell, closest-texel lookup), and one
 rectangular area light per lit emitter (Lambertian, as the device's cos^1 LEDs), moved with the
@@ -153,7 +153,7 @@ def run(job_path: Path) -> None:
     scene.cycles.diffuse_bounces = scene.cycles.glossy_bounces = b
     scene.cycles.transmission_bounces = scene.cycles.volume_bounces = scene.cycles.transparent_max_bounces = 0
     obj = material.import_result_mesh(Path(job["asset"]))
-    # ground truth, not a result: the engine's BRDF, its Fresnel on w_i.h on every path (bounces too)
+    # ground truth, not a result: the engine's BRDF, its Fresnel on w_i.h (bounded) on every path, bounces too
     material.build_materials(Path(job["asset"]), obj, "accurate", require_report=False, exact_fresnel=True)
     _backdrop(scene.collection)
     camera = bscene.camera_object("scanner camera", cam, np.eye(4))

@@ -11,8 +11,10 @@ interreflections (``bounces``), exact shadows and Monte Carlo noise (``samples``
 at a fixed 12 spp its pixels' median is ~1/3 of their mean and the sensor clips the hits). Each
 emitter is a small Lambertian area light (so only cos^1 emitters can be modelled) driven by the
 pattern through the colour matrix. The lobe is the engine's own — rho_s x GGX x Schlick's Fresnel
-on w_i.h — as an OSL node (``ntp_addon.schlick_lobe``; Cycles renders with OSL on the CPU), so
-light the support or the object bounces onto the object reflects with the BRDF's Fresnel too.
+on w_i.h, its rise bounded so no lobe reflects more than all the light (F90 = min(1, 1 / rho_s),
+``physics.brdf.bounded_f90``: DESIGN.md's F on every path from an emitter) — as an OSL node
+(``ntp_addon.schlick_lobe``; Cycles renders with OSL on the CPU), so light the support or the
+object bounces onto the object reflects with a Fresnel too, as on a real object.
 Until 2026-11-29 it was a Glossy BSDF of colour rho_s F0, right for the direct paths (every emitter
 beside the camera: w_i.h ~ 1) but not for bounced light, which arrives from anywhere: the box's
 metals facing the backdrop came out darker than the truth's BRDF makes them (docs/virtual-scanner.md).
