@@ -68,7 +68,7 @@ from .support_light import (
     support_specular_emitters,
 )
 
-VERSION = 41  # of the method: part of the pipeline's cache key (bump when results change for the same settings)
+VERSION = 42  # of the method: part of the pipeline's cache key (bump when results change for the same settings)
 CENSOR_CODE = VALID_CODE[1]  # above this an 8-bit code may be (or border) a clipped pixel: a lower bound
 EXPANDED_BLOCKS = 4  # emitter blocks per entry summed sample by sample (the rest as coarse emitters)
 SELECT_WIDEN, SELECT_FLOOR = 3.0, 0.03  # emitters are chosen under alphas x3 (at least 0.03)
@@ -76,6 +76,12 @@ MAX_TRIES = 3  # damping increases per LM iteration before the texel waits for t
 # bounds of the noise model's calibration factor (``calibrated``): it inflates the model, never
 # tightens it — tighter than 1 let the data tip normals against the priors (gallery, docs/refinement.md)
 NOISE_SCALE = (1.0, 10.0)
+# the light bounced onto an entry (support, object) as the model sums it is right to ~30% per entry
+# (the box's Cycles scan at the truth: rms 0.19-0.34 of it; the model's 16-32 samples, the renders'
+# Monte Carlo noise, second bounces): noise of this many times the pixel's bounced share (its
+# diffuse light's, at the geometric normal) — 0.3 / 0.6 / 1.0 measured on the box and the knot
+# (docs/refinement.md): 0.6 the normals' best, 1.0 lost the box's rough metal's lobe
+BOUNCE_NOISE = 0.6
 # a texel whose normal's 1-sigma is below this (deg) has it from its photos, not the prior
 # (``calibrated``: where the normal's pull centres), and this many such texels decide
 NORMAL_FIXED_DEG, NORMAL_FIXED_TEXELS = 1.0, 16
@@ -269,6 +275,8 @@ class _Trace:
         self.diffuse_z, self.horizon_margin = diffuse_basis_and_margin(self._up(), self.wi, self.falloff, self.drive)
         if footprint is not None and footprint.albedo_blend is not None:
             self._blend_noise(footprint.albedo_blend)
+        if support is not None:
+            self._bounce_noise()
 
     def _up(self) -> Tensor:
         """The geometric normal ``(N, 3)``: +z in the texel's frame."""
@@ -291,9 +299,21 @@ class _Trace:
         basis = self.diffuse_z[..., 2]  # (N, V, 3 channels)
         if self.support is not None:
             basis = basis + self.support_diffuse[..., 2]
-        blend = albedo_blend.to(self.y.dtype) * basis.to(self.y.dtype)
+        self._add_noise(albedo_blend.to(self.y.dtype) * basis.to(self.y.dtype))
+
+    def _bounce_noise(self) -> None:
+        """The bounced light's uncertainty (``BOUNCE_NOISE``) as noise on each entry, added in
+        quadrature to the sensor's: the pixel times its share of bounced light — of the diffuse
+        light at the geometric normal, per channel; fixed by the data and the geometry alone, so
+        every start and round of a texel is judged on the same scale. Censoring stays the pixel's."""
+        direct, bounced = self.diffuse_z[..., 2], self.support_diffuse[..., 2]  # (N, V, 3 channels)
+        share = bounced / (direct + bounced).clamp_min(1e-30)
+        self._add_noise(BOUNCE_NOISE * share.to(self.y.dtype) * self.y)
+
+    def _add_noise(self, extra: Tensor) -> None:
+        """``extra (N, V, 3)`` added in quadrature to each entry's sigma."""
         sigma = 1.0 / torch.where(self.mask, self.inv_sigma, torch.ones_like(self.inv_sigma))
-        self.inv_sigma = torch.where(self.mask, torch.rsqrt(sigma * sigma + blend * blend), self.inv_sigma)
+        self.inv_sigma = torch.where(self.mask, torch.rsqrt(sigma * sigma + extra * extra), self.inv_sigma)
 
     def support_specular(self, frame0: Tensor, alpha: Tensor, rho_s: Tensor | None) -> SupportEmitters | None:
         """The support's light as specular emitters for a round's ``frame0 (N, 3, 3)`` and lobe

@@ -167,6 +167,38 @@ def test_the_refinement_with_the_support_recovers_a_glossy_face_it_lights():
     assert errors["without"][0] > 3.0 and errors["without"][2] > 0.4, errors
 
 
+def test_the_light_bounced_onto_an_entry_weighs_it_down():
+    """The model's bounced light is uncertain (``refine.BOUNCE_NOISE``): each entry's sigma gains that
+    factor times its pixel times its share of bounced light (of the diffuse light at the geometric
+    normal), in quadrature, whatever the answer judged; without a support the sensor's alone."""
+    from fit.test_refine import _perturbed, _traces
+
+    from ntp_engine.fit.refine import BOUNCE_NOISE, Start, predicted_light
+
+    n = 8
+    entries, mask, p = _traces(n, 3, (0.3, 0.3, 0.3), (0.5, 0.5, 0.5), (0.2, 0.2), noise=0.0)
+    fw = frame_from_normal_tangent(torch.tensor([[1.0, 0, 0]]), torch.tensor([[0, 0, 1.0]])).double().expand(n, 3, 3)
+    view = sl.SupportView(
+        sl.SupportScene(ALBEDO), torch.tensor([[0.0, 0.0, 0.02]], dtype=torch.float64).expand(n, 3), fw
+    )
+    up, along = torch.zeros(n, 3), torch.zeros(n, 3)
+    up[:, 2], along[:, 0] = 1.0, 1.0
+    matte = Start(up, along, torch.full((n, 2), 0.2), torch.ones(n, 3), torch.zeros(n, 3))
+    d_with, _, inv_with = predicted_light(DEV, entries, mask, matte, support=view)
+    d_without, _, inv_without = predicted_light(DEV, entries, mask, matte)
+    live = inv_without > 0
+    share = ((d_with - d_without) / d_with).double()
+    assert (share[live] > 0.1).float().mean() > 0.2  # the case is real: a fifth of the entries 10% bounced
+    sigma = 1.0 / inv_without.double()
+    expected = torch.rsqrt(sigma**2 + (BOUNCE_NOISE * share * entries[..., :3].double()) ** 2)
+    assert torch.allclose(inv_with[live].double(), expected[live], rtol=1e-4)
+    bounced = live & (share > 0.1)
+    assert inv_with[bounced].mean() < 0.8 * inv_without[bounced].mean()  # they weigh less
+    # another answer (a lobe, the normal tipped) is judged on the same scale
+    glossy = Start(*_perturbed(p, 5, tilt_deg=6.0))
+    assert torch.equal(predicted_light(DEV, entries, mask, glossy, support=view)[2], inv_with)
+
+
 def test_the_support_albedo_is_read_back_from_an_engine_scan(scan24):
     """The support's albedo map from the photos of a virtual scan (the engine shades its marker
     backdrop lit by the scanner, unshadowed) against the backdrop's true albedo at the cells."""
