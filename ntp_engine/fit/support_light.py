@@ -12,7 +12,8 @@ emitters give there, the median over the photos). In photo j its radiance at p i
 a(p) / pi * E_j(p), E_j the pattern's irradiance from the scanner's emitters (their blocks'
 coarse emitters: the support is far from them compared with a block), zero where the object hides
 the scanner from p (one ray toward the camera: the emitters sit beside it). Toward a texel that is
-an area light, summed by Monte Carlo over fixed, stratified sample directions per entry — from the
+an area light, summed by Monte Carlo over fixed, stratified sample directions per entry (a lattice
+shifted by a hash of the entry's point: ``entry_shifts``) — from the
 normals of the round's lobe (widened) visible from the camera (specular; Heitz 2018), and
 cosine-distributed about the geometric normal (diffuse) — each one more emitter of the refinement
 with that photo's radiance as its drive and 1 / (S pdf) as its falloff; a direction that does not
@@ -179,17 +180,32 @@ def irradiance(scanner: Scanner, sources: Sources, points: Tensor, normal: Tenso
     return out
 
 
-def _stratified(count: int) -> Tensor:
-    """``count`` fixed points ``(count, 2)`` in the unit square (a Fibonacci lattice)."""
+def _stratified(count: int, shift: Tensor) -> Tensor:
+    """``count`` points ``(..., count, 2)`` in the unit square: a Fibonacci lattice moved by each
+    ``shift (..., 2)`` (modulo 1; a Cranley-Patterson rotation)."""
     i = torch.arange(count, dtype=torch.float64)
-    return torch.stack([(i + 0.5) / count, torch.remainder(i * 0.6180339887498949 + 0.5, 1.0)], -1)
+    lattice = torch.stack([(i + 0.5) / count, torch.remainder(i * 0.6180339887498949 + 0.5, 1.0)], -1)
+    return torch.remainder(lattice + shift.to(torch.float64)[..., None, :], 1.0)
+
+
+def entry_shifts(x_cam: Tensor) -> Tensor:
+    """Each entry's own lattice shift ``(N, V, 2)`` in [0, 1): a hash of its camera-space point
+    ``x_cam (N, V, 3)`` (metres), so fixed for the entry whatever chunk or round it is summed in.
+    Why: one lattice for every entry errs the same way on all of them — its sums over a material
+    moved by -7% to +7% as the lattice was shifted (the box's Cycles metals), a bias no number of
+    entries averages out; shifted per entry, the errors differ and do."""
+    x, y, z = x_cam.to(torch.float64).unbind(-1)  # elementwise (a matmul's sums vary with the batch's shape)
+    a = torch.sin((12.9898 * x + 78.233 * y + 37.719 * z) * 100.0) * 43758.5453
+    b = torch.sin((39.3468 * x + 11.135 * y + 83.155 * z) * 100.0) * 24634.6345
+    return torch.stack([torch.remainder(a, 1.0), torch.remainder(b, 1.0)], -1)
 
 
 def visible_half_vectors(wo: Tensor, alpha: Tensor, u: Tensor) -> tuple[Tensor, Tensor]:
     """Half vectors ``(N, V, S, 3)`` (shading frame) distributed as GGX's normals visible from
     ``wo (N, V, 3)`` (Heitz 2018) for ``alpha (N, 2)``, from unit-square points ``u (S, 2)``, and the
     density of the reflected direction ``(N, V, S)``: G1(wo) D(h) / (4 wo_z) per steradian of wi
-    (0 where wo_z <= 0). Its weights f cos_i / pdf stay below F G1(wi) for the sampled alphas."""
+    (0 where wo_z <= 0). Its weights f cos_i / pdf stay below F G1(wi) for the sampled alphas. ``u``
+    may also be one set per entry ``(N, V, S, 2)``."""
     ax, ay = alpha[:, None, None, 0], alpha[:, None, None, 1]
     o = wo[:, :, None]
     vh = torch.stack([ax * o[..., 0], ay * o[..., 1], o[..., 2].clamp_min(1e-6)], -1)
@@ -199,7 +215,7 @@ def visible_half_vectors(wo: Tensor, alpha: Tensor, u: Tensor) -> tuple[Tensor, 
     t1 = torch.stack([-vh[..., 1] * inv, vh[..., 0] * inv, torch.zeros_like(lensq)], -1)
     t1 = torch.where((lensq > 1e-12)[..., None], t1, torch.tensor([1.0, 0.0, 0.0], dtype=wo.dtype))
     t2 = torch.linalg.cross(vh, t1)
-    r, phi = torch.sqrt(u[:, 0]), 2 * math.pi * u[:, 1]
+    r, phi = torch.sqrt(u[..., 0]), 2 * math.pi * u[..., 1]
     p1, p2 = r * torch.cos(phi), r * torch.sin(phi)
     s = 0.5 * (1.0 + vh[..., 2])
     p2 = (1.0 - s) * torch.sqrt((1.0 - p1**2).clamp_min(0.0)) + s * p2
@@ -213,10 +229,10 @@ def visible_half_vectors(wo: Tensor, alpha: Tensor, u: Tensor) -> tuple[Tensor, 
 
 
 def cosine_directions(u: Tensor) -> tuple[Tensor, Tensor]:
-    """Directions ``(S, 3)`` (shading frame) distributed as cos(theta) / pi from ``u (S, 2)``, and
-    that density ``(S,)``."""
-    r, phi = torch.sqrt(u[:, 0]), 2 * math.pi * u[:, 1]
-    z = torch.sqrt((1.0 - u[:, 0]).clamp_min(1e-12))
+    """Directions ``(..., S, 3)`` (shading frame) distributed as cos(theta) / pi from ``u (..., S,
+    2)``, and that density ``(..., S)``."""
+    r, phi = torch.sqrt(u[..., 0]), 2 * math.pi * u[..., 1]
+    z = torch.sqrt((1.0 - u[..., 0]).clamp_min(1e-12))
     return torch.stack([r * torch.cos(phi), r * torch.sin(phi), z], -1), z / math.pi
 
 
@@ -237,14 +253,13 @@ def support_diffuse_basis(
     (``pixel_bases``' layout; module docstring), ``live (N, V)`` the entries that count: sampled
     about the geometric normal, once for every round (a shading normal a few degrees off changes
     which samples lie above its horizon by as little), in ``x_cam``'s dtype."""
-    N, V, _ = x_cam.shape
     f64 = torch.float64
-    d_loc, d_pdf = cosine_directions(_stratified(DIFFUSE_SAMPLES))  # geometric frame: about n^ = z
-    omega = d_loc.to(f64).expand(N, V, -1, 3)
+    # geometric frame: about n^ = z, each entry's own lattice
+    omega, d_pdf = cosine_directions(_stratified(DIFFUSE_SAMPLES, entry_shifts(x_cam)))  # (N, V, Sd, 3)
     position, frame_world = view.position.to(f64), view.frame_world.to(f64)
     radiance = _radiance(view.scene, scanner, sources, position, frame_world, x_cam, frame_cam, live, omega)
-    lit = radiance * (1.0 / (DIFFUSE_SAMPLES * math.pi * d_pdf))[:, None]  # (N, V, Sd, 3)
-    return torch.einsum("nvsc,sj->nvcj", lit, d_loc.to(f64)).to(x_cam.dtype)
+    lit = radiance * (1.0 / (DIFFUSE_SAMPLES * math.pi * d_pdf))[..., None]  # (N, V, Sd, 3)
+    return torch.einsum("nvsc,nvsj->nvcj", lit, omega).to(x_cam.dtype)
 
 
 def support_specular_emitters(
@@ -268,7 +283,7 @@ def support_specular_emitters(
     wo_, f0 = wo.to(f64), frame0.to(f64)
     wide = (SAMPLE_WIDEN * alpha.to(f64)).clamp(SAMPLE_FLOOR, ALPHA_MAX)
     wo_loc = (f0[:, None] @ wo_[..., None])[..., 0]  # shading frame (N, V, 3)
-    h_loc, pdf = visible_half_vectors(wo_loc, wide, _stratified(SPECULAR_SAMPLES))
+    h_loc, pdf = visible_half_vectors(wo_loc, wide, _stratified(SPECULAR_SAMPLES, entry_shifts(x_cam)))
     halves = h_loc @ f0[:, None]  # (N, V, Ss, 3) geometric frame
     o_h = (wo_[:, :, None] * halves).sum(-1)
     wi = 2 * o_h[..., None] * halves - wo_[:, :, None]
