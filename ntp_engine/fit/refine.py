@@ -68,7 +68,7 @@ from .support_light import (
     support_specular_emitters,
 )
 
-VERSION = 43  # of the method: part of the pipeline's cache key (bump when results change for the same settings)
+VERSION = 45  # of the method: part of the pipeline's cache key (bump when results change for the same settings)
 CENSOR_CODE = VALID_CODE[1]  # above this an 8-bit code may be (or border) a clipped pixel: a lower bound
 EXPANDED_BLOCKS = 4  # emitter blocks per entry summed sample by sample (the rest as coarse emitters)
 SELECT_WIDEN, SELECT_FLOOR = 3.0, 0.03  # emitters are chosen under alphas x3 (at least 0.03)
@@ -267,6 +267,7 @@ class _Trace:
             self.scanner, self.sources = scanner, Sources.of(scanner, blocks)
             self.live, self.x_cam, self.frame_cam = mask, x.view(N, V, 3), frame.view(N, V, 3, 3)
             self.position, self.frame_world = support.position.double(), support.frame_world.double()
+            self.exposed = support.exposed
             self.support_diffuse = support_diffuse_basis(
                 support, scanner, self.sources, self.x_cam, self.frame_cam, self.live
             ).to(self.wi.dtype)
@@ -320,7 +321,7 @@ class _Trace:
         ``alpha (N, 2)`` (``rho_s (N, 3)``: its Fresnel bounded), or None without a support."""
         if self.support is None:
             return None
-        view = SupportView(self.support, self.position, self.frame_world)
+        view = SupportView(self.support, self.position, self.frame_world, self.exposed)
         wo = self.wo[self.srow]
         return support_specular_emitters(
             view, self.scanner, self.sources, self.x_cam, self.frame_cam, self.live, wo, frame0, alpha, rho_s

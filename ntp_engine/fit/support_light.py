@@ -57,7 +57,7 @@ from ..scanner import camera
 from ..scanner.scanner import Scanner
 from .emitter_blocks import EmitterBlocks, emitter_blocks
 
-SPECULAR_SAMPLES = 16  # per entry, from the round's lobe (widened)
+SPECULAR_SAMPLES = 32  # per entry, from the round's lobe (widened); 16: Cycles box rough metal |log a| 1.02 (32: 0.26)
 DIFFUSE_SAMPLES = 32  # per entry, cosine-distributed about n^ (16: -25% on a face seen edge-on)
 SAMPLE_WIDEN, SAMPLE_FLOOR = 1.5, 0.02  # the sampled lobe: the round's alphas x1.5 (at least 0.02)
 MAX_REACH = 1.0  # m: support points farther from the texel carry no light
@@ -110,12 +110,30 @@ class SupportScene:
     """What the refinement needs of the support: its albedo and, where given, the object's mesh
     as a ray caster (what it hides from the texels and the scanner; None: nothing hidden). With
     the caster, the mesh's unit ``face_normal (F, 3)`` and ``face_albedo (F, 3)`` (triangles in
-    the caster's order): the object's light on itself too (module docstring)."""
+    the caster's order): the object's light on itself too (module docstring). ``exposed (T,)``:
+    per texel of the atlas, whether the whole mesh lies behind its tangent plane (``exposed``;
+    None: not known) — its rays that leave above the plane are not cast."""
 
     albedo: SupportAlbedo
     caster: RayCaster | None = None
     face_normal: np.ndarray | None = None
     face_albedo: np.ndarray | None = None
+    exposed: np.ndarray | None = None
+
+
+def exposed(vertices: np.ndarray, position: np.ndarray, normal: np.ndarray) -> np.ndarray:
+    """``(T,)`` bool: no corner of the mesh (``vertices (P, 3)``, m) lies more than RAY_OFFSET / 2
+    above the tangent plane of each texel at ``position (T, 3)`` with unit geometric ``normal (T,
+    3)`` (one frame for all). Then no ray that leaves such a texel above its plane (from RAY_OFFSET
+    off it) meets the mesh — each triangle lies within its corners' hull — and none is cast: every
+    texel of a convex object (the gallery's dome, box) and most of a blob's."""
+    v = torch.as_tensor(vertices, dtype=torch.float64)
+    out = np.zeros(len(position), bool)
+    for s in range(0, len(position), 1024):  # (P, 1024) heights at a time
+        p, n = torch.as_tensor(position[s : s + 1024]).double(), torch.as_tensor(normal[s : s + 1024]).double()
+        height = v @ n.T - (p * n).sum(-1)  # (P, chunk) m above each tangent plane
+        out[s : s + len(p)] = (height.amax(0) <= 0.5 * RAY_OFFSET).numpy()
+    return out
 
 
 def face_albedo(face_count: int, texel_face: np.ndarray, rho_d: np.ndarray, known: np.ndarray) -> np.ndarray:
@@ -131,11 +149,18 @@ def face_albedo(face_count: int, texel_face: np.ndarray, rho_d: np.ndarray, know
 
 class SupportView(NamedTuple):
     """The support as N texels see it: the scene, their world ``position (N, 3)`` and geometric
-    ``frame_world (N, 3, 3)`` (rows t^, b^, n^ in the mesh frame)."""
+    ``frame_world (N, 3, 3)`` (rows t^, b^, n^ in the mesh frame), and where known which are
+    ``exposed (N,)`` (``SupportScene.exposed``)."""
 
     scene: SupportScene
     position: Tensor
     frame_world: Tensor
+    exposed: Tensor | None = None
+
+    def rows(self, idx: Tensor) -> SupportView:
+        """The same view of the texels ``idx`` only."""
+        exposed = None if self.exposed is None else self.exposed[idx]
+        return SupportView(self.scene, self.position[idx], self.frame_world[idx], exposed)
 
 
 class Sources(NamedTuple):
@@ -164,19 +189,23 @@ class Sources(NamedTuple):
 
 
 def irradiance(scanner: Scanner, sources: Sources, points: Tensor, normal: Tensor) -> Tensor:
-    """Pattern irradiance ``(M, 3)`` (linear pixel units of a unit-albedo Lambertian surface times
-    pi, exposure included) at camera-space ``points (M, 3)`` with unit ``normal (M, 3)``, unshadowed."""
+    """Pattern irradiance ``(M, 3)`` float64 (linear pixel units of a unit-albedo Lambertian surface
+    times pi, exposure included) at camera-space ``points (M, 3)`` with unit ``normal (M, 3)``,
+    unshadowed. Summed in float32, as matmuls (|s - p|^2 = |s|^2 - 2 p.s + |p|^2): 18x faster than
+    float64 (m, C, 3) temporaries, within 3e-5 of them at the scanner's distances (~0.1-1 m) — a
+    light the refinement takes as data, known to a few % (docs/accuracy.md)."""
+    f32 = torch.float32
     out = torch.zeros(len(points), 3, dtype=torch.float64)
     exposure = float(scanner.exposure(scanner.pattern))
+    s_pts, s_nrm, drive = sources.points.to(f32), sources.normals.to(f32), sources.drive.to(f32)
+    s_sq, s_self = (s_pts * s_pts).sum(-1), (s_pts * s_nrm).sum(-1)
     for s in range(0, len(points), 1 << 16):  # (chunk, C) temporaries stay ~10 MB
-        p, n = points[s : s + (1 << 16)].double(), normal[s : s + (1 << 16)].double()
-        d = sources.points[None] - p[:, None]  # (m, C, 3)
-        r2 = (d * d).sum(-1).clamp_min(1e-12)
-        inv = r2.rsqrt()
-        cos_s = ((d * n[:, None]).sum(-1) * inv).clamp_min(0.0)
-        cos_e = -(d * sources.normals[None]).sum(-1) * inv
-        w = scanner.psi(cos_e) * cos_s / r2  # (m, C)
-        out[s : s + len(p)] = exposure * w @ sources.drive
+        p, n = points[s : s + (1 << 16)].to(f32), normal[s : s + (1 << 16)].to(f32)
+        inv = torch.addmm(s_sq + (p * p).sum(-1, keepdim=True), p, s_pts.T, alpha=-2.0).clamp_min_(1e-12).rsqrt_()
+        cos_s = torch.addmm(-(p * n).sum(-1, keepdim=True), n, s_pts.T).mul_(inv).clamp_min_(0.0)
+        cos_e = torch.addmm(-s_self.expand(len(p), -1), p, s_nrm.T).mul_(inv)
+        w = scanner.psi(cos_e).mul_(cos_s).mul_(inv.square_())  # (m, C): Psi cos_s / r^2
+        out[s : s + len(p)] = exposure * (w @ drive).double()
     return out
 
 
@@ -257,7 +286,9 @@ def support_diffuse_basis(
     # geometric frame: about n^ = z, each entry's own lattice
     omega, d_pdf = cosine_directions(_stratified(DIFFUSE_SAMPLES, entry_shifts(x_cam)))  # (N, V, Sd, 3)
     position, frame_world = view.position.to(f64), view.frame_world.to(f64)
-    radiance = _radiance(view.scene, scanner, sources, position, frame_world, x_cam, frame_cam, live, omega)
+    radiance = _radiance(
+        view.scene, scanner, sources, position, frame_world, x_cam, frame_cam, live, omega, view.exposed
+    )
     lit = radiance * (1.0 / (DIFFUSE_SAMPLES * math.pi * d_pdf))[..., None]  # (N, V, Sd, 3)
     return torch.einsum("nvsc,nvsj->nvcj", lit, omega).to(x_cam.dtype)
 
@@ -291,7 +322,7 @@ def support_specular_emitters(
     weight = torch.where(usable, 1.0 / (SPECULAR_SAMPLES * pdf.clamp_min(1e-30)), 0.0)
     position, frame_world = view.position.to(f64), view.frame_world.to(f64)
     live = live & usable.any(-1)
-    radiance = _radiance(view.scene, scanner, sources, position, frame_world, x_cam, frame_cam, live, wi)
+    radiance = _radiance(view.scene, scanner, sources, position, frame_world, x_cam, frame_cam, live, wi, view.exposed)
     if rho_s is not None:  # w_i.h = wo.h: wi is wo mirrored about h
         c = o_h[..., None]
         f90 = bounded_f90(rho_s.to(f64))[:, None, None, :]
@@ -310,29 +341,45 @@ def _radiance(
     frame_cam: Tensor,
     live: Tensor,
     omega: Tensor,
+    exposed: Tensor | None = None,
 ) -> Tensor:
     """The support's radiance ``(N, V, S, 3)`` toward each entry's texel along ``omega (N, V, S, 3)``
     (geometric frame): 0 where the direction misses the support (or the object is in the way),
-    the object's own where ``scene`` has its ``face_albedo`` and the direction meets it first."""
+    the object's own where ``scene`` has its ``face_albedo`` and the direction meets it first.
+    One ray per live sample finds what it meets first (the mesh's face or, beyond it, the support
+    point; none where the texel is ``exposed (N,)`` and the sample leaves above its plane), one
+    more whether that point sees the camera."""
     f64 = torch.float64
+    N, V, S = omega.shape[:3]
     up = frame_world[:, :, 2]  # world z in the texel's frame (N, 3)
     height = (position[:, 2] - scene.albedo.z).clamp_min(RAY_OFFSET)
     down = -(omega * up[:, None, None]).sum(-1)
     reach = height[:, None, None] / down.clamp_min(1e-9)
-    sel = ((down > 1e-3) & (reach < MAX_REACH) & live[..., None]).nonzero(as_tuple=True)
+    out = torch.zeros(N, V, S, 3, dtype=f64)
+    support = (down > 1e-3) & (reach < MAX_REACH) & live[..., None]
+    cast = live[..., None].expand(N, V, S)
+    if exposed is not None:  # nothing of the mesh above these texels' planes (``exposed``)
+        cast = cast & ~(exposed[:, None, None] & (omega[..., 2] > 0))
+    sel = cast.nonzero(as_tuple=True)
+    if scene.caster is not None and len(sel[0]):  # the mesh's first face along each live sample
+        t, prim = _first_hits(scene, position[sel[0]], frame_world[sel[0]], omega[sel].to(f64))
+        hit = torch.full((N, V, S), math.inf, dtype=f64)
+        hit[sel] = t
+        support &= hit >= reach - RAY_OFFSET  # the object hides the support point
+        if scene.face_albedo is not None:
+            _object_radiance(
+                scene, scanner, sources, position, frame_world, x_cam, frame_cam, omega, reach, out, sel, t, prim
+            )
+    sel = support.nonzero(as_tuple=True)
     n, v = sel[0], sel[1]
-    p_loc = reach[sel][:, None] * omega[sel].to(f64)  # texel -> support point, geometric frame (M, 3)
-    fw, fc = frame_world[n], frame_cam[n, v].to(f64)
-    p_world = position[n] + (p_loc[:, None] @ fw)[:, 0]
-    out = torch.zeros(*omega.shape[:3], 3, dtype=f64)
-    if scene.face_albedo is not None:
-        out += _object_radiance(scene, scanner, sources, position, frame_world, x_cam, frame_cam, live, omega, reach)
     if len(n) == 0:
         return out
-    xc = x_cam[n, v].to(f64)
+    p_loc = reach[sel][:, None] * omega[sel].to(f64)  # texel -> support point, geometric frame (M, 3)
+    fw, fc, xc = frame_world[n], frame_cam[n, v].to(f64), x_cam[n, v].to(f64)
+    p_world = position[n] + (p_loc[:, None] @ fw)[:, 0]
     keep = torch.ones(len(n), dtype=torch.bool)
     if scene.caster is not None:
-        keep = ~_hidden(scene.caster, position[n], fw, xc, fc, p_world)
+        keep = ~_camera_hidden(scene.caster, position[n], fw, xc, fc, p_world)
     p_cam = xc + (p_loc[:, None] @ fc)[:, 0]
     up_cam = (up[n][:, None] @ fc)[:, 0]
     e = irradiance(scanner, sources, p_cam[keep], up_cam[keep])
@@ -348,44 +395,33 @@ def _object_radiance(
     frame_world: Tensor,
     x_cam: Tensor,
     frame_cam: Tensor,
-    live: Tensor,
     omega: Tensor,
     reach: Tensor,
-) -> Tensor:
-    """The object's radiance ``(N, V, S, 3)`` toward each entry's texel along ``omega`` (``_radiance``'s
-    arguments; ``reach (N, V, S)``: how far each direction runs to the support): one diffuse bounce
-    where the direction meets the mesh first (module docstring). One ray per texel and direction
-    where every entry has the same directions (an expanded ``omega``: the diffuse samples). No
-    texel is left out by a coarser probe: 64 directions uniform over the hemisphere missed 2,180
-    of the 8,064 gallery vase texels that see the vase in 1,024 (its slivers at grazing angles)."""
+    out: Tensor,
+    sel: tuple[Tensor, ...],
+    t: Tensor,
+    prim: Tensor,
+) -> None:
+    """Writes into ``out (N, V, S, 3)`` the object's radiance toward each entry's texel along
+    ``omega`` (``_radiance``'s arguments; ``reach (N, V, S)``: how far each direction runs to the
+    support) where the sample ``sel`` first meets the mesh's face ``prim`` at ``t`` (``_first_hits``):
+    one diffuse bounce (module docstring). Every sample gets its ray: 64 directions uniform over
+    the hemisphere, as a coarser probe, missed 2,180 of the 8,064 gallery vase texels that see the
+    vase in 1,024 (its slivers at grazing angles)."""
     assert scene.caster is not None and scene.face_normal is not None and scene.face_albedo is not None
     f64 = torch.float64
-    N, V, S = omega.shape[:3]
-    out = torch.zeros(N, V, S, 3, dtype=f64)
-    sel = live[..., None].expand(N, V, S).nonzero(as_tuple=True)
-    if len(sel[0]) == 0:
-        return out
     n, v, s = sel
-    if V > 1 and omega.stride(1) == 0:  # the same directions for every entry: one ray each
-        tex = live.any(1).nonzero().squeeze(1)
-        i = tex.repeat_interleave(S)
-        t_, prim_ = _first_hits(scene, position[i], frame_world[i], omega[tex, 0].reshape(-1, 3).to(f64))
-        row = torch.full((N,), -1, dtype=torch.long)
-        row[tex] = torch.arange(len(tex))
-        t, prim = t_[row[n] * S + s], prim_[row[n] * S + s]
-    else:
-        t, prim = _first_hits(scene, position[n], frame_world[n], omega[sel].to(f64))
     k = ((prim >= 0) & (t < reach[sel].clamp_max(MAX_REACH))).nonzero().squeeze(1)
     if len(k) == 0:
-        return out
+        return
     n, v, fw = n[k], v[k], frame_world[n[k]]
     xc, fc = x_cam[n, v].to(f64), frame_cam[n, v].to(f64)
     p_world = position[n] + RAY_OFFSET * fw[:, 2] + t[k, None] * (omega[n, v, s[k]].to(f64)[:, None] @ fw)[:, 0]
     # the camera (and the emitters beside it) seen from p; p itself is the ray's first hit
-    seen = ~_hidden(scene.caster, position[n], fw, xc, fc, p_world, from_texel=False)
+    seen = ~_camera_hidden(scene.caster, position[n], fw, xc, fc, p_world)
     k, n, v, fw, xc, fc, p_world = k[seen], n[seen], v[seen], fw[seen], xc[seen], fc[seen], p_world[seen]
     if len(k) == 0:
-        return out
+        return
     # p and its face's normal in the entry's camera frame (mesh frame -> texel frame -> camera)
     normal = torch.as_tensor(scene.face_normal, dtype=f64)[prim[k]]
     p_cam = xc + ((fw @ (p_world - position[n])[..., None])[..., 0][:, None] @ fc)[:, 0]
@@ -393,48 +429,35 @@ def _object_radiance(
     e = irradiance(scanner, sources, p_cam, normal_cam)
     albedo = torch.as_tensor(scene.face_albedo, dtype=f64)[prim[k]]
     out[tuple(i[k] for i in sel)] = albedo / math.pi * e
-    return out
 
 
 def _first_hits(scene: SupportScene, position: Tensor, frame_world: Tensor, omega: Tensor) -> tuple[Tensor, Tensor]:
     """Where rays from texels at world ``position (M, 3)`` (geometric frames ``frame_world (M, 3,
-    3)``) along ``omega (M, 3)`` (that frame) first meet a face of the mesh that looks back at
-    them: the distance ``t (M,)`` (m) and the triangle ``(M,)`` (-1: none)."""
-    assert scene.caster is not None and scene.face_normal is not None
+    3)``) along ``omega (M, 3)`` (that frame) first meet the mesh: the distance ``t (M,)`` (m; ~1e37
+    for none) and the triangle ``(M,)`` if it looks back at them (-1: none, or a back face)."""
+    assert scene.caster is not None
     d_world = (omega[:, None] @ frame_world)[:, 0]
     hits = scene.caster.intersect((position + RAY_OFFSET * frame_world[:, 2]).numpy(), d_world.numpy())
     prim = torch.from_numpy(np.where(hits.geom >= 0, hits.prim, -1))
-    normal = torch.as_tensor(scene.face_normal, dtype=d_world.dtype)[prim.clamp_min(0)]
-    prim[(normal * d_world).sum(-1) >= 0] = -1  # a back face: the inside of the mesh
+    if scene.face_normal is not None:
+        normal = torch.as_tensor(scene.face_normal, dtype=d_world.dtype)[prim.clamp_min(0)]
+        prim[(normal * d_world).sum(-1) >= 0] = -1  # a back face: the inside of the mesh
     return torch.from_numpy(hits.t), prim
 
 
-def _hidden(
-    caster: RayCaster,
-    position: Tensor,
-    frame_world: Tensor,
-    x_cam: Tensor,
-    frame_cam: Tensor,
-    p_world: Tensor,
-    from_texel: bool = True,
+def _camera_hidden(
+    caster: RayCaster, position: Tensor, frame_world: Tensor, x_cam: Tensor, frame_cam: Tensor, p_world: Tensor
 ) -> Tensor:
-    """``(M,)`` bool: the mesh lies between a texel at world ``position (M, 3)`` (geometric frame
-    ``frame_world (M, 3, 3)``) and the point ``p_world (M, 3)`` it sees (unless ``from_texel`` is
-    False), or between that point and the camera of the entry (``x_cam``, ``frame_cam``: its point
-    and frame in camera space) — the scanner's light: its emitters sit beside the camera."""
+    """``(M,)`` bool: the mesh lies between the point ``p_world (M, 3)`` a texel at world ``position
+    (M, 3)`` (geometric frame ``frame_world (M, 3, 3)``) sees and the camera of the entry (``x_cam``,
+    ``frame_cam``: the texel's point and frame in camera space) — the scanner's light: its emitters
+    sit beside the camera."""
     camera_loc = -(frame_cam @ x_cam[..., None])[..., 0]  # camera centre, geometric frame (M, 3)
     to_cam = position + (camera_loc[:, None] @ frame_world)[:, 0] - p_world
     cam_dist = to_cam.norm(dim=-1).clamp_min(1e-12)
     to_cam = to_cam / cam_dist[:, None]
-    o, d, far = p_world + RAY_OFFSET * to_cam, to_cam, (cam_dist - 2 * RAY_OFFSET).clamp_min(0.0)
-    if from_texel:
-        start = position + RAY_OFFSET * frame_world[:, 2]
-        d_world = p_world - start
-        dist = d_world.norm(dim=-1).clamp_min(1e-12)
-        o, d = torch.cat([start, o]), torch.cat([d_world / dist[:, None], d])
-        far = torch.cat([(dist - RAY_OFFSET).clamp_min(0.0), far])
-    blocked = torch.from_numpy(caster.occluded(o.numpy(), d.numpy(), far.numpy()))
-    return blocked.reshape(-1, len(position)).any(0)
+    far = (cam_dist - 2 * RAY_OFFSET).clamp_min(0.0)
+    return torch.from_numpy(caster.occluded((p_world + RAY_OFFSET * to_cam).numpy(), to_cam.numpy(), far.numpy()))
 
 
 def estimate_support_albedo(

@@ -248,7 +248,7 @@ class RefineInputs(NamedTuple):
             self.specular[idx],
             self.shadow[idx],
             self.marginal[idx],
-            None if view is None else view._replace(position=view.position[idx], frame_world=view.frame_world[idx]),
+            None if view is None else view.rows(idx),
             None if self.footprint is None else self.footprint.rows(idx),
         )
 
@@ -287,7 +287,8 @@ def refine_inputs(
         if texels is None:
             raise ValueError("the support's light needs the texels the traces were assembled for")
         frame = frame_from_normal_tangent(torch.as_tensor(texels.normal[i]), torch.as_tensor(texels.tangent[i]))
-        view = SupportView(support, torch.as_tensor(texels.position[i]), frame)
+        exposed = None if support.exposed is None else torch.as_tensor(support.exposed[i])
+        view = SupportView(support, torch.as_tensor(texels.position[i]), frame, exposed)
     entries, shadow = traces.entries_at(rows, mask), traces.shadow_at(rows, mask)
     spread = None
     if texels is not None and texels.shape_operator is not None:

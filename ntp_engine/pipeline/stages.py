@@ -35,7 +35,7 @@ from ..fit.support_light import ALBEDO_VERSION as SUPPORT_VERSION
 from ..fit.support_light import CELL as SUPPORT_CELL
 from ..fit.support_light import CODE_RANGE as SUPPORT_CODES
 from ..fit.support_light import REACH_RADII as SUPPORT_REACH
-from ..fit.support_light import SupportAlbedo, SupportScene, estimate_support_albedo
+from ..fit.support_light import SupportAlbedo, SupportScene, estimate_support_albedo, exposed
 from ..io.atomic import atomic_path, temp_dir, write_text_atomic
 from ..io.errors import NtpInputError
 from ..io.images import write_png
@@ -397,7 +397,9 @@ def _reconstruct(
         if scan.support_light:  # the photos hold the support's light: its albedo map, its mesh for the rays
             caster = RayCaster([mesh.triangles])
             support, h_support = _support_stage(scan, cache, mesh, caster, poses, h_atlas, h_pose, progress)
-            scene = SupportScene(support, caster, mesh.face_normals())
+            scene = SupportScene(
+                support, caster, mesh.face_normals(), exposed=exposed(mesh.vertices, texels.position, texels.normal)
+            )
             report.timed("support", t0)
             t0 = time.perf_counter()
 

@@ -295,7 +295,7 @@ def test_the_objects_own_light_converges_to_the_integral_over_its_lit_face(monke
             monkeypatch.setattr(sl, "DIFFUSE_SAMPLES", samples)
         lit, dark = (sl.support_diffuse_basis(v, DEV, sl.Sources.of(DEV), x_cam, fc, live)[0, 0, :, 2] for v in views)
         assert ((lit - dark) / ref - 1).abs().max() < tol, (samples, (lit - dark) / ref)
-    # two entries (the same directions for both: one ray each) as each alone
+    # two entries summed together as each alone
     _, x2, fc2, *_ = _vertical_texel([0.2, -0.2, 0.1])
     both = sl.support_diffuse_basis(
         views[0],
@@ -311,6 +311,66 @@ def test_the_objects_own_light_converges_to_the_integral_over_its_lit_face(monke
     away, x_cam, fc, *_ = _walled_texel(facing=-1.0)
     lit, dark = (sl.support_diffuse_basis(v, DEV, sl.Sources.of(DEV), x_cam, fc, live) for v in away)
     assert torch.equal(lit, dark)
+
+
+def _box_triangles(lo, hi):
+    """The 12 outward-wound triangles ``(12, 3, 3)`` of the box ``lo``-``hi`` (corners, m)."""
+    c = np.array([[(hi if (k >> a) & 1 else lo)[a] for a in range(3)] for k in range(8)], float)
+    quads = [(0, 2, 6, 4), (1, 5, 7, 3), (0, 4, 5, 1), (2, 3, 7, 6), (0, 1, 3, 2), (4, 6, 7, 5)]
+    tri = [[c[q[0]], c[q[i]], c[q[i + 1]]] for q in quads for i in (1, 2)]
+    return np.array(tri)
+
+
+def test_a_texel_is_exposed_only_with_the_whole_mesh_behind_its_plane():
+    """``exposed``: a box's face centres and an edge texel whose normal leans over the edge are (the
+    other corners lie behind their planes, one within RAY_OFFSET / 2 counts as on it); a texel on
+    the floor beside a wall is not, nor one with a corner 0.6 RAY_OFFSET above its plane."""
+    box = _box_triangles(np.array([-0.03, -0.03, 0.0]), np.array([0.03, 0.03, 0.04])).reshape(-1, 3)
+    lean = np.array([1.0, 0.0, 1.0]) / math.sqrt(2)
+    pos = np.array([[0.03, 0.0, 0.02], [0.0, 0.0, 0.04], [0.03, 0.0, 0.04]])
+    nrm = np.array([[1.0, 0, 0], [0, 0, 1.0], lean])
+    assert sl.exposed(box, pos, nrm).tolist() == [True, True, True]
+    floor_and_wall = np.array([[-0.1, -0.1, 0.0], [0.1, -0.1, 0.0], [0.1, 0.1, 0.0], [0.05, 0.0, 0.03]])
+    assert sl.exposed(floor_and_wall, np.zeros((1, 3)), np.array([[0, 0, 1.0]])).tolist() == [False]
+    for height, want in ((0.4, True), (0.6, False)):
+        corner = np.array([[0.02, 0.0, height * sl.RAY_OFFSET], [-0.02, 0.0, -0.01]])
+        assert sl.exposed(corner, np.zeros((1, 3)), np.array([[0, 0, 1.0]])).tolist() == [want]
+
+
+def test_an_exposed_texels_rays_above_its_plane_are_not_cast(monkeypatch):
+    """A texel on a side of a box standing on the support, its mesh the caster: its support light
+    is the same with its rays above the plane left uncast (all its diffuse samples: no ray at
+    all) as with every ray cast; beside a wall it is not exposed, and the wall still hides the support."""
+    from ntp_engine.io.raycast import RayCaster
+
+    view, x_cam, fc, *_ = _vertical_texel([0.25, 0.1, 0.18])
+    tri = _box_triangles(np.array([-0.03, -0.03, 0.0]), np.array([0.03, 0.03, 0.04]))
+    normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    scene = sl.SupportScene(ALBEDO, RayCaster([tri]), normal, np.full((12, 3), 0.5))
+    flag = torch.as_tensor(sl.exposed(tri.reshape(-1, 3), view.position.numpy(), view.frame_world[:, 2].numpy()))
+    assert flag.tolist() == [True]
+    cast = []
+    intersect = RayCaster.intersect
+    monkeypatch.setattr(RayCaster, "intersect", lambda self, o, d: cast.append(len(o)) or intersect(self, o, d))
+    live = torch.ones(1, 1, dtype=torch.bool)
+    every = sl.support_diffuse_basis(
+        sl.SupportView(scene, view.position, view.frame_world), DEV, sl.Sources.of(DEV), x_cam, fc, live
+    )
+    assert sum(cast) == sl.DIFFUSE_SAMPLES
+    cast.clear()
+    view_exposed = sl.SupportView(scene, view.position, view.frame_world, flag)
+    skipped = sl.support_diffuse_basis(view_exposed, DEV, sl.Sources.of(DEV), x_cam, fc, live)
+    assert sum(cast) == 0 and every[..., 2].min() > 0
+    torch.testing.assert_close(skipped, every, rtol=0, atol=0)
+    # a wall in front of the face hides the support: the texel is not exposed, its rays are cast
+    a, b, c, d = [0.035, -2, -0.01], [0.035, 2, -0.01], [0.035, 2, 0.0199], [0.035, -2, 0.0199]
+    wall = np.array([[a, b, c], [a, c, d]])
+    walled = np.concatenate([tri, wall])
+    flag = torch.as_tensor(sl.exposed(walled.reshape(-1, 3), view.position.numpy(), view.frame_world[:, 2].numpy()))
+    assert flag.tolist() == [False]
+    hidden = sl.SupportView(sl.SupportScene(ALBEDO, RayCaster([walled])), view.position, view.frame_world, flag)
+    assert (sl.support_diffuse_basis(hidden, DEV, sl.Sources.of(DEV), x_cam, fc, live) == 0).all()
 
 
 def test_face_albedo_is_the_mean_of_each_triangles_known_texels():
