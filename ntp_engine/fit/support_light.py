@@ -357,22 +357,22 @@ def _radiance(
     reach = height[:, None, None] / down.clamp_min(1e-9)
     out = torch.zeros(N, V, S, 3, dtype=f64)
     support = (down > 1e-3) & (reach < MAX_REACH) & live[..., None]
-    # each ray leaves RAY_OFFSET off the surface; one that reaches the support aims at its point
-    # there (a ray along omega from the offset start slips past the object's edge where it meets
-    # the support — 17% of the Cycles vase's print then took lobes, docs/accuracy.md)
-    aim = omega.to(f64).clone()
-    aim[..., 2] = torch.where(support, aim[..., 2] - RAY_OFFSET / reach, aim[..., 2])
-    to_point = reach * aim.norm(dim=-1)  # from the ray's start to the support point (where it reaches it)
-    aim = aim / aim.norm(dim=-1, keepdim=True)
     cast = live[..., None].expand(N, V, S)
-    if exposed is not None:  # nothing of the mesh above these texels' planes (``exposed``)
-        cast = cast & ~(exposed[:, None, None] & (aim[..., 2] > 0))
+    if exposed is not None:  # nothing of the mesh above these texels' planes (``exposed``): no ray
+        # that stays above RAY_OFFSET / 2 up to the support point (or all along) can meet it
+        above = torch.where(support, reach * omega[..., 2] >= 0.5 * RAY_OFFSET, omega[..., 2] > 0)
+        cast = cast & ~(exposed[:, None, None] & above)
     sel = cast.nonzero(as_tuple=True)
-    if scene.caster is not None and len(sel[0]):  # the mesh's first face along each live sample
-        t, prim = _first_hits(scene, position[sel[0]], frame_world[sel[0]], aim[sel])
-        hit = torch.full((N, V, S), math.inf, dtype=f64)
-        hit[sel] = t
-        support &= hit >= to_point - RAY_OFFSET  # the object hides the support point
+    if scene.caster is not None and len(sel[0]):  # the mesh's first face along each cast sample
+        # each ray leaves RAY_OFFSET off the surface; one that reaches the support aims at its point
+        # there (along omega from the offset start it slipped past the object's edge where it meets
+        # the support, lighting points under the Cycles vase's rim)
+        aim, to_table, reaches = omega[sel].to(f64), reach[sel], support[sel]
+        aim[:, 2] -= torch.where(reaches, RAY_OFFSET / to_table, 0.0)
+        to_point = to_table * aim.norm(dim=-1)  # from the ray's start to the support point
+        aim = aim / aim.norm(dim=-1, keepdim=True)
+        t, prim = _first_hits(scene, position[sel[0]], frame_world[sel[0]], aim)
+        support[sel] = reaches & (t >= to_point - RAY_OFFSET)  # the object hides the support point
         if scene.face_albedo is not None:
             _object_radiance(
                 scene, scanner, sources, position, frame_world, x_cam, frame_cam, aim, reach, out, sel, t, prim
@@ -402,28 +402,29 @@ def _object_radiance(
     frame_world: Tensor,
     x_cam: Tensor,
     frame_cam: Tensor,
-    omega: Tensor,
+    aim: Tensor,
     reach: Tensor,
     out: Tensor,
     sel: tuple[Tensor, ...],
     t: Tensor,
     prim: Tensor,
 ) -> None:
-    """Writes into ``out (N, V, S, 3)`` the object's radiance toward each entry's texel along
-    ``omega`` (``_radiance``'s arguments; ``reach (N, V, S)``: how far each direction runs to the
-    support) where the sample ``sel`` first meets the mesh's face ``prim`` at ``t`` (``_first_hits``):
-    one diffuse bounce (module docstring). Every sample gets its ray: 64 directions uniform over
+    """Writes into ``out (N, V, S, 3)`` the object's radiance toward each entry's texel where the ray
+    of its sample ``sel`` (M of them; unit ``aim (M, 3)``, geometric frame, from RAY_OFFSET off the
+    texel) first meets the mesh's face ``prim (M,)`` at ``t (M,)`` (``_first_hits``) before the
+    support (``reach (N, V, S)``, m): one diffuse bounce (module docstring; the other arguments
+    ``_radiance``'s). Every sample gets its ray: 64 directions uniform over
     the hemisphere, as a coarser probe, missed 2,180 of the 8,064 gallery vase texels that see the
     vase in 1,024 (its slivers at grazing angles)."""
     assert scene.caster is not None and scene.face_normal is not None and scene.face_albedo is not None
     f64 = torch.float64
-    n, v, s = sel
+    n, v = sel[0], sel[1]
     k = ((prim >= 0) & (t < reach[sel].clamp_max(MAX_REACH))).nonzero().squeeze(1)
     if len(k) == 0:
         return
     n, v, fw = n[k], v[k], frame_world[n[k]]
     xc, fc = x_cam[n, v].to(f64), frame_cam[n, v].to(f64)
-    p_world = position[n] + RAY_OFFSET * fw[:, 2] + t[k, None] * (omega[n, v, s[k]].to(f64)[:, None] @ fw)[:, 0]
+    p_world = position[n] + RAY_OFFSET * fw[:, 2] + t[k, None] * (aim[k][:, None] @ fw)[:, 0]
     # the camera (and the emitters beside it) seen from p; p itself is the ray's first hit
     seen = ~_camera_hidden(scene.caster, position[n], fw, xc, fc, p_world)
     k, n, v, fw, xc, fc, p_world = k[seen], n[seen], v[seen], fw[seen], xc[seen], fc[seen], p_world[seen]
