@@ -397,14 +397,15 @@ def _reconstruct(
         if scan.support_light:  # the photos hold the support's light: its albedo map, its mesh for the rays
             caster = RayCaster([mesh.triangles])
             support, h_support = _support_stage(scan, cache, mesh, caster, poses, h_atlas, h_pose, progress)
-            scene = SupportScene(
-                support, caster, mesh.face_normals(), exposed=exposed(mesh.vertices, texels.position, texels.normal)
-            )
+            scene = SupportScene(support, caster, mesh.face_normals())
             report.timed("support", t0)
             t0 = time.perf_counter()
 
         def refine_stage(d: Path) -> None:
-            np.savez(d / "refined.npz", **refine_fit(scan.scanner, traces, fitted, REFINE, progress, texels, scene))
+            full = scene
+            if scene is not None:  # the texels whose rays above their plane meet nothing: only when it runs
+                full = dataclasses.replace(scene, exposed=exposed(mesh.vertices, texels.position, texels.normal))
+            np.savez(d / "refined.npz", **refine_fit(scan.scanner, traces, fitted, REFINE, progress, texels, full))
 
         key = {
             "fit": h_fit,
