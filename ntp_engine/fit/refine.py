@@ -77,7 +77,7 @@ MAX_TRIES = 3  # damping increases per LM iteration before the texel waits for t
 # tightens it — tighter than 1 let the data tip normals against the priors (gallery, docs/refinement.md)
 NOISE_SCALE = (1.0, 10.0)
 # the light bounced onto an entry (support, object) as the model sums it is right to ~30% per entry
-# (the box's Cycles scan at the truth: rms 0.19-0.34 of it; the model's 16-32 samples, the renders'
+# (the box's Cycles scan at the truth: rms 0.19-0.34 of it; the model's samples, 16 specular then, the renders'
 # Monte Carlo noise, second bounces): noise of this many times the pixel's bounced share (its
 # diffuse light's, at the geometric normal) — 0.3 / 0.6 / 1.0 measured on the box and the knot
 # (docs/refinement.md): 0.6 the normals' best, 1.0 lost the box's rough metal's lobe
