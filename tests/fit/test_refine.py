@@ -342,6 +342,25 @@ def test_material_costs_resolve_each_models_albedo():
     assert torch.isfinite(judged.rho_d[:, :2]).all()
 
 
+def test_a_trace_whose_every_entry_is_clipped_is_judged_bright_not_lobed():
+    """A white matte texel seen only in clipped entries (the vase's print facing the bright support):
+    its albedo start counts them at their bound, so no lobe is judged brighter and cheaper (with them
+    left out, rho_d came back 0 and a dark metal's lobe took the light: cost 130-195 against 114-166)."""
+    entries, mask, p = _traces(256, 21, (1.0, 1.0, 1.0), (0.0, 0.0, 0.0), (0.3, 0.3))
+    clipped = (entries[..., :3] >= 1.0).all(-1) & mask
+    keep = clipped.sum(1) >= 2
+    assert keep.sum() >= 30  # the case is real
+    e, m, n = entries[keep], clipped[keep], int(keep.sum())
+    grey = torch.full((n, 3), 0.5)
+    start = Start(p["n_local"][keep], p["t_local"][keep], torch.full((n, 2), 0.3), grey, torch.zeros(n, 3))
+    judged = material_costs(DEV, e, m, start, torch.tensor([[0.5, 0.01]]), torch.tensor([[8.0, 5.0, 4.0]]))
+    rho_d = judged.rho_d[:, 0].mean(1)
+    print("no lobe: rho_d median", rho_d.median().item(), "cost median", judged.cost[:, 0].median().item())
+    assert ((rho_d > 0.8) & (rho_d <= 1.0)).all()  # at the bound: below the truth, never 0
+    assert judged.cost[:, 0].median() < 3
+    assert (judged.cost[:, 0] <= judged.cost[:, 1]).float().mean() > 0.75
+
+
 def test_material_costs_try_the_turn_the_neighbours_point_along():
     """Judged from a start tangent 110 deg off (between the 4 turns, 90 and 135): told by its
     neighbours (``fit.tangent_field``) where the lobe points, a texel tries that turn too and, where
