@@ -17,7 +17,10 @@ texel's trace judges the lobe materials within ``CANDIDATE_MARGIN`` of its likel
 colour, and every broad one (``BROAD_ALPHA``), whose colour it cannot know before. The matte
 class's share is the object's own (``estimated_matte_share``: the mixture's maximum likelihood,
 by EM from ``MATTE_SHARE``): an object with little matte surface gives a texel that cannot tell
-to its colour's lobe material, one with much keeps it matte.
+to its colour's lobe material, one with much keeps it matte. Then each class's share where the
+texel lies (``local_shares``: its nearest texels' labels, the object's shares counting as a few
+more): materials come in regions, and a texel among matte ones that its trace cannot tell stays
+matte whatever its colour.
 
 A material's lobe width is then what its members' traces explain best together
 (``pooled_scale`` over ``refine.lobe_costs``, in ``pipeline.fit_traces.pooled_widths``), not the
@@ -61,6 +64,9 @@ CANDIDATE_MARGIN = math.log(1000.0)  # lobe materials this much less likely by c
 BROAD_ALPHA = 0.2
 FIELD_UNITS = 4.0  # what a width field pays per neighbourhood of LOCAL_MEMBERS (half chi-square units)
 LOCAL_MEMBERS = 32  # a varying material's width at a point: the votes of this many members nearest it (width_field)
+LABEL_NEIGHBOURS = 16  # nearest texels whose classes set a texel's local shares (local_shares)
+SHARE_PSEUDO = 4.0  # the object's shares count as this many neighbours more
+LABEL_ROUNDS = 2  # relabellings of the texels a trace judged, each by the last one's local shares
 POOL_CLIP = 2.0  # a texel's vote on its material's lobe width: its cost above its best, clipped here (pooled_scale)
 
 
@@ -401,6 +407,25 @@ def class_shares(materials: BasisMaterials, matte_share: float = MATTE_SHARE) ->
     (``materials.share``, made at ``MATTE_SHARE``) scaled to the rest, (1 - matte_share) / (1 -
     ``MATTE_SHARE``); they need not sum to 1 (a cluster that is no material keeps its part)."""
     return np.concatenate([[matte_share], materials.share * ((1 - matte_share) / (1 - MATTE_SHARE))])
+
+
+def local_shares(position: np.ndarray, label: np.ndarray, shares: np.ndarray) -> np.ndarray:
+    """Each texel's class shares ``(N, 1 + K)`` where it lies: the labels ``label (N,)`` (-1 matte,
+    0..K-1 the lobe materials) of its ``LABEL_NEIGHBOURS`` nearest others at ``position (N, 3)``
+    counted with the object's ``shares (1 + K,)`` (``class_shares``) as ``SHARE_PSEUDO`` more, then
+    normalised. Most objects are made of a few materials in regions: a texel whose own trace cannot
+    tell takes the class its neighbours have (the vase's black print cells, 3 entries each, joined
+    the dark metal by colour among white, matte ones)."""
+    K1 = len(shares)
+    base = SHARE_PSEUDO * shares / shares.sum()
+    if len(position) < 2:
+        return np.broadcast_to(base / base.sum(), (len(position), K1)).copy()
+    k = min(LABEL_NEIGHBOURS + 1, len(position))
+    near = cKDTree(position).query(position, k=k)[1][:, 1:]  # the texel itself first: left out
+    counts = np.zeros((len(position), K1))
+    np.add.at(counts, (np.repeat(np.arange(len(position)), k - 1), (label[near] + 1).ravel()), 1.0)
+    out = counts + base
+    return out / out.sum(1, keepdims=True)
 
 
 def class_costs(rho_d: np.ndarray, materials: BasisMaterials, matte_share: float = MATTE_SHARE) -> np.ndarray:

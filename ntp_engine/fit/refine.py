@@ -68,7 +68,7 @@ from .support_light import (
     support_specular_emitters,
 )
 
-VERSION = 48  # of the method: part of the pipeline's cache key (bump when results change for the same settings)
+VERSION = 49  # of the method: part of the pipeline's cache key (bump when results change for the same settings)
 CENSOR_CODE = VALID_CODE[1]  # above this an 8-bit code may be (or border) a clipped pixel: a lower bound
 EXPANDED_BLOCKS = 4  # emitter blocks per entry summed sample by sample (the rest as coarse emitters)
 SELECT_WIDEN, SELECT_FLOOR = 3.0, 0.03  # emitters are chosen under alphas x3 (at least 0.03)

@@ -25,6 +25,7 @@ from ..fit.emitter_blocks import shadow_groups
 from ..fit.footprint import Footprint, albedo_blend, sample_points, slope_spread
 from ..fit.geometry import FALLBACK_ALPHA, FLAG_NO_HIGHLIGHT, fit_geometry
 from ..fit.materials import (
+    LABEL_ROUNDS,
     BasisMaterials,
     WidthField,
     candidates,
@@ -34,6 +35,7 @@ from ..fit.materials import (
     estimated_matte_share,
     judged_colour_costs,
     lobe_clusters,
+    local_shares,
     pooled_scale,
     second_wins,
     width_field,
@@ -765,8 +767,13 @@ def _material_pass(
     likelihood[own[i_obs], 0] = np.inf
     matte_share = estimated_matte_share(likelihood, basis)
     fit["material_matte_share"] = np.array(matte_share)
-    prior = colour - np.log(class_shares(basis, matte_share))
+    shares = class_shares(basis, matte_share)
+    prior = colour - np.log(shares)
     label[rest] = np.argmin(costs[rest] + prior[rest], 1) - 1  # -1: matte
+    if texels is not None:  # then by each class's share where the texel lies (materials.local_shares)
+        for _ in range(LABEL_ROUNDS):
+            prior = colour - np.log(local_shares(texels.position[i_obs], label, shares))
+            label[rest] = np.argmin(costs[rest] + prior[rest], 1) - 1
     fit["material"][i_obs] = label
     fit.update(basis.to_arrays())
     fit["material_width_varies"] = np.array([f is not None for f in basis.width], bool)

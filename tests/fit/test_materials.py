@@ -7,8 +7,10 @@ import numpy as np
 import pytest
 
 from ntp_engine.fit.materials import (
+    LABEL_NEIGHBOURS,
     MATTE_SHARE,
     MATTE_SHARE_RANGE,
+    SHARE_PSEUDO,
     BasisMaterials,
     candidates,
     class_costs,
@@ -17,6 +19,7 @@ from ntp_engine.fit.materials import (
     estimated_matte_share,
     judged_colour_costs,
     lobe_clusters,
+    local_shares,
     material_weight,
     pooled_scale,
     pooled_votes,
@@ -297,3 +300,23 @@ def test_a_width_that_varies_over_the_object_becomes_a_field_and_a_constant_one_
     np.testing.assert_allclose(got[:, 0], expected, rtol=0.12)
     np.testing.assert_allclose(got[:, 0], got[:, 1])
     assert width_field(_votes_at(1.3 * noise, scales), position, alpha, scales) is None
+
+
+def test_local_shares_are_the_neighbours_classes_with_the_objects_as_more():
+    """A plane of texels, matte on the left and material 1 on the right: far from the border a
+    texel's shares are its side's class by ``LABEL_NEIGHBOURS`` to the object's ``SHARE_PSEUDO``;
+    at the border both; a lone texel has the object's shares."""
+    x, y = np.meshgrid(np.arange(20.0), np.arange(20.0))
+    position = np.stack([x.ravel(), y.ravel(), np.zeros(400)], 1) * 1e-3
+    label = np.where(x.ravel() < 10, -1, 1)
+    shares = np.array([0.5, 0.2, 0.3])
+    local = local_shares(position, label, shares)
+    assert local.shape == (400, 3)
+    np.testing.assert_allclose(local.sum(1), 1.0)
+    base, total = SHARE_PSEUDO * shares, LABEL_NEIGHBOURS + SHARE_PSEUDO
+    far_left, far_right = 10 * 20 + 0, 10 * 20 + 19
+    np.testing.assert_allclose(local[far_left], (base + [LABEL_NEIGHBOURS, 0, 0]) / total)
+    np.testing.assert_allclose(local[far_right], (base + [0, 0, LABEL_NEIGHBOURS]) / total)
+    border = 10 * 20 + 9  # last matte column: about half its neighbours are material 1
+    assert 0.3 < local[border, 0] < 0.7 and 0.3 < local[border, 2] < 0.7
+    np.testing.assert_allclose(local_shares(position[:1], label[:1], shares), [shares / shares.sum()])
