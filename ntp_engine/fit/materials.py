@@ -409,22 +409,27 @@ def class_shares(materials: BasisMaterials, matte_share: float = MATTE_SHARE) ->
     return np.concatenate([[matte_share], materials.share * ((1 - matte_share) / (1 - MATTE_SHARE))])
 
 
-def local_shares(position: np.ndarray, label: np.ndarray, shares: np.ndarray) -> np.ndarray:
-    """Each texel's class shares ``(N, 1 + K)`` where it lies: the labels ``label (N,)`` (-1 matte,
-    0..K-1 the lobe materials) of its ``LABEL_NEIGHBOURS`` nearest others at ``position (N, 3)``
-    counted with the object's ``shares (1 + K,)`` (``class_shares``) as ``SHARE_PSEUDO`` more, then
-    normalised. Most objects are made of a few materials in regions: a texel whose own trace cannot
-    tell takes the class its neighbours have (the vase's black print cells, 3 entries each, joined
-    the dark metal by colour among white, matte ones)."""
-    K1 = len(shares)
-    base = SHARE_PSEUDO * shares / shares.sum()
+def label_neighbours(position: np.ndarray) -> np.ndarray:
+    """The ``LABEL_NEIGHBOURS`` nearest other texels of each texel at ``position (N, 3)``: indices
+    ``(N, k)``, k = min(LABEL_NEIGHBOURS, N - 1) (``local_shares``' neighbourhoods, fixed while the
+    labels change)."""
     if len(position) < 2:
-        return np.broadcast_to(base / base.sum(), (len(position), K1)).copy()
+        return np.zeros((len(position), 0), np.int64)
     k = min(LABEL_NEIGHBOURS + 1, len(position))
-    near = cKDTree(position).query(position, k=k)[1][:, 1:]  # the texel itself first: left out
-    counts = np.zeros((len(position), K1))
-    np.add.at(counts, (np.repeat(np.arange(len(position)), k - 1), (label[near] + 1).ravel()), 1.0)
-    out = counts + base
+    return cKDTree(position).query(position, k=k)[1][:, 1:]  # the texel itself first: left out
+
+
+def local_shares(near: np.ndarray, label: np.ndarray, shares: np.ndarray) -> np.ndarray:
+    """Each texel's class shares ``(N, 1 + K)`` where it lies: the labels ``label (N,)`` (-1 matte,
+    0..K-1 the lobe materials) of its neighbours ``near (N, k)`` (``label_neighbours``) counted with
+    the object's ``shares (1 + K,)`` (``class_shares``) as ``SHARE_PSEUDO`` more, then normalised.
+    Most objects are made of a few materials in regions: a texel whose own trace cannot tell takes
+    the class its neighbours have (the vase's black print cells, 3 entries each, joined the dark
+    metal by colour among white, matte ones)."""
+    N, k = near.shape
+    counts = np.zeros((N, len(shares)))
+    np.add.at(counts, (np.repeat(np.arange(N), k), (label[near] + 1).ravel()), 1.0)
+    out = counts + SHARE_PSEUDO * shares / shares.sum()
     return out / out.sum(1, keepdims=True)
 
 

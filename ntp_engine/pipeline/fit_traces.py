@@ -34,6 +34,7 @@ from ..fit.materials import (
     colour_held,
     estimated_matte_share,
     judged_colour_costs,
+    label_neighbours,
     lobe_clusters,
     local_shares,
     pooled_scale,
@@ -771,8 +772,9 @@ def _material_pass(
     prior = colour - np.log(shares)
     label[rest] = np.argmin(costs[rest] + prior[rest], 1) - 1  # -1: matte
     if texels is not None:  # then by each class's share where the texel lies (materials.local_shares)
+        neighbours = label_neighbours(texels.position[i_obs])
         for _ in range(LABEL_ROUNDS):
-            prior = colour - np.log(local_shares(texels.position[i_obs], label, shares))
+            prior = colour - np.log(local_shares(neighbours, label, shares))
             label[rest] = np.argmin(costs[rest] + prior[rest], 1) - 1
     fit["material"][i_obs] = label
     fit.update(basis.to_arrays())

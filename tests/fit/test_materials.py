@@ -18,6 +18,7 @@ from ntp_engine.fit.materials import (
     colour_held,
     estimated_matte_share,
     judged_colour_costs,
+    label_neighbours,
     lobe_clusters,
     local_shares,
     material_weight,
@@ -310,7 +311,7 @@ def test_local_shares_are_the_neighbours_classes_with_the_objects_as_more():
     position = np.stack([x.ravel(), y.ravel(), np.zeros(400)], 1) * 1e-3
     label = np.where(x.ravel() < 10, -1, 1)
     shares = np.array([0.5, 0.2, 0.3])
-    local = local_shares(position, label, shares)
+    local = local_shares(label_neighbours(position), label, shares)
     assert local.shape == (400, 3)
     np.testing.assert_allclose(local.sum(1), 1.0)
     base, total = SHARE_PSEUDO * shares, LABEL_NEIGHBOURS + SHARE_PSEUDO
@@ -319,4 +320,4 @@ def test_local_shares_are_the_neighbours_classes_with_the_objects_as_more():
     np.testing.assert_allclose(local[far_right], (base + [0, 0, LABEL_NEIGHBOURS]) / total)
     border = 10 * 20 + 9  # last matte column: about half its neighbours are material 1
     assert 0.3 < local[border, 0] < 0.7 and 0.3 < local[border, 2] < 0.7
-    np.testing.assert_allclose(local_shares(position[:1], label[:1], shares), [shares / shares.sum()])
+    np.testing.assert_allclose(local_shares(label_neighbours(position[:1]), label[:1], shares), [shares / shares.sum()])
