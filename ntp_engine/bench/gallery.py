@@ -5,9 +5,10 @@ Per run: pose error (SfM), relit SSIM under novel point lights (object pixels), 
 per material (``sim.evaluate.material_errors``): the share of its surface texels some photo sees
 (true poses), coverage (of those, the share some trace reached), normal angle, tangent angle mod 180 on
 anisotropic texels, |log alpha ratio|, rho_d RMSE and ratio, the share of texels on a material
-border and the rho_d RMSE of the others, |log rho_s ratio|, spurious-lobe
-rate on matte. With ``budget`` (``--budget``), where each run's relit SSIM is lost: the SSIM gained
-by one group of maps of one material taken from the truth (``sim.evaluate.relit_budget``). Writes
+border and the rho_d RMSE of the others, the rho_d RMSE a perfect map at the maps' resolution
+scores (its floor), |log rho_s ratio|, spurious-lobe rate on matte. With ``budget``
+(``--budget``), where each run's relit SSIM is lost: the SSIM gained by one group of maps of one
+material taken from the truth (``sim.evaluate.relit_budget``). Writes
 ``OUT/gallery.json``, ``OUT/gallery.md`` (the tables) and
 ``OUT/gallery.png`` (error per material, a bar per scanner x poses), and prints the tables; with
 ``refine`` (``--refine``) the results and files are ``*-refined`` beside them, from the same scans,

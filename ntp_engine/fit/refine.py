@@ -68,7 +68,7 @@ from .support_light import (
     support_specular_emitters,
 )
 
-VERSION = 49  # of the method: part of the pipeline's cache key (bump when results change for the same settings)
+VERSION = 50  # of the method: part of the pipeline's cache key (bump when results change for the same settings)
 CENSOR_CODE = VALID_CODE[1]  # above this an 8-bit code may be (or border) a clipped pixel: a lower bound
 EXPANDED_BLOCKS = 4  # emitter blocks per entry summed sample by sample (the rest as coarse emitters)
 SELECT_WIDEN, SELECT_FLOOR = 3.0, 0.03  # emitters are chosen under alphas x3 (at least 0.03)
@@ -93,6 +93,10 @@ ISOTROPIC_RATIO = 1.25  # alpha_x / alpha_y below this: the tangent is not const
 # a lobe solved less anisotropic than this is solved again isotropic, and keeps its anisotropy only
 # where the trace pays for it (``_prefer_isotropic``)
 ANISOTROPY_TEST = 4.0
+# the tint pull is relative to the lobe's mean rho_s, floored here: below it the pull holds the channels' absolute
+# spread. At 0.05 it was so stiff near rho_s 0, where a lobe's solve starts, that LM stalled and dropped
+# 2 of 48 synthetic lobes (test_anisotropic_lobe_recovered_from_a_perturbed_start); at 0.5 none
+TINT_FLOOR = 0.5
 ISOTROPIC_TIE = 1e4  # weight of the pull of log alpha_x to log alpha_y that holds a lobe isotropic (sigma 0.01)
 # rounds of that isotropic solve: it starts at the solved lobe (3 rounds moved the gallery cells'
 # |log alpha| by <= 0.04 more, and cost 3x; the vase's refine stage +31% with them)
@@ -140,6 +144,11 @@ class RefineSettings:
     normal_prior_deg: float = 3.0
     # the pull centres on the mesh's normal, not the start's (``calibrated`` decides per scan)
     normal_prior_at_mesh: bool = False
+    # a pull of rho_s's channels to their mean, sigma relative to it: a lobe is grey unless its photos say
+    # otherwise. A white highlight on a red diffuse clips first in red, which then bounds red's rho_s
+    # only from below: the dome's white lacquer came out 4.7 / 1.6 / 1.6 on half its texels (0.15 held
+    # it greyer but cost three Cycles |log alpha| cells; docs/accuracy.md, "A lobe is grey...")
+    rho_s_tint_sigma: float = 0.3
     materials: bool = True  # basis materials for texels whose own trace does not show their lobe (fit.materials)
     # the neighbours' albedo each entry's pixel may blend in, as noise on its diffuse light (fit.footprint)
     albedo_blend: bool = True
@@ -462,7 +471,8 @@ class _Prior(NamedTuple):
     ``_normal_prior``; geometric frame, weight ``n_w = 1 / sigma^2`` in rad^-2), log alphas toward
     ``la0 (N, 2)`` (``la_w (N,)``) and rho_s toward ``rs0 (N, 3)`` (``rs_w (N,)``; 0 = none): the
     start's, or a basis material's. ``tie_w (N,)``: a pull of log alpha_x to log alpha_y
-    (``ISOTROPIC_TIE``: an isotropic lobe; 0 = none)."""
+    (``ISOTROPIC_TIE``: an isotropic lobe; 0 = none). ``tint_w``: rho_s's channels to their mean
+    (``RefineSettings.rho_s_tint_sigma^-2``, relative to the mean: ``_tint_scale``)."""
 
     n_prior: Tensor
     n_w: float
@@ -471,10 +481,18 @@ class _Prior(NamedTuple):
     rs0: Tensor
     rs_w: Tensor
     tie_w: Tensor
+    tint_w: float
 
     def rows(self, idx: Tensor) -> _Prior:
         return _Prior(
-            self.n_prior[idx], self.n_w, self.la0[idx], self.la_w[idx], self.rs0[idx], self.rs_w[idx], self.tie_w[idx]
+            self.n_prior[idx],
+            self.n_w,
+            self.la0[idx],
+            self.la_w[idx],
+            self.rs0[idx],
+            self.rs_w[idx],
+            self.tie_w[idx],
+            self.tint_w,
         )
 
     def tied(self, isotropic: Tensor) -> _Prior:
@@ -494,14 +512,22 @@ class _Prior(NamedTuple):
             torch.zeros(N, 3, dtype=p.dtype),
             torch.zeros(N, dtype=p.dtype),
             torch.zeros(N, dtype=p.dtype),
+            settings.rho_s_tint_sigma**-2,
         )
+
+
+def _tint_scale(rho_s: Tensor) -> Tensor:
+    """1 / (mean channel^2 + TINT_FLOOR^2) ``(N,)`` of ``rho_s (N, 3)``: the tint pull is relative."""
+    return 1.0 / (rho_s.mean(1) ** 2 + TINT_FLOOR**2)
 
 
 def _prior(p: Tensor, prior: _Prior) -> Tensor:
     """The alpha and rho_s pulls' cost per texel at ``p (N, 11)``."""
     la = 0.5 * prior.la_w * ((p[:, P_LOGA] - prior.la0) ** 2).sum(1)
     la = la + 0.5 * prior.tie_w * (p[:, 3] - p[:, 4]) ** 2
-    return la + 0.5 * prior.rs_w * ((p[:, P_RHO_S] - prior.rs0) ** 2).sum(1)
+    rs = p[:, P_RHO_S]
+    tint = 0.5 * prior.tint_w * _tint_scale(rs) * ((rs - rs.mean(1, keepdim=True)) ** 2).sum(1)
+    return la + tint + 0.5 * prior.rs_w * ((rs - prior.rs0) ** 2).sum(1)
 
 
 def _normal_prior(frame: Tensor, settings: RefineSettings) -> Tensor:
@@ -593,6 +619,12 @@ def _lm_step(
     H[:, 4, 3] -= tie_w
     g[:, 3] += tie_w * spread
     g[:, 4] -= tie_w * spread
+    # the tint pull: 1/2 w s |rho_s - mean|^2, its relative scale s held at this linearisation (the
+    # cost, which accepts a step, has it exact)
+    rs = p[:, P_RHO_S].double()
+    tint_w = prior.tint_w * _tint_scale(rs)[:, None, None]
+    H[:, 8:11, 8:11] += tint_w * (torch.eye(3, dtype=torch.float64) - 1.0 / 3.0)
+    g[:, P_RHO_S] += tint_w[..., 0] * (rs - rs.mean(1, keepdim=True))
     # the normal prior: residuals u_x, u_y / sigma of the prior's normal u in the shading frame,
     # d u / d omega_k = u x e_k
     u = _prior_normal_in(rnd.frame0, prior.n_prior).double()  # at omega = 0
@@ -1089,6 +1121,7 @@ def refine_toward(
         p[:, P_RHO_S].clone(),
         prior.rho_s_sigma.to(dtype).clamp_min(1e-3) ** -2,
         torch.zeros(N, dtype=dtype),
+        settings.rho_s_tint_sigma**-2,
     ).tied(p[:, 3] - p[:, 4] < math.log(ISOTROPIC_RATIO))  # an isotropic material's lobe stays isotropic
     f, q, cost, H = _solve(tr, frame, p, True, settings, pulls)
     bad = ~(torch.isfinite(q).all(1) & torch.isfinite(f).flatten(1).all(1) & torch.isfinite(cost))

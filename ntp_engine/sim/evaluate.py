@@ -15,10 +15,12 @@
   >= 2:1), |log alpha ratio| of the sorted alphas (larger with larger), rho_d RMSE and ratio (mean
   reconstructed / mean true), **border** (the share of texels on a material border,
   ``material_border``) and the rho_d RMSE of the others (**rho_d_rmse_inside**: where the rho_d
-  error lies, not a target), |log rho_s ratio| (channel means), and on matte materials the
-  spurious-lobe rate: the fraction of texels given rho_s > ``SPURIOUS_RHO_S``. Medians over the
-  material's observed texels (the truth at each texel's centre, ``truth_at_texels``); NaN where a
-  metric does not apply or nothing was observed.
+  error lies, not a target), **rho_d_rmse_floor** (the rho_d RMSE of the truth averaged over each
+  texel's square, ``texel_means``: what a perfect map at the result's resolution scores, its
+  border texels holding the mean of two materials; not a target), |log rho_s ratio| (channel
+  means), and on matte materials the spurious-lobe rate: the fraction of texels given rho_s >
+  ``SPURIOUS_RHO_S``. Medians over the material's observed texels (the truth at each texel's
+  centre, ``truth_at_texels``); NaN where a metric does not apply or nothing was observed.
 
 Both assets must share the UV layout (true for scans of a mesh with UVs, whose UVs the pipeline
 keeps).
@@ -33,7 +35,7 @@ import torch
 from skimage.metrics import structural_similarity
 
 from ..io.images import read_image, write_png
-from ..io.maps import MAP_FILES, SVBRDFMaps, bilinear_corners, bilinear_weights, texel_uv, uv_to_pixel
+from ..io.maps import MAP_FILES, SVBRDFMaps, bilinear, bilinear_corners, bilinear_weights, texel_uv, uv_to_pixel
 from ..io.mesh import Mesh, load_mesh
 from ..io.raycast import RayCaster
 from ..pipeline.texels import rasterize
@@ -94,6 +96,7 @@ PARAMETER_METRICS = (
     "rho_d_ratio",
     "border",
     "rho_d_rmse_inside",
+    "rho_d_rmse_floor",
     "log_rho_s",
     "spurious_lobe",
 )
@@ -118,6 +121,22 @@ def _own_material_taps(labels: np.ndarray, uv: np.ndarray, label: np.ndarray) ->
     h, w = labels.shape
     rows, cols, fr, fc = bilinear_corners(h, w, *uv_to_pixel(uv, (h, w)))
     return labels[rows, cols] == label[:, None], bilinear_weights(fr, fc)
+
+
+def texel_means(truth: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """A map ``truth (Ht, Wt, C)`` averaged over each texel's square of a ``shape (H, W)`` grid:
+    ``(H W, C)`` in row-major order (``texel_uv``'s), from n x n bilinear samples per texel, n per
+    axis the ceiling of truth / grid texels (exact where the truth is n times finer: the samples land
+    on its texel centres)."""
+    H, W = shape
+    n_v, n_u = -(-truth.shape[0] // H), -(-truth.shape[1] // W)
+    uv = texel_uv(shape).reshape(-1, 2)
+    out = np.zeros((len(uv), truth.shape[2]))
+    for i in range(n_u):
+        for j in range(n_v):
+            step = np.array([((i + 0.5) / n_u - 0.5) / W, ((j + 0.5) / n_v - 0.5) / H])
+            out += bilinear(truth, uv + step)
+    return out / (n_u * n_v)
 
 
 def material_border(labels: np.ndarray, uv: np.ndarray, label: np.ndarray) -> np.ndarray:
@@ -209,8 +228,10 @@ def material_errors(
     surface = surface_texels(mesh, shape)
     seen = surface if scanner is None or poses is None else seen_texels(mesh, shape, scanner, poses)
     labels, table = load_labels(truth)
-    true, label = truth_at_texels(SVBRDFMaps.load(truth), labels, uv)
+    truth_maps = SVBRDFMaps.load(truth)
+    true, label = truth_at_texels(truth_maps, labels, uv)
     border = material_border(labels, uv, label)
+    ideal = texel_means(truth_maps.diffuse_albedo, shape)  # the best rho_d map at this resolution
     rec = {k: getattr(rec_maps, k).reshape(-1, getattr(rec_maps, k).shape[-1]) for k in MAP_FILES}
     rows = []
     for k, mat in enumerate(table):
@@ -228,6 +249,7 @@ def material_errors(
             row.update(parameter_errors(rec_sel, {key: v[sel] for key, v in true.items()}, mat["matte"]))
             # where its rho_d error lies: texels on a material border (a diagnostic; the target is rho_d_rmse)
             row["border"] = float(border[sel].mean())
+            row["rho_d_rmse_floor"] = float(np.sqrt(((ideal[sel] - true["diffuse_albedo"][sel]) ** 2).mean()))
             inside = sel & ~border
             if inside.any():
                 err = rec["diffuse_albedo"][inside] - true["diffuse_albedo"][inside]

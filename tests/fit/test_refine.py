@@ -536,3 +536,38 @@ def test_a_clipped_channel_is_a_lower_bound_alone():
     tr = _Trace(DEV, entries, mask, SensorNoise(), None)
     np.testing.assert_array_equal(tr.censored[..., 0].numpy(), (red & mask).numpy())
     assert not tr.censored[..., 1:].any()
+
+
+def test_a_lobe_is_grey_unless_its_photos_colour_it():
+    """A white lobe on a red diffuse whose highlight the photos show only where red clips (the others
+    left out: they show no lobe): those entries bound rho_s's red from below only, and solved per
+    channel red ran up 3x (the dome's white lacquer came out 4.7 / 1.6 / 1.6 on half its texels).
+    The pull of the channels to their mean (``rho_s_tint_sigma``) holds it grey; a gold lobe, which
+    its photos colour, keeps its colour."""
+
+    def log_ratio(rho_s, seen, a, b):
+        return (rho_s[seen, a] / rho_s[seen, b]).log()
+
+    entries, mask, p = _traces(64, 31, (0.8, 0.3, 0.25), (1.5, 1.5, 1.5), (0.03, 0.03))
+    matte, _, _ = _traces(64, 31, (0.8, 0.3, 0.25), (0.0, 0.0, 0.0), (0.03, 0.03))  # the same views, no lobe
+    y = entries[..., :3]
+    red_alone = (y[..., 0] >= 1.0) & (y[..., 1:] < 1.0).all(-1) & mask
+    no_lobe = ((y - matte[..., :3]).abs() <= 0.02 * y.clamp_min(1e-3)).all(-1)
+    keep = mask & (red_alone | no_lobe)
+    red = red_alone.any(1)
+    assert red.sum() >= 10  # the case is real
+    start, lobe = Start(*_perturbed(p, 32)), torch.ones(64, dtype=torch.bool)
+    r = refine(DEV, entries, keep, start, lobe)
+    free = refine(DEV, entries, keep, start, lobe, RefineSettings(rho_s_tint_sigma=1e6))
+    seen, seen_free = _seen(r) & red, _seen(free) & red
+    assert seen.sum() >= 10 and seen_free.sum() >= 10
+    # red over green and blue: 0.002 pulled, 1.13 free
+    assert (r.rho_s[seen, 0] / r.rho_s[seen, 1:].mean(1)).log().abs().median() < 0.1
+    assert (free.rho_s[seen_free, 0] / free.rho_s[seen_free, 1:].mean(1)).log().median() > 0.5
+    entries, mask, p = _traces(64, 33, (0.26, 0.25, 0.28), (4.0, 3.0, 1.6), (0.3, 0.025))
+    r = refine(DEV, entries, mask, Start(*_perturbed(p, 34)), lobe)
+    seen = _seen(r)
+    assert seen.float().mean() > 0.3
+    # its red over blue 0.030 off the truth's log 2.5 (0.030 without the pull), |log rho_s| 0.14 (0.16)
+    assert (log_ratio(r.rho_s, seen, 0, 2) - math.log(4.0 / 1.6)).abs().median() < 0.1
+    assert (r.rho_s[seen] / torch.tensor([4.0, 3.0, 1.6])).log().abs().median() < 0.2

@@ -1,3 +1,4 @@
+import dataclasses
 import shutil
 
 import numpy as np
@@ -20,6 +21,7 @@ from ntp_engine.sim.evaluate import (
     relit_ssim,
     seen_texels,
     surface_texels,
+    texel_means,
 )
 from ntp_engine.sim.gallery import build_asset
 from ntp_engine.sim.materials import load_labels
@@ -117,6 +119,23 @@ def test_texels_on_a_material_border_are_told_apart(tmp_path):
     uv = texel_uv(labels.shape).reshape(-1, 2)
     assert not material_border(labels, uv, labels.reshape(-1)).any()
     assert all(r["border"] == 0 for r in material_errors(*_result_from_truth(tmp_path / "same", name="knot")))
+
+
+def test_the_rho_d_floor_is_what_the_truths_texel_means_score(tmp_path):
+    """A result at half the truth's resolution holding the truth averaged over each texel's square
+    (the best rho_d map at that resolution) scores exactly its floor, which its texels on a material
+    border make > 0; as fine as the truth, the floor is 0."""
+    result, truth = _result_sampled_from_truth(tmp_path, "knot")
+    maps = SVBRDFMaps.load(result)
+    means = texel_means(SVBRDFMaps.load(truth).diffuse_albedo, maps.shape).reshape(maps.diffuse_albedo.shape)
+    dataclasses.replace(maps, diffuse_albedo=means).save(result)
+    for r in material_errors(result, truth):
+        assert r["rho_d_rmse_floor"] > 0.01 and r["rho_d_rmse"] == pytest.approx(r["rho_d_rmse_floor"], abs=1e-6), r
+    assert all(
+        r["rho_d_rmse_floor"] < 1e-6 for r in material_errors(*_result_from_truth(tmp_path / "same", name="knot"))
+    )
+    square = np.arange(16.0).reshape(4, 4, 1)  # 2 x 2 squares of a 4 x 4 map
+    np.testing.assert_allclose(np.sort(texel_means(square, (2, 2))[:, 0]), [2.5, 4.5, 10.5, 12.5])
 
 
 def test_material_errors_see_each_kind_of_error(tmp_path):
