@@ -51,12 +51,25 @@ def pattern_sums(
     alpha_y: Tensor,
     mask: Tensor,
     f0: float = F0_DIELECTRIC,
+    visibility: np.ndarray | None = None,
+    peaks: bool = True,
 ) -> PatternSums:
     """The sums of the module docstring for entries ``x, n, t (M, 3)``, alphas and ``mask (M,)``;
-    ``lobe_peak`` as ``specular_peak`` (the same grid of half vectors)."""
+    ``lobe_peak`` as ``specular_peak`` (the same grid of half vectors). ``visibility (M, K)``: the
+    V of Eq. 1 per entry and emitter sample (0/1 or a fraction; default all seen) — it weighs both
+    sums, not ``lobe_max``, which asks how bright the lobe gets toward a sample, lit or not.
+    ``peaks`` False: ``lobe_max`` and ``lobe_peak`` are not computed (zeros; a renderer needs
+    only the sums, and the peak's grid is a fifth of the work)."""
     frame = frame_from_normal_tangent(n.double(), t.double()).numpy()
     e = emitter_arrays(scanner)
     M = len(x)
+    K = e.points.shape[1]
+    if visibility is None:
+        vis = np.ones((1, K))
+    else:
+        vis = np.ascontiguousarray(visibility, dtype=np.float64)
+        if vis.shape != (M, K):
+            raise ValueError(f"visibility is {vis.shape}, not (entries, emitter samples) = {(M, K)}")
     out = np.zeros((M, 8))
     with numba_threads_as_torch():  # as --threads says
         _pattern_sums_loop(
@@ -73,6 +86,8 @@ def pattern_sums(
             e.table_values,
             PEAK_GRID.numpy(),
             float(f0),
+            vis,
+            bool(peaks),
             out,
         )
     o = torch.from_numpy(out)
@@ -152,10 +167,11 @@ def _lobe_above(ix, iy, iz, ox, oy, oz, ax2, ay2, iax2, iay2, scale, f0):  # pra
 
 @numba.njit(parallel=True, fastmath=True, cache=True)
 def _pattern_sums_loop(
-    x, frame, alpha_x, alpha_y, mask, pts, normals, drive, exponent, tab_a, tab_v, grid, f0, out
+    x, frame, alpha_x, alpha_y, mask, pts, normals, drive, exponent, tab_a, tab_v, grid, f0, vis, peaks, out
 ):  # pragma: no cover
     """Fills ``out (M, 8)``: diffuse sums (3), specular sums (3), lobe max, lobe peak (see the caller).
-    ``pts, normals, drive`` are ``(3, K)``: one row per coordinate or channel."""
+    ``pts, normals, drive`` are ``(3, K)``: one row per coordinate or channel; ``vis (M, K)`` or
+    ``(1, K)`` (one row for every entry)."""
     M, K, G = x.shape[0], pts.shape[1], grid.shape[0]
     px, py, pz = pts[0], pts[1], pts[2]
     qx, qy, qz = normals[0], normals[1], normals[2]
@@ -178,7 +194,8 @@ def _pattern_sums_loop(
         iax2, iay2 = 1.0 / ax2, 1.0 / ay2
         scale = 1.0 / (math.pi * ax * ay * (oz + math.sqrt(max(ax2 * ox * ox + ay2 * oy * oy + oz * oz, 1e-20))))
         buf = np.empty((3, K))
-        geo, lobe, psi = buf[0], buf[1], buf[2]  # per sample: cos_i / r^2 (0 below), lobe, Psi
+        geo, lobe, psi = buf[0], buf[1], buf[2]  # per sample: V cos_i / r^2 (0 below), lobe, Psi
+        seen = vis[m] if vis.shape[0] > 1 else vis[0]
         for k in range(K):
             dx, dy, dz = px[k] - x0, py[k] - x1, pz[k] - x2
             r2 = max(dx * dx + dy * dy + dz * dz, 1e-12)
@@ -187,7 +204,7 @@ def _pattern_sums_loop(
             iy = (b0 * dx + b1 * dy + b2 * dz) * inv
             iz = (n0 * dx + n1 * dy + n2 * dz) * inv
             lobe[k] = _lobe_above(ix, iy, iz, ox, oy, oz, ax2, ay2, iax2, iay2, scale, f0)
-            geo[k] = max(iz, 0.0) / r2
+            geo[k] = max(iz, 0.0) / r2 * seen[k]
             psi[k] = min(max(-(dx * qx[k] + dy * qy[k] + dz * qz[k]) * inv, 0.0), 1.0)  # cos at the emitter
         if exponent != 1.0:  # Psi other than the cosine itself: not vectorised, over the buffer
             for k in range(K):
@@ -202,6 +219,10 @@ def _pattern_sums_loop(
             s0 += a * w0[k]
             s1 += a * w1[k]
             s2 += a * w2[k]
+        out[m, 0], out[m, 1], out[m, 2] = d0, d1, d2
+        out[m, 3], out[m, 4], out[m, 5] = s0, s1, s2
+        if not peaks:
+            continue
         top = 0.0  # Eq. 6 asks how bright the lobe gets toward a sample, lit or not
         for k in range(K):
             top = max(top, lobe[k])
@@ -215,6 +236,4 @@ def _pattern_sums_loop(
                 dot = 2.0 * (ox * hx + oy * hy + oz * hz)
                 ix, iy, iz = dot * hx - ox, dot * hy - oy, dot * hz - oz  # wo mirrored about h
                 peak = max(peak, _lobe_above(ix, iy, iz, ox, oy, oz, ax2, ay2, iax2, iay2, scale, f0))
-        out[m, 0], out[m, 1], out[m, 2] = d0, d1, d2
-        out[m, 3], out[m, 4], out[m, 5] = s0, s1, s2
         out[m, 6], out[m, 7] = top, peak

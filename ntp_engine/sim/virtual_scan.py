@@ -60,7 +60,7 @@ class ScanConfig:
     blur_fraction: float = 0.0
     blur_px: float = 12.0  # motion-blur streak length in pixels at scale 0.25 (scales with resolution)
     clusters: int = 64
-    chunk: int = 512
+    chunk: int = 2048  # object pixels shaded at once (512: 15% slower per photo, 8192: 10%)
 
 
 def trajectory(center: np.ndarray, scanner: Scanner, cfg: ScanConfig, rng: np.random.Generator) -> list[np.ndarray]:

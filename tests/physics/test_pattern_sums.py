@@ -77,3 +77,29 @@ def test_fused_sums_of_views_facing_away_or_backlit_are_zero_and_finite():
     want = _reference(scanner, x, -n, t, ax, ay)
     assert (got.diffuse == 0).all() and (got.specular == 0).all() and (got.lobe_peak == 0).all()
     torch.testing.assert_close(got.lobe_max, want[2])
+
+
+def test_fused_sums_weigh_each_emitter_sample_by_its_visibility():
+    scanner = load_scanner(DEVICES_DIR / "area_light.toml")  # several samples per emitter
+    x, n, t, ax, ay = _entries(M=64, seed=1)
+    L, Q = scanner.emitter_samples(F64)[1].shape
+    g = torch.Generator().manual_seed(2)
+    vis = (torch.rand(64, L, Q, generator=g, dtype=F64) > 0.4).to(F64)
+    vis[5] = 0.0  # an entry in full shadow
+    vis[6] = 0.5  # a fractional one
+    mask = torch.ones(64, dtype=torch.bool)
+    got = pattern_sums(scanner, x, n, t, ax, ay, mask, visibility=vis.reshape(64, -1).numpy())
+    geo = local_emitter_geometry(scanner, x, n, t, vis)
+    a_l, s_l = terms_from_lobe(geo, specular_lobe(geo, ax, ay))
+    drive = torch.as_tensor(scanner.effective_pattern(), dtype=F64)
+    torch.testing.assert_close(got.diffuse, a_l @ drive, rtol=1e-9, atol=1e-14)
+    torch.testing.assert_close(got.specular, s_l @ drive, rtol=1e-9, atol=1e-14)
+    assert (got.diffuse[5] == 0).all() and float(got.diffuse.abs().max()) > 0
+    unshadowed = pattern_sums(scanner, x, n, t, ax, ay, mask)
+    torch.testing.assert_close(got.lobe_max, unshadowed.lobe_max)  # how bright toward a sample, lit or not
+    # without the peaks: the same sums, no lobe maximum or peak
+    bare = pattern_sums(scanner, x, n, t, ax, ay, mask, visibility=vis.reshape(64, -1).numpy(), peaks=False)
+    assert torch.equal(bare.diffuse, got.diffuse) and torch.equal(bare.specular, got.specular)
+    assert (bare.lobe_max == 0).all() and (bare.lobe_peak == 0).all()
+    with pytest.raises(ValueError, match="visibility"):
+        pattern_sums(scanner, x, n, t, ax, ay, mask, visibility=vis.reshape(64, -1)[:, :3].numpy())

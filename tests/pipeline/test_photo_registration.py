@@ -68,9 +68,11 @@ def test_eliminate_nuisances_removes_albedos_and_photo_fields_and_nothing_else()
     assert torch.einsum("vnc,nk,vncd->vkcd", w, field, out).abs().max() < 1e-3  # each photo's field
     assert torch.allclose(eliminate_nuisances(field, w, signal + nuisance)[seen], out[seen], atol=1e-4)
     assert torch.allclose(eliminate_nuisances(field, w, out)[seen], out[seen], atol=1e-4)
-    # columns are fitted alike, one by one or together
+    # columns are fitted alike, one by one or together (where observed: elsewhere the residual is
+    # not meaningful — the ridge's pick of the common field, 1e-2 apart between the two solves on
+    # some CPUs' float32)
     both = eliminate_nuisances(field, w, torch.cat([signal, 2 * signal], -1))
-    assert torch.allclose(both[..., 1:], 2 * out, atol=1e-4)
+    assert torch.allclose(both[..., 1:][seen], 2 * out[seen], atol=1e-4)
     # an unobserved value does not enter, even an infinite one (0 * inf would poison every point)
     poisoned = torch.where(seen, signal, torch.tensor(float("inf")))
     assert torch.allclose(eliminate_nuisances(field, w, poisoned)[seen], out[seen], atol=1e-4)
