@@ -378,7 +378,7 @@ def _parser() -> argparse.ArgumentParser:
         action=argparse.BooleanOptionalAction,
         default=True,
         help="refine every texel against its photos (as reconstruct --refine; on by default): the maps that "
-        "meet the demo's goals, ~2 of its ~4.5 minutes",
+        "meet the demo's goals, ~40% of its run time",
     )
     _quiet_and_progress(d)
     d.set_defaults(func=_demo)

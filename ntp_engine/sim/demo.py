@@ -8,7 +8,7 @@ left, reconstruction right) to ``DIR/relit/``; with bpy installed, the add-on's 
 ``DIR/asset.blend``, ``DIR/asset.glb`` and a Cycles ``DIR/preview.png``. Re-running resumes: the scan is kept when its
 settings match, and the pipeline's stages are cached. The reconstruction includes the
 analysis-by-synthesis refinement (``ntp reconstruct --refine``; ``refine=False`` leaves it out): on
-the defaults ~2 of the run's ~4.5 minutes on 2 cores, and what meets the demo's quality goals
+the defaults ~40% of the run's time on 2 cores (5-8 minutes, by the machine), and what meets the demo's quality goals
 (docs/accuracy.md).
 """
 
