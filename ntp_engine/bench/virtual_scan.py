@@ -28,6 +28,13 @@ def _with_wall(mesh: Mesh) -> Mesh:
     return Mesh(v, f, uv, smooth_normals(v, f))
 
 
+def _lit_errors(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Per pixel of the reference ``b (..., 3)`` brighter than 0.02 in some channel: the largest
+    channel's |a - b| relative to b's brightest channel."""
+    bright = b.max(-1) > 0.02
+    return np.abs(a - b)[bright].max(-1) / b[bright].max(-1)
+
+
 def _shading(scene: Scene, poses: list[np.ndarray], cam) -> dict:
     """The same linear renders with Eq. 1 summed by the compiled loop and by the torch factorised
     terms (``Scene.shading``), alternating photo by photo: seconds each and their largest relative
@@ -41,9 +48,7 @@ def _shading(scene: Scene, poses: list[np.ndarray], cam) -> dict:
             t0 = time.perf_counter()
             images[shading], _ = scene.render_linear(pose, cam)
             seconds[shading] += time.perf_counter() - t0
-        a, b = images["compiled"], images["tensor"]
-        lit = b.max(-1) > 0.02
-        worst = max(worst, float((np.abs(a - b)[lit].max(-1) / b[lit].max(-1)).max(initial=0.0)))
+        worst = max(worst, float(_lit_errors(images["compiled"], images["tensor"]).max(initial=0.0)))
     scene.shading = "compiled"
     n = max(len(poses), 1)
     out = {
@@ -87,7 +92,7 @@ def run(photos: int = 3, json_path=None, scales: tuple[float, ...] = (0.25, 1.0)
     # shadow error: clusters vs exact, on object pixels of a few views of the dome beside a wall
     walled = Scene(_with_wall(mesh), maps, scanner, cfg.clusters, cfg.exposure)
     cam = resampled(scanner, shadow_scale)
-    errs, t_c, t_e, lit = [], 0.0, 0.0, []
+    errs, t_c, t_e = [], 0.0, 0.0
     for i in (2, 9, 16):
         lin, info = walled.render_linear(poses[i], cam)
         obj = np.nonzero(info["geom"].reshape(-1) == 0)[0]
@@ -98,9 +103,7 @@ def run(photos: int = 3, json_path=None, scales: tuple[float, ...] = (0.25, 1.0)
         t0 = time.perf_counter()
         b, _ = walled.render_linear(poses[i], cam, pixel_subset=sub, exact_shadows=True)
         t_e += time.perf_counter() - t0
-        bright = b.max(-1) > 0.02
-        errs.append(np.abs(a - b)[bright].max(-1) / b[bright].max(-1))
-        lit.append(bright.mean())
+        errs.append(_lit_errors(a, b))
     e = np.concatenate(errs) if errs else np.zeros(1)
     result.update(
         {

@@ -149,7 +149,7 @@ class Scene:
             x, n, t, rd, rs, ax, ay = map(T, (x_c, n_c, t_c, rho_d, rho_s, alpha[:, 0], alpha[:, 1]))
             return measurement_rgb(self.scanner, x, n, t, rd, rs, ax, ay, None, T(vis)).double().numpy()
         # Eq. 1 as the fit's fused loop sums it: measurement_rgb's factorised terms in float64,
-        # each emitter sample weighed by its shadow (ntp bench virtual-scan: 1.6x faster per photo)
+        # each emitter sample weighed by its shadow (``ntp bench virtual-scan`` times it against the torch terms)
         x64, n64, t64, ax64, ay64 = (
             torch.from_numpy(np.ascontiguousarray(a, np.float64)) for a in (x_c, n_c, t_c, *alpha.T)
         )
