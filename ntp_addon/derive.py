@@ -1,7 +1,7 @@
 """Per-texel inputs of the two Blender materials, derived from a result folder's maps (bpy-free).
 
 Convention: arrays are ``(H, W, C)`` in the maps' layout (row 0 = top, v = 1). The mesh's UV tangent
-frame per texel (``ntp_engine.pipeline.texels``: dP/du made orthogonal to the interpolated normal) stands in
+frame per texel (``ntp_engine.io.texels``: dP/du made orthogonal to the interpolated normal) stands in
 for Blender's UV tangent (MikkTSpace), which it matches up to the per-vertex averaging.
 
 Cycles facts these follow (Cycles 4.x/5.x kernel, ``svm_closure.h``):
@@ -20,7 +20,7 @@ import numpy as np
 from ntp_engine.io.colour import srgb_encode
 from ntp_engine.io.maps import SVBRDFMaps, fill_missing
 from ntp_engine.io.mesh import Mesh
-from ntp_engine.pipeline.texels import rasterize
+from ntp_engine.io.texels import rasterize
 
 
 def uv_frames(mesh: Mesh, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:

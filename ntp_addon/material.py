@@ -34,8 +34,8 @@ import numpy as np
 from ntp_engine.io.errors import NtpInputError
 from ntp_engine.io.maps import MAP_FILES, SVBRDFMaps
 from ntp_engine.io.mesh import load_mesh
+from ntp_engine.io.output_folder import REPORT, is_complete
 from ntp_engine.physics.brdf import F0_DIELECTRIC
-from ntp_engine.pipeline.output_folder import REPORT, is_complete
 
 from . import derive
 from .schlick_lobe import schlick_lobe_node

@@ -23,7 +23,7 @@ from bpy_extras.io_utils import ImportHelper
 
 from ntp_engine.io.errors import NtpInputError, error_line
 from ntp_engine.io.progress import read_progress
-from ntp_engine.pipeline.scan_folder import load_poses, load_scan
+from ntp_engine.scanner.scan_folder import load_poses, load_scan
 
 from . import material
 from . import scene as bscene

@@ -22,17 +22,17 @@ from .bench import stability as bench_stability
 from .bench import virtual_scan as bench_virtual_scan
 from .io.errors import NtpInputError, error_line
 from .io.progress import Progress
+from .io.threads import set_threads
 from .learn import models
 from .learn.network import NetworkConfig
 from .learn.train import LR_SCHEDULES, TrainConfig, train
 from .pipeline.collection import SUMMARY, BatchOptions, reconstruct_collection
 from .pipeline.photo_selection import BLUR_MARGIN
-from .pipeline.scan_folder import Scan, load_scan
-from .pipeline.sfm import MAPPERS
 from .pipeline.stages import DEFAULT_RESOLUTION, reconstruct, register_photos, write_registration
 from .pipeline.task_pool import LOCAL, LocalPool, RayPool, TaskPool
-from .pipeline.threads import set_threads
+from .register.sfm import MAPPERS
 from .scanner.device_file import DEFAULT_DEVICE, list_devices, load_scanner, write_pattern
+from .scanner.scan_folder import Scan, load_scan
 from .sim import demo
 from .sim.cycles_scan import CyclesConfig, cycles_scan
 from .sim.gallery import GALLERY

@@ -22,8 +22,8 @@ def colmap24(scan24, tmp_path_factory):
     """pycolmap's SfM of ``scan24`` as pycolmap wrote it (binary): (model folder, the SfM result, scan)."""
     import pycolmap
 
-    from ntp_engine.pipeline.scan_folder import load_scan
-    from ntp_engine.pipeline.sfm import structure_from_motion
+    from ntp_engine.register.sfm import structure_from_motion
+    from ntp_engine.scanner.scan_folder import load_scan
 
     scan = load_scan(scan24)
     work = tmp_path_factory.mktemp("colmap24") / "sfm"

@@ -9,7 +9,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 ENGINE = ROOT / "ntp_engine"
 # the data flow: a package may import only packages at its own position or before it
-ORDER = ["io", "scanner", "physics", "learn", "fit", "pipeline", "sim", "bench", "cli"]
+ORDER = ["io", "scanner", "physics", "learn", "fit", "refine", "register", "pipeline", "sim", "bench", "cli"]
 
 
 def _module_name(path: Path) -> str:

@@ -24,8 +24,8 @@ import pytest
 from ntp_engine import cli
 from ntp_engine.io.images import read_image, write_png
 from ntp_engine.io.mesh import Mesh, load_mesh, save_obj
+from ntp_engine.io.output_folder import claim, is_complete
 from ntp_engine.learn import models
-from ntp_engine.pipeline.output_folder import claim, is_complete
 
 RES = "16"
 

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from ..io.images import write_png
-from ..pipeline.cache import content_key, file_digest
+from ..io.stage_cache import content_key, file_digest
 from ..scanner.device_file import load_scanner
 from . import dump_json, print_table
 

@@ -30,11 +30,11 @@ import numpy as np
 
 from ..io.atomic import write_text_atomic
 from ..io.errors import NtpInputError
+from ..io.output_folder import claim
 from ..io.progress import QUIET, Progress
-from ..pipeline.cache import content_digest, digest
-from ..pipeline.output_folder import claim
-from ..pipeline.scan_folder import load_poses, load_scan
+from ..io.stage_cache import content_digest, digest
 from ..pipeline.stages import reconstruct, register_photos
+from ..scanner.scan_folder import load_poses, load_scan
 from ..sim.cycles_scan import RENDER_VERSION, CyclesConfig, cycles_scan
 from ..sim.evaluate import (
     BUDGET_GROUPS,

@@ -22,17 +22,22 @@ import numpy as np
 import torch
 from scipy.optimize import least_squares
 
-from ..fit import refine as rf
-from ..fit.footprint import Footprint
 from ..io.atomic import write_text_atomic
 from ..io.maps import SVBRDFMaps
 from ..io.mesh import load_mesh
+from ..io.output_folder import claim
 from ..io.progress import QUIET, Progress
-from ..pipeline.fit_traces import refine_inputs
-from ..pipeline.output_folder import claim
-from ..pipeline.scan_folder import load_scan
+from ..io.texels import Texels, rasterize
+from ..physics.brdf import ALPHA_MAX, ALPHA_MIN
+from ..physics.frame import frame_from_normal_tangent
 from ..pipeline.stages import cached_fit, reconstruct
-from ..pipeline.texels import Texels, rasterize
+from ..refine.footprint import Footprint
+from ..refine.inputs import refine_inputs
+from ..refine.model import P_LOGA, P_OMEGA, Round, Start, Trace, fold, residuals
+from ..refine.policy import calibrated, refine
+from ..refine.priors import normal_prior, prior_normal_in
+from ..refine.settings import RefineSettings, SensorNoise
+from ..scanner.scan_folder import load_scan
 from ..scanner.scanner import Scanner
 from ..sim.evaluate import parameter_errors, truth_at_texels
 from ..sim.gallery import GALLERY, build_asset
@@ -40,13 +45,13 @@ from ..sim.materials import load_labels
 from . import gallery as bench_gallery
 
 # (label, settings): the ladder of budgets; "priors off" drops the weak normal and alpha priors
-VARIANTS: tuple[tuple[str, rf.RefineSettings], ...] = (
-    ("1 LM iteration", rf.RefineSettings(rounds=1, iterations=1, starts=False)),
-    ("2 LM iterations", rf.RefineSettings(rounds=1, iterations=2, starts=False)),
-    ("5 (multi-start 3 + 2)", rf.RefineSettings(rounds=2, iterations=2)),
-    ("9 (default: 3 rounds x 3)", rf.RefineSettings()),
-    ("default, priors off", rf.RefineSettings(log_alpha_prior_sigma=1e6, normal_prior_deg=1e6)),
-    ("12 (4 rounds x 3)", rf.RefineSettings(rounds=4)),
+VARIANTS: tuple[tuple[str, RefineSettings], ...] = (
+    ("1 LM iteration", RefineSettings(rounds=1, iterations=1, starts=False)),
+    ("2 LM iterations", RefineSettings(rounds=1, iterations=2, starts=False)),
+    ("5 (multi-start 3 + 2)", RefineSettings(rounds=2, iterations=2)),
+    ("9 (default: 3 rounds x 3)", RefineSettings()),
+    ("default, priors off", RefineSettings(log_alpha_prior_sigma=1e6, normal_prior_deg=1e6)),
+    ("12 (4 rounds x 3)", RefineSettings(rounds=4)),
 )
 DEFAULT_LABEL = "9 (default: 3 rounds x 3)"
 
@@ -115,9 +120,7 @@ def run(out: Path, bench: RefineBench | None = None, json_path: Path | None = No
                 inp = refine_inputs(scan.scanner, traces, torch.as_tensor(sel), fit, None, texels)
                 ent, mask, start, specular, shadow = inp.entries, inp.mask, inp.start, inp.specular, inp.shadow
                 footprint = inp.footprint
-                tuned = rf.calibrated(
-                    scan.scanner, ent, mask, start, specular, rf.RefineSettings(), shadow, None, footprint
-                )
+                tuned = calibrated(scan.scanner, ent, mask, start, specular, RefineSettings(), shadow, None, footprint)
                 noise = tuned.noise
                 answers = {
                     "network + fit": (
@@ -131,11 +134,11 @@ def run(out: Path, bench: RefineBench | None = None, json_path: Path | None = No
                 for label_v, st in VARIANTS:
                     st = replace(st, noise=noise, normal_prior_at_mesh=tuned.normal_prior_at_mesh)
                     t0 = time.perf_counter()
-                    r = rf.refine(scan.scanner, ent, mask, start, specular, st, shadow, None, footprint)
+                    r = refine(scan.scanner, ent, mask, start, specular, st, shadow, None, footprint)
                     seconds = time.perf_counter() - t0
                     speed.append(
                         {
-                            "noise_scale": noise.relative / rf.SensorNoise().relative,
+                            "noise_scale": noise.relative / SensorNoise().relative,
                             "object": name,
                             "scanner": scanner,
                             "variant": label_v,
@@ -186,7 +189,7 @@ def run(out: Path, bench: RefineBench | None = None, json_path: Path | None = No
 
 
 def _baseline(
-    tuned: rf.RefineSettings,
+    tuned: RefineSettings,
     scanner: Scanner,
     ent: torch.Tensor,
     mask: torch.Tensor,
@@ -206,13 +209,13 @@ def _baseline(
     pick = np.sort(rng.choice(spec_idx, min(bench.baseline_texels, len(spec_idx)), replace=False))
     if len(pick) == 0:
         return {}
-    st = rf.RefineSettings(noise=tuned.noise, normal_prior_at_mesh=tuned.normal_prior_at_mesh)
+    st = RefineSettings(noise=tuned.noise, normal_prior_at_mesh=tuned.normal_prior_at_mesh)
     sub_ent, sub_mask = ent[pick].double(), mask[pick]
     idx = sel[pick]
     t0 = time.perf_counter()
     lobe = torch.ones(len(pick), dtype=torch.bool)
     spread = None if footprint is None else footprint.rows(pick)
-    ours = rf.refine(scanner, ent[pick], mask[pick], rf.Start.from_fit(fit, idx), lobe, st, shadow[pick], None, spread)
+    ours = refine(scanner, ent[pick], mask[pick], Start.from_fit(fit, idx), lobe, st, shadow[pick], None, spread)
     t_ours = (time.perf_counter() - t0) / len(pick)
     t0 = time.perf_counter()
     res = [
@@ -257,35 +260,35 @@ def _scipy_texel(
     mask: torch.Tensor,
     shadow: torch.Tensor,
     start: dict,
-    st: rf.RefineSettings,
+    st: RefineSettings,
     footprint: Footprint | None = None,
 ) -> tuple:
     """One texel by scipy least_squares on the refinement's objective with every sample exact."""
-    tr = rf._Trace(scanner, ent, mask, st.noise, None, shadow, None, footprint)  # no blocks: every sample exact
-    frame0 = rf.frame_from_normal_tangent(torch.as_tensor(start["n_loc"]), torch.as_tensor(start["t_loc"]))
-    la0 = torch.as_tensor(np.log(np.clip(start["alpha"], rf.ALPHA_MIN, rf.ALPHA_MAX)))
-    rnd = rf._Round(tr, frame0, la0, True)
+    tr = Trace(scanner, ent, mask, st.noise, None, shadow, None, footprint)  # no blocks: every sample exact
+    frame0 = frame_from_normal_tangent(torch.as_tensor(start["n_loc"]), torch.as_tensor(start["t_loc"]))
+    la0 = torch.as_tensor(np.log(np.clip(start["alpha"], ALPHA_MIN, ALPHA_MAX)))
+    rnd = Round(tr, frame0, la0, True)
     c, sa, sn = st.noise.robust, st.log_alpha_prior_sigma, math.radians(st.normal_prior_deg)
-    n_prior = rf._normal_prior(frame0, st)
+    n_prior = normal_prior(frame0, st)
 
     def fun(x: np.ndarray) -> np.ndarray:
         q = torch.as_tensor(x)[None]
-        d, s = rnd.bases(q[:, rf.P_OMEGA], q[:, rf.P_LOGA])
-        r, _ = rf._residuals(tr, d, s, q)
-        u = rf._prior_normal_in(rf._fold(frame0, q[:, rf.P_OMEGA]), n_prior)
-        return np.concatenate([r.flatten().numpy(), ((q[0, rf.P_LOGA] - la0[0]) / sa).numpy(), (u[0, :2] / sn).numpy()])
+        d, s = rnd.bases(q[:, P_OMEGA], q[:, P_LOGA])
+        r, _ = residuals(tr, d, s, q)
+        u = prior_normal_in(fold(frame0, q[:, P_OMEGA]), n_prior)
+        return np.concatenate([r.flatten().numpy(), ((q[0, P_LOGA] - la0[0]) / sa).numpy(), (u[0, :2] / sn).numpy()])
 
     x0 = np.concatenate(
         [[0, 0, 0], la0[0].numpy(), np.clip(start["rho_d"][0], 0, 1), np.clip(start["rho_s"][0], 0, 10)]
     )
-    lo = np.array([-np.pi] * 3 + [math.log(rf.ALPHA_MIN)] * 2 + [0] * 6)
-    hi = np.array([np.pi] * 3 + [math.log(rf.ALPHA_MAX)] * 2 + [1] * 3 + [10] * 3)
+    lo = np.array([-np.pi] * 3 + [math.log(ALPHA_MIN)] * 2 + [0] * 6)
+    hi = np.array([np.pi] * 3 + [math.log(ALPHA_MAX)] * 2 + [1] * 3 + [10] * 3)
     x0 = np.clip(x0, lo + 1e-9, hi - 1e-9)
     # the data residuals get the Cauchy loss, the priors too (scipy applies one loss to all): a priori
     # small, so the difference is negligible
     sol = least_squares(fun, x0, bounds=(lo, hi), loss="cauchy", f_scale=c, x_scale="jac", max_nfev=400)
     q = torch.as_tensor(sol.x)[None]
-    frame = rf._fold(frame0, q[:, rf.P_OMEGA])
+    frame = fold(frame0, q[:, P_OMEGA])
     a = np.exp(sol.x[3:5])[None]
     return frame[:, 2].numpy(), frame[:, 0].numpy(), a, sol.x[5:8][None], sol.x[8:11][None], float(sol.cost)
 

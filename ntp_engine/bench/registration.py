@@ -6,7 +6,7 @@ alignments side by side are what a registration confidence is set from.
 
 Scans are the gallery's (``bench.gallery.scan_object``, shared with ``ntp bench gallery`` under the
 same ``--out``); each SfM model is kept as a COLMAP folder under ``OUT/sfm/<object>-<scanner>-s<seed>/``
-and reused (``pipeline.colmap_model``), so re-runs only re-align. Writes ``OUT/registration.json``
+and reused (``register.colmap_model``), so re-runs only re-align. Writes ``OUT/registration.json``
 and ``OUT/registration.md``.
 """
 
@@ -22,13 +22,13 @@ import numpy as np
 
 from ..io.atomic import temp_dir, write_text_atomic
 from ..io.errors import NtpInputError
+from ..io.output_folder import claim
 from ..io.progress import QUIET, Progress
-from ..pipeline.colmap_model import model_files, read_colmap_model
-from ..pipeline.output_folder import claim
-from ..pipeline.photo_registration import named_rival, refusal, refusal_kind
-from ..pipeline.scan_folder import load_poses, load_scan
-from ..pipeline.sfm import SfmResult, structure_from_motion
 from ..pipeline.stages import register_to_mesh
+from ..register.colmap_model import model_files, read_colmap_model
+from ..register.refusal import named_rival, refusal, refusal_kind
+from ..register.sfm import SfmResult, structure_from_motion
+from ..scanner.scan_folder import load_poses, load_scan
 from ..sim.evaluate import pose_error
 from ..sim.gallery import build_asset
 from .gallery import DEFAULT, GallerySettings, scan_object

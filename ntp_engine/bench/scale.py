@@ -19,7 +19,7 @@ import sys
 import time
 from pathlib import Path
 
-from ..pipeline.output_folder import claim
+from ..io.output_folder import claim
 from ..sim.virtual_scan import ScanConfig, virtual_scan
 from . import dump_json, print_table
 

@@ -15,10 +15,10 @@ from pathlib import Path
 
 from ..io.atomic import temp_dir, write_text_atomic
 from ..io.errors import NtpInputError
+from ..io.output_folder import claim
 from ..io.progress import QUIET, Progress
-from ..pipeline.output_folder import claim
-from ..pipeline.scan_folder import load_poses, load_scan
-from ..pipeline.sfm import MAPPERS, structure_from_motion
+from ..register.sfm import MAPPERS, structure_from_motion
+from ..scanner.scan_folder import load_poses, load_scan
 from ..sim.evaluate import pose_error, similarity_fit
 from ..sim.gallery import build_asset
 from .gallery import DEFAULT, scan_object

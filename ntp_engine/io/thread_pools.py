@@ -1,5 +1,5 @@
 """The thread pools beside torch's: numba's parallel loops run on as many threads as torch uses
-(so ``--threads N`` and the add-on's preference hold for them too; ``pipeline.threads`` sets
+(so ``--threads N`` and the add-on's preference hold for them too; ``io.threads`` sets
 torch's), and numpy's and scipy's OpenBLAS run single-threaded inside ``single_threaded_blas`` —
 their threads and torch's spin-wait against each other on few cores (measured on 2 cores, torch at
 2 threads: a batch of three 68 x 68 float64 solves took 9.0 ms, 0.38 ms with OpenBLAS at 1 thread)."""

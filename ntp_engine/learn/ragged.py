@@ -5,9 +5,9 @@ space in metres, geometric normal n^, geometric tangent t^), in the camera space
 Eq. 4); the network normalises positions itself. Entries of one trace are in photo order. Optional
 per-entry columns: ``in_range`` (the 8-bit code was in the valid range and the mesh hides too little
 of the pattern for the network) and ``shadow`` (int64 masks: the emitter groups of
-``fit.emitter_blocks.shadow_groups`` the mesh hides from the entry's point, bit g = group g) and
+``physics.emitter_blocks.shadow_groups`` the mesh hides from the entry's point, bit g = group g) and
 ``albedo_blend`` (RGB: how much of the neighbours' albedo the entry's pixel sample may blend in,
-``fit.footprint.albedo_blend``; set by the refinement).
+``refine.footprint.albedo_blend``; set by the refinement).
 """
 
 from __future__ import annotations

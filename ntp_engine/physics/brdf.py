@@ -62,7 +62,7 @@ def bounded_f90(rho_s: Tensor) -> Tensor:
     all the light at grazing w_i.h, where the BRDF's F90 = 1 makes a rho_s = 10 lobe reflect 10x
     the light. The two differ only where w_i.h < 0.9 for rho_s > 1 (by < 2.5e-4 of F0 above):
     never for the scanner's own light, whose emitters sit beside the camera, only for light
-    bounced onto the object (``fit.support_light``; the Cycles scanner renders it so)."""
+    bounced onto the object (``refine.support_light``; the Cycles scanner renders it so)."""
     return 1.0 / rho_s.clamp_min(1.0)
 
 

@@ -18,12 +18,12 @@ from pathlib import Path
 
 from ..io.atomic import write_text_atomic
 from ..io.errors import NtpInputError, error_line
+from ..io.output_folder import claim
 from ..io.progress import QUIET, Progress
-from .output_folder import claim
-from .scan_folder import load_scan
+from ..io.threads import set_threads
+from ..scanner.scan_folder import load_scan
 from .stages import DEFAULT_RESOLUTION, reconstruct
 from .task_pool import LocalPool, TaskPool
-from .threads import set_threads
 
 SUMMARY = "batch.json"
 

@@ -15,8 +15,8 @@ import numpy as np
 
 from ..io.errors import NtpInputError
 from ..io.progress import QUIET, Progress, warn
+from ..scanner.scan_folder import read_photo
 from ..scanner.scanner import Scanner
-from .scan_folder import read_photo
 
 BLUR_MARGIN = 0.08
 

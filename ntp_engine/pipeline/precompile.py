@@ -1,7 +1,7 @@
 """Compile the engine's numba loops into their cache ahead of the first run (``make setup`` runs
 ``python -m ntp_engine.pipeline.precompile``), as a C extension is built at install time.
 
-Every loop (``fit.lobe_loop``, ``physics.pattern_sums``, ``fit.pixel_bases``, ``fit.gauss_newton``)
+Every loop (``fit.lobe_loop``, ``physics.pattern_sums``, ``refine.pixel_bases``, ``refine.gauss_newton``)
 is compiled on its first call and cached beside its source (``cache=True``); on a fresh clone that
 first call was in the user's first run — ~25 s of the demo's 5 minutes on 2 cores (docs/architecture.md). Here
 each is called once on a few synthetic traces through the same public functions the pipeline calls,
@@ -17,9 +17,11 @@ import torch
 
 from ..fit.albedo import highlights_and_albedo
 from ..fit.geometry import fit_geometry
-from ..fit.refine import RefineSettings, Start, refine
 from ..learn.synthetic import SyntheticConfig, sample_batch
 from ..physics.lumitexel import diffuse_lumitexel, specular_lumitexel
+from ..refine.model import Start
+from ..refine.policy import refine
+from ..refine.settings import RefineSettings
 from ..scanner.device_file import load_scanner
 
 TEXELS, VIEWS = 8, 6

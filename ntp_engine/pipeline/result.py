@@ -14,13 +14,13 @@ from pathlib import Path
 import numpy as np
 
 from ..fit.geometry import FLAG_NO_LOBE
-from ..fit.materials import BasisMaterials
 from ..io.atomic import write_text_atomic
 from ..io.images import write_exr, write_png
 from ..io.maps import MAP_FILES, SVBRDFMaps, axis_weight, consistent_axes
 from ..io.mesh import Mesh, save_obj
+from ..io.texels import Texels
 from ..physics.brdf import ALPHA_MAX, F0_DIELECTRIC, RHO_S_MAX
-from .texels import Texels
+from ..refine.materials import BasisMaterials
 
 PREVIEW_GAMMA = 2.2
 UNCERTAINTY_FILE = "uncertainty.exr"  # with the refinement: per-parameter 1-sigma (material.json says how)
@@ -79,13 +79,13 @@ def write_result(out: Path, mesh: Mesh, texels: Texels, fitted: dict[str, np.nda
     conf[texels.row, texels.col, 0] = observed & ((fitted["flags"] & FLAG_NO_LOBE) == 0)
     conf[texels.row, texels.col, 1] = lengths
     documented = {}
-    if "material" in fitted:  # the refinement's basis materials (fit.materials, pipeline.fit_traces)
+    if "material" in fitted:  # the refinement's basis materials (refine.materials, pipeline.fit_traces)
         conf[texels.row, texels.col, 2] = fitted["material"] + 1  # 0: no lobe material (-1 matte, -2 unseen)
         documented["basis_materials"] = basis_materials_doc(
             BasisMaterials.from_arrays(fitted), fitted.get("material_width_varies")
         )
     write_exr(out / "confidence.exr", conf)
-    if "std" in fitted:  # the refinement's 1-sigma uncertainties (fit.refine.Refined.std)
+    if "std" in fitted:  # the refinement's 1-sigma uncertainties (refine.policy.Refined.std)
         unc = np.full((H, W, 4), UNCONSTRAINED_STD)
         std = np.nan_to_num(fitted["std"], nan=UNCONSTRAINED_STD, posinf=UNCONSTRAINED_STD)
         unc[texels.row, texels.col] = np.minimum(std, UNCONSTRAINED_STD)

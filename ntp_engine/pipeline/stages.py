@@ -28,59 +28,43 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..fit.emitter_blocks import SHADOW_SPLITS
-from ..fit.refine import FLAG_FROM_MATERIAL, RefineSettings
-from ..fit.refine import VERSION as REFINE_VERSION
-from ..fit.support_light import ALBEDO_VERSION as SUPPORT_VERSION
-from ..fit.support_light import CELL as SUPPORT_CELL
-from ..fit.support_light import CODE_RANGE as SUPPORT_CODES
-from ..fit.support_light import REACH_RADII as SUPPORT_REACH
-from ..fit.support_light import SupportAlbedo, SupportScene, estimate_support_albedo, exposed
 from ..io.atomic import atomic_path, temp_dir, write_text_atomic
 from ..io.errors import NtpInputError
 from ..io.images import write_png
 from ..io.mesh import Mesh, load_mesh, save_obj
+from ..io.output_folder import claim, publish
 from ..io.progress import QUIET, Progress
 from ..io.raycast import RayCaster
+from ..io.stage_cache import StageCache, content_digest, content_key, digest
+from ..io.texels import Texels, rasterize, uv_atlas
+from ..io.threads import configured_threads
 from ..learn import models
 from ..learn.ragged import RaggedTraces
+from ..physics.emitter_blocks import SHADOW_SPLITS
+from ..refine.inputs import FLAG_WIDTH_FROM_MATERIAL, MIN_CLEAR_ENTRIES, REFINE_VIEWS
+from ..refine.passes import CALIBRATION_TEXELS, refine_fit
+from ..refine.settings import FLAG_FROM_MATERIAL, RefineSettings
+from ..refine.settings import VERSION as REFINE_VERSION
+from ..refine.support_light import ALBEDO_VERSION as SUPPORT_VERSION
+from ..refine.support_light import CELL as SUPPORT_CELL
+from ..refine.support_light import CODE_RANGE as SUPPORT_CODES
+from ..refine.support_light import REACH_RADII as SUPPORT_REACH
+from ..refine.support_light import SupportAlbedo, SupportScene, estimate_support_albedo, exposed
+from ..register.align import Alignment, align_to_mesh
+from ..register.check import PhotoCheck, check_registration, spread
+from ..register.colmap_model import model_files, read_colmap_model
+from ..register.photo_stack import PhotoStack
+from ..register.photometric import VERSION as REGISTRATION_VERSION
+from ..register.refusal import MIN_MARGIN, MIN_SHARPNESS, outline_picture, refusal
+from ..register.sfm import MIN_REGISTERED, SfmResult, structure_from_motion
 from ..scanner import camera
 from ..scanner.device_file import scanner_to_dict
+from ..scanner.scan_folder import Scan, check_mesh_size, read_photo
 from . import traces as trace_assembly
-from .align import Alignment, align_to_mesh
-from .cache import StageCache, content_digest, content_key, digest
-from .colmap_model import model_files, read_colmap_model
-from .fit_traces import (
-    ALBEDO_VIEWS,
-    CALIBRATION_TEXELS,
-    FIT_BLOCK,
-    FLAG_WIDTH_FROM_MATERIAL,
-    MIN_CLEAR_ENTRIES,
-    NETWORK_VIEWS,
-    REFINE_VIEWS,
-    RHO_S_PRIOR_WEIGHT,
-    fit_blocks,
-    refine_fit,
-)
-from .output_folder import claim, publish
-from .photo_registration import (
-    MIN_MARGIN,
-    MIN_SHARPNESS,
-    PhotoCheck,
-    PhotoStack,
-    check_registration,
-    outline_picture,
-    refusal,
-    spread,
-)
-from .photo_registration import VERSION as REGISTRATION_VERSION
+from .fit_traces import ALBEDO_VIEWS, FIT_BLOCK, NETWORK_VIEWS, RHO_S_PRIOR_WEIGHT, fit_blocks
 from .photo_selection import BLUR_MARGIN, Selection, select_photos
 from .result import write_result
-from .scan_folder import Scan, check_mesh_size, read_photo
-from .sfm import MIN_REGISTERED, SfmResult, structure_from_motion
 from .task_pool import LocalPool, RayPool, TaskPool
-from .texels import Texels, rasterize, uv_atlas
-from .threads import configured_threads
 
 DEFAULT_RESOLUTION = 1024  # texture maps are DEFAULT_RESOLUTION^2 unless asked otherwise
 MIN_RESOLUTION = 8
@@ -455,7 +439,7 @@ def refine_summary(fitted: dict[str, np.ndarray]) -> dict:
     out: dict = {}
     if "noise_scale" in fitted:
         out["noise_scale"] = float(fitted["noise_scale"])
-    if "normal_prior_at_mesh" in fitted:  # where the normal's weak pull centred (fit.refine.calibrated)
+    if "normal_prior_at_mesh" in fitted:  # where the normal's weak pull centred (refine.policy.calibrated)
         out["normal_prior"] = "mesh" if bool(fitted["normal_prior_at_mesh"]) else "start"
     if "material" in fitted:
         out["basis_materials"] = int(len(fitted["material_share"]))
@@ -519,7 +503,7 @@ def _support_stage(
     h_pose: str,
     progress: Progress,
 ) -> tuple[SupportAlbedo, str]:
-    """The support's albedo map from the photos (``fit.support_light``) and its stage hash."""
+    """The support's albedo map from the photos (``refine.support_light``) and its stage hash."""
     names = sorted(poses)
 
     def compute(d: Path) -> None:

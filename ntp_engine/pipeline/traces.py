@@ -31,19 +31,17 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from torch import Tensor
 
-from ..fit.emitter_blocks import ShadowGroups, sample_drive, shadow_groups
 from ..io.maps import bilinear_corners, bilinear_pixels
 from ..io.progress import QUIET, Progress
 from ..io.raycast import RayCaster
+from ..io.texels import Texels
 from ..learn.ragged import RaggedTraces, spans
+from ..physics.emitter_blocks import shadow_groups
+from ..physics.shadows import MAX_SHADOWED_DRIVE, SupportShadow, grazing, shadowed
 from ..scanner import camera
 from ..scanner.scanner import Scanner
-from .texels import Texels
 
-MAX_SHADOWED_DRIVE = 0.05  # fraction of the pattern's drive the support, or the mesh, may block from a used entry
-MIN_COS_VIEW = 0.3  # wo . n^ above this: an entry the network reads
 # wo . n^ in (MIN_COS_GRAZING, MIN_COS_VIEW]: kept, flagged out of range, and read by the refinement
 # only for texels with no other entry (``pipeline.fit_traces.refine_inputs``): at grazing angles a
 # pixel spans a strip of surface, which Eq. 1 for one texel does not describe; 0.2 rather than 0.15
@@ -79,35 +77,10 @@ class TraceStats:
     rejected: dict[str, int]
 
 
-class SupportShadow:
-    """Whether the support (the plane z = ``support_z`` under the object) blocks emitters carrying
-    more than ``MAX_SHADOWED_DRIVE`` of the pattern's drive in a photo — for every point of the
-    object at once, which Eq. 1 as the network learnt it does not model — and which emitter groups
-    it blocks (``mask``): an emitter below the plane is hidden from every point above it."""
-
-    def __init__(self, scanner: Scanner, support_z: float):
-        self.points, self.drive = sample_drive(scanner)
-        self.support_z = support_z
-
-    def __call__(self, camera_from_world: np.ndarray) -> bool:
-        """True when the support shadows the photo taken from ``camera_from_world`` (4x4)."""
-        R, t = camera_from_world[:3, :3], camera_from_world[:3, 3]
-        below = ((self.points - t) @ R)[..., 2] < self.support_z  # emitter samples in world: R^T (p - t)
-        return bool(self.drive[below].sum() > MAX_SHADOWED_DRIVE)
-
-    def mask(self, camera_from_world: np.ndarray, groups: ShadowGroups) -> int:
-        """The int64 shadow mask (bit g: ``groups``' group g) of the groups whose centres lie below
-        the support in the photo taken from ``camera_from_world`` — hidden or not as their centres,
-        as ``EmitterShadow``'s; needs ``groups.fits``."""
-        R, t = camera_from_world[:3, :3], camera_from_world[:3, 3]
-        below = np.nonzero(((groups.points - t) @ R)[:, 2] < self.support_z)[0]
-        return int(np.bitwise_or.reduce(np.left_shift(1, below.astype(np.int64)), initial=0))
-
-
 class EmitterShadow:
     """Which emitters the mesh itself hides from a texel in a view (a concave object shadowing its
     own light: a knot's inner loops, a box's inside corners): one shadow ray from the point (offset
-    ``eps`` along its normal) to each group of ``fit.emitter_blocks.shadow_groups`` (half an
+    ``eps`` along its normal) to each group of ``physics.emitter_blocks.shadow_groups`` (half an
     emitter block; each sample on small devices) above the point's horizon. Texels whose
     hemisphere is open (``SKY_RAYS`` rays, none hitting the mesh) are never tested — on convex
     parts the test is free."""
@@ -194,20 +167,6 @@ def pixel_taps(
         np.abs(off) <= TAP_TOLERANCE
     )
     return flat & ~missed[inverse]
-
-
-def grazing(entries: Tensor) -> Tensor:
-    """``(...)`` True where entries ``(..., 12)`` see their point at ``wo . n^ <= MIN_COS_VIEW``
-    (camera space: wo = -x / |x|): kept for the refinement, too grazing for the network."""
-    x, n = entries[..., 3:6], entries[..., 6:9]
-    return -(x * n).sum(-1) <= MIN_COS_VIEW * x.norm(dim=-1)
-
-
-def shadowed(groups: ShadowGroups, shadow: Tensor) -> Tensor:
-    """``(...)`` True where the emitter groups ``shadow (...)`` hides carry more than
-    ``MAX_SHADOWED_DRIVE`` of the pattern's drive: too much for the network, which assumes every
-    emitter above the horizon reaches the point."""
-    return groups.share(shadow) > MAX_SHADOWED_DRIVE
 
 
 def _visible(

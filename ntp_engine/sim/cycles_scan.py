@@ -47,10 +47,10 @@ from ..io.errors import NtpInputError
 from ..io.images import read_image, write_png
 from ..io.maps import MAP_FILES
 from ..io.mesh import save_obj
+from ..io.output_folder import claim
 from ..io.progress import QUIET, Progress
+from ..io.stage_cache import content_digest, digest
 from ..physics.measurement import measurement_rgb
-from ..pipeline.cache import content_digest, digest
-from ..pipeline.output_folder import claim
 from ..scanner import camera
 from ..scanner.device_file import load_scanner, save_scanner
 from ..scanner.scanner import Scanner

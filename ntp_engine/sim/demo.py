@@ -23,10 +23,10 @@ from pathlib import Path
 
 from ..io.atomic import write_text_atomic
 from ..io.errors import NtpInputError
+from ..io.output_folder import claim
 from ..io.progress import QUIET, Progress
-from ..pipeline.output_folder import claim
-from ..pipeline.scan_folder import load_poses, load_scan
 from ..pipeline.stages import MIN_RESOLUTION, reconstruct, register_photos
+from ..scanner.scan_folder import load_poses, load_scan
 from .evaluate import map_errors, pose_error, relit_ssim
 from .virtual_scan import ScanConfig, scan_folder_is_current, virtual_scan
 

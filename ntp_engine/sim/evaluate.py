@@ -38,7 +38,7 @@ from ..io.images import read_image, write_png
 from ..io.maps import MAP_FILES, SVBRDFMaps, bilinear, bilinear_corners, bilinear_weights, texel_uv, uv_to_pixel
 from ..io.mesh import Mesh, load_mesh
 from ..io.raycast import RayCaster
-from ..pipeline.texels import rasterize
+from ..io.texels import rasterize
 from ..scanner.camera import in_image, project, resampled
 from ..scanner.device_file import shipped_device
 from ..scanner.scanner import Scanner

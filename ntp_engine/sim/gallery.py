@@ -27,7 +27,7 @@ import numpy as np
 
 from ..io.maps import SVBRDFMaps
 from ..io.mesh import Mesh, save_obj
-from ..pipeline.texels import Texels
+from ..io.texels import Texels
 from .demo_asset import demo_maps
 from .materials import LIBRARY, Material, label_image, paint, save_labels
 from .shapes import SHAPES

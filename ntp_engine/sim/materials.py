@@ -32,7 +32,7 @@ from ..io.errors import NtpInputError
 from ..io.images import read_image, write_png
 from ..io.maps import SVBRDFMaps
 from ..io.mesh import Mesh
-from ..pipeline.texels import Texels, rasterize
+from ..io.texels import Texels, rasterize
 
 LABELS_FILE, MATERIALS_FILE = "labels.png", "materials.json"
 DIRECTION = np.array([1.0, 0.3, 0.0]) / math.hypot(1.0, 0.3)

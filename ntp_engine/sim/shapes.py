@@ -22,7 +22,7 @@ from collections.abc import Callable
 import numpy as np
 
 from ..io.mesh import Mesh, smooth_normals
-from ..pipeline.texels import uv_atlas
+from ..io.texels import uv_atlas
 from .demo_asset import dome_mesh
 
 SurfaceFn = Callable[[np.ndarray, np.ndarray], np.ndarray]  # (u, v) grids -> points (..., 3)

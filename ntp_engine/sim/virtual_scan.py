@@ -33,11 +33,11 @@ from ..io.errors import NtpInputError
 from ..io.images import write_png
 from ..io.maps import SVBRDFMaps
 from ..io.mesh import Mesh, load_mesh, save_obj
+from ..io.output_folder import claim
 from ..io.progress import QUIET, Progress
-from ..pipeline.output_folder import claim
-from ..pipeline.scan_folder import load_scan, write_scan_toml
 from ..scanner import camera
 from ..scanner.device_file import load_scanner, save_scanner
+from ..scanner.scan_folder import load_scan, write_scan_toml
 from ..scanner.scanner import Scanner
 from .materials import LABELS_FILE, MATERIALS_FILE
 from .renderer import Scene

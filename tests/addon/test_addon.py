@@ -80,7 +80,7 @@ def test_every_operator_in_background_mode(addon, posed_scan, tmp_path):
     g = np.array(truth["0000.png"])
     assert np.abs(c0[:3, 3] - (-g[:3, :3].T @ g[:3, 3])).max() < 1e-5  # camera centre
     assert np.abs(c0[:3, 2] + g[2, :3]).max() < 1e-5  # Blender looks down -Z, OpenCV along +z
-    from ntp_engine.pipeline.scan_folder import load_scan
+    from ntp_engine.scanner.scan_folder import load_scan
 
     dev = load_scan(posed_scan).scanner
     r = bpy.context.scene.render
@@ -510,7 +510,7 @@ def test_colmap_model_imports_as_cameras_aligned_to_the_mesh(addon, scan24, colm
     """File → Import → COLMAP model: a model COLMAP (pycolmap) wrote for the scan's photos becomes
     cameras in the mesh's frame (the engine aligns it and checks it against the photos; here into
     the suite's result folder of that registration, so the engine finds it cached)."""
-    from ntp_engine.pipeline.scan_folder import load_poses
+    from ntp_engine.scanner.scan_folder import load_poses
 
     model = colmap24[0]
     addon.scan_folder, addon.result_folder = str(scan24), str(colmap24_registered)

@@ -8,8 +8,8 @@ from scipy.ndimage import gaussian_filter
 
 from ntp_engine.io.images import read_image, write_png
 from ntp_engine.pipeline.photo_selection import blur_score
-from ntp_engine.pipeline.scan_folder import load_scan
 from ntp_engine.pipeline.stages import reconstruct
+from ntp_engine.scanner.scan_folder import load_scan
 
 
 def test_blurry_and_corrupt_photos_are_skipped_and_listed(scan24, tmp_path):

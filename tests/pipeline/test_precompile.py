@@ -2,11 +2,14 @@
 
 import torch
 
-from ntp_engine.fit import lobe_loop, pixel_bases
-from ntp_engine.fit.refine import RefineSettings, Start, refine
+from ntp_engine.fit import lobe_loop
 from ntp_engine.learn.synthetic import SyntheticConfig, sample_batch
 from ntp_engine.physics import pattern_sums
 from ntp_engine.pipeline.precompile import precompile
+from ntp_engine.refine import pixel_bases
+from ntp_engine.refine.model import Start
+from ntp_engine.refine.policy import refine
+from ntp_engine.refine.settings import RefineSettings
 from ntp_engine.scanner.device_file import load_scanner
 
 LOOPS = [

@@ -7,8 +7,8 @@ import pytest
 from scans import make_virtual_scan
 
 from ntp_engine.io.maps import SVBRDFMaps, texel_uv
-from ntp_engine.pipeline.scan_folder import load_scan
 from ntp_engine.pipeline.stages import reconstruct
+from ntp_engine.scanner.scan_folder import load_scan
 
 
 @pytest.fixture(scope="module")
@@ -39,8 +39,8 @@ def test_written_tangents_agree_between_neighbouring_texels(tmp_path):
     """A brushed plate whose fitted axes come with either sign: the tangent map is signed so a
     filtered lookup between texels keeps the axis (opposite neighbours would cancel)."""
     from ntp_engine.io.mesh import Mesh, smooth_normals
+    from ntp_engine.io.texels import rasterize
     from ntp_engine.pipeline.result import write_result
-    from ntp_engine.pipeline.texels import rasterize
 
     v = np.array([[0, 0, 0], [0.1, 0, 0], [0.1, 0.1, 0], [0, 0.1, 0]], float)
     f = np.array([[0, 1, 2], [0, 2, 3]])

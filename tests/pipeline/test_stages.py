@@ -12,9 +12,9 @@ from ray_tasks import kill_task_once
 from ntp_engine.io.errors import NtpInputError
 from ntp_engine.learn import models
 from ntp_engine.pipeline import stages as pipeline
-from ntp_engine.pipeline.scan_folder import load_poses, load_scan
 from ntp_engine.pipeline.stages import reconstruct
 from ntp_engine.pipeline.task_pool import LOCAL
+from ntp_engine.scanner.scan_folder import load_poses, load_scan
 from ntp_engine.sim.evaluate import pose_error
 
 
@@ -92,7 +92,7 @@ def _retrained_copy(folder):
 
 def test_mesh_without_uvs_gets_an_xatlas_atlas(scan24, tmp_path):
     from ntp_engine.io.mesh import Mesh, load_mesh, save_obj
-    from ntp_engine.pipeline.texels import rasterize, uv_atlas
+    from ntp_engine.io.texels import rasterize, uv_atlas
 
     mesh = load_mesh(scan24 / "mesh.obj")
     bare = Mesh(mesh.vertices, mesh.faces, None, mesh.normals)

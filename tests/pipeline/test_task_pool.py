@@ -8,8 +8,8 @@ import pytest
 from ray_tasks import kill_task_once, napping, times
 
 from ntp_engine.io.errors import NtpInputError
-from ntp_engine.pipeline.scan_folder import load_scan
 from ntp_engine.pipeline.task_pool import LocalPool, RayPool
+from ntp_engine.scanner.scan_folder import load_scan
 
 
 def test_local_pool_runs_every_item_in_order_with_the_shared_arguments():

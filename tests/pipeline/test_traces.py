@@ -1,11 +1,12 @@
 import numpy as np
 import torch
 
-from ntp_engine.fit.emitter_blocks import shadow_groups
 from ntp_engine.io.raycast import RayCaster
+from ntp_engine.io.texels import rasterize
+from ntp_engine.physics.emitter_blocks import shadow_groups
 from ntp_engine.physics.measurement import measurement_rgb
-from ntp_engine.pipeline.texels import rasterize
-from ntp_engine.pipeline.traces import MAX_SHADOWED_DRIVE, MIN_COS_GRAZING, MIN_COS_VIEW, assemble
+from ntp_engine.physics.shadows import MAX_SHADOWED_DRIVE, MIN_COS_VIEW, grazing, shadowed
+from ntp_engine.pipeline.traces import MIN_COS_GRAZING, assemble
 from ntp_engine.scanner.camera import code_is_valid, look_at, resampled
 from ntp_engine.scanner.device_file import load_scanner
 from ntp_engine.sim.renderer import Scene
@@ -75,7 +76,7 @@ def test_traces_from_a_virtual_scan_match_the_renderer_and_respect_the_filters()
 
 
 def test_photos_whose_leds_the_support_shadows_keep_their_entries_out_of_range_with_those_leds_masked():
-    from ntp_engine.fit.emitter_blocks import shadow_groups
+    from ntp_engine.physics.emitter_blocks import shadow_groups
 
     mesh, _, _, _ = load_asset(None, None, None)
     cam = resampled(load_scanner(), 0.05)
@@ -137,9 +138,9 @@ def _reference_assemble(tx, photos, poses, cam, caster):
         codes = bilinear_pixels(img.astype(np.float64), px[:, 1], px[:, 0], taps)
         lin = camera.decode(cam, torch.as_tensor(codes)).numpy()
         rows.append(np.concatenate([lin, x, tx.normal[idx] @ R.T, tx.tangent[idx] @ R.T], 1).astype(np.float32))
-        steep = ~tr.grazing(torch.from_numpy(rows[-1])).numpy()
+        steep = ~grazing(torch.from_numpy(rows[-1])).numpy()
         keys.append(idx)
-        flags.append(camera.code_is_valid(codes) & steep & ~tr.shadowed(shadow.groups, torch.as_tensor(hidden)).numpy())
+        flags.append(camera.code_is_valid(codes) & steep & ~shadowed(shadow.groups, torch.as_tensor(hidden)).numpy())
         masks.append(hidden)
     key = np.concatenate(keys)
     order = np.argsort(key, kind="stable")
@@ -236,7 +237,7 @@ def test_emitter_shadows_of_the_mesh_itself_match_shadow_rays_to_every_emitter()
     share, masks = shadow(pose, idx)
     got = share > MAX_SHADOWED_DRIVE
     assert masks is not None
-    np.testing.assert_array_equal(tr.shadowed(shadow.groups, torch.as_tensor(masks)).numpy(), got)
+    np.testing.assert_array_equal(shadowed(shadow.groups, torch.as_tensor(masks)).numpy(), got)
     np.testing.assert_allclose(
         (shadow.groups.hidden(torch.as_tensor(masks)).numpy() * shadow.groups.drive).sum(1), share
     )

@@ -9,7 +9,7 @@ from ntp_engine.io.errors import NtpInputError
 from ntp_engine.io.images import write_exr
 from ntp_engine.io.maps import MAP_FILES, SVBRDFMaps, texel_uv
 from ntp_engine.io.mesh import Mesh, load_mesh, smooth_normals
-from ntp_engine.pipeline.texels import rasterize
+from ntp_engine.io.texels import rasterize
 from ntp_engine.scanner.camera import look_at
 from ntp_engine.scanner.device_file import load_scanner
 from ntp_engine.sim.evaluate import (

@@ -1,0 +1,117 @@
+"""Stage cache for the pipeline: each stage's result lives in ``CACHE/<stage>/`` with the key it
+was computed from and a checksum of every file it holds (``key.json``). A stage whose key is
+unchanged and whose files match their checksums is loaded, not recomputed, so a re-run after an
+interruption, or with only a later option changed, resumes where it stopped; a damaged entry
+(truncated, edited, unreadable) is reported in one line and recomputed.
+
+Keys are made of content, never of file times or absolute paths: input files enter by name and
+SHA-256 of their bytes (``content_key``), so a copied scan (cp, git, rsync without -t) reuses its
+cache and a changed photo recomputes every stage that saw it.
+
+A stage folder is written under a temporary name (``io.atomic.temp_dir``) and renamed into place
+when complete: an interrupted stage leaves nothing that looks finished (what a killed run leaves is
+removed when the next run claims the folder, ``output_folder.claim``).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+from .atomic import temp_dir, umask_mode
+from .progress import warn
+
+HASH_THREADS = 4  # hashlib releases the GIL on large buffers: files hash in parallel
+
+
+def _plain(o):
+    return o.tolist() if hasattr(o, "tolist") else str(o)  # arrays in full (str() would elide them)
+
+
+def digest(obj) -> str:
+    """Stable hash of a JSON-able key (numpy arrays included element by element)."""
+    return hashlib.sha256(json.dumps(obj, sort_keys=True, default=_plain).encode()).hexdigest()[:20]
+
+
+def file_digest(path: Path) -> str:
+    """SHA-256 of a file's bytes (20 hex digits); ``"unreadable: <reason>"`` if it cannot be read,
+    so an unreadable input still gets a key (and its stage reports it)."""
+    try:
+        with open(path, "rb") as fh:
+            return hashlib.file_digest(fh, "sha256").hexdigest()[:20]
+    except OSError as err:
+        return f"unreadable: {err.strerror}"
+
+
+def content_key(paths: Sequence[Path]) -> list[list[str]]:
+    """``[[name, sha256], ...]`` of files, in the order given (hashed in parallel threads)."""
+    with ThreadPoolExecutor(HASH_THREADS) as pool:
+        hashes = list(pool.map(file_digest, paths))
+    return [[p.name, h] for p, h in zip(paths, hashes, strict=True)]
+
+
+def content_digest(paths: Sequence[Path]) -> str:
+    """Stable hash of files' names and bytes, in the order given."""
+    return digest(content_key(paths))
+
+
+class StageCache:
+    """Stage results under ``folder/<stage>/`` with the key they were computed from (``get``).
+    ``recomputed`` lists the stages whose entry was damaged and computed again."""
+
+    def __init__(self, folder: Path):
+        self.folder = Path(folder)
+        self.hits: list[str] = []
+        self.recomputed: list[str] = []
+
+    def get(self, stage: str, key: dict, compute: Callable[[Path], None]) -> tuple[Path, str]:
+        """The folder holding ``stage``'s result for ``key`` (computed into it if missing or damaged)
+        and the key's digest (to chain into later stages' keys)."""
+        h = digest(key)
+        final = self.folder / stage
+        if self._intact(final, h):
+            self.hits.append(stage)
+            return final, h
+        tmp = temp_dir(self.folder, stage)
+        try:
+            try:
+                compute(tmp)
+            except OSError as err:  # e.g. a write on a full disk: name the stage's place, not our temporary
+                name = Path(err.filename) if isinstance(err.filename, str) else None
+                if name is None or name == tmp or tmp in name.parents:
+                    where = final / name.relative_to(tmp) if name is not None and name != tmp else final
+                    raise OSError(err.errno, err.strerror, str(where)) from err
+                raise
+            files = {f.relative_to(tmp).as_posix(): file_digest(f) for f in sorted(tmp.rglob("*")) if f.is_file()}
+            stamp = {"digest": h, "key": key, "files": files}
+            (tmp / "key.json").write_text(json.dumps(stamp, indent=1, default=_plain))
+            os.chmod(tmp, umask_mode(0o777))  # mkdtemp makes 0700
+            if final.exists():
+                shutil.rmtree(final)  # the stage's previous result (the cache is ntp's own)
+            os.replace(tmp, final)
+        finally:
+            if tmp.exists():
+                shutil.rmtree(tmp)
+        return final, h
+
+    def _intact(self, final: Path, h: str) -> bool:
+        """Whether ``final`` holds the result for digest ``h`` with every file as written."""
+        stamp = final / "key.json"
+        if not stamp.is_file():
+            return False
+        try:
+            meta = json.loads(stamp.read_text(encoding="utf-8"))
+            if meta.get("digest") != h:
+                return False  # another key: recomputed without comment
+            damaged = [f for f, sha in meta["files"].items() if file_digest(final / f) != sha]
+        except (OSError, ValueError, KeyError, AttributeError, TypeError):
+            damaged = ["key.json"]
+        if damaged:
+            warn(f"{final / damaged[0]}: cache entry damaged (checksum mismatch) — recomputing the {final.name} stage")
+            self.recomputed.append(final.name)
+        return not damaged

@@ -1,0 +1,31 @@
+"""How many CPU threads a run uses (``ntp reconstruct|register --threads N``, the add-on's
+preference): one home for the setting, read by torch and by COLMAP's feature extraction, matching
+and mapping. 0 means every core (torch's and COLMAP's own default)."""
+
+from __future__ import annotations
+
+import torch
+
+from .errors import NtpInputError
+
+_threads = 0
+_TORCH_DEFAULT = torch.get_num_threads()  # torch's own choice (every physical core), for 0
+
+
+def set_threads(n: int) -> None:
+    """Use ``n`` CPU threads from now on (0: every core). ``NtpInputError`` for a negative ``n``."""
+    global _threads
+    if n < 0:
+        raise NtpInputError(None, f"--threads {n}: need 0 (every core) or more")
+    _threads = n
+    torch.set_num_threads(n or _TORCH_DEFAULT)
+
+
+def configured_threads() -> int:
+    """The setting (0: every core), e.g. the CPUs of a local Ray instance (``task_pool.RayPool``)."""
+    return _threads
+
+
+def colmap_threads() -> int:
+    """COLMAP's ``num_threads`` option for the setting (-1: every core)."""
+    return _threads or -1

@@ -1,0 +1,154 @@
+"""What the refinement reads for a set of texels (``refine_inputs``): each trace's entries (spread
+evenly, clear ones first), its start from the network's fit, its shadows, the support's light and
+the pixel footprints; the albedo blend near albedo edges (``with_albedo_blend``); the refinement's
+per-texel flags and how an answer is stored into the result's per-texel arrays (``store_refined``).
+
+Convention: per-trace arrays as ``pipeline.fit_traces`` (the texel's geometric frame); trace i is
+texel i of the atlas.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import NamedTuple
+
+import numpy as np
+import torch
+
+from ..fit.geometry import FLAG_NO_HIGHLIGHT
+from ..io.texels import Texels
+from ..learn.ragged import RaggedTraces, spans, spread_rows
+from ..physics.emitter_blocks import shadow_groups
+from ..physics.frame import frame_from_normal_tangent
+from ..physics.shadows import grazing, shadowed
+from ..scanner.scanner import Scanner
+from .footprint import Footprint, albedo_blend, sample_points, slope_spread
+from .model import Start
+from .policy import Refined
+from .settings import (
+    FLAG_FROM_MATERIAL,
+    FLAG_SPECULAR_UNCONSTRAINED,
+    FLAG_TANGENT_UNCONSTRAINED,
+)
+from .support_light import SupportScene, SupportView
+
+REFINE_VIEWS = 24  # entries per texel the refinement reads (spread evenly over the trace)
+# a texel with this many clear entries (neither shadowed by its mesh nor grazing) refines on those
+# alone; with fewer it reads its marginal ones too (``refine_inputs``)
+MIN_CLEAR_ENTRIES = 1
+BLEND_ENTRIES = 1 << 18  # entries per block of with_albedo_blend (its float64 temporaries ~100 MB)
+REFINE_BATCH = 512  # texels per refinement batch: (batch, views, emitters) tensors stay ~100 MB
+FLAG_MARGINAL = 128  # refined on entries the mesh shadows or sees at grazing angles (too few others)
+FLAG_WIDTH_FROM_MATERIAL = 256  # a lobe of its own, its width its material's: the trace could not tell them apart
+REFINE_FLAGS = FLAG_SPECULAR_UNCONSTRAINED | FLAG_TANGENT_UNCONSTRAINED | FLAG_FROM_MATERIAL
+REFINE_FLAGS |= FLAG_MARGINAL | FLAG_WIDTH_FROM_MATERIAL
+
+
+class RefineInputs(NamedTuple):
+    """What ``refine.policy`` takes for n texels (``refine_inputs``)."""
+
+    entries: torch.Tensor  # (n, V, 12) linear pixels as captured
+    mask: torch.Tensor  # (n, V)
+    start: Start
+    specular: torch.Tensor  # (n,) texels that seek a lobe
+    shadow: torch.Tensor  # (n, V) int64 emitter groups the mesh hides from each entry
+    marginal: torch.Tensor  # (n,) texels that read shadowed or grazing entries (``MIN_CLEAR_ENTRIES``)
+    support: SupportView | None  # the support's light on them (``refine.support_light``), or None
+    footprint: Footprint | None  # what each entry's pixel sample spans (``refine.footprint``)
+
+    def rows(self, idx: torch.Tensor) -> RefineInputs:
+        """The same for the texels ``idx`` (rows) only."""
+        view = self.support
+        return RefineInputs(
+            self.entries[idx],
+            self.mask[idx],
+            Start(*(v[idx] for v in self.start)),
+            self.specular[idx],
+            self.shadow[idx],
+            self.marginal[idx],
+            None if view is None else view.rows(idx),
+            None if self.footprint is None else self.footprint.rows(idx),
+        )
+
+
+def refine_inputs(
+    scanner: Scanner,
+    traces: RaggedTraces,
+    idx: torch.Tensor,
+    fit: dict[str, np.ndarray],
+    support: SupportScene | None = None,
+    texels: Texels | None = None,
+) -> RefineInputs:
+    """What ``refine.policy.refine`` takes for the texels ``idx`` of ``traces`` (linear pixels as
+    captured: the camera model is the scanner's): their entries (``REFINE_VIEWS`` spread over each
+    trace), the start from ``fit``, which texels seek a lobe (those the highlight check did not
+    flag). Marginal entries — the mesh shadows them (``traces.shadowed``) or sees them at grazing
+    angles (``traces.grazing``) — are read only by texels with fewer than ``MIN_CLEAR_ENTRIES``
+    others (``marginal``): their model is coarser (half emitter blocks hidden or not, no light the
+    mesh reflects into its own shadows; a grazing pixel spans a strip of surface) — on the knot
+    reading shadowed entries everywhere cost the Cycles scan's normals 0.3-0.7 deg, on the gallery
+    grazing ones its relit SSIM (docs/accuracy.md). With ``support`` (and ``texels``, the atlas of
+    the traces), the support's light on them; with ``texels``, the normals each entry's pixel sample
+    spans where the surface turns (``refine.footprint``)."""
+    groups = shadow_groups(scanner)
+    rows, mask = traces.padded_rows(idx)  # every entry of each trace
+    marginal_entry = mask & (shadowed(groups, traces.shadow_at(rows, mask)) | grazing(traces.entries_at(rows, mask)))
+    clear = mask & ~marginal_entry
+    few = clear.sum(1) < MIN_CLEAR_ENTRIES
+    marginal = few & marginal_entry.any(1)
+    rows, mask = spread_rows(rows, torch.where(few[:, None], mask, clear), REFINE_VIEWS)
+    i = idx.numpy()
+    specular = torch.as_tensor(fit["flags"][i] & FLAG_NO_HIGHLIGHT == 0)
+    start = Start.from_fit(fit, i)
+    view = None
+    if support is not None:
+        if texels is None:
+            raise ValueError("the support's light needs the texels the traces were assembled for")
+        frame = frame_from_normal_tangent(torch.as_tensor(texels.normal[i]), torch.as_tensor(texels.tangent[i]))
+        exposed = None if support.exposed is None else torch.as_tensor(support.exposed[i])
+        view = SupportView(support, torch.as_tensor(texels.position[i]), frame, exposed)
+    entries, shadow = traces.entries_at(rows, mask), traces.shadow_at(rows, mask)
+    spread = None
+    if texels is not None and texels.shape_operator is not None:
+        spread = slope_spread(scanner, entries, mask, torch.as_tensor(texels.shape_operator[i]))
+    blend = traces.albedo_blend_at(rows, mask)
+    footprint = None if spread is None and blend is None else Footprint(spread, blend)
+    return RefineInputs(entries, mask, start, specular, shadow, marginal, view, footprint)
+
+
+def with_albedo_blend(scanner: Scanner, traces: RaggedTraces, rho_d: np.ndarray, texels: Texels) -> RaggedTraces:
+    """``traces`` (trace i = texel i of ``texels``, which need ``uv_per_metre``) with each entry's
+    ``albedo_blend``: how much of its neighbours' albedo its pixel sample may blend in
+    (``refine.footprint.albedo_blend``), read from the map of ``rho_d (N, 3)``; texels no trace reached
+    take the nearest observed one's. In blocks of ~``BLEND_ENTRIES`` entries."""
+    assert texels.uv_per_metre is not None
+    albedo = texels.image(rho_d, known=(traces.lengths > 0).numpy())
+    uv = texels.uv
+    out = torch.zeros(len(traces.entries), 3, dtype=torch.float32)
+    for start, stop in spans(traces.offsets.numpy(), BLEND_ENTRIES):
+        b = traces.block(start, stop)
+        texel = torch.repeat_interleave(torch.arange(start, stop), b.lengths).numpy()
+        entries = b.entries[:, None, :]
+        delta, weight = sample_points(scanner, entries, torch.ones(len(entries), 1, dtype=torch.bool))
+        blend = albedo_blend(delta, weight, uv[texel], texels.uv_per_metre[texel], albedo)
+        a = int(traces.offsets[start])
+        out[a : a + len(entries)] = blend[:, 0].to(torch.float32)
+    return dataclasses.replace(traces, albedo_blend=out)
+
+
+def turned_tangents(t_loc: np.ndarray, n_loc: np.ndarray, turn: np.ndarray) -> np.ndarray:
+    """Tangents ``t_loc (M, 3)`` turned by ``turn (M,)`` radians about their normals ``n_loc (M, 3)``
+    (right-handed, as ``physics.frame.turned_about_normal``)."""
+    return np.cos(turn)[:, None] * t_loc + np.sin(turn)[:, None] * np.cross(n_loc, t_loc)
+
+
+def store_refined(fit: dict[str, np.ndarray], idx: torch.Tensor, r: Refined, marginal: torch.Tensor) -> None:
+    """The answers ``r`` of the texels ``idx`` written into ``fit``'s per-texel arrays, their flags
+    replacing the refinement's own (``REFINE_FLAGS``), ``FLAG_MARGINAL`` where ``marginal``."""
+    i = idx.numpy()
+    fit["n_loc"][i], fit["t_loc"][i] = r.frame[:, 2].numpy(), r.frame[:, 0].numpy()
+    fit["alpha"][i] = r.log_alpha.exp().numpy()
+    fit["rho_d"][i], fit["rho_s"][i] = r.rho_d.numpy(), r.rho_s.numpy()
+    fit["flags"][i] = (fit["flags"][i] & ~REFINE_FLAGS) | r.flags.numpy() | marginal.numpy() * FLAG_MARGINAL
+    fit["std"][i] = r.std.numpy()
+    fit["highlight"][i] = r.highlight.numpy()

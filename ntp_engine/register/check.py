@@ -1,0 +1,192 @@
+"""A registration checked against the photos (``check_registration``): the photometric refinement
+of the alignment (``register.photometric``), its rival azimuths refined and compared, and the
+sharpness of the cost around the answer, gathered in a ``PhotoCheck`` that the refusal reads
+(``register.refusal``).
+
+Convention: camera_from_mesh poses rigid 4x4 (OpenCV axes); the mesh frame in metres, z up; turns
+in degrees about the support's normal.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from ..io.mesh import Mesh
+from .align import AMBIGUOUS_DEG, Alignment, azimuth_apart, mesh_symmetry, turned_distance
+from .photo_stack import PhotoStack
+from .photometric import (
+    BLUR_LEVELS_PX,
+    CANDIDATE_POINTS,
+    FINE_POINTS,
+    SHARPNESS_SIGMA_PX,
+    Correction,
+    PhotometricFit,
+    PhotometricRegistration,
+    edge_stride,
+    frees_height,
+    object_distance,
+    rotation_matrix,
+)
+
+CANDIDATE_ROUNDS = 2  # re-linearisations a candidate gets before the candidates are compared
+MAX_PHOTOS = 40  # photos (evenly spread over the sweep) that judge and refine a registration
+# the whole-circle azimuth sweep: a scout of fewer photos and points, a coarser edge map; its step is
+# within the coarse refinement's own azimuth grid (+-4 deg), so a rival's basin is not stepped over
+SWEEP_STEP_DEG, SWEEP_PHOTOS, SWEEP_POINTS, SWEEP_EDGE_STRIDE = 3.0, 20, 1000, 3
+
+
+RIVALS = 3  # the sweep's best other azimuths (more than AMBIGUOUS_DEG apart) refined as rivals
+
+
+@dataclass
+class PhotoCheck:
+    """A registration chosen, refined and judged by the photos.
+
+    ``fit``: the refined registration's photometric fit; ``sharpness``: how much the cost rises
+    (relative) when it is moved ``SHARPNESS_SHIFT_PX`` along each mesh axis — a right registration
+    is a sharp minimum, a wrong one sits on a plateau of random matches; ``margin``: how much worse
+    (relative cost) the best other azimuth fits the photos after the same refinement (inf: none);
+    ``candidates``: per candidate its azimuth change from the chosen one, coarse cost and how far
+    the mesh turned so lies from itself (mm: near 0 for a symmetry of the mesh); ``profile``: the
+    sweep's (turn from the point cloud's alignment in degrees, cost) over the whole circle."""
+
+    alignment: Alignment
+    fit: PhotometricFit
+    sharpness: float
+    margin: float
+    candidates: list[dict]
+    chosen: int  # index of the chosen candidate (0: the point cloud's own alignment)
+    profile: list[tuple[float, float]]
+    trials: list[Alignment] = field(default_factory=list)  # each candidate after its coarse refinement
+    # the mesh's own closest symmetry (turn deg, how far the turned mesh lies from itself in mm) and
+    # the distance no photo at this size can see (SYMMETRY_PX at the object's distance, mm)
+    symmetry: tuple[float, float] = (float("nan"), float("inf"))
+    symmetry_tolerance_mm: float = 0.0
+    height_from_photos: bool = False  # on a support: the refinement moved the height (``frees_height``)
+    pixel_mm: float = float("nan")  # a working-size pixel at the object's distance
+
+    def to_json(self) -> dict:
+        """The check as JSON values (``registration.json`` -> ``photometric``)."""
+        return {
+            "fit": self.fit.to_json(),
+            "sharpness": self.sharpness,
+            "margin": self.margin if np.isfinite(self.margin) else None,
+            "chosen_candidate": self.chosen,
+            "candidates": self.candidates,
+            "azimuth_profile": [[t, c if np.isfinite(c) else None] for t, c in self.profile],
+            "mesh_symmetry": {
+                "turn_deg": self.symmetry[0] if np.isfinite(self.symmetry[0]) else None,
+                "turned_mm": self.symmetry[1] if np.isfinite(self.symmetry[1]) else None,
+                "invisible_below_mm": self.symmetry_tolerance_mm,
+            },
+            "height_from_photos": self.height_from_photos,
+            "pixel_mm": self.pixel_mm if np.isfinite(self.pixel_mm) else None,
+        }
+
+
+def corrected(alignment: Alignment, g: Correction) -> Alignment:
+    """G o A: the alignment that puts the cameras where the correction moved them."""
+    Rw, e = rotation_matrix(g.omega), np.exp(g.log_scale)
+    t = g.centre + e * Rw @ (alignment.translation - g.centre) + g.tau
+    return replace(alignment, scale=e * alignment.scale, rotation=Rw @ alignment.rotation, translation=t)
+
+
+def spread(names: list[str], count: int = MAX_PHOTOS) -> list[str]:
+    """At most ``count`` of ``names`` (sorted: the sweep's order), evenly spread."""
+    names = sorted(names)
+    if len(names) <= count:
+        return names
+    return [names[i] for i in np.linspace(0, len(names) - 1, count).round().astype(int)]
+
+
+def rival_turns(turns: np.ndarray, costs: np.ndarray, count: int = RIVALS) -> list[float]:
+    """The ``count`` lowest local minima of a circular azimuth profile (degrees) more than
+    ``AMBIGUOUS_DEG`` from 0 (the alignment swept) and from each other."""
+    lower = (costs <= np.roll(costs, 1)) & (costs <= np.roll(costs, -1)) & np.isfinite(costs)
+    taken: list[float] = []
+    for i in np.argsort(costs):
+        if len(taken) == count:
+            break
+        turn = float(turns[i])
+        if lower[i] and all(azimuth_apart(turn, t) > AMBIGUOUS_DEG for t in [0.0, *taken]):
+            taken.append(turn)
+    return taken
+
+
+def check_registration(
+    alignment: Alignment,
+    camera_from_sfm: dict[str, np.ndarray],
+    photos: PhotoStack,
+    names: list[str],
+    mesh: Mesh,
+    support_z: float | None,
+) -> PhotoCheck:
+    """``alignment`` refined by the photos ``photos`` (of ``names``; similarity only: SfM's relative
+    poses are kept), its rivals found by sweeping the azimuth over the whole circle and refined the
+    same way, the best chosen and judged (see ``PhotoCheck``)."""
+    # candidates are compared on half the photos and fewer points (the chosen one is refined on all)
+    pick = [names.index(n) for n in spread(names, SWEEP_PHOTOS)]
+    judge = PhotometricRegistration(
+        mesh, photos.subset(pick), support_z, points=CANDIDATE_POINTS, edge_stride=edge_stride(photos)
+    )
+    sfm = np.stack([camera_from_sfm[n] for n in names])
+
+    def placed(al: Alignment) -> np.ndarray:
+        return np.stack([al.camera_from_mesh(m) for m in sfm])
+
+    def coarse(al: Alignment) -> tuple[Alignment, PhotometricFit]:
+        g, fit = judge.refine(placed(al)[pick], levels=BLUR_LEVELS_PX[:1], max_rounds=CANDIDATE_ROUNDS)
+        return corrected(al, g), fit
+
+    trials = [coarse(alignment)]
+    # a point cloud with few points on the object can land at any azimuth: the photos vote on all
+    scout = PhotometricRegistration(
+        mesh, photos.subset(pick), support_z, points=SWEEP_POINTS, edge_stride=SWEEP_EDGE_STRIDE
+    )
+    turns, costs = scout.azimuth_profile(placed(trials[0][0])[pick], BLUR_LEVELS_PX[0], SWEEP_STEP_DEG)
+    for turn in rival_turns(turns, costs):
+        turned = Correction(np.array([0.0, 0.0, np.radians(turn)]), np.zeros(3), 0.0, judge.pivot)
+        trials.append(coarse(corrected(trials[0][0], turned)))
+    chosen = int(np.argmin([fit.cost for _, fit in trials]))
+    best = trials[chosen][0]
+    yaw = [float(np.degrees(np.arctan2(a.rotation[1, 0], a.rotation[0, 0]))) for a, _ in trials]
+    change = [(y - yaw[chosen] + 180.0) % 360.0 - 180.0 for y in yaw]
+    # candidates the refinement brought into the chosen one's azimuth are the same answer, not rivals
+    others = [fit.cost for c, (_, fit) in zip(change, trials, strict=True) if abs(c) > AMBIGUOUS_DEG]
+    margin = (min(others) - trials[chosen][1].cost) / trials[chosen][1].cost if others else float("inf")
+    pixel_m = object_distance(placed(best), judge.centre) / photos.scanner.fx
+    free_height = support_z is not None and frees_height(pixel_m)
+    finisher = PhotometricRegistration(
+        mesh, photos, support_z, points=FINE_POINTS, edge_stride=edge_stride(photos), free_height=free_height
+    )
+    g, fit = finisher.refine(placed(best), levels=BLUR_LEVELS_PX[1:])
+    best = corrected(best, g)
+    sharpness = finisher.sharpness(placed(best), SHARPNESS_SIGMA_PX)
+    apart = turned_distance(mesh, judge.centre, np.array(change))
+    candidates = [
+        {"azimuth_change_deg": c, "coarse_cost": f.cost, "mesh_turned_mm": 1e3 * d}
+        for c, (_, f), d in zip(change, trials, apart, strict=True)
+    ]
+    profile = [(float(t), float(c)) for t, c in zip(turns, costs, strict=True)]
+    turn, turned_m = mesh_symmetry(mesh, judge.centre)
+    final = placed(best)
+    distance = object_distance(final, judge.centre)
+    return PhotoCheck(
+        best,
+        fit,
+        sharpness,
+        float(margin),
+        candidates,
+        chosen,
+        profile,
+        [a for a, _ in trials],
+        (turn, 1e3 * turned_m),
+        1e3 * SYMMETRY_PX * distance / photos.scanner.fx,
+        free_height,
+        1e3 * pixel_m,
+    )
+
+
+SYMMETRY_PX = 0.25  # a turned mesh lying closer to itself than this (at the object's distance) is a symmetry

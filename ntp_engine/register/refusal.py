@@ -1,0 +1,95 @@
+"""When a registration is refused: the photos do not confirm it (its cost is not sharp enough), a
+rival azimuth fits them nearly as well, or the mesh is symmetric so that no photo can tell two
+placements apart (``refusal``); and the picture that shows a user the mesh's outline over a few
+photos (``outline_picture``).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..io.mesh import Mesh
+from ..io.raycast import RayCaster
+from ..scanner import camera
+from .align import AMBIGUOUS_DEG
+from .check import PhotoCheck
+from .photo_stack import PhotoStack, edge_mask
+from .photometric import MIN_VIEWS, SHARPNESS_SHIFT_PX
+
+# set from the gallery (docs/pipeline.md, ntp bench registration): right registrations had sharpness
+# >= 1.01 and margin >= 0.73; wrong ones that were not a symmetry of the mesh sharpness <= 0.48
+MIN_SHARPNESS = 0.8
+MIN_MARGIN = 0.5  # the best other azimuth must fit the photos at least 50% worse
+
+
+def named_rival(candidates: list[dict]) -> int | None:
+    """The candidate an ambiguity names: the best-fitting one (coarse cost) more than
+    ``AMBIGUOUS_DEG`` from the chosen; None when there is none."""
+    rivals = [i for i, c in enumerate(candidates) if abs(c["azimuth_change_deg"]) > AMBIGUOUS_DEG]
+    return min(rivals, key=lambda i: candidates[i]["coarse_cost"]) if rivals else None
+
+
+def refusal_kind(check: PhotoCheck) -> str | None:
+    """Which test refuses a registration — ``symmetric``, ``unconfirmed`` or ``ambiguous``, in that
+    order — or None when the photos confirm it. A symmetry of the mesh comes first: every placement it
+    relates is consistent with the photos (each surface point sees one surface point in every
+    photo), so no cost of them can choose."""
+    if check.symmetry[1] <= check.symmetry_tolerance_mm:
+        return "symmetric"
+    if check.fit.points < MIN_VIEWS or check.sharpness < MIN_SHARPNESS:
+        return "unconfirmed"
+    if check.margin < MIN_MARGIN:
+        return "ambiguous"
+    return None
+
+
+def refusal(check: PhotoCheck) -> str | None:
+    """Why the photos do not confirm a registration (one line, ``refusal_kind``'s cause), or None
+    when they do."""
+    kind = refusal_kind(check)
+    if kind == "symmetric":
+        turn, turned_mm = check.symmetry
+        return (
+            f"the mesh is symmetric under a turn of {turn:.0f} deg about the vertical (turned, it lies "
+            f"{turned_mm:.2f} mm from itself): no photo can tell the two placements apart"
+        )
+    if kind == "unconfirmed":
+        return (
+            f"the photos cannot confirm where the mesh is (moved {SHARPNESS_SHIFT_PX:g} px it fits them "
+            f"{100 * max(check.sharpness, 0.0):.0f}% worse, a confirmed registration >= {100 * MIN_SHARPNESS:.0f}%): "
+            "the mesh is not where the photos show it, or the object is too plain to tell"
+        )
+    if kind == "ambiguous":
+        i = named_rival(check.candidates)
+        assert i is not None  # a finite margin has a rival
+        rival = check.candidates[i]
+        return (
+            f"the object's azimuth is ambiguous: turned by {rival['azimuth_change_deg']:.0f} deg it fits the photos "
+            f"nearly as well (margin {check.margin:.2f} < {MIN_MARGIN}; the mesh turned so lies "
+            f"{rival['mesh_turned_mm']:.1f} mm from itself)"
+        )
+    return None
+
+
+OUTLINE = np.array([1.0, 0.1, 0.9])  # magenta: rare in photos
+
+
+def outline_picture(photos: PhotoStack, poses: np.ndarray, mesh: Mesh, count: int = 4) -> np.ndarray:
+    """``count`` photos (evenly spread) with the mesh's silhouette and depth edges drawn over them
+    under ``poses (V, 4, 4)``, tiled 2 wide: sRGB-ish display values ``(H, W, 3)`` in [0, 1]."""
+    s = photos.scanner
+    caster = RayCaster([mesh.triangles])
+    rays = camera.pixel_rays(s).reshape(-1, 3)
+    picks = np.linspace(0, len(poses) - 1, min(count, len(poses))).round().astype(int)
+    tiles = []
+    for j in picks:
+        R, t = poses[j][:3, :3], poses[j][:3, 3]
+        hits = caster.intersect(np.broadcast_to(-R.T @ t, rays.shape), rays @ R)
+        edge = edge_mask((hits.geom >= 0).reshape(s.height, s.width), hits.t.reshape(s.height, s.width))
+        img = photos.linear[j].permute(1, 2, 0).numpy().clip(0, 1) ** (1 / 2.2)
+        img[edge] = OUTLINE
+        tiles.append(img)
+    while len(tiles) % 2:
+        tiles.append(np.zeros_like(tiles[0]))
+    rows = [np.concatenate(tiles[i : i + 2], 1) for i in range(0, len(tiles), 2)]
+    return np.concatenate(rows, 0)
