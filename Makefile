@@ -4,7 +4,7 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.ntp-installed
 
-.PHONY: demo test lint setup bench extension clean
+.PHONY: demo test test-fast lint setup bench extension clean
 
 $(STAMP): requirements.txt pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -26,7 +26,11 @@ demo: $(STAMP)
 	$(BIN)/ntp demo
 
 test: $(STAMP)
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q --durations=20
+
+# the fast tier: everything but SfM, Cycles, Ray and whole-pipeline runs (tests/conftest.py marks those slow)
+test-fast: $(STAMP)
+	$(BIN)/python -m pytest -q -m "not slow"
 
 # lint (ruff), format check (ruff format) and types (mypy, settings in pyproject.toml); CI runs it
 lint: $(STAMP)

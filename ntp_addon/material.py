@@ -1,4 +1,4 @@
-"""Blender materials from a result folder (DESIGN.md output contract): two node trees over the
+"""Blender materials from a result folder (docs/design.md output contract): two node trees over the
 same maps.
 
 - ``NTP Principled``: an anisotropic Principled BSDF, arranged so the bundled glTF exporter writes

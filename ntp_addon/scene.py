@@ -46,7 +46,7 @@ def camera_object(
 
 def setup_cycles(scene: bpy.types.Scene, width: int, height: int, samples: int = 64) -> None:
     """Direct light only, no denoising, black world, a ~1-sample-per-pixel-area pixel filter and a
-    linear view transform: Cycles then computes what the engine does (DESIGN.md)."""
+    linear view transform: Cycles then computes what the engine does (docs/design.md)."""
     scene.render.engine = "CYCLES"
     scene.cycles.device = "CPU"
     scene.cycles.samples = samples

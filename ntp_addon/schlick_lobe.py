@@ -1,8 +1,8 @@
 """The engine's specular lobe in Cycles: rho_s x anisotropic GGX x Schlick's Fresnel on w_i.h, as
 an OSL script node (``schlick_lobe.osl``; Cycles' ``generalized_schlick_bsdf`` with f0 = 0.04,
-exponent 5, evaluated per microfacet on w_i.h) — DESIGN.md's F, its rise bounded: F90 =
+exponent 5, evaluated per microfacet on w_i.h) — docs/design.md's F, its rise bounded: F90 =
 min(1, 1 / rho_s) per channel (``ntp_engine.physics.brdf.bounded_f90``), so no lobe reflects more
-than all the light. DESIGN.md's F90 = 1 differs only for rho_s > 1 and w_i.h < 0.9: never on a
+than all the light. docs/design.md's F90 = 1 differs only for rho_s > 1 and w_i.h < 0.9: never on a
 path from the scanner's emitters (beside the camera), only for light bounced onto the object —
 where it made the gallery's rho_s 5-10 metals reflect up to 10x the light grazing them (their
 interreflections under Cycles; docs/virtual-scanner.md).

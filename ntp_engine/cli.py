@@ -20,6 +20,7 @@ from .bench import scan as bench_scan
 from .bench import sfm as bench_sfm
 from .bench import stability as bench_stability
 from .bench import virtual_scan as bench_virtual_scan
+from .io.blender_process import blender_command
 from .io.errors import NtpInputError, error_line
 from .io.progress import Progress
 from .io.threads import set_threads
@@ -319,7 +320,7 @@ def _bench_scale(args: argparse.Namespace) -> int:
 
 def _bench_blender(args: argparse.Namespace) -> int:
     # in its own process: the engine never imports bpy
-    cmd = [sys.executable, "-m", "ntp_addon.bench", "--views", str(args.views), "--samples", str(args.samples)]
+    cmd = blender_command("bench", "--views", str(args.views), "--samples", str(args.samples))
     return subprocess.call(cmd + (["--json", str(args.json)] if args.json else []))
 
 

@@ -1,10 +1,17 @@
-"""bpy must be imported before torch (both bundle native libraries); do it once for the suite."""
+"""bpy must be imported before torch (both bundle native libraries); do it once for the suite.
+
+The ``slow`` tier: a test that runs SfM, Cycles, Ray or a whole pipeline (a scan, a registration, a
+reconstruction, a batch, the demo) is marked ``slow`` here, by what it uses — the suite's shared
+scans and Ray instance, the ``blender`` marker, or a call of one of those entry points in its body
+— so that no one has to remember the marker. ``make test-fast`` runs the rest (``-m "not slow"``);
+``make test`` runs everything."""
 
 try:
     import bpy  # noqa: F401
 except ImportError:  # the engine's tests run without Blender
     bpy = None
 
+import inspect  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import pytest  # noqa: E402
@@ -62,3 +69,42 @@ def ray_local():
     )
     yield ray
     ray.shutdown()
+
+
+# what makes a test slow: the shared fixtures that run SfM / Ray, and calls in a test's body
+SLOW_FIXTURES = {"scan24", "colmap24", "colmap24_registered", "ray_local"}
+SLOW_CALLS = (
+    "reconstruct(",
+    "register_photos(",
+    "structure_from_motion(",
+    "cycles_scan(",
+    "make_virtual_scan(",
+    "virtual_scan(",
+    "run_demo(",
+    "reconstruct_collection(",
+    "subprocess",
+    '"reconstruct"',
+    '"register"',
+    '"batch"',
+    '"demo"',
+    '"virtual-scan"',
+    '"bench"',
+)
+
+
+def _is_slow(item: pytest.Item) -> bool:
+    if SLOW_FIXTURES & set(getattr(item, "fixturenames", ())) or item.get_closest_marker("blender"):
+        return True
+    fn = getattr(item, "function", None)
+    try:
+        body = inspect.getsource(fn) if fn is not None else ""
+    except (OSError, TypeError):
+        return False
+    return any(call in body for call in SLOW_CALLS)
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """Mark the slow tier (module docstring)."""
+    for item in items:
+        if _is_slow(item):
+            item.add_marker(pytest.mark.slow)

@@ -137,3 +137,38 @@ def test_only_the_task_pool_imports_ray_and_only_when_entered():
         (_module_name(p), local) for p in _engine_modules() for t, local, _ in _imports(p) if t.split(".")[0] == "ray"
     ]
     assert found == [("ntp_engine.pipeline.task_pool", True)]
+
+
+def _code_strings(path: Path) -> list[str]:
+    """String constants of ``path`` other than docstrings."""
+    tree = ast.parse(path.read_text())
+    docs = {
+        id(node.body[0].value)
+        for node in ast.walk(tree)
+        if isinstance(node, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef))
+        and node.body
+        and isinstance(node.body[0], ast.Expr)
+        and isinstance(node.body[0].value, ast.Constant)
+    }
+    return [
+        n.value
+        for n in ast.walk(tree)
+        if isinstance(n, ast.Constant) and isinstance(n.value, str) and id(n) not in docs
+    ]
+
+
+def test_the_engine_starts_add_on_scripts_only_through_its_one_entry_point():
+    """Only ``io.blender_process`` names an add-on module in code; every script it names exists and
+    runs as ``python -m`` (a ``__main__`` guard)."""
+    from ntp_engine.io.blender_process import BLENDER_SCRIPTS
+
+    naming = [
+        _module_name(p)
+        for p in _engine_modules()
+        if any("ntp_addon" in s for s in _code_strings(p)) or any(t.startswith("ntp_addon") for t, _, _ in _imports(p))
+    ]
+    assert naming == ["ntp_engine.io.blender_process"], f"engine modules that start or import the add-on: {naming}"
+    for module in BLENDER_SCRIPTS.values():
+        path = ROOT / Path(*module.split(".")).with_suffix(".py")
+        assert path.is_file(), f"{module}: no such add-on module"
+        assert '__name__ == "__main__"' in path.read_text(), f"{module} cannot run as a script"

@@ -5,6 +5,7 @@ import subprocess
 import sys
 
 import numpy as np
+import pytest
 
 from ntp_engine.io.assets import DEVICES_DIR
 from ntp_engine.io.images import read_image
@@ -72,6 +73,7 @@ def test_demo_runs_end_to_end_and_reports_errors(tmp_path):
     assert [p.name for p in d.rglob(".*")] == [".ntp"] * 3  # no temporary files: the markers of demo, scan, result
 
 
+@pytest.mark.slow  # measured over 5 s on 2 cores
 def test_bad_device_is_one_line_error_exit_2(tmp_path):
     bad = tmp_path / "broken.toml"
     bad.write_text('name = "x"\n[camera]\nwidth = "wide"\n')

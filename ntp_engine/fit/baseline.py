@@ -18,7 +18,8 @@ from scipy.optimize import minimize
 from ..physics.brdf import ALPHA_MAX, ALPHA_MIN
 from ..physics.frame import any_tangent, cross
 from ..physics.lumitexel import SPECULAR_RES, specular_lumitexel
-from .geometry import FLAG_NO_LOBE, FLAG_NONFINITE, FLAG_ZERO, GeometryFit, canonical_lobe, light_table
+from .flags import TexelFlag
+from .geometry import GeometryFit, canonical_lobe, light_table
 
 
 def _frame_from_params(x: torch.Tensor):
@@ -57,11 +58,11 @@ def fit_geometry_lbfgsb(specular: torch.Tensor, max_iter: int = 200) -> Geometry
         m = specular[i].double()
         flag = 0
         if not torch.isfinite(m).all():
-            flag |= FLAG_NONFINITE
+            flag |= TexelFlag.NONFINITE
             m = torch.where(torch.isfinite(m), m, torch.zeros_like(m))
         m = m.clamp_min(0)
         if float(m.max()) <= 1e-8:
-            flag |= FLAG_ZERO
+            flag |= TexelFlag.ZERO
         target = torch.log1p(m)
         h = tab["h"][int(m.argmax())]
         theta0 = float(torch.acos(h[2].clamp(-1, 1)))
@@ -91,7 +92,7 @@ def fit_geometry_lbfgsb(specular: torch.Tensor, max_iter: int = 200) -> Geometry
             )
             x = res.x
             if not np.isfinite(res.fun):
-                flag |= FLAG_NO_LOBE
+                flag |= TexelFlag.NO_LOBE
         else:
             x = x0
         n, t, ax, ay, rho = _frame_from_params(torch.tensor(x))

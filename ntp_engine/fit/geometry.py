@@ -21,7 +21,7 @@ loop (``fit.lobe_loop``), and stops when its own steps stop paying.
 Canonical output (the model's symmetries): alpha_x >= alpha_y (else (t, ax, ay) -> (b, ay, ax)),
 and t's component along the lumitexel x (then y) axis is >= 0 (t -> -t is the same BRDF).
 
-Flags (``FLAG_*``): non-finite input, an all-zero lumitexel, no usable lobe: such texels get the
+Flags (``fit.flags.TexelFlag``): non-finite input, an all-zero lumitexel, no usable lobe: such texels get the
 fallback (``FALLBACK_ALPHA`` isotropic, normal from the diffuse lumitexel or +z, rho_s 0) — never
 NaN. The highlight check (``highlights``) and the albedo (``albedo``) follow the geometry.
 """
@@ -40,10 +40,10 @@ from ..io.thread_pools import numba_threads_as_torch
 from ..physics.brdf import fresnel_schlick
 from ..physics.frame import any_tangent, cross, frame_from_normal_tangent, safe_normalize
 from ..physics.lumitexel import DIFFUSE_RES, SPECULAR_RES, specular_lumitexel, texel_positions
+from .flags import TexelFlag
 from .lobe_loop import BOUNDS, fit_lobes
 
 FALLBACK_ALPHA = 0.3  # isotropic roughness for texels without a usable specular lobe
-FLAG_NONFINITE, FLAG_ZERO, FLAG_NO_LOBE, FLAG_NO_HIGHLIGHT = 1, 2, 4, 8
 
 
 @dataclass
@@ -55,7 +55,7 @@ class GeometryFit:
     alpha_x: Tensor  # (N,) >= alpha_y
     alpha_y: Tensor  # (N,)
     rho_s: Tensor  # (N,) grayscale specular scale of the lumitexel
-    flags: Tensor  # (N,) int: FLAG_* bits, 0 = good fit
+    flags: Tensor  # (N,) int: ``TexelFlag`` bits, 0 = good fit
     log_rmse: Tensor | None  # (N,) log(1 + x) RMSE fitted vs input over all lights (if asked for)
 
     def rows(self, sel: slice | Tensor) -> GeometryFit:
@@ -155,9 +155,9 @@ def fit_geometry(
     n, t, ax, ay, rho, ok = o[:, 0:3], o[:, 3:6], o[:, 6], o[:, 7], o[:, 8], o[:, 9] > 0
     finite, peak = o[:, 10] > 0, o[:, 11]
     n, t, ax, ay = canonical_lobe(n, t, ax, ay)
-    flags = (~finite).long() * FLAG_NONFINITE
-    flags |= ((peak <= 1e-8) & finite).long() * FLAG_ZERO
-    flags |= ((~ok) & (flags == 0)).long() * FLAG_NO_LOBE
+    flags = (~finite).long() * TexelFlag.NONFINITE
+    flags |= ((peak <= 1e-8) & finite).long() * TexelFlag.ZERO
+    flags |= ((~ok) & (flags == 0)).long() * TexelFlag.NO_LOBE
     bad = flags != 0
     if bad.any():
         if diffuse is not None:

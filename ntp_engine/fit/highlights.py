@@ -1,6 +1,6 @@
 """The unseen-highlight check: paper Eq. 6 recomputed from the *fitted* lobe and the trace's own
 views. A texel whose beta is below ``BETA_MIN`` (no view ever saw its highlight) gets
-``FLAG_NO_HIGHLIGHT`` and the fallback lobe (``FALLBACK_ALPHA`` isotropic): its trace does not
+``TexelFlag.NO_HIGHLIGHT`` and the fallback lobe (``FALLBACK_ALPHA`` isotropic): its trace does not
 constrain the lobe, so the lobe is not guessed from the network's prior.
 
 Convention: ``position, normal_geo, tangent_geo (N, V, 3)`` are each view's camera-space x, n^, t^;
@@ -15,7 +15,8 @@ from torch import Tensor
 from ..physics.confidence import confidence
 from ..physics.frame import frame_from_normal_tangent, to_world
 from ..scanner.scanner import Scanner
-from .geometry import FALLBACK_ALPHA, FLAG_NO_HIGHLIGHT, GeometryFit
+from .flags import TexelFlag
+from .geometry import FALLBACK_ALPHA, GeometryFit
 
 BETA_MIN = 1e-3  # below this Eq. 6 confidence a texel's highlight was never observed
 PARK_POSITION = (0.0, 0.0, 0.3)  # m, in front of the camera: where padded entries are evaluated
@@ -39,7 +40,7 @@ def flag_unseen_highlights(
     scanner: Scanner, position: Tensor, normal_geo: Tensor, tangent_geo: Tensor, mask: Tensor, geometry: GeometryFit
 ) -> Tensor:
     """Eq. 6 recomputed from the *fitted* lobe and the trace's own views; texels whose beta is
-    below ``BETA_MIN`` (no view ever saw the highlight) get ``FLAG_NO_HIGHLIGHT`` and the fallback
+    below ``BETA_MIN`` (no view ever saw the highlight) get ``TexelFlag.NO_HIGHLIGHT`` and the fallback
     lobe (alpha 0.3 isotropic; rho_s then comes from the albedo least squares with that lobe).
     Updates ``geometry`` in place; returns beta ``(N,)``."""
     n_cam, t_cam = frame_in_views(geometry, normal_geo, tangent_geo)
@@ -59,10 +60,10 @@ def flag_unseen_highlights(
 
 
 def fall_back_where_unseen(geometry: GeometryFit, beta: Tensor) -> Tensor:
-    """Texels with beta < BETA_MIN get the fallback lobe and FLAG_NO_HIGHLIGHT; returns that mask."""
+    """Texels with beta < BETA_MIN get the fallback lobe and TexelFlag.NO_HIGHLIGHT; returns that mask."""
     unseen = beta < BETA_MIN
     fa = torch.full_like(geometry.alpha_x, FALLBACK_ALPHA)
     geometry.alpha_x = torch.where(unseen, fa, geometry.alpha_x)
     geometry.alpha_y = torch.where(unseen, fa, geometry.alpha_y)
-    geometry.flags = geometry.flags | unseen.long() * FLAG_NO_HIGHLIGHT
+    geometry.flags = geometry.flags | unseen.long() * TexelFlag.NO_HIGHLIGHT
     return unseen

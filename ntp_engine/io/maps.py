@@ -1,4 +1,4 @@
-"""SVBRDF texture maps in a mesh's UV layout (DESIGN.md output contract).
+"""SVBRDF texture maps in a mesh's UV layout (docs/design.md output contract).
 
 Files (linear float EXR): ``diffuse_albedo.exr`` (RGB rho_d), ``specular_albedo.exr`` (RGB rho_s),
 ``normal.exr`` (object-space unit normal), ``tangent.exr`` (object-space unit tangent, alpha_x

@@ -1,5 +1,5 @@
 """The folders ntp writes (results, virtual scans, demo and gallery runs) and the rules that keep a
-user's files safe (DESIGN.md output contract):
+user's files safe (docs/design.md output contract):
 
 - ntp writes only into a folder that is absent, empty, or one it made itself for the same purpose,
   known by its marker file ``.ntp`` (``{"ntp": KIND}``); anything else is refused in one line;

@@ -6,7 +6,11 @@ interruption, or with only a later option changed, resumes where it stopped; a d
 
 Keys are made of content, never of file times or absolute paths: input files enter by name and
 SHA-256 of their bytes (``content_key``), so a copied scan (cp, git, rsync without -t) reuses its
-cache and a changed photo recomputes every stage that saw it.
+cache and a changed photo recomputes every stage that saw it. The code is content too: each
+stage's key holds ``code_version`` of the modules that compute it — their syntax trees and those of
+every module of the package they import, transitively — so an upgraded ntp recomputes the stages
+whose code changed (and, through the chained keys, the stages after them), and only those; an edit
+to a comment or a docstring changes no tree and keeps the cache.
 
 A stage folder is written under a temporary name (``io.atomic.temp_dir``) and renamed into place
 when complete: an interrupted stage leaves nothing that looks finished (what a killed run leaves is
@@ -15,7 +19,11 @@ removed when the next run claims the folder, ``output_folder.claim``).
 
 from __future__ import annotations
 
+import ast
+import functools
 import hashlib
+import importlib.machinery
+import importlib.util
 import json
 import os
 import shutil
@@ -58,6 +66,78 @@ def content_key(paths: Sequence[Path]) -> list[list[str]]:
 def content_digest(paths: Sequence[Path]) -> str:
     """Stable hash of files' names and bytes, in the order given."""
     return digest(content_key(paths))
+
+
+def _source(module: str) -> str:
+    """The source text of ``module`` (found, not imported)."""
+    spec = importlib.util.find_spec(module)
+    if spec is None or spec.origin is None or not spec.origin.endswith(".py"):
+        raise ValueError(f"{module}: no Python source to version")
+    return Path(spec.origin).read_text(encoding="utf-8")
+
+
+def _spec(name: str) -> importlib.machinery.ModuleSpec | None:
+    """``name``'s module spec, None where it is no module (e.g. a function imported by name)."""
+    try:
+        return importlib.util.find_spec(name)
+    except (ImportError, AttributeError, ValueError):
+        return None
+
+
+def _is_package(module: str) -> bool:
+    spec = _spec(module)
+    return spec is not None and spec.submodule_search_locations is not None
+
+
+@functools.cache
+def _module_code(module: str) -> tuple[str, tuple[str, ...]]:
+    """``module``'s syntax-tree digest (docstrings dropped) and the modules of its own top-level
+    package that it imports (with each one's parent packages)."""
+    tree = ast.parse(_source(module))
+    for node in ast.walk(tree):
+        body = getattr(node, "body", None)
+        if (
+            isinstance(node, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef))
+            and body
+            and isinstance(body[0], ast.Expr)
+            and isinstance(body[0].value, ast.Constant)
+            and isinstance(body[0].value.value, str)
+        ):
+            node.body = body[1:] or [ast.Pass()]
+    top = module.split(".")[0]
+    package = module if _is_package(module) else module.rpartition(".")[0]
+    found: set[str] = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            names = [a.name for a in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = ".".join(package.split(".")[: len(package.split(".")) - node.level + 1])
+                base = f"{base}.{node.module}" if node.module else base
+            else:
+                base = node.module or ""
+            names = [base] + [f"{base}.{a.name}" for a in node.names]
+        else:
+            continue
+        for name in names:
+            if name.split(".")[0] == top and _spec(name) is not None:
+                parts = name.split(".")
+                found.update(".".join(parts[: k + 1]) for k in range(len(parts)))
+    return hashlib.sha256(ast.dump(tree).encode()).hexdigest()[:20], tuple(sorted(found - {module}))
+
+
+def code_version(modules: Sequence[str], alone: Sequence[str] = ()) -> str:
+    """Digest of the code of ``modules`` (dotted names) and of every module of their package they
+    import, transitively, and of ``alone``'s own code (not what it imports: a runner that imports
+    every stage's modules): part of a stage's key, so a change to the code that computes a stage
+    recomputes it. Syntax trees, not text: comments and docstrings do not count."""
+    todo, seen = list(modules), set()
+    while todo:
+        m = todo.pop()
+        if m not in seen:
+            seen.add(m)
+            todo.extend(_module_code(m)[1])
+    return digest([[m, _module_code(m)[0]] for m in sorted(seen | set(alone))])
 
 
 class StageCache:

@@ -1,6 +1,6 @@
 """Local shading frames and world <-> local transforms.
 
-Convention (DESIGN.md): the local frame of a surface point has x = tangent t, y = bitangent
+Convention (docs/design.md): the local frame of a surface point has x = tangent t, y = bitangent
 b = n x t, z = normal n. A frame is stored as a ``(..., 3, 3)`` matrix whose *rows* are t, b, n,
 so ``to_local(v, F) = F @ v`` and ``to_world(v, F) = F^T @ v``. All functions broadcast over
 leading dimensions and keep the input dtype/device.

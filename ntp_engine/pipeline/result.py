@@ -1,4 +1,4 @@
-"""The result folder (DESIGN.md output contract): maps, confidence, previews, mesh and material.json.
+"""The result folder (docs/design.md output contract): maps, confidence, previews, mesh and material.json.
 
 Per-trace fits (``fit_traces``) are turned from each texel's geometric frame into object space and
 laid out in the UV map; texels no trace reached keep the geometric frame and take their values from
@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..fit.geometry import FLAG_NO_LOBE
+from ..fit.flags import TexelFlag
 from ..io.atomic import write_text_atomic
 from ..io.images import write_exr, write_png
 from ..io.maps import MAP_FILES, SVBRDFMaps, axis_weight, consistent_axes
@@ -76,7 +76,7 @@ def write_result(out: Path, mesh: Mesh, texels: Texels, fitted: dict[str, np.nda
     out.mkdir(parents=True, exist_ok=True)
     maps.save(out)
     conf = np.zeros((H, W, 3))
-    conf[texels.row, texels.col, 0] = observed & ((fitted["flags"] & FLAG_NO_LOBE) == 0)
+    conf[texels.row, texels.col, 0] = observed & ((fitted["flags"] & TexelFlag.NO_LOBE) == 0)
     conf[texels.row, texels.col, 1] = lengths
     documented = {}
     if "material" in fitted:  # the refinement's basis materials (refine.materials, pipeline.fit_traces)

@@ -1,5 +1,5 @@
 """``ntp reconstruct``: a scan folder to texture maps, stage by stage, each stage cached under
-``OUT/cache`` or ``--cache DIR`` (DESIGN.md data flow):
+``OUT/cache`` or ``--cache DIR`` (docs/design.md data flow):
 
 select (blur, unreadable) -> register (pycolmap SfM, or a COLMAP model, + similarity to the mesh;
 skipped with a poses file)
@@ -28,6 +28,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ..fit.flags import TexelFlag
 from ..io.atomic import atomic_path, temp_dir, write_text_atomic
 from ..io.errors import NtpInputError
 from ..io.images import write_png
@@ -35,17 +36,15 @@ from ..io.mesh import Mesh, load_mesh, save_obj
 from ..io.output_folder import claim, publish
 from ..io.progress import QUIET, Progress
 from ..io.raycast import RayCaster
-from ..io.stage_cache import StageCache, content_digest, content_key, digest
+from ..io.stage_cache import StageCache, code_version, content_digest, content_key, digest
 from ..io.texels import Texels, rasterize, uv_atlas
 from ..io.threads import configured_threads
 from ..learn import models
 from ..learn.ragged import RaggedTraces
 from ..physics.emitter_blocks import SHADOW_SPLITS
-from ..refine.inputs import FLAG_WIDTH_FROM_MATERIAL, MIN_CLEAR_ENTRIES, REFINE_VIEWS
+from ..refine.inputs import MIN_CLEAR_ENTRIES, REFINE_VIEWS
 from ..refine.passes import CALIBRATION_TEXELS, refine_fit
-from ..refine.settings import FLAG_FROM_MATERIAL, RefineSettings
-from ..refine.settings import VERSION as REFINE_VERSION
-from ..refine.support_light import ALBEDO_VERSION as SUPPORT_VERSION
+from ..refine.settings import RefineSettings
 from ..refine.support_light import CELL as SUPPORT_CELL
 from ..refine.support_light import CODE_RANGE as SUPPORT_CODES
 from ..refine.support_light import REACH_RADII as SUPPORT_REACH
@@ -54,7 +53,6 @@ from ..register.align import Alignment, align_to_mesh
 from ..register.check import PhotoCheck, check_registration, spread
 from ..register.colmap_model import model_files, read_colmap_model
 from ..register.photo_stack import PhotoStack
-from ..register.photometric import VERSION as REGISTRATION_VERSION
 from ..register.refusal import MIN_MARGIN, MIN_SHARPNESS, outline_picture, refusal
 from ..register.sfm import MIN_REGISTERED, SfmResult, structure_from_motion
 from ..scanner import camera
@@ -71,7 +69,23 @@ MIN_RESOLUTION = 8
 # below these a run has measured too little to be a result: refused (exit 2), not written
 MIN_PHOTOS_USED = 3
 MIN_COVERAGE = 0.05  # fraction of texels with a trace
-REFINE = RefineSettings()  # the refinement's settings when asked for (`reconstruct(refine=True)`)
+REFINE = RefineSettings()
+# the code behind each stage (``io.stage_cache.code_version``: these modules and every engine module
+# they import; this module's own code runs every stage, so a change to it recomputes them all)
+STAGE_CODE: dict[str, tuple[str, ...]] = {
+    "select": ("ntp_engine.pipeline.photo_selection",),
+    "register": (
+        "ntp_engine.register.sfm",
+        "ntp_engine.register.colmap_model",
+        "ntp_engine.register.check",
+        "ntp_engine.register.refusal",
+    ),
+    "atlas": ("ntp_engine.io.texels",),
+    "traces": ("ntp_engine.pipeline.traces",),
+    "support": ("ntp_engine.refine.support_light",),
+    "fit": ("ntp_engine.pipeline.fit_traces",),
+    "refine": ("ntp_engine.refine.passes",),
+}  # the refinement's settings when asked for (`reconstruct(refine=True)`)
 
 
 class _Report:
@@ -174,6 +188,7 @@ def _diagnostics(out: Path, cache: StageCache, reg_info: dict, force: bool) -> N
 def _select_stage(scan: Scan, cache: StageCache, blur_margin: float, progress: Progress) -> tuple[Selection, str]:
     key = {
         "photos": content_key(scan.photo_paths),
+        "code": code_version(STAGE_CODE["select"], alone=[__name__]),
         "margin": blur_margin,
         "camera": [scan.scanner.width, scan.scanner.height],
     }
@@ -278,7 +293,7 @@ def _register_stage(
         "colmap": content_key(model_files(scan.colmap)) if scan.colmap else None,
         "mesh": content_key([scan.mesh_path]),
         "support": scan.support_plane,
-        "version": REGISTRATION_VERSION,
+        "code": code_version(STAGE_CODE["register"], alone=[__name__]),
         "camera": {
             "K": scan.scanner.K,
             "distortion": scan.scanner.distortion,
@@ -370,6 +385,7 @@ def _reconstruct(
         "rho_s_prior_weight": RHO_S_PRIOR_WEIGHT,
         "network_views": NETWORK_VIEWS,
         "block": FIT_BLOCK,
+        "code": code_version(STAGE_CODE["fit"], alone=[__name__]),
     }
     folder, h_fit = cache.get("fit", {"traces": h_tr, **model_key, **fit_key}, fit_stage)
     with np.load(folder / "fit.npz") as z:
@@ -397,7 +413,7 @@ def _reconstruct(
             "settings": dataclasses.asdict(REFINE),
             "views": REFINE_VIEWS,
             "min_clear_entries": MIN_CLEAR_ENTRIES,
-            "version": REFINE_VERSION,
+            "code": code_version(STAGE_CODE["refine"], alone=[__name__]),
             "calibration_texels": CALIBRATION_TEXELS,
         }
         folder, _ = cache.get("refine", key, refine_stage)
@@ -445,8 +461,8 @@ def refine_summary(fitted: dict[str, np.ndarray]) -> dict:
         out["basis_materials"] = int(len(fitted["material_share"]))
         if "material_matte_share" in fitted:  # the matte class's share estimated on this object
             out["matte_share"] = round(float(fitted["material_matte_share"]), 4)
-        out["texels_lobe_from_material"] = int((fitted["flags"] & FLAG_FROM_MATERIAL != 0).sum())
-        out["texels_width_from_material"] = int((fitted["flags"] & FLAG_WIDTH_FROM_MATERIAL != 0).sum())
+        out["texels_lobe_from_material"] = int((fitted["flags"] & TexelFlag.FROM_MATERIAL != 0).sum())
+        out["texels_width_from_material"] = int((fitted["flags"] & TexelFlag.WIDTH_FROM_MATERIAL != 0).sum())
         if "material_width_varies" in fitted:  # materials whose width is a field over the object
             out["materials_width_varies"] = int(fitted["material_width_varies"].sum())
     return out
@@ -484,7 +500,12 @@ def _atlas_stage(scan: Scan, cache: StageCache, resolution: int) -> tuple[Mesh, 
         mesh = load_mesh(scan.mesh_path)
         save_obj(d / "mesh.obj", mesh if mesh.uv is not None else uv_atlas(mesh, resolution))
 
-    folder, h_atlas = cache.get("atlas", {"mesh": content_key([scan.mesh_path]), "resolution": resolution}, compute)
+    key = {
+        "mesh": content_key([scan.mesh_path]),
+        "resolution": resolution,
+        "code": code_version(STAGE_CODE["atlas"], alone=[__name__]),
+    }
+    folder, h_atlas = cache.get("atlas", key, compute)
     return load_mesh(folder / "mesh.obj"), h_atlas
 
 
@@ -522,7 +543,7 @@ def _support_stage(
         "cell": SUPPORT_CELL,
         "reach": SUPPORT_REACH,
         "codes": SUPPORT_CODES,
-        "version": SUPPORT_VERSION,
+        "code": code_version(STAGE_CODE["support"], alone=[__name__]),
     }
     folder, h = cache.get("support", key, compute)
     return SupportAlbedo.load(folder / "support.npz"), h
@@ -580,6 +601,7 @@ def _traces_stage(
         "support_shadowed_kept": True,  # the support's shadow: entries kept out of range, its groups masked
         "files": trace_assembly.TABLE_FILES,
         "device": scanner_to_dict(scan.scanner),
+        "code": code_version(STAGE_CODE["traces"], alone=[__name__]),
     }
     folder, h_tr = cache.get("traces", key, compute)
     return trace_assembly.load_table(folder), json.loads((folder / "stats.json").read_text()), h_tr

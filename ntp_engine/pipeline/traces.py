@@ -45,13 +45,13 @@ from ..scanner.scanner import Scanner
 # wo . n^ in (MIN_COS_GRAZING, MIN_COS_VIEW]: kept, flagged out of range, and read by the refinement
 # only for texels with no other entry (``pipeline.fit_traces.refine_inputs``): at grazing angles a
 # pixel spans a strip of surface, which Eq. 1 for one texel does not describe; 0.2 rather than 0.15
-# halves what the gained texels cost the knot's albedo (docs/accuracy.md, "Grazing entries")
+# halves what the gained texels cost the knot's albedo (docs/history/accuracy.md, "Grazing entries")
 MIN_COS_GRAZING = 0.2
 # a bilinear tap whose pixel centre's ray hits the mesh at a point seen from the entry's point more
 # than this far off its tangent plane sees another surface (chord angle, degrees): on one smooth
 # surface the chord across a pixel's footprint tilts by half the normal's turn (a few degrees at the
 # gallery's pixel sizes), to another surface by far more; at 20 and 30 nearly the same of the knot's
-# grazing entries have a tap off their surface (7,832 and 7,818; docs/accuracy.md, "Pixels that see
+# grazing entries have a tap off their surface (7,832 and 7,818; docs/history/accuracy.md, "Pixels that see
 # another surface")
 MAX_TAP_TILT_DEG = 20.0
 TAP_TOLERANCE = 1e-6  # metres off the plane always accepted: the hit's float32 rounding

@@ -5,7 +5,7 @@ the pixel is a bilinear sample of four pixels that each see the surface at their
 pixel (~a texel) away (``refine.footprint.sample_points``): near an albedo edge every entry blends its
 neighbours' albedo in, and the texel's answer comes out as the truth blurred by about half a texel
 (the demo's map fitted the truth blurred by a Gaussian of 0.55 texel best: 0.0116 against 0.0199,
-docs/accuracy.md). Here the albedos of the texels near edges are solved together, each entry
+docs/history/accuracy.md). Here the albedos of the texels near edges are solved together, each entry
 predicted as its diffuse light times the weighted albedos of the texels its four taps land in.
 
 Convention: a texel's albedo is the mean over its square of the map (a tap counts for the texel it

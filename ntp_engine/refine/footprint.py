@@ -31,7 +31,7 @@ from the texel's own albedo less ``BLEND_NOISE`` (soft-thresholded: the estimate
 edge). The refinement counts it as noise on the entry's diffuse light (``refine.policy``): an entry
 that may blend a neighbour weighs less. Taking the blend out of the pixel instead (the estimate's
 sum_a w_a d_a) needs the map exact below a texel: with the gallery's 128² estimates it cost the
-vase 0.942 -> 0.826 of relit SSIM (docs/accuracy.md).
+vase 0.942 -> 0.826 of relit SSIM (docs/history/accuracy.md).
 """
 
 from __future__ import annotations
@@ -66,7 +66,7 @@ SPREAD_MAX = 0.05
 NEGLIGIBLE = 1e-12  # slope variance (a 1e-6 rad spread): none
 # alpha^2 grows by this times the slope variance. 2 is a Gaussian spread's exact widening of a
 # Beckmann lobe; four point samples are not a Gaussian spread, and on the gallery (engine scans, true
-# poses; docs/accuracy.md) 2 over-corrected — the box's brushed sides took a sharp isotropic cluster
+# poses; docs/history/accuracy.md) 2 over-corrected — the box's brushed sides took a sharp isotropic cluster
 # (tangent 67 deg) — and 1 still did on the knot (its alpha 0.02 plastic pooled 0.014: |log alpha|
 # 0.12 -> 0.39) and cost relit SSIM (dome, knot -0.005); 0.5 improved or kept every |log alpha| cell
 # but three (each by <= 0.03), and every object's relit SSIM within 0.002 or better

@@ -15,7 +15,7 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
-from ..fit.geometry import FLAG_NO_HIGHLIGHT
+from ..fit.flags import TexelFlag
 from ..io.texels import Texels
 from ..learn.ragged import RaggedTraces, spans, spread_rows
 from ..physics.emitter_blocks import shadow_groups
@@ -25,11 +25,6 @@ from ..scanner.scanner import Scanner
 from .footprint import Footprint, albedo_blend, sample_points, slope_spread
 from .model import Start
 from .policy import Refined
-from .settings import (
-    FLAG_FROM_MATERIAL,
-    FLAG_SPECULAR_UNCONSTRAINED,
-    FLAG_TANGENT_UNCONSTRAINED,
-)
 from .support_light import SupportScene, SupportView
 
 REFINE_VIEWS = 24  # entries per texel the refinement reads (spread evenly over the trace)
@@ -38,10 +33,14 @@ REFINE_VIEWS = 24  # entries per texel the refinement reads (spread evenly over 
 MIN_CLEAR_ENTRIES = 1
 BLEND_ENTRIES = 1 << 18  # entries per block of with_albedo_blend (its float64 temporaries ~100 MB)
 REFINE_BATCH = 512  # texels per refinement batch: (batch, views, emitters) tensors stay ~100 MB
-FLAG_MARGINAL = 128  # refined on entries the mesh shadows or sees at grazing angles (too few others)
-FLAG_WIDTH_FROM_MATERIAL = 256  # a lobe of its own, its width its material's: the trace could not tell them apart
-REFINE_FLAGS = FLAG_SPECULAR_UNCONSTRAINED | FLAG_TANGENT_UNCONSTRAINED | FLAG_FROM_MATERIAL
-REFINE_FLAGS |= FLAG_MARGINAL | FLAG_WIDTH_FROM_MATERIAL
+# the bits the refinement sets (a texel refined again loses its previous ones)
+REFINE_FLAGS = (
+    TexelFlag.SPECULAR_UNCONSTRAINED
+    | TexelFlag.TANGENT_UNCONSTRAINED
+    | TexelFlag.FROM_MATERIAL
+    | TexelFlag.MARGINAL
+    | TexelFlag.WIDTH_FROM_MATERIAL
+)
 
 
 class RefineInputs(NamedTuple):
@@ -87,7 +86,7 @@ def refine_inputs(
     others (``marginal``): their model is coarser (half emitter blocks hidden or not, no light the
     mesh reflects into its own shadows; a grazing pixel spans a strip of surface) — on the knot
     reading shadowed entries everywhere cost the Cycles scan's normals 0.3-0.7 deg, on the gallery
-    grazing ones its relit SSIM (docs/accuracy.md). With ``support`` (and ``texels``, the atlas of
+    grazing ones its relit SSIM (docs/history/accuracy.md). With ``support`` (and ``texels``, the atlas of
     the traces), the support's light on them; with ``texels``, the normals each entry's pixel sample
     spans where the surface turns (``refine.footprint``)."""
     groups = shadow_groups(scanner)
@@ -98,7 +97,7 @@ def refine_inputs(
     marginal = few & marginal_entry.any(1)
     rows, mask = spread_rows(rows, torch.where(few[:, None], mask, clear), REFINE_VIEWS)
     i = idx.numpy()
-    specular = torch.as_tensor(fit["flags"][i] & FLAG_NO_HIGHLIGHT == 0)
+    specular = torch.as_tensor(fit["flags"][i] & TexelFlag.NO_HIGHLIGHT == 0)
     start = Start.from_fit(fit, i)
     view = None
     if support is not None:
@@ -144,11 +143,11 @@ def turned_tangents(t_loc: np.ndarray, n_loc: np.ndarray, turn: np.ndarray) -> n
 
 def store_refined(fit: dict[str, np.ndarray], idx: torch.Tensor, r: Refined, marginal: torch.Tensor) -> None:
     """The answers ``r`` of the texels ``idx`` written into ``fit``'s per-texel arrays, their flags
-    replacing the refinement's own (``REFINE_FLAGS``), ``FLAG_MARGINAL`` where ``marginal``."""
+    replacing the refinement's own (``REFINE_FLAGS``), ``TexelFlag.MARGINAL`` where ``marginal``."""
     i = idx.numpy()
     fit["n_loc"][i], fit["t_loc"][i] = r.frame[:, 2].numpy(), r.frame[:, 0].numpy()
     fit["alpha"][i] = r.log_alpha.exp().numpy()
     fit["rho_d"][i], fit["rho_s"][i] = r.rho_d.numpy(), r.rho_s.numpy()
-    fit["flags"][i] = (fit["flags"][i] & ~REFINE_FLAGS) | r.flags.numpy() | marginal.numpy() * FLAG_MARGINAL
+    fit["flags"][i] = (fit["flags"][i] & ~int(REFINE_FLAGS)) | r.flags.numpy() | marginal.numpy() * TexelFlag.MARGINAL
     fit["std"][i] = r.std.numpy()
     fit["highlight"][i] = r.highlight.numpy()

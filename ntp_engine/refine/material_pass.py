@@ -15,20 +15,13 @@ import dataclasses
 import numpy as np
 import torch
 
+from ..fit.flags import TexelFlag
 from ..io.progress import Progress
 from ..io.texels import Texels
 from ..learn.ragged import RaggedTraces
 from ..physics.brdf import ALPHA_MAX, ALPHA_MIN
 from ..scanner.scanner import Scanner
-from .inputs import (
-    FLAG_MARGINAL,
-    FLAG_WIDTH_FROM_MATERIAL,
-    REFINE_BATCH,
-    RefineInputs,
-    refine_inputs,
-    store_refined,
-    turned_tangents,
-)
+from .inputs import REFINE_BATCH, RefineInputs, refine_inputs, store_refined, turned_tangents
 from .materials import (
     LABEL_ROUNDS,
     BasisMaterials,
@@ -48,14 +41,7 @@ from .materials import (
 )
 from .policy import lobe_costs, material_costs, refine_toward, turn_costs
 from .priors import LobePrior
-from .settings import (
-    ANISOTROPY_PARAMS,
-    FLAG_FROM_MATERIAL,
-    FLAG_SPECULAR_UNCONSTRAINED,
-    FLAG_TANGENT_UNCONSTRAINED,
-    ISOTROPIC_RATIO,
-    RefineSettings,
-)
+from .settings import ANISOTROPY_PARAMS, ISOTROPIC_RATIO, RefineSettings
 from .support_light import SupportScene
 from .surface_fields import texel_spacing
 from .tangent_field import field_variation, fused_turns, neighbour_turns
@@ -93,7 +79,7 @@ def neighbour_turn_costs(
     if texels is None:
         return None
     turn, agree = np.zeros((len(rest), K)), np.zeros((len(rest), K))
-    constrained = own & (fit["flags"][i_obs] & FLAG_TANGENT_UNCONSTRAINED == 0)
+    constrained = own & (fit["flags"][i_obs] & TexelFlag.TANGENT_UNCONSTRAINED == 0)
     for m in range(K):
         source = i_obs[constrained & (label == m)]
         turn[:, m], agree[:, m] = neighbour_turns(
@@ -200,7 +186,7 @@ def _widths_from_materials(
     """Texels ``idx`` with a lobe of their own in a lobe material (``fit["material"]``) take its
     width where their trace explains it within ``WIDTH_PARAMS`` of their own (both with the
     texel's frame and albedos re-solved, ``refine.lobe_costs``): alphas the material's, rho_d and
-    rho_s re-solved, flagged ``FLAG_WIDTH_FROM_MATERIAL``. ``turn (len(idx),)`` (radians, NaN:
+    rho_s re-solved, flagged ``TexelFlag.WIDTH_FROM_MATERIAL``. ``turn (len(idx),)`` (radians, NaN:
     none): where the material's lobe is also tried turned so about the normal — an isotropic lobe
     of its own has no tangent to offer an anisotropic material's lobe (its neighbours' is the guess,
     ``neighbour_turn_costs``); the better of the two is kept, and its tangent with it. Updates ``fit``
@@ -228,7 +214,7 @@ def _widths_from_materials(
         t = k[take]
         fit["alpha"][t] = alphas[take, 1]
         fit["rho_d"][t], fit["rho_s"][t] = rd[take, 1].numpy(), rs[take, 1].numpy()
-        fit["flags"][t] |= FLAG_WIDTH_FROM_MATERIAL
+        fit["flags"][t] |= TexelFlag.WIDTH_FROM_MATERIAL
         fit["t_loc"][t] = turned_tangents(fit["t_loc"][t], fit["n_loc"][t], angle[take])
 
 
@@ -248,11 +234,11 @@ def material_pass(
     fit["material"] = np.full(N, -2, np.int64)
     i_obs = todo.numpy()
     own = np.zeros(N, bool)
-    own[i_obs] = fit["flags"][i_obs] & FLAG_SPECULAR_UNCONSTRAINED == 0
+    own[i_obs] = fit["flags"][i_obs] & TexelFlag.SPECULAR_UNCONSTRAINED == 0
     # the basis from lobes measured on clear entries: a lobe read through the mesh's shadows (or at
     # grazing angles) is coarser — on the knot's Cycles scan those moved the clusters enough to lose
     # the glossy plastic's lobe
-    clear = own & (fit["flags"] & FLAG_MARGINAL == 0)
+    clear = own & (fit["flags"] & TexelFlag.MARGINAL == 0)
     rows = np.nonzero(clear)[0]
     basis, members = lobe_clusters(fit["rho_d"][rows], fit["alpha"][rows], fit["rho_s"][rows], fit["highlight"][rows])
     # the texels with a lobe of their own are labelled by colour (below): a cluster that holds none
@@ -266,7 +252,7 @@ def material_pass(
     # the texels without a lobe of their own: their traces judge no lobe and the lobe materials of
     # their colour and the broad ones, each with its rho_d re-solved; their colours under each weigh in
     # where the traces cannot tell (judged without the lobe, a broad lobe's texels looked matte:
-    # the knot's rough metal, docs/accuracy.md)
+    # the knot's rough metal, docs/history/accuracy.md)
     colour = colour_costs(fit["rho_d"][i_obs], basis)
     prior = colour - np.log(class_shares(basis))
     rest = np.nonzero(~own[i_obs])[0]
@@ -396,7 +382,7 @@ def _fuse_tangents(
     """Every anisotropic lobe's tangent fused with its neighbours' of the same material that fixed
     theirs (``refine.tangent_field.fused_turns`` over the material's ``field_variation``) — a tangent
     its trace fixed stays, noise between neighbours is averaged — and ``std``'s tangent column the
-    fused one. A texel that took its material's lobe (``FLAG_FROM_MATERIAL``) counts as knowing its
+    fused one. A texel that took its material's lobe (``TexelFlag.FROM_MATERIAL``) counts as knowing its
     tangent to ``TAKEN_TANGENT_STD`` (its trace chose among turns; the LM's local std there says
     where the lobe cannot point, not where it points) and is no source; it turns only where its
     photos do not object (``TURN_OBJECTION`` or more under its own lobe, ``refine.policy.turn_costs``)
@@ -407,9 +393,9 @@ def _fuse_tangents(
         return
     alpha, flags = fit["alpha"][i_obs], fit["flags"][i_obs]
     anisotropic = (label >= 0) & (alpha[:, 0] >= ISOTROPIC_RATIO * alpha[:, 1])
-    taken = flags & FLAG_FROM_MATERIAL > 0
+    taken = flags & TexelFlag.FROM_MATERIAL > 0
     std = np.where(taken, TAKEN_TANGENT_STD, np.radians(np.nan_to_num(fit["std"][i_obs, 1], nan=np.inf)))
-    constrained = anisotropic & ~taken & (flags & FLAG_TANGENT_UNCONSTRAINED == 0) & (std <= MAX_SOURCE_STD)
+    constrained = anisotropic & ~taken & (flags & TexelFlag.TANGENT_UNCONSTRAINED == 0) & (std <= MAX_SOURCE_STD)
     std_all = np.full(len(fit["std"]), np.inf)
     std_all[i_obs] = std
     turn, fused = np.zeros(len(i_obs)), std.copy()

@@ -194,7 +194,7 @@ def material_weight(highlight: np.ndarray, rho_s: np.ndarray) -> float:
     blended or shadowed pixels are metal-strong, rho_s 5-10). With f the share of members whose lobe
     showed itself, the weight is m f^2: those members (m f), weighed by how likely the cluster is a
     material at all (f). It moves smoothly as the members' lobes do: a yes-or-no rule on the median
-    highlight flipped whole materials in or out when a scan's lobes moved a little (docs/accuracy.md)."""
+    highlight flipped whole materials in or out when a scan's lobes moved a little (docs/history/accuracy.md)."""
     if len(highlight) == 0:
         return 0.0
     f = float(((highlight >= MIN_HIGHLIGHT) | (rho_s.mean(1) <= DIELECTRIC_RHO_S)).mean())
@@ -470,7 +470,7 @@ def colour_held(materials: BasisMaterials, members: np.ndarray, rho_d: np.ndarra
     times holds none. Why: a cluster whose members' colours all fall to another material (the same
     colour, a larger share) is another reading of that material's traces — the box's line-brushed
     metal seen through one LED solves isotropic and sharp and clusters apart, and 31% of its lobeless
-    texels took that lobe, their tangents lost (docs/accuracy.md)."""
+    texels took that lobe, their tangents lost (docs/history/accuracy.md)."""
     if len(materials) == 0:
         return materials, members
     label = np.argmin(class_costs(rho_d, materials), 1) - 1

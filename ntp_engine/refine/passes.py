@@ -14,7 +14,7 @@ import dataclasses
 import numpy as np
 import torch
 
-from ..fit.geometry import FLAG_NO_HIGHLIGHT
+from ..fit.flags import TexelFlag
 from ..io.allocator import freed_memory_kept
 from ..io.progress import QUIET, Progress
 from ..io.texels import Texels
@@ -27,10 +27,7 @@ from .material_pass import material_pass
 from .model import Start, predicted_light
 from .normal_field import fused_normals
 from .policy import calibrated, refine
-from .settings import (
-    FLAG_SPECULAR_UNCONSTRAINED,
-    RefineSettings,
-)
+from .settings import RefineSettings
 from .support_light import SupportScene, face_albedo
 
 CALIBRATION_TEXELS = 512  # texels refined first to calibrate the noise and the normal's pull (refine.policy.calibrated)
@@ -117,7 +114,7 @@ def _refine_fit(
         # normal, which the blended entries had tipped, they held the matte normals there. A texel
         # that kept no lobe seeks none: noise on some of its entries shows no lobe that all did not
         warm = {k: v.copy() for k, v in fit.items()}
-        warm["flags"][(fit["flags"] & FLAG_SPECULAR_UNCONSTRAINED) != 0] |= FLAG_NO_HIGHLIGHT
+        warm["flags"][(fit["flags"] & TexelFlag.SPECULAR_UNCONSTRAINED) != 0] |= TexelFlag.NO_HIGHLIGHT
         again = dataclasses.replace(settings, rounds=EDGE_ROUNDS, starts=False)
         _refine_texels(scanner, traces, fit, warm, edges, again, progress, texels, support, "albedo edges", start)
     if settings.materials:

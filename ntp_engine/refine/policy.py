@@ -17,12 +17,10 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
+from ..fit.flags import TexelFlag
 from ..physics.brdf import ALPHA_MAX, ALPHA_MIN, RHO_D_MAX, RHO_S_MAX
 from ..physics.emitter_blocks import emitter_blocks
-from ..physics.frame import (
-    frame_from_normal_tangent,
-    turned_about_normal,
-)
+from ..physics.frame import frame_from_normal_tangent, turned_about_normal
 from ..scanner.scanner import Scanner
 from .footprint import Footprint
 from .gauss_newton import N_PARAMS, data_cost
@@ -43,9 +41,6 @@ from .priors import LobePrior, Prior, normal_prior
 from .settings import (
     ANISOTROPY_PARAMS,
     ANISOTROPY_TEST,
-    FLAG_FROM_MATERIAL,
-    FLAG_SPECULAR_UNCONSTRAINED,
-    FLAG_TANGENT_UNCONSTRAINED,
     ISOTROPIC_RATIO,
     ISOTROPIC_ROUNDS,
     LOBE_EVIDENCE,
@@ -57,9 +52,7 @@ from .settings import (
     SensorNoise,
 )
 from .solver import albedo_start, robust_albedos, solve
-from .support_light import (
-    SupportView,
-)
+from .support_light import SupportView
 
 # a texel whose normal's 1-sigma is below this (deg) has it from its photos, not the prior
 # (``calibrated``: where the normal's pull centres), and this many such texels decide
@@ -74,7 +67,7 @@ class Refined:
     log_alpha: Tensor  # (N, 2) alpha_x >= alpha_y
     rho_d: Tensor  # (N, 3)
     rho_s: Tensor  # (N, 3)
-    flags: Tensor  # (N,) FLAG_SPECULAR_UNCONSTRAINED | FLAG_TANGENT_UNCONSTRAINED
+    flags: Tensor  # (N,) TexelFlag.SPECULAR_UNCONSTRAINED | TexelFlag.TANGENT_UNCONSTRAINED
     std: Tensor  # (N, 4) 1-sigma: normal (deg), tangent (deg), log alpha_x, log rho_s (mean channel)
     cost: Tensor  # (N,) objective at the answer (robust data cost plus the priors)
     highlight: Tensor  # (N,) the largest share of an entry's pixel the texel's kept lobe makes (0: none)
@@ -360,7 +353,7 @@ def refine_toward(
     """Refine N texels that take their lobe from a basis material: from ``start`` (the material's
     lobe with the texel's own frame, rho_d), with alphas and rho_s pulled to ``prior`` by its
     spreads; no multi-start. The lobe is kept whether or not an entry shows it (flags:
-    ``FLAG_FROM_MATERIAL``, and ``FLAG_SPECULAR_UNCONSTRAINED`` where none does: its parameters are
+    ``TexelFlag.FROM_MATERIAL``, and ``TexelFlag.SPECULAR_UNCONSTRAINED`` where none does: its parameters are
     then the material's; its uncertainty the prior's). Never NaN: a failed solve keeps the start."""
     settings = settings or RefineSettings()
     tr = Trace(scanner, entries, mask, settings.noise, emitter_blocks(scanner), shadow, support, footprint)
@@ -450,8 +443,8 @@ def _finish(
         [normal_std, torch.rad2deg(cov[:, 2]), cov[:, 3:5].amax(1), cov[:, P_RHO_S].mean(1) / rho_s_mean], 1
     )
     std = torch.where(kept[:, None], std, std.masked_fill(torch.tensor([False, True, True, True]), math.inf))
-    flags = (~seen).long() * FLAG_SPECULAR_UNCONSTRAINED | from_material.long() * FLAG_FROM_MATERIAL
+    flags = (~seen).long() * TexelFlag.SPECULAR_UNCONSTRAINED | from_material.long() * TexelFlag.FROM_MATERIAL
     iso = (la[:, 0] - la[:, 1]) < math.log(ISOTROPIC_RATIO)
-    flags = flags | ((~seen | iso).long() * FLAG_TANGENT_UNCONSTRAINED)
+    flags = flags | ((~seen | iso).long() * TexelFlag.TANGENT_UNCONSTRAINED)
     rho_s = torch.where(kept[:, None], p[:, P_RHO_S], torch.zeros_like(p[:, P_RHO_S]))
     return Refined(frame, la, p[:, P_RHO_D], rho_s, flags, std, cost, highlight)

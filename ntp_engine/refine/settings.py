@@ -12,7 +12,6 @@ from torch import Tensor
 
 from ..scanner.camera import VALID_CODE
 
-VERSION = 50  # of the method: part of the pipeline's cache key (bump when results change for the same settings)
 CENSOR_CODE = VALID_CODE[1]  # above this an 8-bit code may be (or border) a clipped pixel: a lower bound
 EXPANDED_BLOCKS = 4  # emitter blocks per entry summed sample by sample (the rest as coarse emitters)
 MAX_TRIES = 3  # damping increases per LM iteration before the texel waits for the next one
@@ -50,7 +49,6 @@ MIN_SPECULAR_SHARE = 0.05  # a lobe below this share of some entry's pixel was n
 LOBE_PARAMS = 6  # what a texel's own lobe adds to its diffuse-only model: tangent turn, 2 alphas, RGB rho_s
 LOBE_EVIDENCE = 4.0  # a lobe must lower the robust cost (half chi-square units) by at least this much, and
 SELECT_WIDEN, SELECT_FLOOR = 3.0, 0.03  # emitters are chosen under alphas x3 (at least 0.03)
-FLAG_SPECULAR_UNCONSTRAINED, FLAG_TANGENT_UNCONSTRAINED, FLAG_FROM_MATERIAL = 16, 32, 64
 
 
 @dataclass(frozen=True)
@@ -85,7 +83,7 @@ class RefineSettings:
     # a pull of rho_s's channels to their mean, sigma relative to it: a lobe is grey unless its photos say
     # otherwise. A white highlight on a red diffuse clips first in red, which then bounds red's rho_s
     # only from below: the dome's white lacquer came out 4.7 / 1.6 / 1.6 on half its texels (0.15 held
-    # it greyer but cost three Cycles |log alpha| cells; docs/accuracy.md, "A lobe is grey...")
+    # it greyer but cost three Cycles |log alpha| cells; docs/history/accuracy.md, "A lobe is grey...")
     rho_s_tint_sigma: float = 0.3
     materials: bool = True  # basis materials for texels whose own trace does not show their lobe (refine.materials)
     # the neighbours' albedo each entry's pixel may blend in, as noise on its diffuse light (refine.footprint)

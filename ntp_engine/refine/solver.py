@@ -156,7 +156,7 @@ def albedo_start(
     False: rho_s = 0. A clipped entry counts, as in the data cost, where the answer predicts it
     darker than its lower bound: up to ``CLIPPED_ROUNDS`` solves, each adding (at its bound) the
     clipped entries the last one fell below. Left out, a texel whose every entry is clipped (the
-    vase's white print in 2-4 entries) got rho_d 0, and a lobe took its light (docs/accuracy.md)."""
+    vase's white print in 2-4 entries) got rho_d 0, and a lobe took its light (docs/history/accuracy.md)."""
     tr = rnd.tr
     d, s = rnd.bases(p[:, P_OMEGA], p[:, P_LOGA]) if bases is None else bases
     w = (tr.inv_sigma**2 * tr.mask).double()

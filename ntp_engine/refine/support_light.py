@@ -3,7 +3,7 @@
 The scanner's LEDs light the table the object stands on as much as the object, and a glossy face
 seen edge-on mirrors that table into the camera. Eq. 1 (direct light only) lacks this light; the
 refinement then explains it by turning lobes toward the LEDs (Cycles scans: normals tilted up by
-Δn_z 0.02–0.08, a blob's brushed underside |log rho_s| 8.5 — docs/accuracy.md).
+Δn_z 0.02–0.08, a blob's brushed underside |log rho_s| 8.5 — docs/history/accuracy.md).
 
 Model: the support is the plane z = ``SupportAlbedo.z`` of the mesh frame (``scan.support_plane``:
 the mesh's lowest z), Lambertian, with an albedo map read from the photos themselves
@@ -30,7 +30,7 @@ units with the exposure (as the emitters').
 The object's light on itself (``SupportScene.face_albedo``): a concave object lights itself — the
 emitters light one face, which reflects onto another, and the refinement explained that light by
 bending lobes (the gallery's knot under Cycles: its glossy plastic's width fell to the 0.006
-floor; rendered without bounces, it came back right — docs/accuracy.md). A sample direction that
+floor; rendered without bounces, it came back right — docs/history/accuracy.md). A sample direction that
 meets the mesh before the support (and within ``MAX_REACH``) carries the radiance of the point p
 it meets: one diffuse bounce, rho_d(p) / pi * E_j(p), rho_d the current answer's albedo of p's
 triangle (``face_albedo``), E_j as the support's, zero where p's face looks away from the texel
@@ -62,7 +62,6 @@ DIFFUSE_SAMPLES = 32  # per entry, cosine-distributed about n^ (16: -25% on a fa
 SAMPLE_WIDEN, SAMPLE_FLOOR = 1.5, 0.02  # the sampled lobe: the round's alphas x1.5 (at least 0.02)
 MAX_REACH = 1.0  # m: support points farther from the texel carry no light
 RAY_OFFSET = 1e-4  # m: rays start this far off the surfaces they leave
-ALBEDO_VERSION = 1  # of estimate_support_albedo's method: part of its stage's cache key (bump when it changes)
 CELL = 0.004  # m: the albedo map's cells
 REACH_RADII = 3.0  # the map spans this many object radii around the object's footprint
 CODE_RANGE = (2.0, 250.0)  # support pixels read with every channel's 8-bit code inside (not black, not clipped)
@@ -194,7 +193,7 @@ def irradiance(scanner: Scanner, sources: Sources, points: Tensor, normal: Tenso
     times pi, exposure included) at camera-space ``points (M, 3)`` with unit ``normal (M, 3)``,
     unshadowed. Summed in float32, as matmuls (|s - p|^2 = |s|^2 - 2 p.s + |p|^2): 18x faster than
     float64 (m, C, 3) temporaries, within 3e-5 of them at the scanner's distances (~0.1-1 m) — a
-    light the refinement takes as data, known to a few % (docs/accuracy.md)."""
+    light the refinement takes as data, known to a few % (docs/history/accuracy.md)."""
     f32 = torch.float32
     out = torch.zeros(len(points), 3, dtype=torch.float64)
     exposure = float(scanner.exposure(scanner.pattern))

@@ -7,7 +7,7 @@ A texel whose trace does not show its lobe cannot tell where an anisotropic lobe
 neighbours of the same material whose own traces fixed their lobes can — tangent fields are smooth
 over a surface (brushing, weaving, machining). Uniform over the turns, the material's lobe pays
 ~ln 4 for not knowing where it points, and the texel goes to a weakly anisotropic material instead
-(docs/accuracy.md, "Isotropic unless shown"). And a tangent a trace did fix is noisy by a few
+(docs/history/accuracy.md, "Isotropic unless shown"). And a tangent a trace did fix is noisy by a few
 degrees, enough to break a sharp anisotropic highlight into sparkles.
 
 Convention: texels ``(N,)`` with object-space positions (m) and geometric frames (unit ``normal``,

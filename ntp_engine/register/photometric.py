@@ -38,7 +38,6 @@ from ..scanner import camera
 from .align import surface_samples
 from .photo_stack import WORK, PhotoStack, diffuse_shading, edge_mask, eliminate_nuisances, shading_lights
 
-VERSION = 3  # of the registration: a change that moves the poses bumps it (cached registrations are redone)
 SURFACE_POINTS = 3000  # surface samples of a PhotometricRegistration by default
 CANDIDATE_POINTS = 1500  # ... that compare the candidate azimuths (on SWEEP_PHOTOS photos)
 FINE_POINTS = 8000  # ... and that refine the chosen one: its error is sampling noise (gallery dome, 40 photos:

@@ -1,4 +1,4 @@
-"""The scan folder format (DESIGN.md), read and written here: ``scan.toml`` naming the mesh, the
+"""The scan folder format (docs/design.md), read and written here: ``scan.toml`` naming the mesh, the
 photos folder, the device file and, optionally, a poses file (camera-from-world 4x4 per photo name;
 SfM is skipped with it) or a COLMAP model folder (``colmap = "sparse/0"``: SfM is skipped, the
 model is aligned to the mesh) and ``support_plane = false`` when the object does not stand on a flat

@@ -12,7 +12,7 @@ at a fixed 12 spp its pixels' median is ~1/3 of their mean and the sensor clips 
 emitter is a small Lambertian area light (so only cos^1 emitters can be modelled) driven by the
 pattern through the colour matrix. The lobe is the engine's own — rho_s x GGX x Schlick's Fresnel
 on w_i.h, its rise bounded so no lobe reflects more than all the light (F90 = min(1, 1 / rho_s),
-``physics.brdf.bounded_f90``: DESIGN.md's F on every path from an emitter) — as an OSL node
+``physics.brdf.bounded_f90``: docs/design.md's F on every path from an emitter) — as an OSL node
 (``ntp_addon.schlick_lobe``; Cycles renders with OSL on the CPU), so light the support or the
 object bounces onto the object reflects with a Fresnel too, as on a real object.
 Until 2026-11-29 it was a Glossy BSDF of colour rho_s F0, right for the direct paths (every emitter
@@ -30,11 +30,9 @@ settings changed re-uses them, an interrupted one resumes.
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import shutil
 import subprocess
-import sys
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -43,6 +41,7 @@ import numpy as np
 import torch
 
 from ..io.assets import DEVICES_DIR
+from ..io.blender_process import blender_command, has_bpy
 from ..io.errors import NtpInputError
 from ..io.images import read_image, write_png
 from ..io.maps import MAP_FILES
@@ -118,11 +117,11 @@ def emitter_lights(scanner: Scanner) -> list[dict]:
 
 def _render(job: dict, folder: Path, progress: Progress) -> None:
     """Run the renderer process on ``job`` (photos into ``folder``), advancing ``progress``."""
-    if importlib.util.find_spec("bpy") is None:
+    if not has_bpy():
         raise NtpInputError(None, "the Cycles scanner needs bpy (Blender as a module; `make setup` installs it)")
     job_path = folder / "job.json"
     job_path.write_text(json.dumps(job, indent=1))
-    cmd = [sys.executable, "-m", "ntp_addon.scan_render", str(job_path)]
+    cmd = blender_command("scan_render", str(job_path))
     log = folder / "render.log"  # Blender's own messages (a file: a full pipe would stall it)
     with log.open("w") as err, subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=err, text=True) as proc:
         assert proc.stdout is not None

@@ -14,14 +14,13 @@ the defaults ~40% of the run's time on 2 cores (5-8 minutes, by the machine), an
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import subprocess
-import sys
 import time
 from pathlib import Path
 
 from ..io.atomic import write_text_atomic
+from ..io.blender_process import blender_command, has_bpy
 from ..io.errors import NtpInputError
 from ..io.output_folder import claim
 from ..io.progress import QUIET, Progress
@@ -44,14 +43,12 @@ GOALS = {
 def _blender_export(result: Path, out: Path) -> dict:
     """The .blend, .glb and a Cycles preview via the add-on's headless batch, in its own process
     (the engine never imports bpy); skipped when bpy is not installed."""
-    if importlib.util.find_spec("bpy") is None:
+    if not has_bpy():
         return {"skipped": "bpy not installed"}
     files = {"blend": out / "asset.blend", "gltf": out / "asset.glb", "preview": out / "preview.png"}
     r = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "ntp_addon.batch",
+        blender_command(
+            "batch",
             str(result),
             "--blend",
             str(files["blend"]),
@@ -59,12 +56,12 @@ def _blender_export(result: Path, out: Path) -> dict:
             str(files["gltf"]),
             "--preview",
             str(files["preview"]),
-        ],
+        ),
         capture_output=True,
         text=True,
     )
     if r.returncode != 0:
-        return {"error": (r.stderr.strip().splitlines() or ["ntp_addon.batch failed"])[-1]}
+        return {"error": (r.stderr.strip().splitlines() or ["the Blender export failed"])[-1]}
     return {k: str(v) for k, v in files.items()}
 
 

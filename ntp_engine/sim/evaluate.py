@@ -109,7 +109,7 @@ def truth_at_texels(truth: SVBRDFMaps, labels: np.ndarray, uv: np.ndarray) -> tu
     — so materials do not blend at borders. Where the result's texels are the truth's (same
     resolution) that is the texel itself; where the truth is finer, a texel centre lies between truth
     texels, and the one containing it (its nearest) is half a truth texel off: on the gallery's
-    curved objects 1-2 deg of normal (docs/accuracy.md)."""
+    curved objects 1-2 deg of normal (docs/history/accuracy.md)."""
     label = _nearest(labels[..., None], uv)[:, 0]
     return truth.sample(uv, _own_material_taps(labels, uv, label)[0]), label
 
@@ -144,7 +144,7 @@ def material_border(labels: np.ndarray, uv: np.ndarray, label: np.ndarray) -> np
     True where the bilinear sample at its centre weighs a truth texel of another material than the
     centre's ``label (N,)`` (a result as fine as the truth: never). Its photos see both materials
     there and the texel holds one value: its rho_d comes out between them, scored against its
-    centre's material (docs/accuracy.md, "Texels on a material border")."""
+    centre's material (docs/history/accuracy.md, "Texels on a material border")."""
     own, weight = _own_material_taps(labels, uv, label)
     return (~own & (weight > 0)).any(1)
 

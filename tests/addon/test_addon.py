@@ -19,6 +19,8 @@ from ntp_addon import compare, derive, gltf, material  # noqa: E402
 from ntp_addon import scene as bscene  # noqa: E402
 from ntp_engine.sim.demo_asset import DEMO_DIR  # noqa: E402
 
+pytestmark = pytest.mark.slow  # real bpy
+
 DEMO = DEMO_DIR
 REPO = Path(__file__).resolve().parents[2]
 

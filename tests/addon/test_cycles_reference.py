@@ -197,7 +197,7 @@ def test_the_scanners_lobe_is_the_engines_with_its_fresnel_on_wi_h(tmp_path, alp
     engine = flat + rise
     _assert_matches(cycles, engine, g_ratio)
     # the Fresnel is in the picture: the Glossy colour rho_s F0 (the scanner's lobe until
-    # 2026-11-29) is this much darker at the highlight, DESIGN.md's F90 = 1 this much brighter
+    # 2026-11-29) is this much darker at the highlight, docs/design.md's F90 = 1 this much brighter
     peak = engine.sum(-1) > 0.5 * engine.sum(-1).max()  # pixels (H, W)
     assert np.median(1 - flat[peak] / engine[peak]) > 0.1
     unbounded, _ = _engine(rho_d, rho_s, f0=F0_DIELECTRIC, **base)

@@ -14,6 +14,7 @@ TINY = gallery.GallerySettings(
 )
 
 
+@pytest.mark.slow  # measured over 5 s on 2 cores
 def test_tiny_gallery_writes_tables_json_and_figure(tmp_path):
     r = gallery.run(tmp_path, TINY)
     assert [(x["object"], x["scanner"], x["poses"]) for x in r["runs"]] == [

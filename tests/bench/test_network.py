@@ -1,6 +1,7 @@
 import pytest
 
 
+@pytest.mark.slow  # measured over 5 s on 2 cores
 def test_network_benchmark_reads_shipped_models_and_reports_the_keys(tmp_path):
     import json
 
@@ -19,6 +20,7 @@ def test_network_benchmark_reads_shipped_models_and_reports_the_keys(tmp_path):
     assert all(0 <= v <= 1 for v in r["valid_views_by_pattern"].values())
 
 
+@pytest.mark.slow  # measured over 5 s on 2 cores
 def test_bench_network_trains_the_pattern_comparison_from_shared_halfway_networks():
     """The Fig. 14 protocol without --quick: optimised and full-on continue the same half-way
     full-on network; only the optimised one's pattern moves."""

@@ -1,7 +1,10 @@
+import pytest
+
 from ntp_engine.bench import gallery, registration
 from ntp_engine.io.progress import QUIET
 
 
+@pytest.mark.slow  # measured over 5 s on 2 cores
 def test_registration_runs_per_seed_and_reuses_the_kept_sfm_model(tmp_path):
     settings = gallery.settings_for(True, objects=("dome",), scanners=("engine",), views=24)
     first = registration.run(tmp_path / "g", settings, seeds=(0,))

@@ -1,8 +1,11 @@
 import json
 
+import pytest
+
 from ntp_engine.bench import sfm
 
 
+@pytest.mark.slow  # measured over 5 s on 2 cores
 def test_the_mappers_run_on_one_scan_and_are_timed_against_the_incremental_one(tmp_path):
     record = sfm.run(tmp_path / "b", photos=(60,), mappers=("incremental", "hierarchical"))
     rows = record["runs"]

@@ -4,13 +4,8 @@ import pytest
 import torch
 from lobes import angle_deg, exact_lobes
 
-from ntp_engine.fit.geometry import (
-    FALLBACK_ALPHA,
-    FLAG_NONFINITE,
-    FLAG_ZERO,
-    diffuse_normal,
-    fit_geometry,
-)
+from ntp_engine.fit.flags import TexelFlag
+from ntp_engine.fit.geometry import FALLBACK_ALPHA, diffuse_normal, fit_geometry
 from ntp_engine.physics.frame import safe_normalize
 from ntp_engine.physics.lumitexel import diffuse_lumitexel, specular_lumitexel
 
@@ -77,7 +72,7 @@ def test_zero_saturated_nan_inf_inputs_are_flagged_and_finite():
     f = fit_geometry(m, diffuse=d)
     for field in ("normal", "tangent", "alpha_x", "alpha_y", "rho_s"):
         assert torch.isfinite(getattr(f, field)).all(), field
-    assert f.flags[0] & FLAG_ZERO and f.flags[1] & FLAG_NONFINITE and f.flags[2] & FLAG_NONFINITE
+    assert f.flags[0] & TexelFlag.ZERO and f.flags[1] & TexelFlag.NONFINITE and f.flags[2] & TexelFlag.NONFINITE
     assert float(f.alpha_x[0]) == pytest.approx(FALLBACK_ALPHA) and float(f.rho_s[0]) == 0.0
     assert angle_deg(f.normal[:3], n[:3]).max() < 1.0  # the fallback normal is the diffuse one
     assert ((f.alpha_x >= 0.006) & (f.alpha_x <= 0.5)).all()

@@ -1,7 +1,8 @@
 import pytest
 import torch
 
-from ntp_engine.fit.geometry import FLAG_NO_HIGHLIGHT, GeometryFit
+from ntp_engine.fit.flags import TexelFlag
+from ntp_engine.fit.geometry import GeometryFit
 from ntp_engine.fit.highlights import flag_unseen_highlights
 from ntp_engine.io.assets import DEVICES_DIR
 from ntp_engine.scanner.device_file import load_scanner
@@ -34,5 +35,5 @@ def test_texels_whose_highlight_was_never_seen_are_flagged_with_the_fallback_lob
     )
     beta = flag_unseen_highlights(dev, x[:, None], n_geo, t_geo, torch.ones(2, 1, dtype=torch.bool), geo)
     assert float(beta[0]) == pytest.approx(1.0) and float(beta[1]) < 1e-3
-    assert geo.flags.tolist() == [0, FLAG_NO_HIGHLIGHT]
+    assert geo.flags.tolist() == [0, TexelFlag.NO_HIGHLIGHT]
     assert geo.alpha_x.tolist() == pytest.approx([0.02, 0.3]) and torch.isfinite(geo.normal).all()

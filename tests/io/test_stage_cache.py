@@ -89,3 +89,40 @@ def test_a_failed_write_names_the_stage_folder(tmp_path):
     with pytest.raises(OSError) as err:
         StageCache(tmp_path).get("traces", {}, full)
     assert err.value.filename == str(tmp_path / "traces" / "traces.npz") and not list(tmp_path.iterdir())
+
+
+def _package(root, name, files):
+    for rel, text in files.items():
+        (root / name / rel).parent.mkdir(parents=True, exist_ok=True)
+        (root / name / rel).write_text(text)
+
+
+def test_the_code_version_follows_imports_within_the_package_and_ignores_comments_and_docstrings(tmp_path, monkeypatch):
+    from ntp_engine.io import stage_cache
+
+    name = f"pkgv_{tmp_path.name.replace('-', '_')}"
+    files = {
+        "__init__.py": "",
+        "a.py": "from .sub import b\nimport json\n\ndef f():\n    return b.g()\n",
+        "sub/__init__.py": '"""The sub package."""\n',
+        "sub/b.py": '"""b."""\n\ndef g():\n    return 1  # one\n',
+        "c.py": "X = 1\n",
+    }
+    _package(tmp_path, name, files)
+    monkeypatch.syspath_prepend(str(tmp_path))
+
+    def version():
+        stage_cache._module_code.cache_clear()
+        return stage_cache.code_version([f"{name}.a"])
+
+    v0 = version()
+    _package(tmp_path, name, {"sub/b.py": '"""b, reworded."""\n\ndef g():\n    return 1  # a comment changed\n'})
+    assert version() == v0  # comments and docstrings are not code
+    _package(tmp_path, name, {"c.py": "X = 2\n"})
+    assert version() == v0  # a module a does not import
+    _package(tmp_path, name, {"sub/b.py": "def g():\n    return 2\n"})
+    v1 = version()
+    assert v1 != v0  # imported through a subpackage, transitively
+    _package(tmp_path, name, {"a.py": "from .sub import b\nimport json\n\ndef f():\n    return b.g() + 1\n"})
+    assert version() not in (v0, v1)
+    stage_cache._module_code.cache_clear()

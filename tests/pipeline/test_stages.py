@@ -156,3 +156,38 @@ def test_fit_stage_on_ray_is_identical_even_with_a_worker_killed_mid_block(scan2
         np.load(tmp_path / "ray" / "cache" / "fit" / "fit.npz") as b,
     ):
         assert all(np.array_equal(a[k], b[k]) for k in a.files)
+
+
+@pytest.mark.parametrize(
+    "module, recomputed",
+    [
+        ("ntp_engine.pipeline.fit_traces", ["fit", "refine"]),
+        ("ntp_engine.pipeline.traces", ["traces", "fit", "refine"]),
+    ],
+)
+def test_a_change_to_a_stages_code_recomputes_that_stage_and_the_ones_after_it_only(
+    scan24, tmp_path, monkeypatch, module, recomputed
+):
+    """An upgraded ntp run into an existing result: the stages whose code changed (their modules or
+    any engine module those import) and the stages after them are computed again, the rest served."""
+    from ntp_engine.io import stage_cache
+
+    scan = load_scan(scan24, scan24 / "ground_truth" / "poses.json")
+    out = tmp_path / "rec"
+    reconstruct(scan, out, resolution=16, refine=True)
+    assert reconstruct(scan, out, resolution=16, refine=True)["cached_stages"] == [
+        "select",
+        "atlas",
+        "traces",
+        "fit",
+        "refine",
+    ]
+    real = stage_cache._source
+    monkeypatch.setattr(stage_cache, "_source", lambda m: real(m) + ("\nUPGRADED = 1\n" if m == module else ""))
+    stage_cache._module_code.cache_clear()
+    try:
+        rep = reconstruct(scan, out, resolution=16, refine=True)
+    finally:
+        stage_cache._module_code.cache_clear()
+    stages = ["select", "atlas", "traces", "fit", "refine"]
+    assert rep["cached_stages"] == [s for s in stages if s not in recomputed]

@@ -1,4 +1,5 @@
 import numpy as np
+import pytest
 import torch
 
 from ntp_engine.io.raycast import RayCaster
@@ -30,6 +31,7 @@ def _eq1_pixels(dev, entries: np.ndarray, R: np.ndarray, m: dict[str, np.ndarray
     return ref * dev.exposure(dev.pattern)
 
 
+@pytest.mark.slow  # measured over 5 s on 2 cores
 def test_traces_from_a_virtual_scan_match_the_renderer_and_respect_the_filters():
     mesh, maps, _, _ = load_asset(None, None, None)
     dev = load_scanner()
@@ -148,6 +150,7 @@ def _reference_assemble(tx, photos, poses, cam, caster):
     return np.concatenate(rows)[order], counts, np.concatenate(flags)[order], np.concatenate(masks)[order]
 
 
+@pytest.mark.slow  # measured over 5 s on 2 cores
 def test_two_pass_assembly_equals_the_one_pass_table_at_a_fraction_of_its_memory(tmp_path, monkeypatch):
     """In memory: the one-pass table at ~1.2x its memory; on disk (``folder``): the same table bit
     for bit, regrouped by texel in blocks (a few entries each here, one texel over the budget

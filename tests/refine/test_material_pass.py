@@ -1,6 +1,7 @@
 import numpy as np
 import torch
 
+from ntp_engine.fit.flags import TexelFlag
 from ntp_engine.learn.ragged import RaggedTraces
 from ntp_engine.learn.synthetic import SyntheticConfig, sample_batch
 from ntp_engine.scanner.device_file import load_scanner
@@ -48,11 +49,11 @@ def test_a_materials_width_comes_from_its_members_traces_together():
     whose width is 2x off (the median of answers that landed by their start) gets the truth from
     its texels' traces together, and its rho_s; in the refinement's second pass the texels whose
     traces cannot tell their own width from the material's take it, their albedos re-solved
-    (flagged ``FLAG_WIDTH_FROM_MATERIAL``)."""
-    from ntp_engine.refine.inputs import FLAG_WIDTH_FROM_MATERIAL
+    (flagged ``TexelFlag.WIDTH_FROM_MATERIAL``)."""
+
     from ntp_engine.refine.material_pass import pooled_widths
     from ntp_engine.refine.passes import refine_fit
-    from ntp_engine.refine.settings import FLAG_SPECULAR_UNCONSTRAINED, RefineSettings
+    from ntp_engine.refine.settings import RefineSettings
 
     n = 96
     dev, traces, start = _lobe_traces(n, 8, (0.3, 0.3), 0.05, 6.0, 5)
@@ -67,8 +68,8 @@ def test_a_materials_width_comes_from_its_members_traces_together():
         np.testing.assert_allclose(got.rho_d, wrong.rho_d)
     out = refine_fit(dev, traces, start, RefineSettings())
     np.testing.assert_allclose(out["material_alpha"], [[0.3, 0.3]], rtol=0.1)
-    took = out["flags"] & FLAG_WIDTH_FROM_MATERIAL != 0
-    assert took.mean() > 0.25 and (out["flags"][took] & FLAG_SPECULAR_UNCONSTRAINED == 0).all()
+    took = out["flags"] & TexelFlag.WIDTH_FROM_MATERIAL != 0
+    assert took.mean() > 0.25 and (out["flags"][took] & TexelFlag.SPECULAR_UNCONSTRAINED == 0).all()
     np.testing.assert_allclose(out["alpha"][took], np.broadcast_to(out["material_alpha"], (took.sum(), 2)))
     assert abs(np.median(out["rho_d"][took]) - 0.05) < 0.01
 
@@ -79,12 +80,12 @@ def test_a_broad_lobes_texels_without_one_of_their_own_join_its_material():
     brighter than they are. Judged under the material's lobe they are its colour, and take its lobe
     (before, 51 of the 192 were taken for matte, 45% took the material's lobe)."""
     from ntp_engine.refine.passes import refine_fit
-    from ntp_engine.refine.settings import FLAG_FROM_MATERIAL, RefineSettings
+    from ntp_engine.refine.settings import RefineSettings
 
     dev, traces, start = _lobe_traces(192, 4, (0.5, 0.5), 0.05, 9.0, 7)
     out = refine_fit(dev, traces, start, RefineSettings())
     assert (out["material"] == -1).mean() < 0.2, np.unique(out["material"], return_counts=True)
-    assert (out["flags"] & FLAG_FROM_MATERIAL != 0).mean() > 0.5
+    assert (out["flags"] & TexelFlag.FROM_MATERIAL != 0).mean() > 0.5
 
 
 def test_an_isotropic_own_lobe_takes_its_anisotropic_materials_width_at_its_neighbours_turn():
@@ -92,7 +93,7 @@ def test_an_isotropic_own_lobe_takes_its_anisotropic_materials_width_at_its_neig
     off: the material's lobe at that tangent costs many of the traces more than their own, and where
     taken points 60 deg off; tried at the turn their neighbours point along (here: the truth's), it
     explains them better — they take the material's width and that tangent."""
-    from ntp_engine.refine.inputs import FLAG_WIDTH_FROM_MATERIAL
+
     from ntp_engine.refine.material_pass import _widths_from_materials
     from ntp_engine.refine.settings import RefineSettings
 
@@ -110,7 +111,7 @@ def test_an_isotropic_own_lobe_takes_its_anisotropic_materials_width_at_its_neig
         _widths_from_materials(
             dev, traces, fit, np.arange(n), _material((0.3, 0.03)), RefineSettings(), None, None, back
         )
-        took = fit["flags"] & FLAG_WIDTH_FROM_MATERIAL != 0
+        took = fit["flags"] & TexelFlag.WIDTH_FROM_MATERIAL != 0
         taken.append(took.mean())
         if back is None:  # only its own tangent: the lobe, where taken, points 60 deg off
             np.testing.assert_allclose(fit["t_loc"], start["t_loc"])
@@ -181,7 +182,7 @@ def test_members_own_tangents_do_not_make_a_sharp_isotropic_lobe_anisotropic():
     member's tangent turned to where an elongated lobe (0.012 x 0.006) fits its trace best, as its
     own solve would: pooled with those tangents from a median of 0.028 x 0.006, the material's lobe
     is isotropic at the truth. (On these exact traces the elongated lobe does not win even with the
-    members' tangents unpaid; on the gallery box's rendered ones it did, docs/accuracy.md; the
+    members' tangents unpaid; on the gallery box's rendered ones it did, docs/history/accuracy.md; the
     accounting itself: ``test_materials``.)"""
     from ntp_engine.refine.inputs import refine_inputs
     from ntp_engine.refine.material_pass import pooled_widths

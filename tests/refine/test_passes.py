@@ -2,6 +2,7 @@ import numpy as np
 import torch
 from refine.test_inputs import _square, _square_in_two_views
 
+from ntp_engine.fit.flags import TexelFlag
 from ntp_engine.learn.ragged import RaggedTraces
 from ntp_engine.refine import passes as passes_module
 from ntp_engine.scanner.device_file import load_scanner
@@ -12,8 +13,8 @@ def test_the_edge_pass_starts_from_the_first_pass_and_seeks_a_lobe_only_where_it
     to the edge are refined again with the blend as noise, from the first pass's answers in
     ``EDGE_ROUNDS`` without the multi-start, the pulls centred on the start; those whose first pass
     kept no lobe seek none there (their warm start says no highlight); their answers have none."""
-    from ntp_engine.fit.geometry import FLAG_NO_HIGHLIGHT
-    from ntp_engine.refine.settings import FLAG_SPECULAR_UNCONSTRAINED, RefineSettings
+
+    from ntp_engine.refine.settings import RefineSettings
 
     tx, traces = _square_in_two_views(0.8, (0.02, 0.05))  # farther: a pixel spans ~a texel
     dev = load_scanner()
@@ -38,9 +39,9 @@ def test_the_edge_pass_starts_from_the_first_pass_and_seeks_a_lobe_only_where_it
     for key in ("n_loc", "t_loc", "alpha", "rho_d", "rho_s"):
         np.testing.assert_array_equal(warm[key], first[key])  # the first pass's answers
         np.testing.assert_array_equal(centre[key], start[key])  # the pulls: the start's
-    lobeless = first["flags"][edges] & FLAG_SPECULAR_UNCONSTRAINED != 0
+    lobeless = first["flags"][edges] & TexelFlag.SPECULAR_UNCONSTRAINED != 0
     assert lobeless.any()
-    np.testing.assert_array_equal(warm["flags"][edges] & FLAG_NO_HIGHLIGHT != 0, lobeless)
+    np.testing.assert_array_equal(warm["flags"][edges] & TexelFlag.NO_HIGHLIGHT != 0, lobeless)
     assert (out["rho_s"][edges[lobeless]] == 0).all()
 
 

@@ -83,6 +83,7 @@ def test_packed_emitters_are_rows_of_vectors_over_the_emitters():
     assert torch.equal(one[:, :, 3:], ff[:, :, None] * drive[0, 0].T)
 
 
+@pytest.mark.slow  # measured over 5 s on 2 cores
 @pytest.mark.parametrize("seed", [0, 1])
 def test_bases_and_derivatives_match_the_torch_lobe(seed):
     frame, wi, wo, ff, drive, alpha = _case(seed)

@@ -7,6 +7,7 @@ import math
 import pytest
 import torch
 
+from ntp_engine.fit.flags import TexelFlag
 from ntp_engine.learn.synthetic import SyntheticConfig, sample_batch
 from ntp_engine.physics.emitter_blocks import shadow_groups
 from ntp_engine.physics.frame import cross, rotation_from_vector, safe_normalize, turned_about_normal
@@ -25,15 +26,7 @@ from ntp_engine.refine.policy import (
     turn_costs,
 )
 from ntp_engine.refine.priors import LobePrior
-from ntp_engine.refine.settings import (
-    FLAG_FROM_MATERIAL,
-    FLAG_SPECULAR_UNCONSTRAINED,
-    FLAG_TANGENT_UNCONSTRAINED,
-    ISOTROPIC_RATIO,
-    LOBE_EVIDENCE,
-    RefineSettings,
-    SensorNoise,
-)
+from ntp_engine.refine.settings import ISOTROPIC_RATIO, LOBE_EVIDENCE, RefineSettings, SensorNoise
 from ntp_engine.scanner.device_file import load_scanner
 
 DEV = load_scanner()
@@ -97,7 +90,7 @@ def _major(p):
 
 
 def _seen(r):
-    return (r.flags & FLAG_SPECULAR_UNCONSTRAINED) == 0
+    return (r.flags & TexelFlag.SPECULAR_UNCONSTRAINED) == 0
 
 
 def test_anisotropic_lobe_recovered_from_a_perturbed_start():
@@ -129,7 +122,7 @@ def test_a_lobe_is_isotropic_unless_its_trace_pays_for_the_anisotropy():
     la = r.log_alpha[seen]
     iso = la[:, 0] - la[:, 1] < math.log(ISOTROPIC_RATIO)
     assert iso.float().mean() > 0.9
-    assert (r.flags[seen][iso] & FLAG_TANGENT_UNCONSTRAINED != 0).all()  # no tangent it cannot support
+    assert (r.flags[seen][iso] & TexelFlag.TANGENT_UNCONSTRAINED != 0).all()  # no tangent it cannot support
     assert (la - math.log(0.03)).abs().median() < 0.1
     entries, mask, p = _traces(64, 11, (0.3, 0.3, 0.3), (3.0, 3.0, 3.0), (0.15, 0.05))
     r = refine(DEV, entries, mask, Start(*_perturbed(p, 12)), torch.ones(64, dtype=torch.bool))
@@ -183,7 +176,7 @@ def test_dark_material_is_measured():
     assert ((255 * entries[..., :3])[mask] < 32).all()
     r = refine(DEV, entries, mask, Start(*_perturbed(p, 6)), torch.zeros(32, dtype=torch.bool))
     assert (r.rho_d - p["rho_d"]).abs().max() < 0.005
-    assert (r.flags & FLAG_SPECULAR_UNCONSTRAINED).all()  # diffuse-only solve: the lobe is not claimed
+    assert (r.flags & TexelFlag.SPECULAR_UNCONSTRAINED).all()  # diffuse-only solve: the lobe is not claimed
     assert (r.rho_s == 0).all()
 
 
@@ -419,7 +412,7 @@ def test_refine_toward_keeps_a_material_lobe_the_trace_misses():
         torch.full((48,), 0.5),
     )
     r = refine_toward(DEV, entries, mask, Start(n0, t0, a0, rd0, torch.zeros(48, 3)), prior)
-    assert (r.flags & FLAG_FROM_MATERIAL).all()
+    assert (r.flags & TexelFlag.FROM_MATERIAL).all()
     assert (r.rho_s.mean(1) / 2.0).log().abs().median() < 0.2
     assert (r.log_alpha - math.log(0.03)).abs().median() < 0.2
     assert (r.log_alpha[:, 0] - r.log_alpha[:, 1] < 0.01).all()  # an isotropic material's lobe stays isotropic

@@ -97,6 +97,7 @@ def test_align_recovers_a_similarity_from_support_and_few_object_points():
         assert centre_err < 3e-3 and angle < 1.0
 
 
+@pytest.mark.slow  # measured over 5 s on 2 cores
 def test_bounded_nearest_sample_queries_change_nothing(monkeypatch):
     # the ICP asks the kd-tree for distances up to twice its last trimming threshold only (far
     # points make a query slow): the alignment must equal the one with every distance exact
@@ -134,6 +135,7 @@ def test_align_needs_points_on_the_object():
         align_to_mesh(flat, [a, b], dome_mesh(16, 8), working_distance=0.31)
 
 
+@pytest.mark.slow  # measured over 5 s on 2 cores
 def test_mesh_symmetry_finds_the_half_turn_of_a_box_and_none_on_an_asymmetric_mesh():
     box = box_mesh(turn_deg=25.0)
     centre = (box.vertices.min(0) + box.vertices.max(0)) / 2

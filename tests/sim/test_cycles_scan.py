@@ -16,6 +16,8 @@ from ntp_engine.sim.cycles_scan import CyclesConfig, cycles_scan, emitter_lights
 from ntp_engine.sim.gallery import build_asset
 from ntp_engine.sim.virtual_scan import ScanConfig, virtual_scan
 
+pytestmark = pytest.mark.slow  # Cycles renders
+
 CFG = ScanConfig(views=2, scale=0.05, seed=3)
 CYCLES = CyclesConfig(samples=4, bounces=1, calibration_samples=64, max_samples=4)  # fixed: fast
 

@@ -4,6 +4,7 @@ import hashlib
 import json
 
 import numpy as np
+import pytest
 from scans import flat_patch, run_virtual_scan, uniform_maps
 
 from ntp_engine.io.images import read_image
@@ -15,6 +16,7 @@ def _scan(out, *extra):
     return run_virtual_scan(out, "--views", "3", "--scale", "0.05", *extra)
 
 
+@pytest.mark.slow  # measured over 5 s on 2 cores
 def test_scan_folder_is_complete_and_seeded(tmp_path):
     r = _scan(tmp_path / "a", "--seed", "4", "--blur-fraction", "0.34")
     assert r.returncode == 0, r.stderr
@@ -46,6 +48,7 @@ def test_scan_folder_is_complete_and_seeded(tmp_path):
     assert [digest(p) for p in photos] == [digest(p) for p in sorted((tmp_path / "b" / "photos").glob("*.png"))]
 
 
+@pytest.mark.slow  # measured over 5 s on 2 cores
 def test_bad_inputs_name_the_file(tmp_path):
     bad = tmp_path / "broken.obj"
     bad.write_text("this is not a mesh\n")
