@@ -4,25 +4,13 @@ call into the engine. Bad input is one line on stderr and exit code 2."""
 from __future__ import annotations
 
 import argparse
-import subprocess
 import sys
 from pathlib import Path
 
-from .bench import cache as bench_cache
-from .bench import fit as bench_fit
-from .bench import gallery as bench_gallery
-from .bench import network as bench_network
-from .bench import physics as bench_physics
-from .bench import refine as bench_refine
-from .bench import registration as bench_registration
-from .bench import scale as bench_scale
-from .bench import scan as bench_scan
-from .bench import sfm as bench_sfm
-from .bench import stability as bench_stability
-from .bench import virtual_scan as bench_virtual_scan
-from .io.blender_process import blender_command
+from .bench import blender, cache, fit, gallery, network, physics, refine, registration, scale, scan, sfm, stability
+from .bench import virtual_scan as virtual_scan_bench
 from .io.errors import NtpInputError, error_line
-from .io.progress import Progress
+from .io.progress import add_progress_arguments, progress_from_args
 from .io.threads import set_threads
 from .learn import models
 from .learn.network import NetworkConfig
@@ -31,12 +19,10 @@ from .pipeline.collection import SUMMARY, BatchOptions, reconstruct_collection
 from .pipeline.photo_selection import BLUR_MARGIN
 from .pipeline.stages import DEFAULT_RESOLUTION, reconstruct, register_photos, write_registration
 from .pipeline.task_pool import LOCAL, LocalPool, RayPool, TaskPool
-from .register.sfm import MAPPERS
 from .scanner.device_file import DEFAULT_DEVICE, list_devices, load_scanner, write_pattern
 from .scanner.scan_folder import Scan, load_scan
 from .sim import demo
-from .sim.cycles_scan import CyclesConfig, cycles_scan
-from .sim.gallery import GALLERY
+from .sim.cycles_scan import CyclesConfig, at_least_samples, cycles_scan
 from .sim.virtual_scan import ScanConfig, virtual_scan
 
 FORCE_HELP = "go on with a registration the photos do not confirm (see OUT/registration.png)"
@@ -50,6 +36,23 @@ BATCH_RAY_HELP = (
     "one Ray task per scan: on the cluster at ADDRESS (OUT on a folder every node sees), or without "
     "ADDRESS on a Ray instance started on this machine"
 )
+Subcommands = argparse._SubParsersAction  # what ``add_subparsers`` returns
+# ``ntp bench NAME``: each benchmark's module holds its options (``add_arguments``) and handler (``command``)
+BENCHES = {
+    "stability": stability,
+    "virtual-scan": virtual_scan_bench,
+    "gallery": gallery,
+    "refine": refine,
+    "registration": registration,
+    "sfm": sfm,
+    "cache": cache,
+    "fit": fit,
+    "network": network,
+    "scan": scan,
+    "scale": scale,
+    "blender": blender,
+    "physics": physics,
+}
 INTERRUPTED = "interrupted — finished stages are kept, re-run to resume"
 
 
@@ -69,10 +72,6 @@ def main(argv: list[str] | None = None) -> int:
 def _fail(line: str, code: int) -> int:
     print(f"ntp: {line}" if code == 130 else f"ntp: error: {line}", file=sys.stderr)
     return code
-
-
-def _progress(args: argparse.Namespace) -> Progress:
-    return Progress(bars=not args.quiet, json_path=args.progress)
 
 
 def _scan(args: argparse.Namespace, poses: Path | None = None) -> Scan:
@@ -99,7 +98,7 @@ def _demo(args: argparse.Namespace) -> int:
         seed=args.seed,
         known_poses=args.known_poses,
         model=args.model,
-        progress=_progress(args),
+        progress=progress_from_args(args),
         blend=not args.no_blend,
         refine=args.refine,
     )
@@ -112,7 +111,7 @@ def _register(args: argparse.Namespace) -> int:
         _scan(args),
         args.out,
         args.blur_margin,
-        progress=_progress(args),
+        progress=progress_from_args(args),
         force_registration=args.force_registration,
         cache=args.cache,
     )
@@ -130,7 +129,7 @@ def _reconstruct(args: argparse.Namespace) -> int:
         resolution=args.resolution,
         model=args.model,
         blur_margin=args.blur_margin,
-        progress=_progress(args),
+        progress=progress_from_args(args),
         force_registration=args.force_registration,
         refine=args.refine,
         cache=args.cache,
@@ -148,7 +147,7 @@ def _batch(args: argparse.Namespace) -> int:
     options = BatchOptions(resolution=args.resolution, model=args.model, refine=args.refine, threads=args.threads)
     set_threads(args.threads)  # checks the value; also the CPUs of a local Ray instance
     pool: TaskPool = RayPool(args.ray, args.threads) if args.ray else LocalPool()
-    outcomes = reconstruct_collection(args.scans, args.out, options, pool, _progress(args))
+    outcomes = reconstruct_collection(args.scans, args.out, options, pool, progress_from_args(args))
     for o in outcomes:
         if o["ok"]:
             print(f"done    {o['scan']} -> {o['result']}: {o['coverage']:.1%} of texels observed, {o['seconds']:.1f} s")
@@ -177,12 +176,16 @@ def _virtual_scan(args: argparse.Namespace) -> int:
         cycles = CyclesConfig(
             samples=args.samples,
             bounces=args.bounces,
-            max_samples=_max_samples(args.max_samples, args.samples),
+            max_samples=at_least_samples(args.max_samples, args.samples),
             noise_threshold=args.noise_threshold,
         )
-        info = cycles_scan(args.out, args.asset, args.mesh, args.maps, args.device, cfg, cycles, _progress(args))
+        info = cycles_scan(
+            args.out, args.asset, args.mesh, args.maps, args.device, cfg, cycles, progress_from_args(args)
+        )
     else:
-        info = virtual_scan(args.out, args.asset, args.mesh, args.maps, args.device, cfg, progress=_progress(args))
+        info = virtual_scan(
+            args.out, args.asset, args.mesh, args.maps, args.device, cfg, progress=progress_from_args(args)
+        )
     print(f"wrote {args.out}: {args.views} photos ({args.renderer}), {info['seconds_per_photo']:.2f} s per photo")
     return 0
 
@@ -202,7 +205,13 @@ def _train(args: argparse.Namespace) -> int:
         lr_schedule=args.lr_schedule,
     )
     result = train(
-        args.out, ncfg, tcfg, args.device, resume=args.resume, init_from=args.init_from, progress=_progress(args)
+        args.out,
+        ncfg,
+        tcfg,
+        args.device,
+        resume=args.resume,
+        init_from=args.init_from,
+        progress=progress_from_args(args),
     )
     print(
         f"step {result['step']}: validation loss {result['val_loss']:.4f} "
@@ -217,137 +226,7 @@ def _train(args: argparse.Namespace) -> int:
     return 0
 
 
-def _bench_stability(args: argparse.Namespace) -> int:
-    r = bench_stability.run(samples=args.samples, seed=args.seed, json_path=args.json)
-    return 1 if r["nonfinite"] or r["total"]["negative_values"] else 0
-
-
-def _bench_virtual_scan(args: argparse.Namespace) -> int:
-    bench_virtual_scan.run(photos=args.photos, json_path=args.json)
-    return 0
-
-
-def _max_samples(max_samples: int | None, samples: int) -> int:
-    """``--max-samples``, or by default ``CyclesConfig``'s but at least ``--samples``."""
-    return max(samples, CyclesConfig.max_samples) if max_samples is None else max_samples
-
-
-def _bench_gallery(args: argparse.Namespace) -> int:
-    settings = bench_gallery.settings_for(
-        args.quick,
-        objects=tuple(args.objects) if args.objects else None,
-        scanners=tuple(args.scanners) if args.scanners else None,
-        poses=tuple(args.poses) if args.poses else None,
-        views=args.views,
-        scale=args.scale,
-        resolution=args.resolution,
-        samples=args.samples,
-        # without --samples the settings' own maximum stands
-        max_samples=args.max_samples if args.samples is None else _max_samples(args.max_samples, args.samples),
-        refine=args.refine or None,
-        model=args.model,
-        budget=args.budget or None,
-    )
-    bench_gallery.run(args.out, settings, json_path=args.json, progress=_progress(args))
-    return 0
-
-
-def _bench_refine(args: argparse.Namespace) -> int:
-    bench = bench_refine.bench_for(
-        objects=tuple(args.objects) if args.objects else None,
-        scanners=tuple(args.scanners) if args.scanners else None,
-        per_material=args.per_material,
-        baseline_texels=args.baseline_texels,
-    )
-    bench_refine.run(args.out, bench, json_path=args.json, progress=_progress(args))
-    return 0
-
-
-def _bench_registration(args: argparse.Namespace) -> int:
-    settings = bench_gallery.settings_for(
-        args.quick,
-        objects=tuple(args.objects) if args.objects else None,
-        scanners=tuple(args.scanners) if args.scanners else None,
-        poses=None,
-        views=args.views,
-        scale=args.scale,
-        resolution=None,
-        samples=args.samples,
-    )
-    bench_registration.run(args.out, settings, tuple(args.seeds), json_path=args.json, progress=_progress(args))
-    return 0
-
-
-def _bench_sfm(args: argparse.Namespace) -> int:
-    bench_sfm.run(
-        args.out, tuple(args.photos), tuple(args.mappers), args.scale, json_path=args.json, progress=_progress(args)
-    )
-    return 0
-
-
-def _bench_cache(args: argparse.Namespace) -> int:
-    bench_cache.run(photos=args.photos, scale=args.scale, json_path=args.json)
-    return 0
-
-
-def _bench_fit(args: argparse.Namespace) -> int:
-    bench_fit.run(quick=args.quick, texels=args.texels, baseline_texels=args.baseline_texels, json_path=args.json)
-    return 0
-
-
-def _bench_network(args: argparse.Namespace) -> int:
-    bench_network.run(quick=args.quick, steps=args.steps, json_path=args.json)
-    return 0
-
-
-def _bench_scan(args: argparse.Namespace) -> int:
-    bench_scan.run(args.sizes, json_path=args.json, plot=args.plot, known_poses=args.known_poses)
-    return 0
-
-
-def _bench_scale(args: argparse.Namespace) -> int:
-    bench_scale.run(
-        args.out,
-        tuple(args.photos),
-        tuple(args.resolutions),
-        camera_scale=args.scale,
-        threads=args.threads,
-        json_path=args.json,
-        plot=args.plot if args.plot is not None else args.out / "bench_scale.png",
-    )
-    return 0
-
-
-def _bench_blender(args: argparse.Namespace) -> int:
-    # in its own process: the engine never imports bpy
-    cmd = blender_command("bench", "--views", str(args.views), "--samples", str(args.samples))
-    return subprocess.call(cmd + (["--json", str(args.json)] if args.json else []))
-
-
-def _bench_physics(args: argparse.Namespace) -> int:
-    bench_physics.run(json_path=args.json)
-    return 0
-
-
 # ------------------------------------------------------------------------------------ the parser
-def _sizes(text: str) -> list[tuple[int, int]]:
-    try:
-        return [(int(a), int(b)) for a, b in (item.lower().split("x") for item in text.split(","))]
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r}: expected PHOTOSxRES,...") from None
-
-
-def _quiet_and_progress(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--quiet", action="store_true", help="no progress bars")
-    p.add_argument(
-        "--progress",
-        type=Path,
-        default=None,
-        metavar="FILE",
-        help="append progress as JSON lines to FILE (stage, done, total, unit, elapsed_s, eta_s)",
-    )
-
-
 def _run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--threads", type=int, default=0, help="CPU threads (default 0: every core)")
     p.add_argument(
@@ -364,7 +243,19 @@ def _parser() -> argparse.ArgumentParser:
         prog="ntp", description="Neural trace photography: hand-held reflectance scans to relightable Blender assets."
     )
     sub = p.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    _add_demo(sub)
+    _add_reconstruct(sub)
+    _add_batch(sub)
+    _add_register(sub)
+    _add_device(sub)
+    _add_virtual_scan(sub)
+    _add_train(sub)
+    _add_bench(sub)
+    return p
 
+
+def _add_demo(sub: Subcommands) -> None:
+    """``ntp demo``'s options and handler."""
     d = sub.add_parser("demo", help="virtual-scan the bundled demo, reconstruct it, print errors vs truth")
     d.add_argument("--out", type=Path, default=Path("ntp_demo_out"), help="output folder (scan/, result/)")
     d.add_argument("--views", type=int, default=demo.DEMO_VIEWS, help="photos in the virtual scan")
@@ -381,9 +272,12 @@ def _parser() -> argparse.ArgumentParser:
         help="refine every texel against its photos (as reconstruct --refine; on by default): the maps that "
         "meet the demo's goals, ~40% of its run time",
     )
-    _quiet_and_progress(d)
+    add_progress_arguments(d)
     d.set_defaults(func=_demo)
 
+
+def _add_reconstruct(sub: Subcommands) -> None:
+    """``ntp reconstruct``'s options and handler."""
     rc = sub.add_parser("reconstruct", help="a scan folder to texture maps (resumes from OUT/cache)")
     rc.add_argument("scan", type=Path, help="scan folder (scan.toml, mesh, photos/)")
     rc.add_argument("--out", type=Path, required=True, help="result folder")
@@ -402,9 +296,12 @@ def _parser() -> argparse.ArgumentParser:
     rc.add_argument("--refine", action="store_true", help=REFINE_HELP)
     rc.add_argument("--ray", nargs="?", const=LOCAL, default=None, metavar="ADDRESS", help=RAY_HELP)
     _run_options(rc)
-    _quiet_and_progress(rc)
+    add_progress_arguments(rc)
     rc.set_defaults(func=_reconstruct)
 
+
+def _add_batch(sub: Subcommands) -> None:
+    """``ntp batch``'s options and handler."""
     ba = sub.add_parser("batch", help="reconstruct a collection of scans into OUT/<scan name> (resumable)")
     ba.add_argument("scans", type=Path, nargs="+", metavar="SCAN", help="scan folders")
     ba.add_argument("--out", type=Path, required=True, help="collection folder (one result per scan, batch.json)")
@@ -415,9 +312,12 @@ def _parser() -> argparse.ArgumentParser:
         "--threads", type=int, default=0, help="CPU threads per scan (default 0: every core; 1 per Ray task)"
     )
     ba.add_argument("--ray", nargs="?", const=LOCAL, default=None, metavar="ADDRESS", help=BATCH_RAY_HELP)
-    _quiet_and_progress(ba)
+    add_progress_arguments(ba)
     ba.set_defaults(func=_batch)
 
+
+def _add_register(sub: Subcommands) -> None:
+    """``ntp register``'s options and handler."""
     rg = sub.add_parser("register", help="photo selection + camera poses (SfM aligned to the mesh) -> OUT/poses.json")
     rg.add_argument("scan", type=Path, help="scan folder (scan.toml, mesh, photos/)")
     rg.add_argument("--out", type=Path, required=True, help="result folder (its cache is shared with reconstruct)")
@@ -426,14 +326,20 @@ def _parser() -> argparse.ArgumentParser:
     rg.add_argument("--blur-margin", type=float, default=BLUR_MARGIN)
     rg.add_argument("--force-registration", action="store_true", help=FORCE_HELP)
     _run_options(rg)
-    _quiet_and_progress(rg)
+    add_progress_arguments(rg)
     rg.set_defaults(func=_register)
 
+
+def _add_device(sub: Subcommands) -> None:
+    """``ntp device``'s options and handler."""
     dev = sub.add_parser("device", help="print a device calibration file, or list the shipped ones")
     dev.add_argument("path", type=Path, nargs="?", default=None, help="device TOML (default: the default device)")
     dev.add_argument("--list", action="store_true", help="list the shipped devices")
     dev.set_defaults(func=_device)
 
+
+def _add_virtual_scan(sub: Subcommands) -> None:
+    """``ntp virtual-scan``'s options and handler."""
     vs = sub.add_parser("virtual-scan", help="simulate a hand-held capture of a mesh with known maps")
     vs.add_argument("--out", type=Path, required=True, help="scan folder to write")
     vs.add_argument("--asset", default=None, help="asset folder (mesh.obj + ground_truth/); default: the demo")
@@ -462,9 +368,12 @@ def _parser() -> argparse.ArgumentParser:
         default=CyclesConfig.noise_threshold,
         help="Cycles' adaptive-sampling threshold: above it a pixel keeps sampling up to --max-samples",
     )
-    _quiet_and_progress(vs)
+    add_progress_arguments(vs)
     vs.set_defaults(func=_virtual_scan)
 
+
+def _add_train(sub: Subcommands) -> None:
+    """``ntp train``'s options and handler."""
     tr = sub.add_parser("train", help="train the trace network and its lighting pattern (resumable)")
     tr.add_argument("--preset", default="compact", choices=["compact", "paper", "small"])
     tr.add_argument("--out", type=Path, required=True, help="run folder (checkpoint.pt, log.csv)")
@@ -521,114 +430,18 @@ def _parser() -> argparse.ArgumentParser:
         action="store_true",
         help="also write the learned pattern, quantised to 8 bits, into the device file",
     )
-    _quiet_and_progress(tr)
+    add_progress_arguments(tr)
     tr.set_defaults(func=_train)
 
+
+def _add_bench(sub: Subcommands) -> None:
+    """``ntp bench``'s options and handler."""
     b = sub.add_parser("bench", help="benchmarks: run time and error in one run")
     bsub = b.add_subparsers(dest="bench", metavar="NAME", required=True)
-    st = bsub.add_parser("stability", help="GGX float32 values/gradients vs float64 over >= 1e7 samples")
-    st.add_argument("--samples", type=int, default=10_000_000)
-    st.add_argument("--seed", type=int, default=0)
-    st.add_argument("--json", type=Path, default=None)
-    st.set_defaults(func=_bench_stability)
-    bv = bsub.add_parser("virtual-scan", help="seconds per photo (scale 0.25, 1.0) and shadow-cluster error")
-    bv.add_argument("--photos", type=int, default=3)
-    bv.add_argument("--json", type=Path, default=None)
-    bv.set_defaults(func=_bench_virtual_scan)
-    bg = bsub.add_parser("gallery", help="accuracy per object x material: both scanners, true and SfM poses")
-    bg.add_argument("--out", type=Path, default=Path("ntp_gallery"), help="folder for assets, scans, results")
-    bg.add_argument("--quick", action="store_true", help="2 objects, true poses, 16 views, 64^2 maps (<= 5 min)")
-    bg.add_argument("--objects", nargs="+", choices=list(GALLERY), default=None)
-    bg.add_argument("--scanners", nargs="+", choices=list(bench_gallery.SCANNERS), default=None)
-    bg.add_argument("--poses", nargs="+", choices=list(bench_gallery.POSES), default=None)
-    bg.add_argument("--views", type=int, default=None)
-    bg.add_argument("--scale", type=float, default=None)
-    bg.add_argument("--resolution", type=int, default=None)
-    bg.add_argument("--samples", type=int, default=None, help="Cycles samples per pixel")
-    bg.add_argument("--max-samples", type=int, default=None, help="Cycles samples per pixel where it still sees noise")
-    bg.add_argument("--refine", action="store_true", help=REFINE_HELP + " (results and tables *-refined)")
-    bg.add_argument(
-        "--model",
-        default=None,
-        help="trace network: a shipped name or a model folder (results and tables *-model-NAME; default: compact)",
-    )
-    bg.add_argument(
-        "--budget",
-        action="store_true",
-        help="where each run's relit SSIM is lost: the SSIM gained by one material's maps of a kind from the truth",
-    )
-    bg.add_argument("--json", type=Path, default=None)
-    _quiet_and_progress(bg)
-    bg.set_defaults(func=_bench_gallery)
-    bf = bsub.add_parser("refine", help="refinement error against time per material, and a scipy baseline")
-    bf.add_argument("--out", type=Path, default=Path("ntp_gallery"), help="the gallery's folder (scans shared)")
-    bf.add_argument("--objects", nargs="+", choices=list(GALLERY), default=None)
-    bf.add_argument("--scanners", nargs="+", choices=list(bench_gallery.SCANNERS), default=None)
-    bf.add_argument("--per-material", type=int, default=None, help="sampled texels per material and scan")
-    bf.add_argument("--baseline-texels", type=int, default=None, help="texels per scan for the scipy baseline")
-    bf.add_argument("--json", type=Path, default=None)
-    _quiet_and_progress(bf)
-    bf.set_defaults(func=_bench_refine)
-    br = bsub.add_parser("registration", help="SfM + alignment alone on the gallery: pose error per object x seed")
-    br.add_argument("--out", type=Path, default=Path("ntp_gallery"), help="the gallery's folder (scans shared)")
-    br.add_argument("--quick", action="store_true", help="the quick gallery's objects and sizes")
-    br.add_argument("--objects", nargs="+", choices=list(GALLERY), default=None)
-    br.add_argument("--scanners", nargs="+", choices=list(bench_gallery.SCANNERS), default=None)
-    br.add_argument("--seeds", nargs="+", type=int, default=list(bench_registration.SEEDS))
-    br.add_argument("--views", type=int, default=None)
-    br.add_argument("--scale", type=float, default=None)
-    br.add_argument("--samples", type=int, default=None, help="Cycles samples per pixel")
-    br.add_argument("--json", type=Path, default=None)
-    _quiet_and_progress(br)
-    br.set_defaults(func=_bench_registration)
-    bs = bsub.add_parser("sfm", help="SfM mappers (incremental, global, hierarchical) at 60 / 300 / 1000 photos")
-    bs.add_argument("--out", type=Path, default=Path("ntp_sfm_bench"), help="folder for the scans and the table")
-    bs.add_argument("--photos", nargs="+", type=int, default=list(bench_sfm.PHOTOS))
-    bs.add_argument("--mappers", nargs="+", choices=list(MAPPERS), default=list(MAPPERS))
-    bs.add_argument("--scale", type=float, default=bench_sfm.SCALE, help="photo size (1.0 = the device's)")
-    bs.add_argument("--json", type=Path, default=None)
-    _quiet_and_progress(bs)
-    bs.set_defaults(func=_bench_sfm)
-    bc = bsub.add_parser("cache", help="content keys: hashing photos (vs one thread, vs stat) and cache checksums")
-    bc.add_argument("--photos", type=int, default=40, help="photos hashed (projected to 1000)")
-    bc.add_argument("--scale", type=float, default=1.0, help="photo size (1.0 = 2448x2048)")
-    bc.add_argument("--json", type=Path, default=None)
-    bc.set_defaults(func=_bench_cache)
-    bf = bsub.add_parser("fit", help="batched GGX fitter vs per-texel scipy L-BFGS-B (speed and error)")
-    bf.add_argument("--quick", action="store_true", help="2048 texels (baseline on 32) instead of 16384 (192)")
-    bf.add_argument("--texels", type=int, default=None)
-    bf.add_argument("--baseline-texels", type=int, default=None)
-    bf.add_argument("--json", type=Path, default=None)
-    bf.set_defaults(func=_bench_fit)
-    bn = bsub.add_parser("network", help="val. loss by pattern and by test views; inference traces/s")
-    bn.add_argument("--quick", action="store_true", help="use the shipped comparison networks (no training)")
-    bn.add_argument("--steps", type=int, default=3000, help="training steps per comparison network")
-    bn.add_argument("--json", type=Path, default=None)
-    bn.set_defaults(func=_bench_network)
-    bs = bsub.add_parser("scan", help="whole pipeline on virtual scans of 2-3 sizes: stage times vs errors")
-    bs.add_argument("--sizes", type=_sizes, default=None, help="PHOTOSxRES,... (default 24x128,48x256,96x256)")
-    bs.add_argument("--known-poses", action="store_true", help="skip SfM (true poses)")
-    bs.add_argument("--plot", type=Path, default=Path("bench_scan.png"), help="PNG of run time against error")
-    bs.add_argument("--json", type=Path, default=None)
-    bs.set_defaults(func=_bench_scan)
-    sc = bsub.add_parser("scale", help="time and peak memory per stage: photos x map resolution (true poses)")
-    sc.add_argument("--out", type=Path, default=Path("ntp_bench_scale"), help="folder for the scans and results")
-    sc.add_argument("--photos", type=int, nargs="+", default=list(bench_scale.PHOTOS))
-    sc.add_argument("--resolutions", type=int, nargs="+", default=list(bench_scale.RESOLUTIONS))
-    sc.add_argument("--scale", type=float, default=bench_scale.CAMERA_SCALE, help="virtual camera resolution scale")
-    sc.add_argument("--threads", type=int, default=0, help="CPU threads of each reconstruct (0: every core)")
-    sc.add_argument("--plot", type=Path, default=None, help="PNG: seconds and memory (default OUT/bench_scale.png)")
-    sc.add_argument("--json", type=Path, default=None)
-    sc.set_defaults(func=_bench_scale)
-    bb = bsub.add_parser("blender", help="Cycles (both materials) vs the engine's render; preview seconds")
-    bb.add_argument("--views", type=int, default=3)
-    bb.add_argument("--samples", type=int, default=64)
-    bb.add_argument("--json", type=Path, default=None)
-    bb.set_defaults(func=_bench_blender)
-    ph = bsub.add_parser("physics", help="BRDF evaluations/s, lumitexels/s, measurements/s (f32 vs f64)")
-    ph.add_argument("--json", type=Path, default=None)
-    ph.set_defaults(func=_bench_physics)
-    return p
+    for name, module in BENCHES.items():
+        bp = bsub.add_parser(name, help=module.HELP)
+        module.add_arguments(bp)
+        bp.set_defaults(func=module.command)
 
 
 if __name__ == "__main__":

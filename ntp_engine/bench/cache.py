@@ -9,6 +9,7 @@ first use.
 
 from __future__ import annotations
 
+import argparse
 import shutil
 import tempfile
 import time
@@ -93,3 +94,19 @@ def run(photos: int = 40, scale: float = 1.0, big_mb: int = 512, json_path=None)
     }
     dump_json(json_path, result)
     return result
+
+
+HELP = "content keys: hashing photos (vs one thread, vs stat) and cache checksums"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """``ntp bench cache``'s options."""
+    parser.add_argument("--photos", type=int, default=40, help="photos hashed (projected to 1000)")
+    parser.add_argument("--scale", type=float, default=1.0, help="photo size (1.0 = 2448x2048)")
+    parser.add_argument("--json", type=Path, default=None)
+
+
+def command(args: argparse.Namespace) -> int:
+    """``ntp bench cache``: the benchmark with the command line's options; the exit code."""
+    run(photos=args.photos, scale=args.scale, json_path=args.json)
+    return 0

@@ -9,7 +9,9 @@ sensor: texels/s and the share of each part — the geometry fit alone is not th
 
 from __future__ import annotations
 
+import argparse
 import time
+from pathlib import Path
 from typing import Any
 
 import torch
@@ -217,3 +219,20 @@ def run(
         }
     dump_json(json_path, result)
     return result
+
+
+HELP = "batched GGX fitter vs per-texel scipy L-BFGS-B (speed and error)"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """``ntp bench fit``'s options."""
+    parser.add_argument("--quick", action="store_true", help="2048 texels (baseline on 32) instead of 16384 (192)")
+    parser.add_argument("--texels", type=int, default=None)
+    parser.add_argument("--baseline-texels", type=int, default=None)
+    parser.add_argument("--json", type=Path, default=None)
+
+
+def command(args: argparse.Namespace) -> int:
+    """``ntp bench fit``: the benchmark with the command line's options; the exit code."""
+    run(quick=args.quick, texels=args.texels, baseline_texels=args.baseline_texels, json_path=args.json)
+    return 0

@@ -20,6 +20,7 @@ Cycles renders, pipeline stages), so a re-run after an interruption resumes.
 
 from __future__ import annotations
 
+import argparse
 import json
 import math
 import time
@@ -31,11 +32,11 @@ import numpy as np
 from ..io.atomic import write_text_atomic
 from ..io.errors import NtpInputError
 from ..io.output_folder import claim
-from ..io.progress import QUIET, Progress
+from ..io.progress import QUIET, Progress, add_progress_arguments, progress_from_args
 from ..io.stage_cache import content_digest, digest
 from ..pipeline.stages import reconstruct, register_photos
 from ..scanner.scan_folder import load_poses, load_scan
-from ..sim.cycles_scan import RENDER_VERSION, CyclesConfig, cycles_scan
+from ..sim.cycles_scan import RENDER_VERSION, CyclesConfig, at_least_samples, cycles_scan
 from ..sim.evaluate import (
     BUDGET_GROUPS,
     PARAMETER_METRICS,
@@ -324,3 +325,60 @@ def settings_for(quick: bool, **overrides) -> GallerySettings:
     """The default or quick settings with the given fields replaced (None leaves a field)."""
     base = QUICK if quick else DEFAULT
     return replace(base, **{k: v for k, v in overrides.items() if v is not None})
+
+
+HELP = "accuracy per object x material: both scanners, true and SfM poses"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """``ntp bench gallery``'s options."""
+    parser.add_argument("--out", type=Path, default=Path("ntp_gallery"), help="folder for assets, scans, results")
+    parser.add_argument("--quick", action="store_true", help="2 objects, true poses, 16 views, 64^2 maps (<= 5 min)")
+    parser.add_argument("--objects", nargs="+", choices=list(GALLERY), default=None)
+    parser.add_argument("--scanners", nargs="+", choices=list(SCANNERS), default=None)
+    parser.add_argument("--poses", nargs="+", choices=list(POSES), default=None)
+    parser.add_argument("--views", type=int, default=None)
+    parser.add_argument("--scale", type=float, default=None)
+    parser.add_argument("--resolution", type=int, default=None)
+    parser.add_argument("--samples", type=int, default=None, help="Cycles samples per pixel")
+    parser.add_argument(
+        "--max-samples", type=int, default=None, help="Cycles samples per pixel where it still sees noise"
+    )
+    parser.add_argument(
+        "--refine",
+        action="store_true",
+        help="refine every texel against its photos after the network (results and tables *-refined)",
+    )
+    parser.add_argument(
+        "--model",
+        default=None,
+        help="trace network: a shipped name or a model folder (results and tables *-model-NAME; default: compact)",
+    )
+    parser.add_argument(
+        "--budget",
+        action="store_true",
+        help="where each run's relit SSIM is lost: the SSIM gained by one material's maps of a kind from the truth",
+    )
+    parser.add_argument("--json", type=Path, default=None)
+    add_progress_arguments(parser)
+
+
+def command(args: argparse.Namespace) -> int:
+    """``ntp bench gallery``: the benchmark with the command line's options; the exit code."""
+    settings = settings_for(
+        args.quick,
+        objects=tuple(args.objects) if args.objects else None,
+        scanners=tuple(args.scanners) if args.scanners else None,
+        poses=tuple(args.poses) if args.poses else None,
+        views=args.views,
+        scale=args.scale,
+        resolution=args.resolution,
+        samples=args.samples,
+        # without --samples the settings' own maximum stands
+        max_samples=args.max_samples if args.samples is None else at_least_samples(args.max_samples, args.samples),
+        refine=args.refine or None,
+        model=args.model,
+        budget=args.budget or None,
+    )
+    run(args.out, settings, json_path=args.json, progress=progress_from_args(args))
+    return 0

@@ -18,6 +18,7 @@ and the shipped model's inference rate.
 
 from __future__ import annotations
 
+import argparse
 import tempfile
 import time
 from pathlib import Path
@@ -152,3 +153,19 @@ def run(
     }
     dump_json(json_path, result)
     return result
+
+
+HELP = "val. loss by pattern and by test views; inference traces/s"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """``ntp bench network``'s options."""
+    parser.add_argument("--quick", action="store_true", help="use the shipped comparison networks (no training)")
+    parser.add_argument("--steps", type=int, default=3000, help="training steps per comparison network")
+    parser.add_argument("--json", type=Path, default=None)
+
+
+def command(args: argparse.Namespace) -> int:
+    """``ntp bench network``: the benchmark with the command line's options; the exit code."""
+    run(quick=args.quick, steps=args.steps, json_path=args.json)
+    return 0

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import argparse
 import math
+from pathlib import Path
 from typing import Any
 
 import torch
@@ -74,3 +76,17 @@ def run(brdf_batch: int = 1 << 20, lumitexel_batch: int = 256, point_batch: int 
     print_table(rows, ("dtype", "BRDF evals/s", "lumitexels/s", "measurements/s"))
     dump_json(json_path, result)
     return result
+
+
+HELP = "BRDF evaluations/s, lumitexels/s, measurements/s (f32 vs f64)"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """``ntp bench physics``'s options."""
+    parser.add_argument("--json", type=Path, default=None)
+
+
+def command(args: argparse.Namespace) -> int:
+    """``ntp bench physics``: the benchmark with the command line's options; the exit code."""
+    run(json_path=args.json)
+    return 0

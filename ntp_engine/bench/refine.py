@@ -12,6 +12,7 @@ seconds per texel and its errors beside ours on those texels.
 
 from __future__ import annotations
 
+import argparse
 import json
 import math
 import time
@@ -26,7 +27,7 @@ from ..io.atomic import write_text_atomic
 from ..io.maps import SVBRDFMaps
 from ..io.mesh import load_mesh
 from ..io.output_folder import claim
-from ..io.progress import QUIET, Progress
+from ..io.progress import QUIET, Progress, add_progress_arguments, progress_from_args
 from ..io.texels import Texels, rasterize
 from ..physics.brdf import ALPHA_MAX, ALPHA_MIN
 from ..physics.frame import frame_from_normal_tangent
@@ -344,3 +345,29 @@ def _scans(record: dict) -> list[dict]:
 def bench_for(**overrides) -> RefineBench:
     """The default bench with the given fields replaced (None leaves a field)."""
     return replace(RefineBench(), **{k: v for k, v in overrides.items() if v is not None})
+
+
+HELP = "refinement error against time per material, and a scipy baseline"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """``ntp bench refine``'s options."""
+    parser.add_argument("--out", type=Path, default=Path("ntp_gallery"), help="the gallery's folder (scans shared)")
+    parser.add_argument("--objects", nargs="+", choices=list(GALLERY), default=None)
+    parser.add_argument("--scanners", nargs="+", choices=list(bench_gallery.SCANNERS), default=None)
+    parser.add_argument("--per-material", type=int, default=None, help="sampled texels per material and scan")
+    parser.add_argument("--baseline-texels", type=int, default=None, help="texels per scan for the scipy baseline")
+    parser.add_argument("--json", type=Path, default=None)
+    add_progress_arguments(parser)
+
+
+def command(args: argparse.Namespace) -> int:
+    """``ntp bench refine``: the benchmark with the command line's options; the exit code."""
+    bench = bench_for(
+        objects=tuple(args.objects) if args.objects else None,
+        scanners=tuple(args.scanners) if args.scanners else None,
+        per_material=args.per_material,
+        baseline_texels=args.baseline_texels,
+    )
+    run(args.out, bench, json_path=args.json, progress=progress_from_args(args))
+    return 0

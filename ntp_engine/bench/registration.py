@@ -12,6 +12,7 @@ and ``OUT/registration.md``.
 
 from __future__ import annotations
 
+import argparse
 import json
 import shutil
 import time
@@ -23,14 +24,15 @@ import numpy as np
 from ..io.atomic import temp_dir, write_text_atomic
 from ..io.errors import NtpInputError
 from ..io.output_folder import claim
-from ..io.progress import QUIET, Progress
+from ..io.progress import QUIET, Progress, add_progress_arguments, progress_from_args
 from ..pipeline.stages import register_to_mesh
 from ..register.colmap_model import model_files, read_colmap_model
 from ..register.refusal import named_rival, refusal, refusal_kind
 from ..register.sfm import SfmResult, structure_from_motion
 from ..scanner.scan_folder import load_poses, load_scan
 from ..sim.evaluate import pose_error
-from ..sim.gallery import build_asset
+from ..sim.gallery import GALLERY, build_asset
+from . import gallery as gallery_bench
 from .gallery import DEFAULT, GallerySettings, scan_object
 
 SEEDS = (0, 1, 2)
@@ -231,3 +233,36 @@ def _table(rows: list[dict]) -> str:
         f"(right: <= {RIGHT_MM:g} mm and {RIGHT_DEG:g} deg, camera centre and rotation medians)",
     ]
     return "\n".join(lines) + "\n"
+
+
+HELP = "SfM + alignment alone on the gallery: pose error per object x seed"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """``ntp bench registration``'s options."""
+    parser.add_argument("--out", type=Path, default=Path("ntp_gallery"), help="the gallery's folder (scans shared)")
+    parser.add_argument("--quick", action="store_true", help="the quick gallery's objects and sizes")
+    parser.add_argument("--objects", nargs="+", choices=list(GALLERY), default=None)
+    parser.add_argument("--scanners", nargs="+", choices=list(gallery_bench.SCANNERS), default=None)
+    parser.add_argument("--seeds", nargs="+", type=int, default=list(SEEDS))
+    parser.add_argument("--views", type=int, default=None)
+    parser.add_argument("--scale", type=float, default=None)
+    parser.add_argument("--samples", type=int, default=None, help="Cycles samples per pixel")
+    parser.add_argument("--json", type=Path, default=None)
+    add_progress_arguments(parser)
+
+
+def command(args: argparse.Namespace) -> int:
+    """``ntp bench registration``: the benchmark with the command line's options; the exit code."""
+    settings = gallery_bench.settings_for(
+        args.quick,
+        objects=tuple(args.objects) if args.objects else None,
+        scanners=tuple(args.scanners) if args.scanners else None,
+        poses=None,
+        views=args.views,
+        scale=args.scale,
+        resolution=None,
+        samples=args.samples,
+    )
+    run(args.out, settings, tuple(args.seeds), json_path=args.json, progress=progress_from_args(args))
+    return 0

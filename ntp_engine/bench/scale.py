@@ -12,6 +12,7 @@ Writes a table, JSON and a plot (seconds per stage, peak memory per stage).
 
 from __future__ import annotations
 
+import argparse
 import json
 import shutil
 import subprocess
@@ -248,3 +249,31 @@ def _plot(rows: list[dict], path: Path) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=110)
     print(f"wrote {path}")
+
+
+HELP = "time and peak memory per stage: photos x map resolution (true poses)"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """``ntp bench scale``'s options."""
+    parser.add_argument("--out", type=Path, default=Path("ntp_bench_scale"), help="folder for the scans and results")
+    parser.add_argument("--photos", type=int, nargs="+", default=list(PHOTOS))
+    parser.add_argument("--resolutions", type=int, nargs="+", default=list(RESOLUTIONS))
+    parser.add_argument("--scale", type=float, default=CAMERA_SCALE, help="virtual camera resolution scale")
+    parser.add_argument("--threads", type=int, default=0, help="CPU threads of each reconstruct (0: every core)")
+    parser.add_argument("--plot", type=Path, default=None, help="PNG: seconds and memory (default OUT/png)")
+    parser.add_argument("--json", type=Path, default=None)
+
+
+def command(args: argparse.Namespace) -> int:
+    """``ntp bench scale``: the benchmark with the command line's options; the exit code."""
+    run(
+        args.out,
+        tuple(args.photos),
+        tuple(args.resolutions),
+        camera_scale=args.scale,
+        threads=args.threads,
+        json_path=args.json,
+        plot=args.plot if args.plot is not None else args.out / "png",
+    )
+    return 0

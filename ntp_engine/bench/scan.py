@@ -5,6 +5,7 @@ studies (Figs. 15-16). Writes a table, JSON and a matplotlib plot of run time ag
 
 from __future__ import annotations
 
+import argparse
 import tempfile
 from pathlib import Path
 
@@ -107,3 +108,28 @@ def run(
     data = {"sizes": results}
     dump_json(json_path, data)
     return data
+
+
+def sizes(text: str) -> list[tuple[int, int]]:
+    """``--sizes``: ``PHOTOSxRES,...`` as (photos, resolution) pairs."""
+    try:
+        return [(int(a), int(b)) for a, b in (item.lower().split("x") for item in text.split(","))]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected PHOTOSxRES,...") from None
+
+
+HELP = "whole pipeline on virtual scans of 2-3 sizes: stage times vs errors"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """``ntp bench scan``'s options."""
+    parser.add_argument("--sizes", type=sizes, default=None, help="PHOTOSxRES,... (default 24x128,48x256,96x256)")
+    parser.add_argument("--known-poses", action="store_true", help="skip SfM (true poses)")
+    parser.add_argument("--plot", type=Path, default=Path("png"), help="PNG of run time against error")
+    parser.add_argument("--json", type=Path, default=None)
+
+
+def command(args: argparse.Namespace) -> int:
+    """``ntp bench scan``: the benchmark with the command line's options; the exit code."""
+    run(args.sizes, json_path=args.json, plot=args.plot, known_poses=args.known_poses)
+    return 0

@@ -7,6 +7,7 @@ re-used; every mapper runs on the same photos. Writes ``OUT/sfm.json`` and ``OUT
 
 from __future__ import annotations
 
+import argparse
 import json
 import shutil
 import time
@@ -16,7 +17,7 @@ from pathlib import Path
 from ..io.atomic import temp_dir, write_text_atomic
 from ..io.errors import NtpInputError
 from ..io.output_folder import claim
-from ..io.progress import QUIET, Progress
+from ..io.progress import QUIET, Progress, add_progress_arguments, progress_from_args
 from ..register.sfm import MAPPERS, structure_from_motion
 from ..scanner.scan_folder import load_poses, load_scan
 from ..sim.evaluate import pose_error, similarity_fit
@@ -100,3 +101,29 @@ def _table(rows: list[dict]) -> str:
             f"{r['centre_mm']:.2f} / {r['centre_max_mm']:.2f} | {r['rotation_deg']:.3f} |"
         )
     return "\n".join(lines) + "\n"
+
+
+HELP = "SfM mappers (incremental, global, hierarchical) at 60 / 300 / 1000 photos"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """``ntp bench sfm``'s options."""
+    parser.add_argument("--out", type=Path, default=Path("ntp_sfm_bench"), help="folder for the scans and the table")
+    parser.add_argument("--photos", nargs="+", type=int, default=list(PHOTOS))
+    parser.add_argument("--mappers", nargs="+", choices=list(MAPPERS), default=list(MAPPERS))
+    parser.add_argument("--scale", type=float, default=SCALE, help="photo size (1.0 = the device's)")
+    parser.add_argument("--json", type=Path, default=None)
+    add_progress_arguments(parser)
+
+
+def command(args: argparse.Namespace) -> int:
+    """``ntp bench sfm``: the benchmark with the command line's options; the exit code."""
+    run(
+        args.out,
+        tuple(args.photos),
+        tuple(args.mappers),
+        args.scale,
+        json_path=args.json,
+        progress=progress_from_args(args),
+    )
+    return 0

@@ -4,8 +4,10 @@ on the very same (float32-rounded) inputs."""
 
 from __future__ import annotations
 
+import argparse
 import math
 import time
+from pathlib import Path
 from typing import Any
 
 import torch
@@ -155,3 +157,19 @@ def run(samples: int = 10_000_000, batch: int = 500_000, seed: int = 0, json_pat
     }
     dump_json(json_path, result)
     return result
+
+
+HELP = "GGX float32 values/gradients vs float64 over >= 1e7 samples"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """``ntp bench stability``'s options."""
+    parser.add_argument("--samples", type=int, default=10_000_000)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--json", type=Path, default=None)
+
+
+def command(args: argparse.Namespace) -> int:
+    """``ntp bench stability``: the benchmark with the command line's options; the exit code."""
+    r = run(samples=args.samples, seed=args.seed, json_path=args.json)
+    return 1 if r["nonfinite"] or r["total"]["negative_values"] else 0

@@ -5,7 +5,9 @@ occluding wall beside it, so there are shadows to get wrong)."""
 
 from __future__ import annotations
 
+import argparse
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -122,3 +124,18 @@ def run(photos: int = 3, json_path=None, scales: tuple[float, ...] = (0.25, 1.0)
     )
     dump_json(json_path, result)
     return result
+
+
+HELP = "seconds per photo (scale 0.25, 1.0) and shadow-cluster error"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """``ntp bench virtual-scan``'s options."""
+    parser.add_argument("--photos", type=int, default=3)
+    parser.add_argument("--json", type=Path, default=None)
+
+
+def command(args: argparse.Namespace) -> int:
+    """``ntp bench virtual-scan``: the benchmark with the command line's options; the exit code."""
+    run(photos=args.photos, json_path=args.json)
+    return 0

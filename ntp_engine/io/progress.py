@@ -11,6 +11,7 @@ goes on (an unreadable photo, a damaged cache entry).
 
 from __future__ import annotations
 
+import argparse
 import json
 import sys
 import time
@@ -125,3 +126,20 @@ def read_progress(path: Path, offset: int = 0) -> tuple[list[dict], int]:
         except json.JSONDecodeError:
             continue  # not ours: skip it rather than stop reading
     return records, offset + end
+
+
+def add_progress_arguments(parser: argparse.ArgumentParser) -> None:
+    """``--quiet`` and ``--progress FILE`` on a command line (``progress_from_args`` reads them)."""
+    parser.add_argument("--quiet", action="store_true", help="no progress bars")
+    parser.add_argument(
+        "--progress",
+        type=Path,
+        default=None,
+        metavar="FILE",
+        help="append progress as JSON lines to FILE (stage, done, total, unit, elapsed_s, eta_s)",
+    )
+
+
+def progress_from_args(args: argparse.Namespace) -> Progress:
+    """The ``Progress`` a command line asked for (``add_progress_arguments``)."""
+    return Progress(bars=not args.quiet, json_path=args.progress)

@@ -255,3 +255,8 @@ def cycles_scan(
         capture = plan.record("cycles", src_mesh, scanner, seconds, **extra)
         write_scan(out, mesh, maps, cam, plan.named_poses, capture, maps_dir)
     return capture
+
+
+def at_least_samples(max_samples: int | None, samples: int) -> int:
+    """``--max-samples``, or by default ``CyclesConfig``'s but at least ``--samples``."""
+    return max(samples, CyclesConfig.max_samples) if max_samples is None else max_samples
