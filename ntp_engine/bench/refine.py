@@ -34,7 +34,7 @@ from ..physics.frame import frame_from_normal_tangent
 from ..pipeline.stages import cached_fit, reconstruct
 from ..refine.footprint import Footprint
 from ..refine.inputs import refine_inputs
-from ..refine.model import P_LOGA, P_OMEGA, Round, Start, Trace, fold, residuals
+from ..refine.model import P_LOGA, P_OMEGA, Observations, Round, Start, Trace, fold, residuals
 from ..refine.policy import calibrated, refine
 from ..refine.priors import normal_prior, prior_normal_in
 from ..refine.settings import RefineSettings, SensorNoise
@@ -119,9 +119,11 @@ def run(out: Path, bench: RefineBench | None = None, json_path: Path | None = No
                 sel = np.concatenate(picks)
                 # the cache holds pixels as captured
                 inp = refine_inputs(scan.scanner, traces, torch.as_tensor(sel), fit, None, texels)
-                ent, mask, start, specular, shadow = inp.entries, inp.mask, inp.start, inp.specular, inp.shadow
-                footprint = inp.footprint
-                tuned = calibrated(scan.scanner, ent, mask, start, specular, RefineSettings(), shadow, None, footprint)
+                obs, start, specular = inp.obs, inp.start, inp.specular
+                ent, mask, footprint = obs.entries, obs.mask, obs.footprint
+                assert obs.shadow is not None  # refine_inputs reads every entry's shadow
+                shadow = obs.shadow
+                tuned = calibrated(obs, start, specular, RefineSettings())
                 noise = tuned.noise
                 answers = {
                     "network + fit": (
@@ -135,7 +137,7 @@ def run(out: Path, bench: RefineBench | None = None, json_path: Path | None = No
                 for label_v, st in VARIANTS:
                     st = replace(st, noise=noise, normal_prior_at_mesh=tuned.normal_prior_at_mesh)
                     t0 = time.perf_counter()
-                    r = refine(scan.scanner, ent, mask, start, specular, st, shadow, None, footprint)
+                    r = refine(obs, start, specular, st)
                     seconds = time.perf_counter() - t0
                     speed.append(
                         {
@@ -216,7 +218,8 @@ def _baseline(
     t0 = time.perf_counter()
     lobe = torch.ones(len(pick), dtype=torch.bool)
     spread = None if footprint is None else footprint.rows(pick)
-    ours = refine(scanner, ent[pick], mask[pick], Start.from_fit(fit, idx), lobe, st, shadow[pick], None, spread)
+    obs = Observations(scanner, ent[pick], mask[pick], shadow[pick], None, spread)
+    ours = refine(obs, Start.from_fit(fit, idx), lobe, st)
     t_ours = (time.perf_counter() - t0) / len(pick)
     t0 = time.perf_counter()
     res = [

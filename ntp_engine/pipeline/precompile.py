@@ -19,7 +19,7 @@ from ..fit.albedo import highlights_and_albedo
 from ..fit.geometry import fit_geometry
 from ..learn.synthetic import SyntheticConfig, sample_batch
 from ..physics.lumitexel import diffuse_lumitexel, specular_lumitexel
-from ..refine.model import Start
+from ..refine.model import Observations, Start
 from ..refine.policy import refine
 from ..refine.settings import RefineSettings
 from ..scanner.device_file import load_scanner
@@ -42,7 +42,12 @@ def precompile() -> float:
     highlights_and_albedo(scanner, pixels, b.position, b.normal_geo, b.tangent_geo, b.length_mask, geometry)
     entries = torch.cat([pixels, b.position, b.normal_geo, b.tangent_geo], -1)
     start = Start(p["n_local"], p["t_local"], torch.full((TEXELS, 2), 0.1), p["rho_d"], torch.ones(TEXELS, 3))
-    refine(scanner, entries, b.length_mask, start, torch.ones(TEXELS, dtype=torch.bool), RefineSettings(rounds=2))
+    refine(
+        Observations(scanner, entries, b.length_mask),
+        start,
+        torch.ones(TEXELS, dtype=torch.bool),
+        RefineSettings(rounds=2),
+    )
     return time.perf_counter() - t0
 
 

@@ -23,7 +23,7 @@ from ..physics.frame import frame_from_normal_tangent
 from ..physics.shadows import grazing, shadowed
 from ..scanner.scanner import Scanner
 from .footprint import Footprint, albedo_blend, sample_points, slope_spread
-from .model import Start
+from .model import Observations, Start
 from .policy import Refined
 from .support_light import SupportScene, SupportView
 
@@ -44,29 +44,18 @@ REFINE_FLAGS = (
 
 
 class RefineInputs(NamedTuple):
-    """What ``refine.policy`` takes for n texels (``refine_inputs``)."""
+    """What the refinement reads for n texels (``refine_inputs``): their traces (``obs``, the
+    problem every entry point of ``refine.policy`` takes), where each starts, which seek a lobe."""
 
-    entries: torch.Tensor  # (n, V, 12) linear pixels as captured
-    mask: torch.Tensor  # (n, V)
+    obs: Observations
     start: Start
     specular: torch.Tensor  # (n,) texels that seek a lobe
-    shadow: torch.Tensor  # (n, V) int64 emitter groups the mesh hides from each entry
     marginal: torch.Tensor  # (n,) texels that read shadowed or grazing entries (``MIN_CLEAR_ENTRIES``)
-    support: SupportView | None  # the support's light on them (``refine.support_light``), or None
-    footprint: Footprint | None  # what each entry's pixel sample spans (``refine.footprint``)
 
     def rows(self, idx: torch.Tensor) -> RefineInputs:
         """The same for the texels ``idx`` (rows) only."""
-        view = self.support
         return RefineInputs(
-            self.entries[idx],
-            self.mask[idx],
-            Start(*(v[idx] for v in self.start)),
-            self.specular[idx],
-            self.shadow[idx],
-            self.marginal[idx],
-            None if view is None else view.rows(idx),
-            None if self.footprint is None else self.footprint.rows(idx),
+            self.obs.rows(idx), Start(*(v[idx] for v in self.start)), self.specular[idx], self.marginal[idx]
         )
 
 
@@ -112,7 +101,7 @@ def refine_inputs(
         spread = slope_spread(scanner, entries, mask, torch.as_tensor(texels.shape_operator[i]))
     blend = traces.albedo_blend_at(rows, mask)
     footprint = None if spread is None and blend is None else Footprint(spread, blend)
-    return RefineInputs(entries, mask, start, specular, shadow, marginal, view, footprint)
+    return RefineInputs(Observations(scanner, entries, mask, shadow, view, footprint), start, specular, marginal)
 
 
 def with_albedo_blend(scanner: Scanner, traces: RaggedTraces, rho_d: np.ndarray, texels: Texels) -> RaggedTraces:

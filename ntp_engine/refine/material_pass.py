@@ -168,8 +168,8 @@ def member_lobe_costs(
     """``refine.lobe_costs`` of ``inp``'s texels under ``widths``: ``(W, 2)`` for all of them or
     ``(N, W, 2)`` each its own."""
     w = torch.as_tensor(widths)
-    w = w.expand(len(inp.mask), -1, -1) if w.dim() == 2 else w
-    return lobe_costs(scanner, inp.entries, inp.mask, inp.start, w, settings, inp.shadow, inp.support, inp.footprint)
+    w = w.expand(len(inp.obs.mask), -1, -1) if w.dim() == 2 else w
+    return lobe_costs(inp.obs, inp.start, w, settings)
 
 
 def _widths_from_materials(
@@ -269,20 +269,7 @@ def material_pass(
         inp = refine_inputs(scanner, traces, torch.as_tensor(i_obs[rest[k]]), fit, support, texels)
         maybe = torch.as_tensor(candidates(prior[rest[k]], basis))
         near = None if field is None else (torch.as_tensor(field[0][k]), torch.as_tensor(field[1][k]))
-        c, t, rd = material_costs(
-            scanner,
-            inp.entries,
-            inp.mask,
-            inp.start,
-            alpha,
-            rho_s,
-            maybe,
-            settings,
-            inp.shadow,
-            near,
-            inp.support,
-            inp.footprint,
-        )
+        c, t, rd = material_costs(inp.obs, inp.start, alpha, rho_s, maybe, settings, near)
         costs[rest[k]], turns[rest[k]], judged_rho_d[rest[k]] = c.numpy(), t.numpy(), rd.numpy()
         bar.update(len(k))
     bar.close()
@@ -360,9 +347,7 @@ def _take_material_lobes(
             torch.as_tensor(basis.log_alpha_sigma[m], dtype=torch.float32),
             torch.as_tensor(basis.rho_s_sigma[m], dtype=torch.float32),
         )
-        r = refine_toward(
-            scanner, inp.entries, inp.mask, inp.start, pull, settings, inp.shadow, inp.support, inp.footprint
-        )
+        r = refine_toward(inp.obs, inp.start, pull, settings)
         store_refined(fit, idx, r, inp.marginal)
         bar.update(len(idx))
     bar.close()
@@ -415,9 +400,7 @@ def _fuse_tangents(
     for k in np.array_split(ask, -(-len(ask) // REFINE_BATCH)) if len(ask) else []:
         inp = refine_inputs(scanner, traces, torch.as_tensor(i_obs[k]), fit, support, texels)
         turns = torch.stack([torch.zeros(len(k), dtype=torch.float64), torch.as_tensor(turn[k])], 1)
-        c = turn_costs(
-            scanner, inp.entries, inp.mask, inp.start, turns, settings, inp.shadow, inp.support, inp.footprint
-        ).numpy()
+        c = turn_costs(inp.obs, inp.start, turns, settings).numpy()
         objects = c[:, 1] - c[:, 0] >= TURN_OBJECTION
         turn[k[objects]], fused[k[objects]] = 0.0, std[k[objects]]
     fit["t_loc"][i_obs] = turned_tangents(fit["t_loc"][i_obs], fit["n_loc"][i_obs], turn)

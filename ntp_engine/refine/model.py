@@ -88,6 +88,48 @@ class Start(NamedTuple):
 SAMPLE_ARRAYS = ("wo", "wi", "falloff", "wi_c", "falloff_c")
 
 
+class Observations(NamedTuple):
+    """N texels' traces as every refinement entry point reads them — built once per batch
+    (``refine.inputs.refine_inputs``) and handed to ``refine``, ``refine_toward``,
+    ``material_costs``, ``turn_costs``, ``lobe_costs``, ``calibrated`` and ``predicted_light``.
+    ``entries (N, V, 12)``: the trace layout (``learn.ragged``) with pixels as captured, ``mask
+    (N, V)`` the real ones; ``shadow (N, V)`` int64: the emitter groups the mesh hides from each
+    entry (None: none); ``support``: the light the support reflects onto them
+    (``refine.support_light``; None: not modelled); ``footprint``: what each entry's pixel sample
+    spans (``refine.footprint``; None: a flat surface, no albedo blend)."""
+
+    scanner: Scanner
+    entries: Tensor
+    mask: Tensor
+    shadow: Tensor | None = None
+    support: SupportView | None = None
+    footprint: Footprint | None = None
+
+    def trace(self, noise: SensorNoise) -> Trace:
+        """The forward model's view of these traces under the sensor model ``noise``."""
+        return Trace(
+            self.scanner,
+            self.entries,
+            self.mask,
+            noise,
+            emitter_blocks(self.scanner),
+            self.shadow,
+            self.support,
+            self.footprint,
+        )
+
+    def rows(self, idx: Tensor) -> Observations:
+        """The same for the texels ``idx`` only."""
+        return Observations(
+            self.scanner,
+            self.entries[idx],
+            self.mask[idx],
+            None if self.shadow is None else self.shadow[idx],
+            None if self.support is None else self.support.rows(idx),
+            None if self.footprint is None else self.footprint.rows(idx),
+        )
+
+
 class Trace:
     """One chunk of traces, ready for the model: every entry's directions to each emitter sample
     (and, with ``blocks``, to each block's coarse emitter) and falloff in the texel's geometric
@@ -359,22 +401,15 @@ def parameters(start: Start, dtype: torch.dtype) -> tuple[Tensor, Tensor]:
 
 
 def predicted_light(
-    scanner: Scanner,
-    entries: Tensor,
-    mask: Tensor,
-    answer: Start,
-    settings: RefineSettings | None = None,
-    shadow: Tensor | None = None,
-    support: SupportView | None = None,
-    footprint: Footprint | None = None,
+    obs: Observations, answer: Start, settings: RefineSettings | None = None
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Eq. 1 at N texels' ``answer`` (taken as it is), as ``refine`` models their entries: each
     entry's unit-albedo diffuse light, its lobe's light (the answer's rho_s times the specular basis)
     and its sensor 1/sigma (``settings.noise``; 0 where masked or clipped), each ``(N, V, 3)``.
-    ``footprint``'s slope spread widens the lobe; its albedo blend is left out (the sensor's noise only)."""
+    ``obs.footprint``'s slope spread widens the lobe; its albedo blend is left out (the sensor's noise only)."""
     settings = settings or RefineSettings()
-    spread = None if footprint is None else Footprint(footprint.spread, None)
-    tr = Trace(scanner, entries, mask, settings.noise, emitter_blocks(scanner), shadow, support, spread)
+    footprint = obs.footprint
+    tr = obs._replace(footprint=None if footprint is None else Footprint(footprint.spread, None)).trace(settings.noise)
     frame, p = parameters(answer, tr.y.dtype)
     diffuse, spec = predict(tr, frame, p)
     inv_sigma = torch.where(tr.censored, torch.zeros_like(tr.inv_sigma), tr.inv_sigma)

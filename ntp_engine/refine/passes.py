@@ -88,9 +88,7 @@ def _refine_fit(
         gen = torch.Generator().manual_seed(0)
         sample = todo[torch.randperm(len(todo), generator=gen)[:CALIBRATION_TEXELS]].sort().values
         inp = refine_inputs(scanner, traces, sample, fit, support, texels)
-        settings = calibrated(
-            scanner, inp.entries, inp.mask, inp.start, inp.specular, settings, inp.shadow, inp.support, inp.footprint
-        )
+        settings = calibrated(inp.obs, inp.start, inp.specular, settings)
         fit["noise_scale"] = np.array(settings.noise.relative / RefineSettings().noise.relative)
         fit["normal_prior_at_mesh"] = np.array(settings.normal_prior_at_mesh)
     fit["std"] = np.full((traces.num_traces, 4), np.nan)
@@ -162,14 +160,12 @@ def sharpen_albedos(
     bar = progress.counter("albedo map", len(idx), "texel")
     for batch in idx.split(REFINE_BATCH):
         inp = refine_inputs(scanner, traces, batch, fit, support, texels)
-        diffuse, lobe, inv_sigma = predicted_light(
-            scanner, inp.entries, inp.mask, inp.start, settings, inp.shadow, inp.support, inp.footprint
-        )
-        delta, weight = sample_points(scanner, inp.entries, inp.mask)
+        diffuse, lobe, inv_sigma = predicted_light(inp.obs, inp.start, settings)
+        delta, weight = sample_points(scanner, inp.obs.entries, inp.obs.mask)
         i = batch.numpy()
         taps, w = tap_texels(delta.numpy(), weight.numpy(), uv[i], texels.uv_per_metre[i], index)
-        live = inp.mask.numpy()
-        target = inp.entries[..., :3].to(lobe.dtype) - lobe
+        live = inp.obs.mask.numpy()
+        target = inp.obs.entries[..., :3].to(lobe.dtype) - lobe
         parts.append(tuple(a[live] for a in (diffuse.numpy(), target.numpy(), inv_sigma.numpy(), taps, w)))
         bar.update(len(batch))
     bar.close()
@@ -219,18 +215,7 @@ def _refine_texels(
     for idx in todo.split(REFINE_BATCH):
         inp = refine_inputs(scanner, traces, idx, start, support, texels)
         pulls = None if centre is None else Start.from_fit(centre, idx.numpy())
-        r = refine(
-            scanner,
-            inp.entries,
-            inp.mask,
-            inp.start,
-            inp.specular,
-            settings,
-            inp.shadow,
-            inp.support,
-            inp.footprint,
-            pulls,
-        )
+        r = refine(inp.obs, inp.start, inp.specular, settings, pulls)
         store_refined(fit, idx, r, inp.marginal)
         bar.update(len(idx))
     bar.close()

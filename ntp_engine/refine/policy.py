@@ -19,16 +19,14 @@ from torch import Tensor
 
 from ..fit.flags import TexelFlag
 from ..physics.brdf import ALPHA_MAX, ALPHA_MIN, RHO_D_MAX, RHO_S_MAX
-from ..physics.emitter_blocks import emitter_blocks
 from ..physics.frame import frame_from_normal_tangent, turned_about_normal
-from ..scanner.scanner import Scanner
-from .footprint import Footprint
 from .gauss_newton import N_PARAMS, data_cost
 from .model import (
     P_LOGA,
     P_OMEGA,
     P_RHO_D,
     P_RHO_S,
+    Observations,
     Round,
     Start,
     Trace,
@@ -52,7 +50,6 @@ from .settings import (
     SensorNoise,
 )
 from .solver import albedo_start, robust_albedos, solve
-from .support_light import SupportView
 
 # a texel whose normal's 1-sigma is below this (deg) has it from its photos, not the prior
 # (``calibrated``: where the normal's pull centres), and this many such texels decide
@@ -74,15 +71,10 @@ class Refined:
 
 
 def refine(
-    scanner: Scanner,
-    entries: Tensor,
-    mask: Tensor,
+    obs: Observations,
     start: Start,
     specular: Tensor,
     settings: RefineSettings | None = None,
-    shadow: Tensor | None = None,
-    support: SupportView | None = None,
-    footprint: Footprint | None = None,
     centre: Start | None = None,
 ) -> Refined:
     """Refine N texels from ``start``, the weak pulls centred on ``centre`` (default: the start).
@@ -94,7 +86,7 @@ def refine(
     spans (``refine.footprint``; None: a flat surface, no albedo blend) — the normals, which widen the
     lobe it sees, and the neighbours' albedo it may blend in. Never NaN: a failed solve keeps the start."""
     settings = settings or RefineSettings()
-    tr = Trace(scanner, entries, mask, settings.noise, emitter_blocks(scanner), shadow, support, footprint)
+    tr = obs.trace(settings.noise)
     return _refine(tr, start, specular, settings, centre)
 
 
@@ -183,18 +175,13 @@ class MaterialCosts(NamedTuple):
 
 
 def material_costs(
-    scanner: Scanner,
-    entries: Tensor,
-    mask: Tensor,
+    obs: Observations,
     start: Start,
     alpha: Tensor,
     rho_s: Tensor,
     candidates: Tensor | None = None,
     settings: RefineSettings | None = None,
-    shadow: Tensor | None = None,
     turn_prior: tuple[Tensor, Tensor] | None = None,
-    support: SupportView | None = None,
-    footprint: Footprint | None = None,
 ) -> MaterialCosts:
     """How well K basis materials' lobes (``alpha (K, 2)``, ``rho_s (K, 3)``) explain N traces:
     the robust data cost ``(N, 1 + K)`` of each texel's trace under no lobe (column 0) and under each
@@ -211,7 +198,7 @@ def material_costs(
     better guess where neighbours disagree). Columns are comparable: each model has the same free
     rho_d."""
     settings = settings or RefineSettings()
-    tr_all = Trace(scanner, entries, mask, settings.noise, emitter_blocks(scanner), shadow, support, footprint)
+    tr_all = obs.trace(settings.noise)
     dtype = tr_all.y.dtype
     N, K = tr_all.N, alpha.shape[0]
     frame_all = frame_from_normal_tangent(start.normal.to(dtype), start.tangent.to(dtype))
@@ -275,22 +262,12 @@ def _given_lobe_cost(
     return torch.nan_to_num(c, nan=math.inf), rnd.diffuse, p[:, P_RHO_D]
 
 
-def turn_costs(
-    scanner: Scanner,
-    entries: Tensor,
-    mask: Tensor,
-    start: Start,
-    turns: Tensor,
-    settings: RefineSettings | None = None,
-    shadow: Tensor | None = None,
-    support: SupportView | None = None,
-    footprint: Footprint | None = None,
-) -> Tensor:
+def turn_costs(obs: Observations, start: Start, turns: Tensor, settings: RefineSettings | None = None) -> Tensor:
     """The robust data cost ``(N, T)`` of N traces under each texel's own lobe (``start``'s normal,
     alphas and rho_s) with its tangent turned by ``turns (N, T)`` (radians about the normal, as
     ``material_costs``' turns), rho_d re-solved: how much its photos object to each direction."""
     settings = settings or RefineSettings()
-    tr = Trace(scanner, entries, mask, settings.noise, emitter_blocks(scanner), shadow, support, footprint)
+    tr = obs.trace(settings.noise)
     dtype = tr.y.dtype
     frame = frame_from_normal_tangent(start.normal.to(dtype), start.tangent.to(dtype))
     costs, diffuse = [], None
@@ -303,15 +280,7 @@ def turn_costs(
 
 
 def lobe_costs(
-    scanner: Scanner,
-    entries: Tensor,
-    mask: Tensor,
-    start: Start,
-    alphas: Tensor,
-    settings: RefineSettings | None = None,
-    shadow: Tensor | None = None,
-    support: SupportView | None = None,
-    footprint: Footprint | None = None,
+    obs: Observations, start: Start, alphas: Tensor, settings: RefineSettings | None = None
 ) -> tuple[Tensor, Tensor, Tensor]:
     """How well S candidate lobe widths explain N traces: the robust data cost ``(N, S)`` of each
     texel's trace under ``alphas (N, S, 2)`` (alpha_x along ``start``'s tangent; clamped to the
@@ -320,7 +289,7 @@ def lobe_costs(
     it is the profile of their cost over the material's lobe width, which one trace alone may not
     tell from a broader diffuse (``refine.materials.pooled_scale``)."""
     settings = settings or RefineSettings()
-    tr = Trace(scanner, entries, mask, settings.noise, emitter_blocks(scanner), shadow, support, footprint)
+    tr = obs.trace(settings.noise)
     dtype = tr.y.dtype
     frame = frame_from_normal_tangent(start.normal.to(dtype), start.tangent.to(dtype))
     N, S = alphas.shape[:2]
@@ -339,24 +308,14 @@ def lobe_costs(
     return cost, rho_d, rho_s
 
 
-def refine_toward(
-    scanner: Scanner,
-    entries: Tensor,
-    mask: Tensor,
-    start: Start,
-    prior: LobePrior,
-    settings: RefineSettings | None = None,
-    shadow: Tensor | None = None,
-    support: SupportView | None = None,
-    footprint: Footprint | None = None,
-) -> Refined:
+def refine_toward(obs: Observations, start: Start, prior: LobePrior, settings: RefineSettings | None = None) -> Refined:
     """Refine N texels that take their lobe from a basis material: from ``start`` (the material's
     lobe with the texel's own frame, rho_d), with alphas and rho_s pulled to ``prior`` by its
     spreads; no multi-start. The lobe is kept whether or not an entry shows it (flags:
     ``TexelFlag.FROM_MATERIAL``, and ``TexelFlag.SPECULAR_UNCONSTRAINED`` where none does: its parameters are
     then the material's; its uncertainty the prior's). Never NaN: a failed solve keeps the start."""
     settings = settings or RefineSettings()
-    tr = Trace(scanner, entries, mask, settings.noise, emitter_blocks(scanner), shadow, support, footprint)
+    tr = obs.trace(settings.noise)
     dtype = tr.y.dtype
     N = tr.N
     frame = frame_from_normal_tangent(start.normal.to(dtype), start.tangent.to(dtype))
@@ -380,17 +339,7 @@ def refine_toward(
     return _finish(f, q, H, cost, highlight_share(tr, f, q), from_material=torch.ones(N, dtype=torch.bool))
 
 
-def calibrated(
-    scanner: Scanner,
-    entries: Tensor,
-    mask: Tensor,
-    start: Start,
-    specular: Tensor,
-    settings: RefineSettings,
-    shadow: Tensor | None = None,
-    support: SupportView | None = None,
-    footprint: Footprint | None = None,
-) -> RefineSettings:
+def calibrated(obs: Observations, start: Start, specular: Tensor, settings: RefineSettings) -> RefineSettings:
     """``settings`` calibrated on a refinement of these sample traces. The noise model is scaled
     (within ``NOISE_SCALE``) so that the answer's residuals have unit robust scale — 1.4826 x the
     median |normalised residual| over its entries is 1 when the model is right (Monte Carlo renders
@@ -401,7 +350,7 @@ def calibrated(
     of them) lie nearer it than to their start's in the median — the start (the network's answer)
     reads the same photos, and where it errs a pull to it keeps the error on the texels the photos
     say little about (docs/refinement.md)."""
-    tr = Trace(scanner, entries, mask, settings.noise, emitter_blocks(scanner), shadow, support, footprint)
+    tr = obs.trace(settings.noise)
     r = _refine(tr, start, specular, settings)
     p = torch.cat([torch.zeros_like(r.rho_d), r.log_alpha, r.rho_d, r.rho_s], 1)
     res, active = residuals(tr, *predict(tr, r.frame, p), p)

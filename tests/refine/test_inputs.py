@@ -33,8 +33,8 @@ def test_refine_inputs_read_marginal_entries_only_where_too_few_others_are_left(
     fit = {"n_loc": np.tile([0, 0, 1.0], (N, 1)), "t_loc": np.tile([1.0, 0, 0], (N, 1)), "alpha": np.full((N, 2), 0.1)}
     fit |= {"rho_d": np.full((N, 3), 0.5), "rho_s": np.zeros((N, 3)), "flags": np.zeros(N, np.int64)}
     inp = refine_inputs(dev, traces, torch.arange(N), fit)
-    ent, mask, masks, marginal = inp.entries, inp.mask, inp.shadow, inp.marginal
-    assert inp.support is None  # none asked for
+    ent, mask, masks, marginal = inp.obs.entries, inp.obs.mask, inp.obs.shadow, inp.marginal
+    assert inp.obs.support is None  # none asked for
     clear = [{k for k, c in enumerate(t) if c == "c"} for t in kinds]
     few = [len(c) < MIN_CLEAR_ENTRIES for c in clear]
     assert marginal.tolist() == [few[0], few[1], True, False]

@@ -4,6 +4,7 @@ import torch
 from ntp_engine.fit.flags import TexelFlag
 from ntp_engine.learn.ragged import RaggedTraces
 from ntp_engine.learn.synthetic import SyntheticConfig, sample_batch
+from ntp_engine.refine.model import Observations
 from ntp_engine.scanner.device_file import load_scanner
 
 
@@ -199,7 +200,9 @@ def test_members_own_tangents_do_not_make_a_sharp_isotropic_lobe_anisotropic():
     for turn in turns:
         tt = np.cos(turn) * t + np.sin(turn) * np.cross(nrm, t)
         at = inp.start._replace(tangent=torch.as_tensor(tt, dtype=inp.start.tangent.dtype))
-        c, _, _ = lobe_costs(dev, inp.entries, inp.mask, at, torch.tensor([[[0.012, 0.006]]]).expand(n, 1, 2))
+        c, _, _ = lobe_costs(
+            Observations(dev, inp.obs.entries, inp.obs.mask), at, torch.tensor([[[0.012, 0.006]]]).expand(n, 1, 2)
+        )
         costs.append(c[:, 0].numpy())
     best = turns[np.argmin(np.stack(costs, 1), 1)]
     start["t_loc"] = np.cos(best)[:, None] * t + np.sin(best)[:, None] * np.cross(nrm, t)

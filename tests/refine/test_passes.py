@@ -5,6 +5,7 @@ from refine.test_inputs import _square, _square_in_two_views
 from ntp_engine.fit.flags import TexelFlag
 from ntp_engine.learn.ragged import RaggedTraces
 from ntp_engine.refine import passes as passes_module
+from ntp_engine.refine.model import Observations
 from ntp_engine.scanner.device_file import load_scanner
 
 
@@ -108,7 +109,7 @@ def test_the_albedos_next_to_an_edge_come_back_sharper_from_the_entries_pixel_sa
     fit = {"n_loc": np.tile([0.0, 0, 1], (N, 1)), "t_loc": np.tile([1.0, 0, 0], (N, 1))}
     fit |= {"alpha": np.full((N, 2), 0.2), "rho_d": truth.copy(), "rho_s": np.zeros((N, 3))}
     fit["flags"] = np.zeros(N, np.int64)
-    diffuse, _, _ = predicted_light(dev, entries, mask, Start.from_fit(fit, np.arange(N)))
+    diffuse, _, _ = predicted_light(Observations(dev, entries, mask), Start.from_fit(fit, np.arange(N)))
     delta, weight = sample_points(dev, entries, mask)
     index = np.full(tx.shape, -1, np.int64)
     index[tx.row, tx.col] = np.arange(N)

@@ -15,7 +15,7 @@ from ntp_engine.physics.measurement import emitter_terms, measure_terms
 from ntp_engine.refine.footprint import SPREAD_WIDENING, Footprint
 from ntp_engine.refine.material_pass import POOL_SCALES
 from ntp_engine.refine.materials import pooled_scale
-from ntp_engine.refine.model import Start
+from ntp_engine.refine.model import Observations, Start
 from ntp_engine.refine.policy import (
     calibrated,
     lobe_costs,
@@ -96,7 +96,7 @@ def _seen(r):
 def test_anisotropic_lobe_recovered_from_a_perturbed_start():
     entries, mask, p = _traces(48, 1, (0.3, 0.25, 0.2), (3.0, 3.0, 3.0), (0.2, 0.04))
     start = _perturbed(p, 2)
-    r = refine(DEV, entries, mask, Start(*start), torch.ones(48, dtype=torch.bool))
+    r = refine(Observations(DEV, entries, mask), Start(*start), torch.ones(48, dtype=torch.bool))
     seen = _seen(r)
     assert seen.float().mean() > 0.4
     assert (r.highlight[seen] >= 0.05).all() and (r.highlight[~seen] == 0).all()
@@ -116,7 +116,9 @@ def test_a_lobe_is_isotropic_unless_its_trace_pays_for_the_anisotropy():
     start's (ratio 1.34 median, |log alpha| 0.22) — while a 3:1 lobe keeps its anisotropy and its
     tangent."""
     entries, mask, p = _traces(64, 11, (0.3, 0.3, 0.3), (2.0, 2.0, 2.0), (0.03, 0.03))
-    r = refine(DEV, entries, mask, Start(*_perturbed(p, 12, alpha_factor=4.0)), torch.ones(64, dtype=torch.bool))
+    r = refine(
+        Observations(DEV, entries, mask), Start(*_perturbed(p, 12, alpha_factor=4.0)), torch.ones(64, dtype=torch.bool)
+    )
     seen = _seen(r)
     assert seen.float().mean() > 0.25
     la = r.log_alpha[seen]
@@ -125,7 +127,7 @@ def test_a_lobe_is_isotropic_unless_its_trace_pays_for_the_anisotropy():
     assert (r.flags[seen][iso] & TexelFlag.TANGENT_UNCONSTRAINED != 0).all()  # no tangent it cannot support
     assert (la - math.log(0.03)).abs().median() < 0.1
     entries, mask, p = _traces(64, 11, (0.3, 0.3, 0.3), (3.0, 3.0, 3.0), (0.15, 0.05))
-    r = refine(DEV, entries, mask, Start(*_perturbed(p, 12)), torch.ones(64, dtype=torch.bool))
+    r = refine(Observations(DEV, entries, mask), Start(*_perturbed(p, 12)), torch.ones(64, dtype=torch.bool))
     seen = _seen(r)
     la = r.log_alpha[seen]
     assert (la[:, 0] - la[:, 1] < math.log(ISOTROPIC_RATIO)).float().mean() < 0.1
@@ -144,7 +146,7 @@ def test_emitters_the_mesh_hides_are_modelled():
     shadow = (hidden.long() << torch.arange(len(groups.points))).sum(-1)
     entries, mask, p = _traces(48, 1, (0.3, 0.25, 0.2), (3.0, 3.0, 3.0), (0.2, 0.04), hidden=hidden)
     start, lobe = Start(*_perturbed(p, 2)), torch.ones(48, dtype=torch.bool)
-    r = refine(DEV, entries, mask, start, lobe, shadow=shadow)
+    r = refine(Observations(DEV, entries, mask, shadow=shadow), start, lobe)
     seen = _seen(r)
     # fewer entries see the highlight than with every emitter lit (0.5 of the texels keep a lobe there)
     assert seen.float().mean() > 0.3
@@ -153,7 +155,7 @@ def test_emitters_the_mesh_hides_are_modelled():
     assert log_a[seen].median() < 0.35
     assert (r.rho_d - p["rho_d"]).abs().median() < 0.01
     # read as lit by every emitter: normal 4.9 deg, rho_d off by 0.096 (median)
-    lit = refine(DEV, entries, mask, start, lobe)
+    lit = refine(Observations(DEV, entries, mask), start, lobe)
     assert _normal_err(lit, p)[_seen(lit)].median() > 2.0
     assert (lit.rho_d - p["rho_d"]).abs().median() > 0.05
 
@@ -164,7 +166,9 @@ def test_clipped_highlights_are_lower_bounds():
     entries, mask, p = _traces(48, 3, (0.1, 0.1, 0.1), (10.0, 10.0, 10.0), (0.05, 0.05))
     clipped = (entries[..., :3] >= 1.0).any(-1) & mask
     assert clipped.any(1).float().mean() > 0.3  # the case is real: many traces clip
-    r = refine(DEV, entries, mask, Start(*_perturbed(p, 4, turn_deg=0.0)), torch.ones(48, dtype=torch.bool))
+    r = refine(
+        Observations(DEV, entries, mask), Start(*_perturbed(p, 4, turn_deg=0.0)), torch.ones(48, dtype=torch.bool)
+    )
     seen = _seen(r) & clipped.any(1)
     assert (r.rho_s[seen].mean(1) / 10.0).log().abs().median() < 0.2
     assert ((r.log_alpha - math.log(0.05)).abs()[seen]).median() < 0.2
@@ -174,7 +178,7 @@ def test_dark_material_is_measured():
     """rho_d 0.03 gives codes < 32 everywhere: the noise floor keeps them as measurements."""
     entries, mask, p = _traces(32, 5, (0.03, 0.02, 0.04), (0.0, 0.0, 0.0), (0.3, 0.3))
     assert ((255 * entries[..., :3])[mask] < 32).all()
-    r = refine(DEV, entries, mask, Start(*_perturbed(p, 6)), torch.zeros(32, dtype=torch.bool))
+    r = refine(Observations(DEV, entries, mask), Start(*_perturbed(p, 6)), torch.zeros(32, dtype=torch.bool))
     assert (r.rho_d - p["rho_d"]).abs().max() < 0.005
     assert (r.flags & TexelFlag.SPECULAR_UNCONSTRAINED).all()  # diffuse-only solve: the lobe is not claimed
     assert (r.rho_s == 0).all()
@@ -183,7 +187,11 @@ def test_dark_material_is_measured():
 def test_matte_gets_no_spurious_lobe():
     entries, mask, p = _traces(32, 7, (0.6, 0.5, 0.4), (0.0, 0.0, 0.0), (0.3, 0.3))
     n0, t0, a0, rd0, _ = _perturbed(p, 8)
-    r = refine(DEV, entries, mask, Start(n0, t0, a0, rd0, torch.full((32, 3), 2.0)), torch.ones(32, dtype=torch.bool))
+    r = refine(
+        Observations(DEV, entries, mask),
+        Start(n0, t0, a0, rd0, torch.full((32, 3), 2.0)),
+        torch.ones(32, dtype=torch.bool),
+    )
     assert (r.rho_s.mean(1) < 0.05).float().mean() > 0.95
     assert ((r.highlight == 0) == (r.rho_s.mean(1) == 0)).all()  # a highlight only where a lobe is kept
     assert (r.rho_d - p["rho_d"]).abs().median() < 0.01
@@ -211,10 +219,10 @@ def test_a_lobe_that_cannot_pass_the_evidence_test_is_not_solved(monkeypatch):
         return solve(tr, frame, q, specular, settings, prior, weak)
 
     monkeypatch.setattr(rf, "solve", counting)
-    r = refine(DEV, entries, mask, start, torch.ones(32, dtype=torch.bool))
+    r = refine(Observations(DEV, entries, mask), start, torch.ones(32, dtype=torch.bool))
     assert 0 < solved[0] < 32 and _seen(r)[16:].any() and not _seen(r)[:16].any()
     monkeypatch.setattr(rf, "_lobe_can_pass", lambda cost, evidence: torch.ones_like(cost, dtype=torch.bool))
-    every = refine(DEV, entries, mask, start, torch.ones(32, dtype=torch.bool))
+    every = refine(Observations(DEV, entries, mask), start, torch.ones(32, dtype=torch.bool))
     assert solved[-1] == 32
     for name in ("frame", "log_alpha", "rho_d", "rho_s", "flags", "std", "cost", "highlight"):
         torch.testing.assert_close(getattr(r, name), getattr(every, name), rtol=0, atol=0)
@@ -227,7 +235,10 @@ def test_calibrated_noise_inflates_the_model_only():
     for noise in (0.01, 0.10):
         entries, mask, p = _traces(64, 11, (0.5, 0.4, 0.3), (1.0, 1.0, 1.0), (0.15, 0.15), noise=noise)
         sensed = calibrated(
-            DEV, entries, mask, Start(*_perturbed(p, 12)), torch.ones(64, dtype=torch.bool), RefineSettings()
+            Observations(DEV, entries, mask),
+            Start(*_perturbed(p, 12)),
+            torch.ones(64, dtype=torch.bool),
+            RefineSettings(),
         ).noise
         scales.append(sensed.relative / SensorNoise().relative)
         assert sensed.read_code / SensorNoise().read_code == pytest.approx(scales[-1])
@@ -244,14 +255,17 @@ def test_the_normals_pull_centres_on_the_mesh_where_the_photos_agree_with_it_bet
         entries, mask, p = _traces(64, 21, *glossy, normal_sigma=normal_sigma)
         n0, t0, a0, rd0, rs0 = _perturbed(p, 22, tilt_deg=3.0)
         tuned = calibrated(
-            DEV, entries, mask, Start(n0, t0, a0, rd0, rs0), torch.ones(64, dtype=torch.bool), RefineSettings()
+            Observations(DEV, entries, mask),
+            Start(n0, t0, a0, rd0, rs0),
+            torch.ones(64, dtype=torch.bool),
+            RefineSettings(),
         )
         assert tuned.normal_prior_at_mesh is at_mesh
     entries, mask, p = _traces(32, 23, *matte, noise=0.3, normal_sigma=0.0)  # photos that say little
     start = Start(*_perturbed(p, 24, tilt_deg=3.0))
     noisy = SensorNoise(relative=0.3)
     off = [
-        _normal_err(refine(DEV, entries, mask, start, torch.zeros(32, dtype=torch.bool), st), p).median()
+        _normal_err(refine(Observations(DEV, entries, mask), start, torch.zeros(32, dtype=torch.bool), st), p).median()
         for st in (RefineSettings(noise=noisy), RefineSettings(noise=noisy, normal_prior_at_mesh=True))
     ]
     assert off[0] > 2.0 and off[1] < 0.6 * off[0], off
@@ -267,7 +281,10 @@ def test_a_texel_refined_again_from_its_answer_keeps_its_pulls_centred_on_the_fi
     centre = Start(p["n_local"], p["t_local"], warm.alpha, warm.rho_d, warm.rho_s)
     again = RefineSettings(noise=SensorNoise(relative=0.3), rounds=1, starts=False)
     lobeless = torch.zeros(32, dtype=torch.bool)
-    off = [_normal_err(refine(DEV, entries, mask, warm, lobeless, again, centre=c), p).median() for c in (None, centre)]
+    off = [
+        _normal_err(refine(Observations(DEV, entries, mask), warm, lobeless, again, centre=c), p).median()
+        for c in (None, centre)
+    ]
     assert off[0] > 3.0 and off[1] < 0.5 * off[0], off  # measured 3.8 and 1.3
 
 
@@ -285,7 +302,10 @@ def test_never_nan(case):
     else:
         entries[..., :3] = 1.0
     r = refine(
-        DEV, entries, mask, Start(n0, t0, a0, rd0, rs0), torch.ones(16, dtype=torch.bool), RefineSettings(rounds=2)
+        Observations(DEV, entries, mask),
+        Start(n0, t0, a0, rd0, rs0),
+        torch.ones(16, dtype=torch.bool),
+        RefineSettings(rounds=2),
     )
     for v in (r.frame, r.log_alpha, r.rho_d, r.rho_s, r.cost):
         assert torch.isfinite(v).all()
@@ -311,8 +331,10 @@ def test_material_costs_pick_the_lobe_and_its_tangent():
     start = Start(p["n_local"], t90, torch.full((48, 2), 0.3), p["rho_d"], torch.zeros(48, 3))
     alpha = torch.tensor([[0.2, 0.04], [0.05, 0.05]])
     rho_s = torch.tensor([[3.0] * 3, [10.0] * 3])
-    cost, turn, _ = material_costs(DEV, entries, mask, start, alpha, rho_s)
-    only_first = material_costs(DEV, entries, mask, start, alpha, rho_s, torch.tensor([[True, False]]).expand(48, 2))[0]
+    cost, turn, _ = material_costs(Observations(DEV, entries, mask), start, alpha, rho_s)
+    only_first = material_costs(
+        Observations(DEV, entries, mask), start, alpha, rho_s, torch.tensor([[True, False]]).expand(48, 2)
+    )[0]
     torch.testing.assert_close(only_first[:, :2], cost[:, :2])
     assert torch.isinf(only_first[:, 2]).all()
     assert cost.shape == (48, 3) and turn.shape == (48, 2)
@@ -329,7 +351,9 @@ def test_material_costs_resolve_each_models_albedo():
     entries, mask, p = _traces(48, 13, (0.05, 0.05, 0.05), (9.0, 9.0, 9.0), (0.5, 0.5))
     start = Start(p["n_local"], p["t_local"], torch.full((48, 2), 0.3), p["rho_d"], torch.zeros(48, 3))
     alpha, rho_s = torch.tensor([[0.5, 0.5], [0.02, 0.02]]), torch.tensor([[9.0] * 3, [1.0] * 3])
-    judged = material_costs(DEV, entries, mask, start, alpha, rho_s, torch.tensor([[True, False]]).expand(48, 2))
+    judged = material_costs(
+        Observations(DEV, entries, mask), start, alpha, rho_s, torch.tensor([[True, False]]).expand(48, 2)
+    )
     assert judged.rho_d.shape == (48, 3, 3) and torch.isnan(judged.rho_d[:, 2]).all()
     assert (judged.rho_d[:, 0].mean(1) > 0.1).float().mean() > 0.9  # no lobe: the lobe's light taken for diffuse
     assert (judged.rho_d[:, 1] - 0.05).abs().max() < 0.01
@@ -347,7 +371,9 @@ def test_a_trace_whose_every_entry_is_clipped_is_judged_bright_not_lobed():
     e, m, n = entries[keep], clipped[keep], int(keep.sum())
     grey = torch.full((n, 3), 0.5)
     start = Start(p["n_local"][keep], p["t_local"][keep], torch.full((n, 2), 0.3), grey, torch.zeros(n, 3))
-    judged = material_costs(DEV, e, m, start, torch.tensor([[0.5, 0.01]]), torch.tensor([[8.0, 5.0, 4.0]]))
+    judged = material_costs(
+        Observations(DEV, e, m), start, torch.tensor([[0.5, 0.01]]), torch.tensor([[8.0, 5.0, 4.0]])
+    )
     rho_d = judged.rho_d[:, 0].mean(1)
     print("no lobe: rho_d median", rho_d.median().item(), "cost median", judged.cost[:, 0].median().item())
     assert ((rho_d > 0.8) & (rho_d <= 1.0)).all()  # at the bound: below the truth, never 0
@@ -365,9 +391,11 @@ def test_material_costs_try_the_turn_the_neighbours_point_along():
     t0 = turned_about_normal(torch.stack([p["t_local"], cross(p["n_local"], p["t_local"]), p["n_local"]], 1), off)[:, 0]
     start = Start(p["n_local"], t0, torch.full((48, 2), 0.3), p["rho_d"], torch.zeros(48, 3))
     alpha, rho_s = torch.tensor([[0.2, 0.04]]), torch.tensor([[3.0] * 3])
-    uniform, turn_u, _ = material_costs(DEV, entries, mask, start, alpha, rho_s)
+    uniform, turn_u, _ = material_costs(Observations(DEV, entries, mask), start, alpha, rho_s)
     told = torch.full((48, 1), math.radians(110.0))
-    cost, turn, _ = material_costs(DEV, entries, mask, start, alpha, rho_s, turn_prior=(told, torch.ones(48, 1)))
+    cost, turn, _ = material_costs(
+        Observations(DEV, entries, mask), start, alpha, rho_s, turn_prior=(told, torch.ones(48, 1))
+    )
     shows = uniform[:, 0] - uniform[:, 1] > 10
     assert shows.float().mean() > 0.4
     torch.testing.assert_close(turn[:, 0], told[:, 0].to(turn.dtype))
@@ -375,7 +403,7 @@ def test_material_costs_try_the_turn_the_neighbours_point_along():
     assert ((turn_u[shows, 0] - math.radians(90.0)).abs() < 1e-6).float().mean() + (
         (turn_u[shows, 0] - math.radians(135.0)).abs() < 1e-6
     ).float().mean() > 0.9  # without them: the nearest of the 4 turns
-    none = material_costs(DEV, entries, mask, start, alpha, rho_s, turn_prior=(told, torch.zeros(48, 1)))
+    none = material_costs(Observations(DEV, entries, mask), start, alpha, rho_s, turn_prior=(told, torch.zeros(48, 1)))
     torch.testing.assert_close(none[0], uniform)
     torch.testing.assert_close(none[1], turn_u)
 
@@ -388,9 +416,9 @@ def test_turn_costs_say_how_much_a_trace_objects_to_each_tangent():
     alpha = torch.tensor([0.2, 0.04]).expand(48, 2)
     start = Start(p["n_local"], p["t_local"], alpha, p["rho_d"], p["rho_s"])
     turns = torch.tensor([0.0, math.radians(30.0), math.radians(90.0)]).expand(48, 3)
-    cost = turn_costs(DEV, entries, mask, start, turns)
+    cost = turn_costs(Observations(DEV, entries, mask), start, turns)
     assert cost.shape == (48, 3) and torch.isfinite(cost).all()
-    judged = material_costs(DEV, entries, mask, start, alpha[:1], p["rho_s"][:1])[0]
+    judged = material_costs(Observations(DEV, entries, mask), start, alpha[:1], p["rho_s"][:1])[0]
     shows = judged[:, 1] < judged[:, 0] - 10
     assert shows.float().mean() > 0.4
     torch.testing.assert_close(cost[shows, 0], judged[shows, 1] - math.log(4), atol=1e-3, rtol=1e-3)
@@ -402,7 +430,9 @@ def test_refine_toward_keeps_a_material_lobe_the_trace_misses():
     material's where its trace cannot tell, its own where it can — and its rho_d."""
     entries, mask, p = _traces(48, 12, (0.2, 0.3, 0.4), (2.0, 2.0, 2.0), (0.03, 0.03))
     n0, t0, a0, rd0, _ = _perturbed(p, 13, turn_deg=0.0)
-    alone = refine(DEV, entries, mask, Start(n0, t0, a0, rd0, torch.zeros(48, 3)), torch.ones(48, dtype=torch.bool))
+    alone = refine(
+        Observations(DEV, entries, mask), Start(n0, t0, a0, rd0, torch.zeros(48, 3)), torch.ones(48, dtype=torch.bool)
+    )
     missed = ~_seen(alone)
     assert missed.float().mean() > 0.3  # the case is real: many traces miss the lobe
     prior = LobePrior(
@@ -411,7 +441,7 @@ def test_refine_toward_keeps_a_material_lobe_the_trace_misses():
         torch.full((48,), 0.25),
         torch.full((48,), 0.5),
     )
-    r = refine_toward(DEV, entries, mask, Start(n0, t0, a0, rd0, torch.zeros(48, 3)), prior)
+    r = refine_toward(Observations(DEV, entries, mask), Start(n0, t0, a0, rd0, torch.zeros(48, 3)), prior)
     assert (r.flags & TexelFlag.FROM_MATERIAL).all()
     assert (r.rho_s.mean(1) / 2.0).log().abs().median() < 0.2
     assert (r.log_alpha - math.log(0.03)).abs().median() < 0.2
@@ -429,7 +459,7 @@ def test_lobe_costs_profile_a_materials_width_from_its_texels_traces():
     entries, mask, p = _traces(48, 21, (0.05, 0.05, 0.05), (6.0, 6.0, 6.0), (0.3, 0.3))
     start = Start(p["n_local"], p["t_local"], torch.full((48, 2), 0.3), torch.zeros(48, 3), torch.zeros(48, 3))
     grid = torch.as_tensor(0.3 * off * POOL_SCALES)[None, :, None].expand(48, -1, 2)
-    cost, rho_d, rho_s = lobe_costs(DEV, entries, mask, start, grid)
+    cost, rho_d, rho_s = lobe_costs(Observations(DEV, entries, mask), start, grid)
     assert cost.shape == (48, len(POOL_SCALES)) and rho_d.shape == rho_s.shape == (48, len(POOL_SCALES), 3)
     assert torch.isfinite(cost).all()
     width = 0.3 * off * pooled_scale(cost.numpy(), POOL_SCALES)
@@ -468,8 +498,8 @@ def test_a_sharp_lobe_seen_through_pixel_samples_on_a_curved_surface_is_recovere
     entries = torch.cat([y, b.position, b.normal_geo, b.tangent_geo], -1)
     start = Start(p["n_local"], p["t_local"], torch.full((n, 2), 0.05), p["rho_d"], p["rho_s"])
     spec = torch.ones(n, dtype=torch.bool)
-    told = refine(DEV, entries, b.length_mask, start, spec, footprint=Footprint(footprint))
-    blind = refine(DEV, entries, b.length_mask, start, spec)
+    told = refine(Observations(DEV, entries, b.length_mask, footprint=Footprint(footprint)), start, spec)
+    blind = refine(Observations(DEV, entries, b.length_mask), start, spec)
     seen = _seen(told) & _seen(blind)
     assert seen.sum() >= 10
     geo_mean = lambda r: r.log_alpha[seen].mean(1).exp().median()  # noqa: E731
@@ -503,8 +533,8 @@ def test_the_neighbours_albedo_a_pixel_may_blend_in_weighs_its_entry_down():
     start = Start(p["n_local"], p["t_local"], torch.full((n, 2), 0.2), torch.full((n, 3), 0.5), torch.full((n, 3), 0.5))
     spec = torch.ones(n, dtype=torch.bool)
     blend = (0.5 * blends * 0.4).expand(n, 24, 3)  # what the taps report: half their weight across the edge
-    told = refine(DEV, entries, b.length_mask, start, spec, footprint=Footprint(albedo_blend=blend))
-    blind = refine(DEV, entries, b.length_mask, start, spec)
+    told = refine(Observations(DEV, entries, b.length_mask, footprint=Footprint(albedo_blend=blend)), start, spec)
+    blind = refine(Observations(DEV, entries, b.length_mask), start, spec)
     told_err = (told.rho_d - 0.4).abs().mean(1)
     blind_err = (blind.rho_d - 0.4).abs().mean(1)
     # told: 0.0014 in the median, 0.0045 at the 90th percentile, no lobe; blind: 0.022 and 0.080, a
@@ -534,15 +564,15 @@ def test_a_lobe_is_grey_unless_its_photos_colour_it():
     red = red_alone.any(1)
     assert red.sum() >= 10  # the case is real
     start, lobe = Start(*_perturbed(p, 32)), torch.ones(64, dtype=torch.bool)
-    r = refine(DEV, entries, keep, start, lobe)
-    free = refine(DEV, entries, keep, start, lobe, RefineSettings(rho_s_tint_sigma=1e6))
+    r = refine(Observations(DEV, entries, keep), start, lobe)
+    free = refine(Observations(DEV, entries, keep), start, lobe, RefineSettings(rho_s_tint_sigma=1e6))
     seen, seen_free = _seen(r) & red, _seen(free) & red
     assert seen.sum() >= 10 and seen_free.sum() >= 10
     # red over green and blue (log, median): 0.002 pulled, 1.13 free
     assert log_ratio(r.rho_s, seen, 0, [1, 2]).abs().median() < 0.1
     assert log_ratio(free.rho_s, seen_free, 0, [1, 2]).median() > 0.5
     entries, mask, p = _traces(64, 33, (0.26, 0.25, 0.28), (4.0, 3.0, 1.6), (0.3, 0.025))
-    r = refine(DEV, entries, mask, Start(*_perturbed(p, 34)), lobe)
+    r = refine(Observations(DEV, entries, mask), Start(*_perturbed(p, 34)), lobe)
     seen = _seen(r)
     assert seen.float().mean() > 0.3
     # its red over blue 0.032 off the truth's log 2.5 (0.030 without the pull), |log rho_s| 0.12 (0.16)

@@ -10,6 +10,7 @@ import torch
 from ntp_engine.physics.brdf import fresnel_schlick, ggx
 from ntp_engine.physics.frame import frame_from_normal_tangent
 from ntp_engine.refine import support_light as sl
+from ntp_engine.refine.model import Observations
 from ntp_engine.scanner.camera import look_at
 from ntp_engine.scanner.device_file import load_scanner
 
@@ -176,7 +177,7 @@ def test_the_refinement_with_the_support_recovers_a_glossy_face_it_lights():
     start, lobe = Start(*_perturbed(p, 2)), torch.ones(n, dtype=torch.bool)
     errors = {}
     for name, support in (("with", view), ("without", None)):
-        r = refine(DEV, entries, mask, start, lobe, support=support)
+        r = refine(Observations(DEV, entries, mask, support=support), start, lobe)
         assert torch.isfinite(r.frame).all() and torch.isfinite(r.rho_s).all()
         errors[name] = (
             _normal_err(r, p).median(),
@@ -207,8 +208,8 @@ def test_the_light_bounced_onto_an_entry_weighs_it_down():
     up, along = torch.zeros(n, 3), torch.zeros(n, 3)
     up[:, 2], along[:, 0] = 1.0, 1.0
     matte = Start(up, along, torch.full((n, 2), 0.2), torch.ones(n, 3), torch.zeros(n, 3))
-    d_with, _, inv_with = predicted_light(DEV, entries, mask, matte, support=view)
-    d_without, _, inv_without = predicted_light(DEV, entries, mask, matte)
+    d_with, _, inv_with = predicted_light(Observations(DEV, entries, mask, support=view), matte)
+    d_without, _, inv_without = predicted_light(Observations(DEV, entries, mask), matte)
     live = inv_without > 0
     share = ((d_with - d_without) / d_with).double()
     assert (share[live] > 0.1).float().mean() > 0.2  # the case is real: a fifth of the entries 10% bounced
@@ -219,7 +220,7 @@ def test_the_light_bounced_onto_an_entry_weighs_it_down():
     assert inv_with[bounced].mean() < 0.8 * inv_without[bounced].mean()  # they weigh less
     # another answer (a lobe, the normal tipped) is judged on the same scale
     glossy = Start(*_perturbed(p, 5, tilt_deg=6.0))
-    assert torch.equal(predicted_light(DEV, entries, mask, glossy, support=view)[2], inv_with)
+    assert torch.equal(predicted_light(Observations(DEV, entries, mask, support=view), glossy)[2], inv_with)
 
 
 def test_the_support_albedo_is_read_back_from_an_engine_scan(scan24):
