@@ -23,6 +23,7 @@ import numpy as np
 import torch
 from scipy.optimize import least_squares
 
+from ..fit.texel_fit import TexelFit
 from ..io.atomic import write_text_atomic
 from ..io.maps import SVBRDFMaps
 from ..io.mesh import load_mesh
@@ -127,11 +128,11 @@ def run(out: Path, bench: RefineBench | None = None, json_path: Path | None = No
                 noise = tuned.noise
                 answers = {
                     "network + fit": (
-                        fit["n_loc"][sel],
-                        fit["t_loc"][sel],
-                        fit["alpha"][sel],
-                        fit["rho_d"][sel],
-                        fit["rho_s"][sel],
+                        fit.n_loc[sel],
+                        fit.t_loc[sel],
+                        fit.alpha[sel],
+                        fit.rho_d[sel],
+                        fit.rho_s[sel],
                     )
                 }
                 for label_v, st in VARIANTS:
@@ -198,7 +199,7 @@ def _baseline(
     mask: torch.Tensor,
     shadow: torch.Tensor,
     footprint: Footprint | None,
-    fit: dict[str, np.ndarray],
+    fit: TexelFit,
     sel: np.ndarray,
     specular: torch.Tensor,
     frame: np.ndarray,
@@ -228,7 +229,7 @@ def _baseline(
             sub_ent[i : i + 1],
             sub_mask[i : i + 1],
             shadow[pick[i : i + 1]],
-            {k: fit[k][idx[i : i + 1]] for k in ("n_loc", "t_loc", "alpha", "rho_d", "rho_s")},
+            {k: getattr(fit, k)[idx[i : i + 1]] for k in ("n_loc", "t_loc", "alpha", "rho_d", "rho_s")},
             st,
             None if spread is None else spread.rows(slice(i, i + 1)),
         )

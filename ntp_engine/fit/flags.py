@@ -1,4 +1,4 @@
-"""The per-texel flags of a result (``fit["flags"]``, ``confidence.exr``'s count of flagged texels):
+"""The per-texel flags of a result (``fit.flags``, ``confidence.exr``'s count of flagged texels):
 one bit each, defined here once, set by the fit (``fit.geometry``, ``fit.highlights``) and the
 refinement (``refine``). Stored as int32 in the fit's arrays and int in torch tensors; a texel with
 no bit set was fitted from its own trace without reservation.

@@ -18,6 +18,7 @@ import numpy as np
 
 from ..fit.albedo import highlights_and_albedo
 from ..fit.geometry import FALLBACK_ALPHA, fit_geometry
+from ..fit.texel_fit import TexelFit
 from ..io.progress import QUIET, Progress
 from ..learn.inference import predict
 from ..learn.network import TraceNet
@@ -43,7 +44,7 @@ def fit_blocks(
     pixel_scale: float,
     pool: TaskPool | None = None,
     progress: Progress = QUIET,
-) -> dict[str, np.ndarray]:
+) -> TexelFit:
     """``fit_traces`` over ``traces`` (linear pixels as captured; may be memory-mapped) block by
     block on ``pool`` (default: this process); each block's pixels are scaled by ``pixel_scale`` on
     its own copy. The same arrays as ``fit_traces`` on the whole table, bit for bit whichever pool."""
@@ -54,14 +55,16 @@ def fit_blocks(
     bar = progress.counter("network + fit", observed, "texel")
     out: dict[str, np.ndarray] = {}
     for b, part in (pool or LocalPool()).map(_fit_block, blocks, shared=(net, scanner, pixel_scale)):
+        arrays = part.arrays()
         if not out:
-            out = {k: np.zeros((N, *v.shape[1:]), v.dtype) for k, v in part.items()}
+            out = {k: np.zeros((N, *v.shape[1:]), v.dtype) for k, v in arrays.items()}
         a = starts[b]
-        for k, v in part.items():
+        for k, v in arrays.items():
             out[k][a : a + len(v)] = v
         bar.update(int((traces.lengths[a : a + FIT_BLOCK] > 0).sum()))
     bar.close()
-    return out or fit_traces(net, scanner, traces, pixel_scale)  # no trace at all: the empty arrays
+    # no trace at all: the empty arrays
+    return TexelFit.from_arrays(out) if out else fit_traces(net, scanner, traces, pixel_scale)
 
 
 def _own_block(traces: RaggedTraces, start: int, stop: int) -> RaggedTraces:
@@ -72,7 +75,7 @@ def _own_block(traces: RaggedTraces, start: int, stop: int) -> RaggedTraces:
     return RaggedTraces(b.entries.clone(), b.offsets.clone()) if b.in_range is None else b.in_range_only()
 
 
-def _fit_block(block: RaggedTraces, net: TraceNet, scanner: Scanner, pixel_scale: float) -> dict[str, np.ndarray]:
+def _fit_block(block: RaggedTraces, net: TraceNet, scanner: Scanner, pixel_scale: float) -> TexelFit:
     """One block (a Ray task's body; ``block`` is its own): pixels scaled to the model's exposure,
     then ``fit_traces``."""
     block.entries[:, :3] *= pixel_scale
@@ -87,7 +90,7 @@ def fit_traces(
     batch: int = 4096,
     progress: Progress = QUIET,
     seconds: dict[str, float] | None = None,
-) -> dict[str, np.ndarray]:
+) -> TexelFit:
     """Network + geometry fit + RGB albedo per trace (the refinement's start, ``refine_fit``).
     ``pixel_scale`` is the factor the traces' linear pixels were scaled by to the model's exposure
     (undone for the physical albedo LS). Reads the in-range entries only. Returns per-trace arrays in
@@ -140,11 +143,4 @@ def fit_traces(
     bar.close()
     if seconds is not None:
         seconds.update(clock)
-    return {
-        "n_loc": n_loc,
-        "t_loc": t_loc,
-        "alpha": np.stack([ax, ay], 1),
-        "flags": flags,
-        "rho_d": rho_d,
-        "rho_s": rho_s,
-    }
+    return TexelFit(n_loc, t_loc, np.stack([ax, ay], 1), flags, rho_d, rho_s)

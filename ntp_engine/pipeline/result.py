@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from ..fit.flags import TexelFlag
+from ..fit.texel_fit import TexelFit
 from ..io.atomic import write_text_atomic
 from ..io.images import write_exr, write_png
 from ..io.maps import MAP_FILES, SVBRDFMaps, axis_weight, consistent_axes
@@ -50,15 +51,15 @@ def basis_materials_doc(materials: BasisMaterials, width_varies: np.ndarray | No
     }
 
 
-def write_result(out: Path, mesh: Mesh, texels: Texels, fitted: dict[str, np.ndarray], lengths: np.ndarray) -> None:
+def write_result(out: Path, mesh: Mesh, texels: Texels, fitted: TexelFit, lengths: np.ndarray) -> None:
     """Maps (EXR), confidence, previews, mesh, material.json into ``out`` (each file atomically;
     ``reconstruct`` passes a staging folder and publishes it, ``output_folder.publish``).
     Texels without a trace keep the geometric frame and get their values from the nearest observed
     texel (seams and holes dilated)."""
     observed = lengths > 0
     frame = texels.frame
-    n_obj = np.einsum("tji,tj->ti", frame, fitted["n_loc"])
-    t_obj = np.einsum("tji,tj->ti", frame, fitted["t_loc"])
+    n_obj = np.einsum("tji,tj->ti", frame, fitted.n_loc)
+    t_obj = np.einsum("tji,tj->ti", frame, fitted.t_loc)
     n_obj = np.where(observed[:, None], n_obj, texels.normal)
     t_obj = np.where(observed[:, None], t_obj, texels.tangent)
     H, W = texels.shape
@@ -70,24 +71,23 @@ def write_result(out: Path, mesh: Mesh, texels: Texels, fitted: dict[str, np.nda
     n_map /= np.maximum(np.linalg.norm(n_map, axis=-1, keepdims=True), 1e-12)
     t_map -= (t_map * n_map).sum(-1, keepdims=True) * n_map
     t_map /= np.maximum(np.linalg.norm(t_map, axis=-1, keepdims=True), 1e-12)
-    alpha_map = to_map(fitted["alpha"])
+    alpha_map = to_map(fitted.alpha)
     t_map = consistent_axes(t_map, axis_weight(alpha_map))
-    maps = SVBRDFMaps(to_map(fitted["rho_d"]), to_map(fitted["rho_s"]), n_map, t_map, alpha_map)
+    maps = SVBRDFMaps(to_map(fitted.rho_d), to_map(fitted.rho_s), n_map, t_map, alpha_map)
     out.mkdir(parents=True, exist_ok=True)
     maps.save(out)
     conf = np.zeros((H, W, 3))
-    conf[texels.row, texels.col, 0] = observed & ((fitted["flags"] & TexelFlag.NO_LOBE) == 0)
+    conf[texels.row, texels.col, 0] = observed & ((fitted.flags & TexelFlag.NO_LOBE) == 0)
     conf[texels.row, texels.col, 1] = lengths
     documented = {}
-    if "material" in fitted:  # the refinement's basis materials (refine.materials, pipeline.fit_traces)
-        conf[texels.row, texels.col, 2] = fitted["material"] + 1  # 0: no lobe material (-1 matte, -2 unseen)
-        documented["basis_materials"] = basis_materials_doc(
-            BasisMaterials.from_arrays(fitted), fitted.get("material_width_varies")
-        )
+    if fitted.material is not None:  # the refinement's basis materials (refine.materials, refine.material_pass)
+        conf[texels.row, texels.col, 2] = fitted.material + 1  # 0: no lobe material (-1 matte, -2 unseen)
+        table = BasisMaterials.from_arrays(fitted.materials) if fitted.materials else BasisMaterials.empty()
+        documented["basis_materials"] = basis_materials_doc(table, fitted.width_varies)
     write_exr(out / "confidence.exr", conf)
-    if "std" in fitted:  # the refinement's 1-sigma uncertainties (refine.policy.Refined.std)
+    if fitted.std is not None:  # the refinement's 1-sigma uncertainties (refine.policy.Refined.std)
         unc = np.full((H, W, 4), UNCONSTRAINED_STD)
-        std = np.nan_to_num(fitted["std"], nan=UNCONSTRAINED_STD, posinf=UNCONSTRAINED_STD)
+        std = np.nan_to_num(fitted.std, nan=UNCONSTRAINED_STD, posinf=UNCONSTRAINED_STD)
         unc[texels.row, texels.col] = np.minimum(std, UNCONSTRAINED_STD)
         write_exr(out / UNCERTAINTY_FILE, unc)
         documented["uncertainty"] = {

@@ -29,6 +29,7 @@ import numpy as np
 import torch
 
 from ..fit.flags import TexelFlag
+from ..fit.texel_fit import TexelFit
 from ..io.atomic import atomic_path, temp_dir, write_text_atomic
 from ..io.errors import NtpInputError
 from ..io.images import write_png
@@ -378,7 +379,7 @@ def _reconstruct(
 
     def fit_stage(d: Path) -> None:
         with pool as p:
-            np.savez(d / "fit.npz", **fit_blocks(net, scan.scanner, traces, scale, p, progress))
+            fit_blocks(net, scan.scanner, traces, scale, p, progress).save(d / "fit.npz")
 
     fit_key = {
         "albedo_views": ALBEDO_VIEWS,
@@ -388,8 +389,7 @@ def _reconstruct(
         "code": code_version(STAGE_CODE["fit"], alone=[__name__]),
     }
     folder, h_fit = cache.get("fit", {"traces": h_tr, **model_key, **fit_key}, fit_stage)
-    with np.load(folder / "fit.npz") as z:
-        fitted = {k: z[k] for k in z.files}
+    fitted = TexelFit.load(folder / "fit.npz")
     report.timed("network_and_fit", t0)
     if refine:
         t0 = time.perf_counter()
@@ -405,7 +405,7 @@ def _reconstruct(
             full = scene
             if scene is not None:  # the texels whose rays above their plane meet nothing: only when it runs
                 full = dataclasses.replace(scene, exposed=exposed(mesh.vertices, texels.position, texels.normal))
-            np.savez(d / "refined.npz", **refine_fit(scan.scanner, traces, fitted, REFINE, progress, texels, full))
+            refine_fit(scan.scanner, traces, fitted, REFINE, progress, texels, full).save(d / "refined.npz")
 
         key = {
             "fit": h_fit,
@@ -417,8 +417,7 @@ def _reconstruct(
             "calibration_texels": CALIBRATION_TEXELS,
         }
         folder, _ = cache.get("refine", key, refine_stage)
-        with np.load(folder / "refined.npz") as z:
-            fitted = {k: z[k] for k in z.files}
+        fitted = TexelFit.load(folder / "refined.npz")
         report.data["refine"] = refine_summary(fitted)
         report.timed("refine", t0)
 
@@ -434,7 +433,7 @@ def _reconstruct(
                     "total": len(texels),
                     "observed": int(observed.sum()),
                     "coverage": float(observed.mean()) if len(texels) else 0.0,
-                    "flagged": int((fitted["flags"] != 0).sum()),
+                    "flagged": int((fitted.flags != 0).sum()),
                     "resolution": resolution,
                 },
                 "model": {"name": str(model_folder), **meta.get("summary", {})},
@@ -450,30 +449,29 @@ def _reconstruct(
     return report.data
 
 
-def refine_summary(fitted: dict[str, np.ndarray]) -> dict:
+def refine_summary(fitted: TexelFit) -> dict:
     """``report.json``'s ``refine``: the noise calibration and the basis materials' reach."""
     out: dict = {}
-    if "noise_scale" in fitted:
-        out["noise_scale"] = float(fitted["noise_scale"])
-    if "normal_prior_at_mesh" in fitted:  # where the normal's weak pull centred (refine.policy.calibrated)
-        out["normal_prior"] = "mesh" if bool(fitted["normal_prior_at_mesh"]) else "start"
-    if "material" in fitted:
-        out["basis_materials"] = int(len(fitted["material_share"]))
-        if "material_matte_share" in fitted:  # the matte class's share estimated on this object
-            out["matte_share"] = round(float(fitted["material_matte_share"]), 4)
-        out["texels_lobe_from_material"] = int((fitted["flags"] & TexelFlag.FROM_MATERIAL != 0).sum())
-        out["texels_width_from_material"] = int((fitted["flags"] & TexelFlag.WIDTH_FROM_MATERIAL != 0).sum())
-        if "material_width_varies" in fitted:  # materials whose width is a field over the object
-            out["materials_width_varies"] = int(fitted["material_width_varies"].sum())
+    if fitted.noise_scale is not None:
+        out["noise_scale"] = float(fitted.noise_scale)
+    if fitted.normal_prior_at_mesh is not None:  # where the normal's weak pull centred (refine.policy.calibrated)
+        out["normal_prior"] = "mesh" if fitted.normal_prior_at_mesh else "start"
+    if fitted.material is not None:
+        out["basis_materials"] = int(len(fitted.materials["material_share"])) if fitted.materials else 0
+        if fitted.matte_share is not None:  # the matte class's share estimated on this object
+            out["matte_share"] = round(fitted.matte_share, 4)
+        out["texels_lobe_from_material"] = int((fitted.flags & TexelFlag.FROM_MATERIAL != 0).sum())
+        out["texels_width_from_material"] = int((fitted.flags & TexelFlag.WIDTH_FROM_MATERIAL != 0).sum())
+        if fitted.width_varies is not None:  # materials whose width is a field over the object
+            out["materials_width_varies"] = int(fitted.width_varies.sum())
     return out
 
 
-def cached_fit(out: Path) -> tuple[RaggedTraces, dict[str, np.ndarray]]:
+def cached_fit(out: Path) -> tuple[RaggedTraces, TexelFit]:
     """The traces (linear pixels as captured) and the network's fit (``fit_traces``) that a finished
     ``reconstruct`` into ``out`` keeps in its cache: what the refinement starts from."""
     traces = trace_assembly.load_table(out / "cache" / "traces")
-    with np.load(out / "cache" / "fit" / "fit.npz") as z:
-        return traces, {k: z[k] for k in z.files}
+    return traces, TexelFit.load(out / "cache" / "fit" / "fit.npz")
 
 
 def _check_measured(scan: Scan, stats: dict, lengths: np.ndarray, posed: int) -> None:

@@ -16,6 +16,7 @@ import numpy as np
 import torch
 
 from ..fit.flags import TexelFlag
+from ..fit.texel_fit import TexelFit
 from ..io.texels import Texels
 from ..learn.ragged import RaggedTraces, spans, spread_rows
 from ..physics.emitter_blocks import shadow_groups
@@ -63,7 +64,7 @@ def refine_inputs(
     scanner: Scanner,
     traces: RaggedTraces,
     idx: torch.Tensor,
-    fit: dict[str, np.ndarray],
+    fit: TexelFit,
     support: SupportScene | None = None,
     texels: Texels | None = None,
 ) -> RefineInputs:
@@ -86,7 +87,7 @@ def refine_inputs(
     marginal = few & marginal_entry.any(1)
     rows, mask = spread_rows(rows, torch.where(few[:, None], mask, clear), REFINE_VIEWS)
     i = idx.numpy()
-    specular = torch.as_tensor(fit["flags"][i] & TexelFlag.NO_HIGHLIGHT == 0)
+    specular = torch.as_tensor(fit.flags[i] & TexelFlag.NO_HIGHLIGHT == 0)
     start = Start.from_fit(fit, i)
     view = None
     if support is not None:
@@ -130,13 +131,14 @@ def turned_tangents(t_loc: np.ndarray, n_loc: np.ndarray, turn: np.ndarray) -> n
     return np.cos(turn)[:, None] * t_loc + np.sin(turn)[:, None] * np.cross(n_loc, t_loc)
 
 
-def store_refined(fit: dict[str, np.ndarray], idx: torch.Tensor, r: Refined, marginal: torch.Tensor) -> None:
+def store_refined(fit: TexelFit, idx: torch.Tensor, r: Refined, marginal: torch.Tensor) -> None:
     """The answers ``r`` of the texels ``idx`` written into ``fit``'s per-texel arrays, their flags
     replacing the refinement's own (``REFINE_FLAGS``), ``TexelFlag.MARGINAL`` where ``marginal``."""
+    assert fit.std is not None and fit.highlight is not None  # refine_fit adds them before any pass
     i = idx.numpy()
-    fit["n_loc"][i], fit["t_loc"][i] = r.frame[:, 2].numpy(), r.frame[:, 0].numpy()
-    fit["alpha"][i] = r.log_alpha.exp().numpy()
-    fit["rho_d"][i], fit["rho_s"][i] = r.rho_d.numpy(), r.rho_s.numpy()
-    fit["flags"][i] = (fit["flags"][i] & ~int(REFINE_FLAGS)) | r.flags.numpy() | marginal.numpy() * TexelFlag.MARGINAL
-    fit["std"][i] = r.std.numpy()
-    fit["highlight"][i] = r.highlight.numpy()
+    fit.n_loc[i], fit.t_loc[i] = r.frame[:, 2].numpy(), r.frame[:, 0].numpy()
+    fit.alpha[i] = r.log_alpha.exp().numpy()
+    fit.rho_d[i], fit.rho_s[i] = r.rho_d.numpy(), r.rho_s.numpy()
+    fit.flags[i] = (fit.flags[i] & ~int(REFINE_FLAGS)) | r.flags.numpy() | marginal.numpy() * TexelFlag.MARGINAL
+    fit.std[i] = r.std.numpy()
+    fit.highlight[i] = r.highlight.numpy()

@@ -16,6 +16,7 @@ import numpy as np
 import torch
 
 from ..fit.flags import TexelFlag
+from ..fit.texel_fit import TexelFit
 from ..io.progress import Progress
 from ..io.texels import Texels
 from ..learn.ragged import RaggedTraces
@@ -65,7 +66,7 @@ TANGENT_PARAMS = 1  # of ANISOTROPY_PARAMS, the tangent's: each member's own (po
 
 def neighbour_turn_costs(
     texels: Texels | None,
-    fit: dict[str, np.ndarray],
+    fit: TexelFit,
     i_obs: np.ndarray,
     label: np.ndarray,
     own: np.ndarray,
@@ -79,11 +80,11 @@ def neighbour_turn_costs(
     if texels is None:
         return None
     turn, agree = np.zeros((len(rest), K)), np.zeros((len(rest), K))
-    constrained = own & (fit["flags"][i_obs] & TexelFlag.TANGENT_UNCONSTRAINED == 0)
+    constrained = own & (fit.flags[i_obs] & TexelFlag.TANGENT_UNCONSTRAINED == 0)
     for m in range(K):
         source = i_obs[constrained & (label == m)]
         turn[:, m], agree[:, m] = neighbour_turns(
-            texels.position, texels.normal, texels.tangent, fit["t_loc"], source, i_obs[rest], spacing
+            texels.position, texels.normal, texels.tangent, fit.t_loc, source, i_obs[rest], spacing
         )
     return turn, agree
 
@@ -91,7 +92,7 @@ def neighbour_turn_costs(
 def pooled_widths(
     scanner: Scanner,
     traces: RaggedTraces,
-    fit: dict[str, np.ndarray],
+    fit: TexelFit,
     clear: np.ndarray,
     members: np.ndarray,
     basis: BasisMaterials,
@@ -175,7 +176,7 @@ def member_lobe_costs(
 def _widths_from_materials(
     scanner: Scanner,
     traces: RaggedTraces,
-    fit: dict[str, np.ndarray],
+    fit: TexelFit,
     idx: np.ndarray,
     basis: BasisMaterials,
     settings: RefineSettings,
@@ -183,7 +184,7 @@ def _widths_from_materials(
     support: SupportScene | None,
     turn: np.ndarray | None = None,
 ) -> None:
-    """Texels ``idx`` with a lobe of their own in a lobe material (``fit["material"]``) take its
+    """Texels ``idx`` with a lobe of their own in a lobe material (``fit.material``) take its
     width where their trace explains it within ``WIDTH_PARAMS`` of their own (both with the
     texel's frame and albedos re-solved, ``refine.lobe_costs``): alphas the material's, rho_d and
     rho_s re-solved, flagged ``TexelFlag.WIDTH_FROM_MATERIAL``. ``turn (len(idx),)`` (radians, NaN:
@@ -196,7 +197,8 @@ def _widths_from_materials(
         k = idx[rows]
         inp = refine_inputs(scanner, traces, torch.as_tensor(k), fit, support, texels)
         position = None if texels is None else texels.position[k]
-        alphas = np.stack([fit["alpha"][k], basis.alpha_at(fit["material"][k], position)], 1)  # (n, 2 candidates, 2)
+        assert fit.material is not None  # material_pass labels every texel first
+        alphas = np.stack([fit.alpha[k], basis.alpha_at(fit.material[k], position)], 1)  # (n, 2 candidates, 2)
         c, rd, rs = member_lobe_costs(scanner, inp, alphas, settings)
         turned = np.nonzero(np.isfinite(turn[rows]))[0]
         angle = np.zeros(len(k))
@@ -212,16 +214,16 @@ def _widths_from_materials(
             angle[j] = turn[rows][j]
         take = (c[:, 1] <= c[:, 0] + WIDTH_PARAMS).numpy()
         t = k[take]
-        fit["alpha"][t] = alphas[take, 1]
-        fit["rho_d"][t], fit["rho_s"][t] = rd[take, 1].numpy(), rs[take, 1].numpy()
-        fit["flags"][t] |= TexelFlag.WIDTH_FROM_MATERIAL
-        fit["t_loc"][t] = turned_tangents(fit["t_loc"][t], fit["n_loc"][t], angle[take])
+        fit.alpha[t] = alphas[take, 1]
+        fit.rho_d[t], fit.rho_s[t] = rd[take, 1].numpy(), rs[take, 1].numpy()
+        fit.flags[t] |= TexelFlag.WIDTH_FROM_MATERIAL
+        fit.t_loc[t] = turned_tangents(fit.t_loc[t], fit.n_loc[t], angle[take])
 
 
 def material_pass(
     scanner: Scanner,
     traces: RaggedTraces,
-    fit: dict[str, np.ndarray],
+    fit: TexelFit,
     todo: torch.Tensor,
     settings: RefineSettings,
     progress: Progress,
@@ -231,29 +233,30 @@ def material_pass(
     """Basis materials from the first pass, assignment, and the texels that take a lobe from theirs
     refined toward it (``refine_fit``); updates ``fit`` in place."""
     N = traces.num_traces
-    fit["material"] = np.full(N, -2, np.int64)
+    fit.material = np.full(N, -2, np.int64)
     i_obs = todo.numpy()
     own = np.zeros(N, bool)
-    own[i_obs] = fit["flags"][i_obs] & TexelFlag.SPECULAR_UNCONSTRAINED == 0
+    own[i_obs] = fit.flags[i_obs] & TexelFlag.SPECULAR_UNCONSTRAINED == 0
     # the basis from lobes measured on clear entries: a lobe read through the mesh's shadows (or at
     # grazing angles) is coarser — on the knot's Cycles scan those moved the clusters enough to lose
     # the glossy plastic's lobe
-    clear = own & (fit["flags"] & TexelFlag.MARGINAL == 0)
+    clear = own & (fit.flags & TexelFlag.MARGINAL == 0)
     rows = np.nonzero(clear)[0]
-    basis, members = lobe_clusters(fit["rho_d"][rows], fit["alpha"][rows], fit["rho_s"][rows], fit["highlight"][rows])
+    assert fit.highlight is not None  # refine_fit adds it before any pass
+    basis, members = lobe_clusters(fit.rho_d[rows], fit.alpha[rows], fit.rho_s[rows], fit.highlight[rows])
     # the texels with a lobe of their own are labelled by colour (below): a cluster that holds none
     # of them is no material of its own, and its members join no pool
-    basis, members = colour_held(basis, members, fit["rho_d"][own])
+    basis, members = colour_held(basis, members, fit.rho_d[own])
     basis = pooled_widths(scanner, traces, fit, rows, members, basis, settings, texels, support)
     if len(basis) == 0:  # too few texels kept a lobe to make a material of: all matte
-        fit["material"][i_obs] = -1
-        fit.update(basis.to_arrays())
+        fit.material[i_obs] = -1
+        fit.materials = basis.to_arrays()
         return
     # the texels without a lobe of their own: their traces judge no lobe and the lobe materials of
     # their colour and the broad ones, each with its rho_d re-solved; their colours under each weigh in
     # where the traces cannot tell (judged without the lobe, a broad lobe's texels looked matte:
     # the knot's rough metal, docs/history/accuracy.md)
-    colour = colour_costs(fit["rho_d"][i_obs], basis)
+    colour = colour_costs(fit.rho_d[i_obs], basis)
     prior = colour - np.log(class_shares(basis))
     rest = np.nonzero(~own[i_obs])[0]
     costs = np.full((len(i_obs), 1 + len(basis)), np.inf)
@@ -280,7 +283,7 @@ def material_pass(
     likelihood[rest] += costs[rest]
     likelihood[own[i_obs], 0] = np.inf
     matte_share = estimated_matte_share(likelihood, basis)
-    fit["material_matte_share"] = np.array(matte_share)
+    fit.matte_share = float(matte_share)
     shares = class_shares(basis, matte_share)
     prior = colour - np.log(shares)
     label[rest] = np.argmin(costs[rest] + prior[rest], 1) - 1  # -1: matte
@@ -289,13 +292,13 @@ def material_pass(
         for _ in range(LABEL_ROUNDS):
             prior = colour - np.log(local_shares(neighbours, label, shares))
             label[rest] = np.argmin(costs[rest] + prior[rest], 1) - 1
-    fit["material"][i_obs] = label
-    fit.update(basis.to_arrays())
-    fit["material_width_varies"] = np.array([f is not None for f in basis.width], bool)
+    fit.material[i_obs] = label
+    fit.materials = basis.to_arrays()
+    fit.width_varies = np.array([f is not None for f in basis.width], bool)
     # own lobes in lobe materials: an isotropic one in an anisotropic material is also tried at the
     # turn its neighbours of the material point along
     with_own = np.nonzero(own[i_obs] & (label >= 0))[0]
-    alpha_own, alpha_mat = fit["alpha"][i_obs[with_own]], basis.alpha[label[with_own]]
+    alpha_own, alpha_mat = fit.alpha[i_obs[with_own]], basis.alpha[label[with_own]]
     ask = (alpha_own[:, 0] < ISOTROPIC_RATIO * alpha_own[:, 1]) & (alpha_mat[:, 0] >= ISOTROPIC_RATIO * alpha_mat[:, 1])
     turn = np.full(len(with_own), np.nan)
     around = neighbour_turn_costs(texels, fit, i_obs, label, own[i_obs], with_own[ask], len(basis), spacing)
@@ -316,7 +319,7 @@ def material_pass(
 def _take_material_lobes(
     scanner: Scanner,
     traces: RaggedTraces,
-    fit: dict[str, np.ndarray],
+    fit: TexelFit,
     takes: np.ndarray,
     turns: np.ndarray,
     i_obs: np.ndarray,
@@ -334,12 +337,13 @@ def _take_material_lobes(
     k_takes = np.nonzero(takes[i_obs])[0]
     turn = turns[k_takes, label[k_takes]]
     i_takes = i_obs[k_takes]
-    fit["t_loc"][i_takes] = turned_tangents(fit["t_loc"][i_takes], fit["n_loc"][i_takes], turn)
+    fit.t_loc[i_takes] = turned_tangents(fit.t_loc[i_takes], fit.n_loc[i_takes], turn)
     sel = torch.as_tensor(np.nonzero(takes)[0])
     bar = progress.counter("material lobes", len(sel), "texel")
     for idx in sel.split(REFINE_BATCH):
         inp = refine_inputs(scanner, traces, idx, fit, support, texels)
-        m = fit["material"][idx.numpy()]
+        assert fit.material is not None  # material_pass labels every texel first
+        m = fit.material[idx.numpy()]
         position = None if texels is None else texels.position[idx.numpy()]
         pull = LobePrior(
             torch.as_tensor(basis.alpha_at(m, position), dtype=torch.float32),
@@ -356,7 +360,7 @@ def _take_material_lobes(
 def _fuse_tangents(
     scanner: Scanner,
     traces: RaggedTraces,
-    fit: dict[str, np.ndarray],
+    fit: TexelFit,
     i_obs: np.ndarray,
     label: np.ndarray,
     settings: RefineSettings,
@@ -376,15 +380,16 @@ def _fuse_tangents(
     ``fit`` in place (docs/refinement.md, basis materials step 6)."""
     if texels is None:
         return
-    alpha, flags = fit["alpha"][i_obs], fit["flags"][i_obs]
+    alpha, flags = fit.alpha[i_obs], fit.flags[i_obs]
     anisotropic = (label >= 0) & (alpha[:, 0] >= ISOTROPIC_RATIO * alpha[:, 1])
     taken = flags & TexelFlag.FROM_MATERIAL > 0
-    std = np.where(taken, TAKEN_TANGENT_STD, np.radians(np.nan_to_num(fit["std"][i_obs, 1], nan=np.inf)))
+    assert fit.std is not None  # refine_fit adds it before any pass
+    std = np.where(taken, TAKEN_TANGENT_STD, np.radians(np.nan_to_num(fit.std[i_obs, 1], nan=np.inf)))
     constrained = anisotropic & ~taken & (flags & TexelFlag.TANGENT_UNCONSTRAINED == 0) & (std <= MAX_SOURCE_STD)
-    std_all = np.full(len(fit["std"]), np.inf)
+    std_all = np.full(len(fit.std), np.inf)
     std_all[i_obs] = std
     turn, fused = np.zeros(len(i_obs)), std.copy()
-    geometry = (texels.position, texels.normal, texels.tangent, fit["t_loc"], std_all)
+    geometry = (texels.position, texels.normal, texels.tangent, fit.t_loc, std_all)
     for m in np.unique(label[anisotropic]):
         target = np.nonzero(anisotropic & (label == m))[0]
         source = i_obs[constrained & (label == m)]
@@ -403,6 +408,6 @@ def _fuse_tangents(
         c = turn_costs(inp.obs, inp.start, turns, settings).numpy()
         objects = c[:, 1] - c[:, 0] >= TURN_OBJECTION
         turn[k[objects]], fused[k[objects]] = 0.0, std[k[objects]]
-    fit["t_loc"][i_obs] = turned_tangents(fit["t_loc"][i_obs], fit["n_loc"][i_obs], turn)
+    fit.t_loc[i_obs] = turned_tangents(fit.t_loc[i_obs], fit.n_loc[i_obs], turn)
     changed = anisotropic & np.isfinite(fused)
-    fit["std"][i_obs[changed], 1] = np.degrees(fused[changed])
+    fit.std[i_obs[changed], 1] = np.degrees(fused[changed])

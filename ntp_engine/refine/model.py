@@ -24,6 +24,7 @@ import torch
 from torch import Tensor
 
 from ..fit.highlights import parked_positions
+from ..fit.texel_fit import TexelFit
 from ..physics.brdf import ALPHA_MAX, ALPHA_MIN, RHO_D_MAX, RHO_S_MAX
 from ..physics.emitter_blocks import EmitterBlocks, emitter_blocks, shadow_groups
 from ..physics.frame import (
@@ -75,13 +76,13 @@ class Start(NamedTuple):
     rho_s: Tensor  # (N, 3)
 
     @classmethod
-    def from_fit(cls, fit: dict[str, np.ndarray], idx: np.ndarray) -> Start:
+    def from_fit(cls, fit: TexelFit, idx: np.ndarray) -> Start:
         """The texels ``idx`` of a ``pipeline.fit_traces`` result (float32)."""
 
-        def col(key: str) -> Tensor:
-            return torch.as_tensor(fit[key][idx], dtype=torch.float32)
+        def col(values: np.ndarray) -> Tensor:
+            return torch.as_tensor(values[idx], dtype=torch.float32)
 
-        return cls(col("n_loc"), col("t_loc"), col("alpha"), col("rho_d"), col("rho_s"))
+        return cls(col(fit.n_loc), col(fit.t_loc), col(fit.alpha), col(fit.rho_d), col(fit.rho_s))
 
 
 # the trace's per-sample arrays: shared between a chunk and its subsets (``Trace.rows``)

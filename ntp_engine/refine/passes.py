@@ -15,6 +15,7 @@ import numpy as np
 import torch
 
 from ..fit.flags import TexelFlag
+from ..fit.texel_fit import TexelFit
 from ..io.allocator import freed_memory_kept
 from ..io.progress import QUIET, Progress
 from ..io.texels import Texels
@@ -39,12 +40,12 @@ EDGE_ROUNDS = 2
 def refine_fit(
     scanner: Scanner,
     traces: RaggedTraces,
-    fit: dict[str, np.ndarray],
+    fit: TexelFit,
     settings: RefineSettings | None = None,
     progress: Progress = QUIET,
     texels: Texels | None = None,
     support: SupportScene | None = None,
-) -> dict[str, np.ndarray]:
+) -> TexelFit:
     """``fit_traces``'s result refined by analysis-by-synthesis (``refine.policy``) against every entry
     of every observed trace (``traces``: linear pixels as captured), dark and clipped ones included;
     with ``texels`` and ``settings.albedo_blend``, the texels whose pixels may blend a neighbour's
@@ -74,13 +75,13 @@ def refine_fit(
 def _refine_fit(
     scanner: Scanner,
     traces: RaggedTraces,
-    fit: dict[str, np.ndarray],
+    fit: TexelFit,
     settings: RefineSettings | None,
     progress: Progress,
     texels: Texels | None,
     support: SupportScene | None,
-) -> dict[str, np.ndarray]:
-    fit = {k: v.copy() for k, v in fit.items()}
+) -> TexelFit:
+    fit = fit.copy()
     todo = (traces.lengths > 0).nonzero().squeeze(1)
     settings = settings or RefineSettings()
     support = _lit_by_itself(support, texels, fit, todo)  # from the network's albedos
@@ -89,18 +90,18 @@ def _refine_fit(
         sample = todo[torch.randperm(len(todo), generator=gen)[:CALIBRATION_TEXELS]].sort().values
         inp = refine_inputs(scanner, traces, sample, fit, support, texels)
         settings = calibrated(inp.obs, inp.start, inp.specular, settings)
-        fit["noise_scale"] = np.array(settings.noise.relative / RefineSettings().noise.relative)
-        fit["normal_prior_at_mesh"] = np.array(settings.normal_prior_at_mesh)
-    fit["std"] = np.full((traces.num_traces, 4), np.nan)
-    fit["highlight"] = np.zeros(traces.num_traces, np.float32)
-    start = {k: v.copy() for k, v in fit.items()}  # where every texel's own refinement starts
+        fit.noise_scale = settings.noise.relative / RefineSettings().noise.relative
+        fit.normal_prior_at_mesh = settings.normal_prior_at_mesh
+    fit.std = np.full((traces.num_traces, 4), np.nan)
+    fit.highlight = np.zeros(traces.num_traces, np.float32)
+    start = fit.copy()  # where every texel's own refinement starts
     _refine_texels(scanner, traces, fit, start, todo, settings, progress, texels, support, "refine")
     support = _lit_by_itself(support, texels, fit, todo)  # the object's light from the refined albedos
     sharpened = None
     if settings.albedo_blend and texels is not None and texels.uv_per_metre is not None:
         # the albedos just refined say where the edges are; the texels whose pixels may blend a
         # neighbour's are refined again with that blend as noise
-        traces = with_albedo_blend(scanner, traces, fit["rho_d"], texels)
+        traces = with_albedo_blend(scanner, traces, fit.rho_d, texels)
         assert traces.albedo_blend is not None
         per_trace = np.zeros(traces.num_traces, np.float32)  # each trace's largest blend
         texel = np.repeat(np.arange(traces.num_traces), traces.lengths.numpy())
@@ -111,8 +112,8 @@ def _refine_fit(
         # some entries. The weak pulls still centre on the start: centred on the first pass's
         # normal, which the blended entries had tipped, they held the matte normals there. A texel
         # that kept no lobe seeks none: noise on some of its entries shows no lobe that all did not
-        warm = {k: v.copy() for k, v in fit.items()}
-        warm["flags"][(fit["flags"] & TexelFlag.SPECULAR_UNCONSTRAINED) != 0] |= TexelFlag.NO_HIGHLIGHT
+        warm = fit.copy()
+        warm.flags[(fit.flags & TexelFlag.SPECULAR_UNCONSTRAINED) != 0] |= TexelFlag.NO_HIGHLIGHT
         again = dataclasses.replace(settings, rounds=EDGE_ROUNDS, starts=False)
         _refine_texels(scanner, traces, fit, warm, edges, again, progress, texels, support, "albedo edges", start)
     if settings.materials:
@@ -125,7 +126,7 @@ def _refine_fit(
 
 
 def _lit_by_itself(
-    support: SupportScene | None, texels: Texels | None, fit: dict[str, np.ndarray], todo: torch.Tensor
+    support: SupportScene | None, texels: Texels | None, fit: TexelFit, todo: torch.Tensor
 ) -> SupportScene | None:
     """``support`` with the object's light on itself (``refine.support_light``) from ``fit``'s albedos
     of the observed texels ``todo`` (trace i = texel i of ``texels``), where it has the mesh's face
@@ -134,14 +135,14 @@ def _lit_by_itself(
         return support
     known = np.zeros(len(texels), bool)
     known[todo.numpy()] = True
-    albedo = face_albedo(len(support.face_normal), texels.face, fit["rho_d"], known)
+    albedo = face_albedo(len(support.face_normal), texels.face, fit.rho_d, known)
     return dataclasses.replace(support, face_albedo=albedo)
 
 
 def sharpen_albedos(
     scanner: Scanner,
     traces: RaggedTraces,
-    fit: dict[str, np.ndarray],
+    fit: TexelFit,
     idx: torch.Tensor,
     settings: RefineSettings,
     texels: Texels,
@@ -151,7 +152,7 @@ def sharpen_albedos(
     """The albedos of the texels ``idx`` (those whose pixels may blend ``MIN_BLEND`` of a neighbour's) solved
     jointly from their entries' pixel samples at ``fit``'s answers (``refine.albedo_map``): each entry
     (those ``refine_inputs`` reads) as its diffuse light times the albedos its taps land in, its
-    lobe's light taken out. ``texels`` need ``uv_per_metre``; updates ``fit["rho_d"]`` in place."""
+    lobe's light taken out. ``texels`` need ``uv_per_metre``; updates ``fit.rho_d`` in place."""
     assert texels.uv_per_metre is not None
     index = np.full(texels.shape, -1, np.int64)
     index[texels.row, texels.col] = np.arange(len(texels))
@@ -171,43 +172,44 @@ def sharpen_albedos(
     bar.close()
     if parts:
         d, y, s, t, w = (np.concatenate(col) for col in zip(*parts, strict=True))
-        fit["rho_d"] = sharpened_albedos(d, y, s, t, w, fit["rho_d"], idx.numpy()).astype(fit["rho_d"].dtype)
+        fit.rho_d = sharpened_albedos(d, y, s, t, w, fit.rho_d, idx.numpy()).astype(fit.rho_d.dtype)
 
 
-def fuse_normals(fit: dict[str, np.ndarray], texels: Texels, i_obs: np.ndarray) -> None:
+def fuse_normals(fit: TexelFit, texels: Texels, i_obs: np.ndarray) -> None:
     """The observed texels' ``i_obs`` normals each fused with its neighbours' of the same material
-    label (``fit["material"]`` where the material pass ran; else all one group) as far as the
+    label (``fit.material`` where the material pass ran; else all one group) as far as the
     normal field is smooth (``refine.normal_field.fused_normals``), their tangents kept orthogonal and
     ``std``'s normal column the fused one. A texel with no finite normal std keeps its normal.
     Updates ``fit`` in place (trace i = texel i of ``texels``)."""
     frame = texels.frame[i_obs]
-    refined = np.einsum("tji,tj->ti", frame, fit["n_loc"][i_obs])
-    std = np.radians(fit["std"][i_obs, 0])
-    label = fit["material"][i_obs] if "material" in fit else np.zeros(len(i_obs), np.int64)
+    refined = np.einsum("tji,tj->ti", frame, fit.n_loc[i_obs])
+    assert fit.std is not None  # refine_fit adds it before any pass
+    std = np.radians(fit.std[i_obs, 0])
+    label = fit.material[i_obs] if fit.material is not None else np.zeros(len(i_obs), np.int64)
     position, normal = texels.position[i_obs], texels.normal[i_obs]
     for m in np.unique(label):
         source = np.nonzero((label == m) & np.isfinite(std))[0]
         n_obj, n_std = fused_normals(position, normal, refined, std, source)
         k = i_obs[source]
         n_loc = np.einsum("tij,tj->ti", frame[source], n_obj)
-        t = fit["t_loc"][k]
+        t = fit.t_loc[k]
         t = t - (t * n_loc).sum(1, keepdims=True) * n_loc
-        fit["n_loc"][k], fit["t_loc"][k] = n_loc, t / np.linalg.norm(t, axis=1, keepdims=True)
-        fit["std"][k, 0] = np.degrees(n_std)
+        fit.n_loc[k], fit.t_loc[k] = n_loc, t / np.linalg.norm(t, axis=1, keepdims=True)
+        fit.std[k, 0] = np.degrees(n_std)
 
 
 def _refine_texels(
     scanner: Scanner,
     traces: RaggedTraces,
-    fit: dict[str, np.ndarray],
-    start: dict[str, np.ndarray],
+    fit: TexelFit,
+    start: TexelFit,
     todo: torch.Tensor,
     settings: RefineSettings,
     progress: Progress,
     texels: Texels | None,
     support: SupportScene | None,
     name: str,
-    centre: dict[str, np.ndarray] | None = None,
+    centre: TexelFit | None = None,
 ) -> None:
     """The texels ``todo`` refined from ``start`` into ``fit``, the weak pulls centred on ``centre``
     (default: the start)."""

@@ -20,13 +20,13 @@ def test_every_trace_gets_finite_parameters_in_range_and_empty_ones_the_defaults
     entries = torch.cat([pixel, b.position, b.normal_geo, b.tangent_geo], -1)
     valid[:4] = False  # four traces no photo saw
     out = fit_traces(net, scanner, RaggedTraces.from_padded(entries, valid), pixel_scale=1.0, batch=8)
-    assert all(np.isfinite(v).all() for v in out.values())
-    np.testing.assert_allclose(out["n_loc"][:4], [[0, 0, 1]] * 4)
-    np.testing.assert_allclose(out["alpha"][:4], FALLBACK_ALPHA)
-    seen = out["alpha"][4:]
+    assert all(np.isfinite(v).all() for v in out.arrays().values())
+    np.testing.assert_allclose(out.n_loc[:4], [[0, 0, 1]] * 4)
+    np.testing.assert_allclose(out.alpha[:4], FALLBACK_ALPHA)
+    seen = out.alpha[4:]
     assert ((seen >= 0.006) & (seen <= 0.5)).all() and (seen[:, 0] >= seen[:, 1]).all()
-    assert ((out["rho_d"] >= 0) & (out["rho_d"] <= 1)).all() and ((out["rho_s"] >= 0) & (out["rho_s"] <= 10)).all()
-    normal_err = np.degrees(np.arccos(np.clip((out["n_loc"][4:] * b.params["n_local"][4:].numpy()).sum(1), -1, 1)))
+    assert ((out.rho_d >= 0) & (out.rho_d <= 1)).all() and ((out.rho_s >= 0) & (out.rho_s <= 10)).all()
+    normal_err = np.degrees(np.arccos(np.clip((out.n_loc[4:] * b.params["n_local"][4:].numpy()).sum(1), -1, 1)))
     assert np.median(normal_err) < 10  # the network + fit recover the shading normal roughly
 
 
@@ -50,6 +50,6 @@ def test_blocks_give_the_whole_tables_answer_from_unscaled_pixels(monkeypatch):
     monkeypatch.setattr(fit_traces_module, "FIT_BLOCK", 5)
     blocks = fit_blocks(net, scanner, captured, scale)
     assert torch.equal(captured.entries, before)
-    assert set(blocks) == set(whole)
-    for k in whole:  # float32 network batches of other sizes: equal to rounding
-        np.testing.assert_allclose(blocks[k], whole[k], rtol=1e-3, atol=1e-3, err_msg=k)
+    assert set(blocks.arrays()) == set(whole.arrays())
+    for k, v in whole.arrays().items():  # float32 network batches of other sizes: equal to rounding
+        np.testing.assert_allclose(blocks.arrays()[k], v, rtol=1e-3, atol=1e-3, err_msg=k)

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 from scans import make_virtual_scan
 
+from ntp_engine.fit.texel_fit import TexelFit
 from ntp_engine.io.maps import SVBRDFMaps, texel_uv
 from ntp_engine.pipeline.stages import reconstruct
 from ntp_engine.scanner.scan_folder import load_scan
@@ -50,14 +51,16 @@ def test_written_tangents_agree_between_neighbouring_texels(tmp_path):
     rng = np.random.default_rng(0)
     turn = 0.6 + 0.02 * tex.col  # in the plate's UV frame, slowly turning
     sign = rng.choice([-1.0, 1.0], T)[:, None]
-    fitted = {
-        "n_loc": np.tile([0.0, 0.0, 1.0], (T, 1)),
-        "t_loc": sign * np.stack([np.cos(turn), np.sin(turn), np.zeros(T)], 1),
-        "rho_d": np.full((T, 3), 0.1),
-        "rho_s": np.full((T, 3), 2.0),
-        "alpha": np.tile([0.3, 0.02], (T, 1)),
-        "flags": np.zeros(T, np.int64),
-    }
+    fitted = TexelFit.from_arrays(
+        {
+            "n_loc": np.tile([0.0, 0.0, 1.0], (T, 1)),
+            "t_loc": sign * np.stack([np.cos(turn), np.sin(turn), np.zeros(T)], 1),
+            "rho_d": np.full((T, 3), 0.1),
+            "rho_s": np.full((T, 3), 2.0),
+            "alpha": np.tile([0.3, 0.02], (T, 1)),
+            "flags": np.zeros(T, np.int64),
+        }
+    )
     write_result(tmp_path, mesh, tex, fitted, np.full(T, 5))
     t = SVBRDFMaps.load(tmp_path).tangent
     assert ((t[:, 1:] * t[:, :-1]).sum(-1) > 0.9).all() and ((t[1:] * t[:-1]).sum(-1) > 0.9).all()

@@ -1,6 +1,7 @@
 import numpy as np
 import torch
 
+from ntp_engine.fit.texel_fit import TexelFit
 from ntp_engine.learn.ragged import RaggedTraces
 from ntp_engine.refine import inputs as inputs_module
 from ntp_engine.scanner.device_file import load_scanner
@@ -32,6 +33,7 @@ def test_refine_inputs_read_marginal_entries_only_where_too_few_others_are_left(
     N = len(kinds)
     fit = {"n_loc": np.tile([0, 0, 1.0], (N, 1)), "t_loc": np.tile([1.0, 0, 0], (N, 1)), "alpha": np.full((N, 2), 0.1)}
     fit |= {"rho_d": np.full((N, 3), 0.5), "rho_s": np.zeros((N, 3)), "flags": np.zeros(N, np.int64)}
+    fit = TexelFit.from_arrays(fit)
     inp = refine_inputs(dev, traces, torch.arange(N), fit)
     ent, mask, masks, marginal = inp.obs.entries, inp.obs.mask, inp.obs.shadow, inp.marginal
     assert inp.obs.support is None  # none asked for

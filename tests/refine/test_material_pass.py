@@ -2,6 +2,7 @@ import numpy as np
 import torch
 
 from ntp_engine.fit.flags import TexelFlag
+from ntp_engine.fit.texel_fit import TexelFit
 from ntp_engine.learn.ragged import RaggedTraces
 from ntp_engine.learn.synthetic import SyntheticConfig, sample_batch
 from ntp_engine.refine.model import Observations
@@ -32,7 +33,7 @@ def _lobe_traces(n: int, v: int, alpha, rho_d: float, rho_s: float, seed: int):
     start = {"n_loc": b.params["n_local"].double().numpy(), "t_loc": b.params["t_local"].double().numpy()}
     start |= {"alpha": np.full((n, 2), 0.15), "rho_d": np.full((n, 3), 0.1), "rho_s": np.full((n, 3), 3.0)}
     start["flags"] = np.zeros(n, np.int64)
-    return dev, traces, start
+    return dev, traces, TexelFit.from_arrays(start)
 
 
 def _material(alpha: tuple[float, float]):
@@ -68,11 +69,11 @@ def test_a_materials_width_comes_from_its_members_traces_together():
         np.testing.assert_allclose(got.lobe_rho_d, [[0.05, 0.05, 0.05]], atol=0.01)  # its members' under that lobe
         np.testing.assert_allclose(got.rho_d, wrong.rho_d)
     out = refine_fit(dev, traces, start, RefineSettings())
-    np.testing.assert_allclose(out["material_alpha"], [[0.3, 0.3]], rtol=0.1)
-    took = out["flags"] & TexelFlag.WIDTH_FROM_MATERIAL != 0
-    assert took.mean() > 0.25 and (out["flags"][took] & TexelFlag.SPECULAR_UNCONSTRAINED == 0).all()
-    np.testing.assert_allclose(out["alpha"][took], np.broadcast_to(out["material_alpha"], (took.sum(), 2)))
-    assert abs(np.median(out["rho_d"][took]) - 0.05) < 0.01
+    np.testing.assert_allclose(out.materials["material_alpha"], [[0.3, 0.3]], rtol=0.1)
+    took = out.flags & TexelFlag.WIDTH_FROM_MATERIAL != 0
+    assert took.mean() > 0.25 and (out.flags[took] & TexelFlag.SPECULAR_UNCONSTRAINED == 0).all()
+    np.testing.assert_allclose(out.alpha[took], np.broadcast_to(out.materials["material_alpha"], (took.sum(), 2)))
+    assert abs(np.median(out.rho_d[took]) - 0.05) < 0.01
 
 
 def test_a_broad_lobes_texels_without_one_of_their_own_join_its_material():
@@ -85,8 +86,8 @@ def test_a_broad_lobes_texels_without_one_of_their_own_join_its_material():
 
     dev, traces, start = _lobe_traces(192, 4, (0.5, 0.5), 0.05, 9.0, 7)
     out = refine_fit(dev, traces, start, RefineSettings())
-    assert (out["material"] == -1).mean() < 0.2, np.unique(out["material"], return_counts=True)
-    assert (out["flags"] & TexelFlag.FROM_MATERIAL != 0).mean() > 0.5
+    assert (out.material == -1).mean() < 0.2, np.unique(out.material, return_counts=True)
+    assert (out.flags & TexelFlag.FROM_MATERIAL != 0).mean() > 0.5
 
 
 def test_an_isotropic_own_lobe_takes_its_anisotropic_materials_width_at_its_neighbours_turn():
@@ -100,25 +101,25 @@ def test_an_isotropic_own_lobe_takes_its_anisotropic_materials_width_at_its_neig
 
     n = 64
     dev, traces, start = _lobe_traces(n, 16, (0.3, 0.03), 0.1, 3.0, 11)
-    truth = start["t_loc"].copy()
+    truth = start.t_loc.copy()
     turn = np.radians(60.0)
-    t, nrm = start["t_loc"], start["n_loc"]
-    start["t_loc"] = np.cos(turn) * t + np.sin(turn) * np.cross(nrm, t)
-    start["alpha"][:] = 0.1
-    start["material"] = np.zeros(n, np.int64)
+    t, nrm = start.t_loc, start.n_loc
+    start.t_loc = np.cos(turn) * t + np.sin(turn) * np.cross(nrm, t)
+    start.alpha[:] = 0.1
+    start.material = np.zeros(n, np.int64)
     taken = []
     for back in (None, np.full(n, -turn)):
-        fit = {k: v.copy() for k, v in start.items()}
+        fit = start.copy()
         _widths_from_materials(
             dev, traces, fit, np.arange(n), _material((0.3, 0.03)), RefineSettings(), None, None, back
         )
-        took = fit["flags"] & TexelFlag.WIDTH_FROM_MATERIAL != 0
+        took = fit.flags & TexelFlag.WIDTH_FROM_MATERIAL != 0
         taken.append(took.mean())
         if back is None:  # only its own tangent: the lobe, where taken, points 60 deg off
-            np.testing.assert_allclose(fit["t_loc"], start["t_loc"])
+            np.testing.assert_allclose(fit.t_loc, start.t_loc)
             continue
-        np.testing.assert_allclose(fit["alpha"][took], np.broadcast_to([0.3, 0.03], (took.sum(), 2)))
-        cos = np.abs((fit["t_loc"][took] * truth[took]).sum(1))
+        np.testing.assert_allclose(fit.alpha[took], np.broadcast_to([0.3, 0.03], (took.sum(), 2)))
+        cos = np.abs((fit.t_loc[took] * truth[took]).sum(1))
         error = np.degrees(np.arccos(np.clip(cos, 0, 1)))
         assert (error < 1.0).mean() > 0.9  # the rest: traces that cannot tell the two apart
     assert taken[1] > 0.9 and taken[1] > taken[0] + 0.2
@@ -194,7 +195,7 @@ def test_members_own_tangents_do_not_make_a_sharp_isotropic_lobe_anisotropic():
     dev, traces, start = _lobe_traces(n, 16, truth, 0.1, 3.0, 12)
     inp = refine_inputs(dev, traces, torch.arange(n), start, None, None)
     # each member's tangent: of 12 turns, where the elongated lobe fits its trace best
-    t, nrm = start["t_loc"], start["n_loc"]
+    t, nrm = start.t_loc, start.n_loc
     turns = np.radians(np.arange(0.0, 180.0, 15.0))
     costs = []
     for turn in turns:
@@ -205,7 +206,7 @@ def test_members_own_tangents_do_not_make_a_sharp_isotropic_lobe_anisotropic():
         )
         costs.append(c[:, 0].numpy())
     best = turns[np.argmin(np.stack(costs, 1), 1)]
-    start["t_loc"] = np.cos(best)[:, None] * t + np.sin(best)[:, None] * np.cross(nrm, t)
+    start.t_loc = np.cos(best)[:, None] * t + np.sin(best)[:, None] * np.cross(nrm, t)
     got = pooled_widths(
         dev, traces, start, np.arange(n), np.zeros(n, np.int64), _material((0.028, 0.006)), RefineSettings(), None, None
     )

@@ -3,6 +3,7 @@ import torch
 from refine.test_inputs import _square, _square_in_two_views
 
 from ntp_engine.fit.flags import TexelFlag
+from ntp_engine.fit.texel_fit import TexelFit
 from ntp_engine.learn.ragged import RaggedTraces
 from ntp_engine.refine import passes as passes_module
 from ntp_engine.refine.model import Observations
@@ -23,12 +24,13 @@ def test_the_edge_pass_starts_from_the_first_pass_and_seeks_a_lobe_only_where_it
     start = {"n_loc": np.tile([0.0, 0, 1], (N, 1)), "t_loc": np.tile([1.0, 0, 0], (N, 1))}
     start |= {"alpha": np.full((N, 2), 0.2), "rho_d": np.full((N, 3), 0.5), "rho_s": np.full((N, 3), 1.0)}
     start["flags"] = np.zeros(N, np.int64)
+    start = TexelFit.from_arrays(start)
     calls = []
     real = passes_module._refine_texels
 
     def spy(scanner, traces, fit, start, todo, settings, progress, texels, support, name, centre=None):
-        calls.append((name, todo.numpy().copy(), {k: v.copy() for k, v in start.items()}, settings, centre))
-        calls[-1] += ({k: v.copy() for k, v in fit.items()},)
+        calls.append((name, todo.numpy().copy(), start.copy(), settings, centre))
+        calls[-1] += (fit.copy(),)
         real(scanner, traces, fit, start, todo, settings, progress, texels, support, name, centre)
 
     monkeypatch.setattr(passes_module, "_refine_texels", spy)
@@ -38,12 +40,12 @@ def test_the_edge_pass_starts_from_the_first_pass_and_seeks_a_lobe_only_where_it
     assert 0 < len(edges) < N
     assert settings.rounds == passes_module.EDGE_ROUNDS and not settings.starts
     for key in ("n_loc", "t_loc", "alpha", "rho_d", "rho_s"):
-        np.testing.assert_array_equal(warm[key], first[key])  # the first pass's answers
-        np.testing.assert_array_equal(centre[key], start[key])  # the pulls: the start's
-    lobeless = first["flags"][edges] & TexelFlag.SPECULAR_UNCONSTRAINED != 0
+        np.testing.assert_array_equal(getattr(warm, key), getattr(first, key))  # the first pass's answers
+        np.testing.assert_array_equal(getattr(centre, key), getattr(start, key))  # the pulls: the start's
+    lobeless = first.flags[edges] & TexelFlag.SPECULAR_UNCONSTRAINED != 0
     assert lobeless.any()
-    np.testing.assert_array_equal(warm["flags"][edges] & TexelFlag.NO_HIGHLIGHT != 0, lobeless)
-    assert (out["rho_s"][edges[lobeless]] == 0).all()
+    np.testing.assert_array_equal(warm.flags[edges] & TexelFlag.NO_HIGHLIGHT != 0, lobeless)
+    assert (out.rho_s[edges[lobeless]] == 0).all()
 
 
 def test_normals_are_fused_within_each_material_with_tangents_kept_orthogonal():
@@ -66,22 +68,19 @@ def test_normals_are_fused_within_each_material_with_tangents_kept_orthogonal():
     n_loc[material == -1] = [0.0, 0.0, 1.0]
     t_loc = np.array([1.0, 0.0, 0.0]) - n_loc[:, :1] * n_loc
     t_loc /= np.linalg.norm(t_loc, axis=1, keepdims=True)
-    fit = {
-        "n_loc": n_loc.copy(),
-        "t_loc": t_loc,
-        "std": np.tile([np.degrees(0.02 * np.sqrt(2)), 5.0, 0.1, 0.1], (N, 1)),
-        "material": material,
-    }
-    fit["std"][0, 0] = np.nan  # no normal std: kept
+    fit = TexelFit.defaults(N)
+    fit.n_loc, fit.t_loc, fit.material = n_loc.copy(), t_loc, material
+    fit.std = np.tile([np.degrees(0.02 * np.sqrt(2)), 5.0, 0.1, 0.1], (N, 1))
+    fit.std[0, 0] = np.nan  # no normal std: kept
     fuse_normals(fit, texels, np.arange(N))
     tilt_before = np.degrees(np.arccos(n_loc[material == 0, 2]))
-    tilt_after = np.degrees(np.arccos(np.clip(fit["n_loc"][material == 0, 2], -1, 1)))
+    tilt_after = np.degrees(np.arccos(np.clip(fit.n_loc[material == 0, 2], -1, 1)))
     assert np.median(tilt_after) < 0.5 * np.median(tilt_before)
-    np.testing.assert_allclose(fit["n_loc"][material == -1], n_loc[material == -1], atol=1e-12)  # not the other's
-    np.testing.assert_allclose(fit["n_loc"][0], n_loc[0])
-    np.testing.assert_allclose((fit["n_loc"] * fit["t_loc"]).sum(1), 0.0, atol=1e-12)
-    np.testing.assert_allclose(np.linalg.norm(fit["t_loc"], axis=1), 1.0)
-    assert np.nanmedian(fit["std"][material == 0, 0]) < 0.5 * np.degrees(0.02 * np.sqrt(2))
+    np.testing.assert_allclose(fit.n_loc[material == -1], n_loc[material == -1], atol=1e-12)  # not the other's
+    np.testing.assert_allclose(fit.n_loc[0], n_loc[0])
+    np.testing.assert_allclose((fit.n_loc * fit.t_loc).sum(1), 0.0, atol=1e-12)
+    np.testing.assert_allclose(np.linalg.norm(fit.t_loc, axis=1), 1.0)
+    assert np.nanmedian(fit.std[material == 0, 0]) < 0.5 * np.degrees(0.02 * np.sqrt(2))
 
 
 def test_the_albedos_next_to_an_edge_come_back_sharper_from_the_entries_pixel_samples():
@@ -109,6 +108,7 @@ def test_the_albedos_next_to_an_edge_come_back_sharper_from_the_entries_pixel_sa
     fit = {"n_loc": np.tile([0.0, 0, 1], (N, 1)), "t_loc": np.tile([1.0, 0, 0], (N, 1))}
     fit |= {"alpha": np.full((N, 2), 0.2), "rho_d": truth.copy(), "rho_s": np.zeros((N, 3))}
     fit["flags"] = np.zeros(N, np.int64)
+    fit = TexelFit.from_arrays(fit)
     diffuse, _, _ = predicted_light(Observations(dev, entries, mask), Start.from_fit(fit, np.arange(N)))
     delta, weight = sample_points(dev, entries, mask)
     index = np.full(tx.shape, -1, np.int64)
@@ -117,13 +117,13 @@ def test_the_albedos_next_to_an_edge_come_back_sharper_from_the_entries_pixel_sa
     y = diffuse.numpy() * (w[..., None] * truth[taps]).sum(2)
     entries[..., :3] = torch.as_tensor(y, dtype=torch.float32)
     d = diffuse.numpy()
-    fit["rho_d"] = (d * y).sum(1) / (d * d).sum(1)  # each texel's own answer
+    fit.rho_d = (d * y).sum(1) / (d * d).sum(1)  # each texel's own answer
     traces = RaggedTraces(entries.reshape(-1, 12), torch.arange(0, V * N + 1, V))
     beside = np.nonzero(np.abs(tx.col + 0.5 - 16) < 3)[0]
-    own = fit["rho_d"].copy()
+    own = fit.rho_d.copy()
     assert np.abs(own[beside] - truth[beside]).max() > 0.02  # blurred
     passes_module.sharpen_albedos(dev, traces, fit, torch.as_tensor(beside), RefineSettings(), tx)
-    out = fit["rho_d"]
+    out = fit.rho_d
     assert np.isfinite(out).all()
     np.testing.assert_array_equal(np.delete(out, beside, 0), np.delete(own, beside, 0))
     before, after = (np.sqrt(((a[beside] - truth[beside]) ** 2).mean()) for a in (own, out))
@@ -142,6 +142,7 @@ def test_refine_fit_sharpens_the_albedos_of_the_edge_pass_texels_only_when_asked
     start = {"n_loc": np.tile([0.0, 0, 1], (N, 1)), "t_loc": np.tile([1.0, 0, 0], (N, 1))}
     start |= {"alpha": np.full((N, 2), 0.2), "rho_d": np.full((N, 3), 0.5), "rho_s": np.full((N, 3), 1.0)}
     start["flags"] = np.zeros(N, np.int64)
+    start = TexelFit.from_arrays(start)
     passes, sharpened = [], []
     real_pass, real_sharpen = passes_module._refine_texels, passes_module.sharpen_albedos
 
@@ -150,7 +151,7 @@ def test_refine_fit_sharpens_the_albedos_of_the_edge_pass_texels_only_when_asked
         real_pass(scanner, traces, fit, start, todo, settings, progress, texels, support, name, centre)
 
     def spy_sharpen(scanner, traces, fit, idx, *args, **kwargs):
-        sharpened.append((idx.numpy().copy(), fit["n_loc"].copy()))
+        sharpened.append((idx.numpy().copy(), fit.n_loc.copy()))
         real_sharpen(scanner, traces, fit, idx, *args, **kwargs)
 
     monkeypatch.setattr(passes_module, "_refine_texels", spy_pass)
@@ -158,8 +159,8 @@ def test_refine_fit_sharpens_the_albedos_of_the_edge_pass_texels_only_when_asked
     out = passes_module.refine_fit(dev, traces, start, RefineSettings(materials=False), texels=tx)
     assert [p[0] for p in passes] == ["refine", "albedo edges"] and len(sharpened) == 1
     assert 0 < len(sharpened[0][0]) and np.isin(sharpened[0][0], passes[1][1]).all()
-    np.testing.assert_array_equal(sharpened[0][1], out["n_loc"])  # after the normals were fused
-    assert np.isfinite(out["rho_d"]).all()
+    np.testing.assert_array_equal(sharpened[0][1], out.n_loc)  # after the normals were fused
+    assert np.isfinite(out.rho_d).all()
     passes.clear()
     passes_module.refine_fit(dev, traces, start, RefineSettings(materials=False, albedo_map=False), texels=tx)
     assert len(sharpened) == 1
