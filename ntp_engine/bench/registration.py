@@ -25,7 +25,7 @@ from ..io.atomic import temp_dir, write_text_atomic
 from ..io.errors import NtpInputError
 from ..io.output_folder import claim
 from ..io.progress import QUIET, Progress, add_progress_arguments, progress_from_args
-from ..pipeline.stages import register_to_mesh
+from ..register.check import register_to_mesh
 from ..register.colmap_model import model_files, read_colmap_model
 from ..register.refusal import named_rival, refusal, refusal_kind
 from ..register.sfm import SfmResult, structure_from_motion

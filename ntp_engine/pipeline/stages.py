@@ -22,8 +22,8 @@ import json
 import shutil
 import time
 from collections.abc import Iterator
-from dataclasses import dataclass
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -50,12 +50,10 @@ from ..refine.support_light import CELL as SUPPORT_CELL
 from ..refine.support_light import CODE_RANGE as SUPPORT_CODES
 from ..refine.support_light import REACH_RADII as SUPPORT_REACH
 from ..refine.support_light import SupportAlbedo, SupportScene, estimate_support_albedo, exposed
-from ..register.align import Alignment, align_to_mesh
-from ..register.check import PhotoCheck, check_registration, spread
+from ..register.check import register_to_mesh
 from ..register.colmap_model import model_files, read_colmap_model
-from ..register.photo_stack import PhotoStack
 from ..register.refusal import MIN_MARGIN, MIN_SHARPNESS, outline_picture, refusal
-from ..register.sfm import MIN_REGISTERED, SfmResult, structure_from_motion
+from ..register.sfm import MIN_REGISTERED, structure_from_motion
 from ..scanner import camera
 from ..scanner.device_file import scanner_to_dict
 from ..scanner.scan_folder import Scan, check_mesh_size, read_photo
@@ -107,11 +105,10 @@ def register_photos(
     progress: Progress = QUIET,
     force_registration: bool = False,
     cache: Path | None = None,
-) -> tuple[dict[str, np.ndarray], dict, str]:
+) -> Registration:
     """Stages 1-2 (photo selection, then the poses file or SfM + alignment), cached under
     ``cache`` (default ``out/cache``; ``out`` is claimed as an ntp result folder, a ``cache``
-    elsewhere as an ntp cache folder). Returns (camera-from-world poses by photo name, report
-    entries, poses key). A registration the photos do not confirm raises ``RegistrationRefused``
+    elsewhere as an ntp cache folder). A registration the photos do not confirm raises ``RegistrationRefused``
     unless ``force_registration``."""
     check_mesh_size(load_mesh(scan.mesh_path), scan.scanner, scan.mesh_path)
     with claim(out, "result", inputs=scan.input_folders), _stage_cache(Path(out), cache, scan) as stages:
@@ -129,13 +126,23 @@ def _stage_cache(out: Path, cache: Path | None, scan: Scan) -> Iterator[StageCac
         yield StageCache(folder)
 
 
+class Registration(NamedTuple):
+    """What stages 1-2 hand on: the camera-from-world pose of each photo used, by name; the report's
+    entries (``photos``, ``registration``, ``stages``); and the poses' key (chained into the traces
+    stage's)."""
+
+    poses: dict[str, np.ndarray]
+    report: dict
+    key: str
+
+
 class RegistrationRefused(NtpInputError):
     """The photos do not confirm the registration (``photo_registration.refusal``)."""
 
 
 def _registration(
     scan: Scan, out: Path, cache: StageCache, blur_margin: float, progress: Progress, force: bool
-) -> tuple[dict[str, np.ndarray], dict, str]:
+) -> Registration:
     report = _Report()
     t0 = time.perf_counter()
     sel, h_sel = _select_stage(scan, cache, blur_margin, progress)
@@ -161,7 +168,7 @@ def _registration(
     report.data["registration"] = reg_info
     if not poses:
         raise NtpInputError(scan.photos_dir, "no selected photo has a pose")
-    return poses, report.data, h_pose
+    return Registration(poses, report.data, h_pose)
 
 
 def write_registration(out: Path, poses: dict[str, np.ndarray], report: dict) -> None:
@@ -200,44 +207,6 @@ def _select_stage(scan: Scan, cache: StageCache, blur_margin: float, progress: P
 
     folder, h_sel = cache.get("select", key, compute)
     return Selection.from_json(json.loads((folder / "selection.json").read_text())), h_sel
-
-
-@dataclass
-class MeshRegistration:
-    """An SfM (or COLMAP) model put on the mesh: the point cloud's alignment (``icp``), the photos'
-    check of it (``check.alignment`` is the one to use), the judged photos and the stage's seconds."""
-
-    icp: Alignment
-    check: PhotoCheck
-    photos: PhotoStack
-    judged: list[str]
-    mesh: Mesh
-    seconds_align: float
-    seconds_photometric: float
-
-
-def register_to_mesh(scan: Scan, reg: SfmResult) -> MeshRegistration:
-    """The similarity from ``reg``'s frame to the mesh: aligned by the point cloud, then refined and
-    judged by (at most ``MAX_PHOTOS`` of) the photos; ``NtpInputError`` when nothing can be aligned."""
-    names = sorted(reg.poses)
-    mesh = load_mesh(scan.mesh_path)
-    t0 = time.perf_counter()
-    try:
-        icp = align_to_mesh(
-            reg.points,
-            [reg.poses[n] for n in names],
-            mesh,
-            float(np.linalg.norm(scan.scanner.valid_center)),
-            support_plane=scan.support_plane,
-        )
-    except ValueError as err:
-        raise NtpInputError(scan.mesh_path, f"cannot align the SfM points to this mesh: {err}") from None
-    t1 = time.perf_counter()
-    judged = spread(names)  # the photos judge (and refine) the alignment
-    photos = PhotoStack([read_photo(scan.photos_dir / n, scan.scanner) for n in judged], scan.scanner)
-    support_z = float(mesh.vertices[:, 2].min()) if scan.support_plane else None
-    check = check_registration(icp, reg.poses, photos, judged, mesh, support_z)
-    return MeshRegistration(icp, check, photos, judged, mesh, t1 - t0, time.perf_counter() - t1)
 
 
 def _register_stage(

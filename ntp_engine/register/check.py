@@ -9,12 +9,15 @@ in degrees about the support's normal.
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from ..io.mesh import Mesh
-from .align import AMBIGUOUS_DEG, Alignment, azimuth_apart, mesh_symmetry, turned_distance
+from ..io.errors import NtpInputError
+from ..io.mesh import Mesh, load_mesh
+from ..scanner.scan_folder import Scan, read_photo
+from .align import AMBIGUOUS_DEG, Alignment, align_to_mesh, azimuth_apart, mesh_symmetry, turned_distance
 from .photo_stack import PhotoStack
 from .photometric import (
     BLUR_LEVELS_PX,
@@ -29,6 +32,7 @@ from .photometric import (
     object_distance,
     rotation_matrix,
 )
+from .sfm import SfmResult
 
 CANDIDATE_ROUNDS = 2  # re-linearisations a candidate gets before the candidates are compared
 MAX_PHOTOS = 40  # photos (evenly spread over the sweep) that judge and refine a registration
@@ -190,3 +194,41 @@ def check_registration(
 
 
 SYMMETRY_PX = 0.25  # a turned mesh lying closer to itself than this (at the object's distance) is a symmetry
+
+
+@dataclass
+class MeshRegistration:
+    """An SfM (or COLMAP) model put on the mesh: the point cloud's alignment (``icp``), the photos'
+    check of it (``check.alignment`` is the one to use), the judged photos and the stage's seconds."""
+
+    icp: Alignment
+    check: PhotoCheck
+    photos: PhotoStack
+    judged: list[str]
+    mesh: Mesh
+    seconds_align: float
+    seconds_photometric: float
+
+
+def register_to_mesh(scan: Scan, reg: SfmResult) -> MeshRegistration:
+    """The similarity from ``reg``'s frame to the mesh: aligned by the point cloud, then refined and
+    judged by (at most ``MAX_PHOTOS`` of) the photos; ``NtpInputError`` when nothing can be aligned."""
+    names = sorted(reg.poses)
+    mesh = load_mesh(scan.mesh_path)
+    t0 = time.perf_counter()
+    try:
+        icp = align_to_mesh(
+            reg.points,
+            [reg.poses[n] for n in names],
+            mesh,
+            float(np.linalg.norm(scan.scanner.valid_center)),
+            support_plane=scan.support_plane,
+        )
+    except ValueError as err:
+        raise NtpInputError(scan.mesh_path, f"cannot align the SfM points to this mesh: {err}") from None
+    t1 = time.perf_counter()
+    judged = spread(names)  # the photos judge (and refine) the alignment
+    photos = PhotoStack([read_photo(scan.photos_dir / n, scan.scanner) for n in judged], scan.scanner)
+    support_z = float(mesh.vertices[:, 2].min()) if scan.support_plane else None
+    check = check_registration(icp, reg.poses, photos, judged, mesh, support_z)
+    return MeshRegistration(icp, check, photos, judged, mesh, t1 - t0, time.perf_counter() - t1)
