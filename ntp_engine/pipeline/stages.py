@@ -137,7 +137,7 @@ class Registration(NamedTuple):
 
 
 class RegistrationRefused(NtpInputError):
-    """The photos do not confirm the registration (``photo_registration.refusal``)."""
+    """The photos do not confirm the registration (``register.refusal.refusal``)."""
 
 
 def _registration(

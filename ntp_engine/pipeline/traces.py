@@ -43,7 +43,7 @@ from ..scanner import camera
 from ..scanner.scanner import Scanner
 
 # wo . n^ in (MIN_COS_GRAZING, MIN_COS_VIEW]: kept, flagged out of range, and read by the refinement
-# only for texels with no other entry (``pipeline.fit_traces.refine_inputs``): at grazing angles a
+# only for texels with no other entry (``refine.inputs.refine_inputs``): at grazing angles a
 # pixel spans a strip of surface, which Eq. 1 for one texel does not describe; 0.2 rather than 0.15
 # halves what the gained texels cost the knot's albedo (docs/history/accuracy.md, "Grazing entries")
 MIN_COS_GRAZING = 0.2

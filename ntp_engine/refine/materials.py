@@ -23,7 +23,7 @@ more): materials come in regions, and a texel among matte ones that its trace ca
 matte whatever its colour.
 
 A material's lobe width is then what its members' traces explain best together
-(``pooled_scale`` over ``refine.lobe_costs``, in ``pipeline.fit_traces.pooled_widths``), not the
+(``pooled_scale`` over ``refine.lobe_costs``, in ``refine.material_pass.pooled_widths``), not the
 median of their own answers, which one trace often cannot pin down.
 
 Convention: rho_d, rho_s linear RGB ``(N, 3)``; alpha ``(N, 2)`` with alpha_x >= alpha_y (the

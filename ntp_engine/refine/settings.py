@@ -89,8 +89,8 @@ class RefineSettings:
     # the neighbours' albedo each entry's pixel may blend in, as noise on its diffuse light (refine.footprint)
     albedo_blend: bool = True
     # the albedos near edges solved jointly from the entries' pixel samples (refine.albedo_map; needs the texels, so
-    # ``pipeline.fit_traces.refine_fit`` does it)
+    # ``refine.passes.refine_fit`` does it)
     albedo_map: bool = True
     # each normal fused with its neighbours' as far as the normal field is smooth (refine.normal_field; needs the
-    # texels, so ``pipeline.fit_traces.refine_fit`` does it)
+    # texels, so ``refine.passes.refine_fit`` does it)
     normal_field: bool = True

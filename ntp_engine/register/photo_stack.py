@@ -79,7 +79,7 @@ def shading_lights(scanner: Scanner, cells: tuple[int, int] = SHADING_CELLS) -> 
     """A scanner whose point emitters are the drive-weighted centres of groups of the real ones
     (a grid of ``cells`` over the array's two principal axes), and the groups' summed effective
     pattern ``(G, 3)``: the diffuse term changes slowly across an LED array seen from 0.3 m, so it
-    is computed for G groups instead of L emitters (within 0.1% here; ``test_photo_registration``)."""
+    is computed for G groups instead of L emitters (within 0.1% here; ``tests/register/test_photo_stack.py``)."""
     P, p_eff = scanner.emitter_positions, scanner.effective_pattern()
     centre = P.mean(0)
     axes = np.linalg.svd(P - centre)[2][:2]

@@ -410,7 +410,7 @@ def test_material_costs_try_the_turn_the_neighbours_point_along():
 
 def test_turn_costs_say_how_much_a_trace_objects_to_each_tangent():
     """A texel's own lobe judged at its true tangent and turned from it: the traces that show the
-    lobe object to a 30 deg turn (the fused field's check, ``pipeline.fit_traces._fuse_tangents``)
+    lobe object to a 30 deg turn (the fused field's check, ``refine.material_pass._fuse_tangents``)
     and more to 90 deg; at no turn the cost is material_costs' for that lobe at that tangent."""
     entries, mask, p = _traces(48, 11, (0.3, 0.25, 0.2), (3.0, 3.0, 3.0), (0.2, 0.04))
     alpha = torch.tensor([0.2, 0.04]).expand(48, 2)
