@@ -261,7 +261,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--resolutions", type=int, nargs="+", default=list(RESOLUTIONS))
     parser.add_argument("--scale", type=float, default=CAMERA_SCALE, help="virtual camera resolution scale")
     parser.add_argument("--threads", type=int, default=0, help="CPU threads of each reconstruct (0: every core)")
-    parser.add_argument("--plot", type=Path, default=None, help="PNG: seconds and memory (default OUT/png)")
+    parser.add_argument("--plot", type=Path, default=None, help="PNG: seconds and memory (default OUT/bench_scale.png)")
     parser.add_argument("--json", type=Path, default=None)
 
 
@@ -274,6 +274,6 @@ def command(args: argparse.Namespace) -> int:
         camera_scale=args.scale,
         threads=args.threads,
         json_path=args.json,
-        plot=args.plot if args.plot is not None else args.out / "png",
+        plot=args.plot if args.plot is not None else args.out / "bench_scale.png",
     )
     return 0

@@ -125,7 +125,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     """``ntp bench scan``'s options."""
     parser.add_argument("--sizes", type=sizes, default=None, help="PHOTOSxRES,... (default 24x128,48x256,96x256)")
     parser.add_argument("--known-poses", action="store_true", help="skip SfM (true poses)")
-    parser.add_argument("--plot", type=Path, default=Path("png"), help="PNG of run time against error")
+    parser.add_argument("--plot", type=Path, default=Path("bench_scan.png"), help="PNG of run time against error")
     parser.add_argument("--json", type=Path, default=None)
 
 
