@@ -158,6 +158,19 @@ def test_fit_stage_on_ray_is_identical_even_with_a_worker_killed_mid_block(scan2
         assert all(np.array_equal(a[k], b[k]) for k in a.files)
 
 
+@pytest.fixture(scope="module")
+def refined16(scan24, tmp_path_factory):
+    """A finished ``reconstruct --refine`` of ``scan24`` at 16^2 whose re-run is served from its cache."""
+    scan = load_scan(scan24, scan24 / "ground_truth" / "poses.json")
+    out = tmp_path_factory.mktemp("refined16") / "rec"
+    reconstruct(scan, out, resolution=16, refine=True)
+    assert reconstruct(scan, out, resolution=16, refine=True)["cached_stages"] == STAGES
+    return scan, out
+
+
+STAGES = ["select", "atlas", "traces", "fit", "refine"]
+
+
 @pytest.mark.parametrize(
     "module, recomputed",
     [
@@ -166,22 +179,15 @@ def test_fit_stage_on_ray_is_identical_even_with_a_worker_killed_mid_block(scan2
     ],
 )
 def test_a_change_to_a_stages_code_recomputes_that_stage_and_the_ones_after_it_only(
-    scan24, tmp_path, monkeypatch, module, recomputed
+    refined16, tmp_path, monkeypatch, module, recomputed
 ):
     """An upgraded ntp run into an existing result: the stages whose code changed (their modules or
     any engine module those import) and the stages after them are computed again, the rest served."""
     from ntp_engine.io import stage_cache
 
-    scan = load_scan(scan24, scan24 / "ground_truth" / "poses.json")
+    scan, finished = refined16
     out = tmp_path / "rec"
-    reconstruct(scan, out, resolution=16, refine=True)
-    assert reconstruct(scan, out, resolution=16, refine=True)["cached_stages"] == [
-        "select",
-        "atlas",
-        "traces",
-        "fit",
-        "refine",
-    ]
+    shutil.copytree(finished, out)
     real = stage_cache._source
     monkeypatch.setattr(stage_cache, "_source", lambda m: real(m) + ("\nUPGRADED = 1\n" if m == module else ""))
     stage_cache._module_code.cache_clear()
@@ -189,5 +195,4 @@ def test_a_change_to_a_stages_code_recomputes_that_stage_and_the_ones_after_it_o
         rep = reconstruct(scan, out, resolution=16, refine=True)
     finally:
         stage_cache._module_code.cache_clear()
-    stages = ["select", "atlas", "traces", "fit", "refine"]
-    assert rep["cached_stages"] == [s for s in stages if s not in recomputed]
+    assert rep["cached_stages"] == [s for s in STAGES if s not in recomputed]
