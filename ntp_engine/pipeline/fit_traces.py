@@ -17,7 +17,7 @@ import time
 import numpy as np
 
 from ..fit.albedo import highlights_and_albedo
-from ..fit.geometry import FALLBACK_ALPHA, fit_geometry
+from ..fit.geometry import fit_geometry
 from ..fit.texel_fit import TexelFit
 from ..io.progress import QUIET, Progress
 from ..learn.inference import predict
@@ -100,10 +100,7 @@ def fit_traces(
     clock = {"network": 0.0, "geometry": 0.0, "albedo": 0.0}
     traces = traces.in_range_only()
     N = traces.num_traces
-    n_loc, t_loc = np.zeros((N, 3)), np.zeros((N, 3))
-    n_loc[:, 2], t_loc[:, 0] = 1.0, 1.0
-    ax, ay, flags = np.full(N, FALLBACK_ALPHA), np.full(N, FALLBACK_ALPHA), np.zeros(N, np.int64)
-    rho_d, rho_s = np.zeros((N, 3)), np.zeros((N, 3))
+    out = TexelFit.defaults(N)  # what a trace with no entry keeps
     observed = int((traces.lengths > 0).sum())
     bar = progress.counter("network + fit", observed, "texel")
     t0 = time.perf_counter()
@@ -119,8 +116,8 @@ def fit_traces(
         t2 = time.perf_counter()
         clock["geometry"] += t2 - t1
         i = idx.numpy()
-        n_loc[i], t_loc[i] = g.normal.numpy(), g.tangent.numpy()
-        ax[i], ay[i], flags[i] = g.alpha_x.numpy(), g.alpha_y.numpy(), g.flags.numpy()
+        out.n_loc[i], out.t_loc[i] = g.normal.numpy(), g.tangent.numpy()
+        out.alpha[i, 0], out.alpha[i, 1], out.flags[i] = g.alpha_x.numpy(), g.alpha_y.numpy(), g.flags.numpy()
         for a in range(0, len(idx), 256):  # (n, V, L) Eq. 1 terms: keep them cache-sized
             sub = slice(a, a + 256)
             ent, mask = traces.padded(idx[sub], max_views=ALBEDO_VIEWS)
@@ -135,12 +132,13 @@ def fit_traces(
                 gs,
                 prior_weight=RHO_S_PRIOR_WEIGHT,
             )
-            rho_d[i[sub]], rho_s[i[sub]] = rd.numpy(), rs.numpy()
-            ax[i[sub]], ay[i[sub]], flags[i[sub]] = gs.alpha_x.numpy(), gs.alpha_y.numpy(), gs.flags.numpy()
+            out.rho_d[i[sub]], out.rho_s[i[sub]] = rd.numpy(), rs.numpy()
+            out.alpha[i[sub], 0], out.alpha[i[sub], 1] = gs.alpha_x.numpy(), gs.alpha_y.numpy()
+            out.flags[i[sub]] = gs.flags.numpy()
         bar.update(len(idx))
         t0 = time.perf_counter()
         clock["albedo"] += t0 - t2
     bar.close()
     if seconds is not None:
         seconds.update(clock)
-    return TexelFit(n_loc, t_loc, np.stack([ax, ay], 1), flags, rho_d, rho_s)
+    return out

@@ -87,6 +87,12 @@ STAGE_CODE: dict[str, tuple[str, ...]] = {
 }  # the refinement's settings when asked for (`reconstruct(refine=True)`)
 
 
+def _stage_code(stage: str) -> str:
+    """The code version in ``stage``'s key: its modules (``STAGE_CODE``) with their imports, and
+    this runner's own code."""
+    return code_version(STAGE_CODE[stage], alone=[__name__])
+
+
 class _Report:
     """The run's report: a dict with a ``stages`` table of wall seconds, filled as stages finish."""
 
@@ -196,7 +202,7 @@ def _diagnostics(out: Path, cache: StageCache, reg_info: dict, force: bool) -> N
 def _select_stage(scan: Scan, cache: StageCache, blur_margin: float, progress: Progress) -> tuple[Selection, str]:
     key = {
         "photos": content_key(scan.photo_paths),
-        "code": code_version(STAGE_CODE["select"], alone=[__name__]),
+        "code": _stage_code("select"),
         "margin": blur_margin,
         "camera": [scan.scanner.width, scan.scanner.height],
     }
@@ -263,7 +269,7 @@ def _register_stage(
         "colmap": content_key(model_files(scan.colmap)) if scan.colmap else None,
         "mesh": content_key([scan.mesh_path]),
         "support": scan.support_plane,
-        "code": code_version(STAGE_CODE["register"], alone=[__name__]),
+        "code": _stage_code("register"),
         "camera": {
             "K": scan.scanner.K,
             "distortion": scan.scanner.distortion,
@@ -355,7 +361,7 @@ def _reconstruct(
         "rho_s_prior_weight": RHO_S_PRIOR_WEIGHT,
         "network_views": NETWORK_VIEWS,
         "block": FIT_BLOCK,
-        "code": code_version(STAGE_CODE["fit"], alone=[__name__]),
+        "code": _stage_code("fit"),
     }
     folder, h_fit = cache.get("fit", {"traces": h_tr, **model_key, **fit_key}, fit_stage)
     fitted = TexelFit.load(folder / "fit.npz")
@@ -382,7 +388,7 @@ def _reconstruct(
             "settings": dataclasses.asdict(REFINE),
             "views": REFINE_VIEWS,
             "min_clear_entries": MIN_CLEAR_ENTRIES,
-            "code": code_version(STAGE_CODE["refine"], alone=[__name__]),
+            "code": _stage_code("refine"),
             "calibration_texels": CALIBRATION_TEXELS,
         }
         folder, _ = cache.get("refine", key, refine_stage)
@@ -470,7 +476,7 @@ def _atlas_stage(scan: Scan, cache: StageCache, resolution: int) -> tuple[Mesh, 
     key = {
         "mesh": content_key([scan.mesh_path]),
         "resolution": resolution,
-        "code": code_version(STAGE_CODE["atlas"], alone=[__name__]),
+        "code": _stage_code("atlas"),
     }
     folder, h_atlas = cache.get("atlas", key, compute)
     return load_mesh(folder / "mesh.obj"), h_atlas
@@ -510,7 +516,7 @@ def _support_stage(
         "cell": SUPPORT_CELL,
         "reach": SUPPORT_REACH,
         "codes": SUPPORT_CODES,
-        "code": code_version(STAGE_CODE["support"], alone=[__name__]),
+        "code": _stage_code("support"),
     }
     folder, h = cache.get("support", key, compute)
     return SupportAlbedo.load(folder / "support.npz"), h
@@ -568,7 +574,7 @@ def _traces_stage(
         "support_shadowed_kept": True,  # the support's shadow: entries kept out of range, its groups masked
         "files": trace_assembly.TABLE_FILES,
         "device": scanner_to_dict(scan.scanner),
-        "code": code_version(STAGE_CODE["traces"], alone=[__name__]),
+        "code": _stage_code("traces"),
     }
     folder, h_tr = cache.get("traces", key, compute)
     return trace_assembly.load_table(folder), json.loads((folder / "stats.json").read_text()), h_tr
