@@ -17,7 +17,9 @@ class TexelFlag(IntFlag):
     NO_LOBE = 4  # no specular lobe could be fitted: FALLBACK_ALPHA and rho_s 0
     NO_HIGHLIGHT = 8  # no view saw the fitted lobe's highlight (paper Eq. 6's beta below BETA_MIN)
     SPECULAR_UNCONSTRAINED = 16  # the refinement kept no lobe of the texel's own: its photos do not show one
-    TANGENT_UNCONSTRAINED = 32  # the lobe is isotropic to within ISOTROPIC_RATIO: the tangent is arbitrary
+    TANGENT_UNCONSTRAINED = (
+        32  # the lobe is isotropic to within RefineTuning.policy.isotropic_ratio: the tangent is arbitrary
+    )
     FROM_MATERIAL = 64  # the lobe is its basis material's: the texel's photos miss it
     MARGINAL = 128  # refined on entries the mesh shadows or sees at grazing angles (too few others)
     WIDTH_FROM_MATERIAL = 256  # a lobe of its own, its width its material's: the trace could not tell them apart

@@ -43,17 +43,15 @@ from ..io.threads import configured_threads
 from ..learn import models
 from ..learn.ragged import RaggedTraces
 from ..physics.emitter_blocks import SHADOW_SPLITS
-from ..refine.inputs import MIN_CLEAR_ENTRIES, REFINE_VIEWS
-from ..refine.passes import CALIBRATION_TEXELS, refine_fit
+from ..refine.passes import refine_fit
+from ..refine.settings import TUNING as REFINE_TUNING
 from ..refine.settings import RefineSettings
-from ..refine.support_light import CELL as SUPPORT_CELL
-from ..refine.support_light import CODE_RANGE as SUPPORT_CODES
-from ..refine.support_light import REACH_RADII as SUPPORT_REACH
 from ..refine.support_light import SupportAlbedo, SupportScene, estimate_support_albedo, exposed
 from ..register.check import register_to_mesh
 from ..register.colmap_model import model_files, read_colmap_model
-from ..register.refusal import MIN_MARGIN, MIN_SHARPNESS, outline_picture, refusal
-from ..register.sfm import MIN_REGISTERED, structure_from_motion
+from ..register.refusal import outline_picture, refusal
+from ..register.settings import TUNING as REGISTRATION_TUNING
+from ..register.sfm import structure_from_motion
 from ..scanner import camera
 from ..scanner.device_file import scanner_to_dict
 from ..scanner.scan_folder import Scan, check_mesh_size, read_photo
@@ -159,8 +157,11 @@ def _registration(
         "blurry": sel.blurry,
         "unreadable": sel.unreadable,
     }
-    if len(sel.kept) < MIN_REGISTERED:
-        raise NtpInputError(scan.photos_dir, f"only {len(sel.kept)} sharp, readable photos (need {MIN_REGISTERED})")
+    if len(sel.kept) < REGISTRATION_TUNING.sfm.min_registered:
+        raise NtpInputError(
+            scan.photos_dir,
+            f"only {len(sel.kept)} sharp, readable photos (need {REGISTRATION_TUNING.sfm.min_registered})",
+        )
     t0 = time.perf_counter()
     if scan.poses is not None:
         poses = {n: scan.poses[n] for n in sel.kept if n in scan.poses}
@@ -255,8 +256,8 @@ def _register_stage(
                     "confidence": {
                         "accepted": why is None,
                         "refusal": why,
-                        "min_sharpness": MIN_SHARPNESS,
-                        "min_margin": MIN_MARGIN,
+                        "min_sharpness": REGISTRATION_TUNING.refusal.min_sharpness,
+                        "min_margin": REGISTRATION_TUNING.refusal.min_margin,
                     },
                 },
                 indent=1,
@@ -386,10 +387,10 @@ def _reconstruct(
             "fit": h_fit,
             "support": h_support,
             "settings": dataclasses.asdict(REFINE),
-            "views": REFINE_VIEWS,
-            "min_clear_entries": MIN_CLEAR_ENTRIES,
+            "views": REFINE_TUNING.inputs.refine_views,
+            "min_clear_entries": REFINE_TUNING.inputs.min_clear_entries,
             "code": _stage_code("refine"),
-            "calibration_texels": CALIBRATION_TEXELS,
+            "calibration_texels": REFINE_TUNING.inputs.calibration_texels,
         }
         folder, _ = cache.get("refine", key, refine_stage)
         fitted = TexelFit.load(folder / "refined.npz")
@@ -513,9 +514,9 @@ def _support_stage(
     key = {
         "atlas": h_atlas,
         "poses": h_pose,
-        "cell": SUPPORT_CELL,
-        "reach": SUPPORT_REACH,
-        "codes": SUPPORT_CODES,
+        "cell": REFINE_TUNING.support.cell,
+        "reach": REFINE_TUNING.support.reach_radii,
+        "codes": REFINE_TUNING.support.code_range,
         "code": _stage_code("support"),
     }
     folder, h = cache.get("support", key, compute)

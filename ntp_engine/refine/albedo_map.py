@@ -12,7 +12,8 @@ Convention: a texel's albedo is the mean over its square of the map (a tap count
 lands in, not a bilinear blend of four): a map coarser than the surface's detail (the gallery's 128²
 of 256² textures) is then its detail's average; a sharper reading (bilinear taps) raised the
 gallery's ρd RMSE on three of its five objects (box +24%, knot +8%, vase +1%). Residuals in the
-entries' sensor sigmas, Cauchy (``ROBUST``) by iterative reweighting; a pull of ``PRIOR_WEIGHT``
+entries' sensor sigmas, Cauchy (``TUNING.albedo_map.robust``) by iterative reweighting; a pull of
+``TUNING.albedo_map.prior_weight``
 times the median texel's data weight toward the texel's own answer sets how far an edge sharpens
 (a step between two albedos is the system's least determined mode) and keeps a texel the taps
 barely see where it was. Texels not solved are held at their values; a tap that leaves the atlas
@@ -28,17 +29,7 @@ from scipy.sparse.linalg import cg
 from ..io.maps import uv_to_pixel
 from ..physics.brdf import RHO_D_MAX
 from .footprint import tap_uv
-
-# the pull to the texel's own answer, per median texel's data weight: 0.05 / 0.2 / 0.5 gave the demo ρd RMSE
-# 0.0165 / 0.0173 / 0.0182 (0.0199 without), the Cycles gallery's cells a net loss / even / a small gain
-PRIOR_WEIGHT = 0.2
-# texels some entry of which may blend this much of a neighbour's albedo (``refine.footprint.albedo_blend``) are
-# solved; others' taps see their own albedo. 0.02 instead of any blend: 25% fewer of the demo's texels, 2.6 of its
-# 10 s, the same ρd RMSE on the demo and within 0.0006 on the engine gallery's cells
-MIN_BLEND = 0.02
-ROBUST = 2.0  # Cauchy scale of the residuals, in sensor sigmas
-ROUNDS = 3  # a least-squares solve, then reweighted solves
-CG_TOLERANCE = 1e-6  # relative residual of the normal equations
+from .settings import TUNING
 
 
 def tap_texels(
@@ -103,13 +94,20 @@ def sharpened_albedos(
         x0 = out[solved, ch]
         x = x0.copy()
         s2 = inv_sigma[use, ch] ** 2
-        for k in range(ROUNDS):
-            wt = s2 if k == 0 else s2 / (1.0 + ((A @ x - y) * inv_sigma[use, ch] / ROBUST) ** 2)
+        for k in range(TUNING.albedo_map.rounds):
+            wt = s2 if k == 0 else s2 / (1.0 + ((A @ x - y) * inv_sigma[use, ch] / TUNING.albedo_map.robust) ** 2)
             Aw = A.multiply(wt[:, None]).tocsr()
             M = (A.T @ Aw).tocsr()
             data = M.diagonal()
-            prior = PRIOR_WEIGHT * float(np.median(data[data > 0])) if (data > 0).any() else 1.0
+            prior = TUNING.albedo_map.prior_weight * float(np.median(data[data > 0])) if (data > 0).any() else 1.0
             M = M + diags(np.full(U, prior))
-            x, _ = cg(M, Aw.T @ y + prior * x0, x0=x, M=diags(1.0 / M.diagonal()), rtol=CG_TOLERANCE, maxiter=500)
+            x, _ = cg(
+                M,
+                Aw.T @ y + prior * x0,
+                x0=x,
+                M=diags(1.0 / M.diagonal()),
+                rtol=TUNING.albedo_map.cg_tolerance,
+                maxiter=500,
+            )
         out[solved, ch] = np.clip(x, 0.0, RHO_D_MAX)
     return out

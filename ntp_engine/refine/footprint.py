@@ -9,7 +9,7 @@ a 9 mm tube. A lobe sharper than that spread (an alpha 0.006 lacquer spans 0.3 d
 it: the mixture of the four points' lobes is, to second order, the lobe convolved with their slope
 spread, which widens alpha^2 by a multiple of the slope variance along each axis (twice it for a
 Gaussian spread of a Beckmann lobe, whose slope variance is alpha^2 / 2: Toksvig, LEAN mapping;
-``SPREAD_WIDENING``, chosen on the gallery). The mean normal is
+``TUNING.footprint.spread_widening``, chosen on the gallery). The mean normal is
 the texel's (bilinear weights are unbiased), so the diffuse term is unchanged.
 
 Convention: the texel's geometric frame (t^, b^, n^) as ``refine.policy``; slopes in radians (small
@@ -27,7 +27,7 @@ entry, how much albedo the taps may blend in, read from an estimate of the albed
 ``delta`` (t^, b^ metres) from the texel's point — the pixel step (d x / d pixel) times its offset
 from the sample — at uv + (d uv / d(t, b)) delta in the map (``io.texels.uv_per_metre``), and
 the blend is sqrt(sum_a w_a d_a^2) with the sample's bilinear weights w_a and d_a the difference
-from the texel's own albedo less ``BLEND_NOISE`` (soft-thresholded: the estimate's own noise is no
+from the texel's own albedo less ``TUNING.footprint.blend_noise`` (soft-thresholded: the estimate's own noise is no
 edge). The refinement counts it as noise on the entry's diffuse light (``refine.policy``): an entry
 that may blend a neighbour weighs less. Taking the blend out of the pixel instead (the estimate's
 sum_a w_a d_a) needs the map exact below a texel: with the gallery's 128² estimates it cost the
@@ -46,6 +46,7 @@ from ..io.maps import bilinear
 from ..physics.frame import frame_from_normal_tangent
 from ..scanner import camera
 from ..scanner.scanner import Scanner
+from .settings import TUNING
 
 
 class Footprint(NamedTuple):
@@ -57,20 +58,6 @@ class Footprint(NamedTuple):
     def rows(self, idx: Tensor | np.ndarray | slice) -> Footprint:
         """The same for the texels ``idx``."""
         return Footprint(*(None if v is None else v[idx] for v in self))
-
-
-BLEND_NOISE = 0.05  # albedo differences in the estimate below this are its noise, not an edge
-# slope variance at most (~13 deg std): a grazing entry's pixel spans a long strip, which the
-# second-order picture does not describe
-SPREAD_MAX = 0.05
-NEGLIGIBLE = 1e-12  # slope variance (a 1e-6 rad spread): none
-# alpha^2 grows by this times the slope variance. 2 is a Gaussian spread's exact widening of a
-# Beckmann lobe; four point samples are not a Gaussian spread, and on the gallery (engine scans, true
-# poses; docs/history/accuracy.md) 2 over-corrected — the box's brushed sides took a sharp isotropic cluster
-# (tangent 67 deg) — and 1 still did on the knot (its alpha 0.02 plastic pooled 0.014: |log alpha|
-# 0.12 -> 0.39) and cost relit SSIM (dome, knot -0.005); 0.5 improved or kept every |log alpha| cell
-# but three (each by <= 0.03), and every object's relit SSIM within 0.002 or better
-SPREAD_WIDENING = 0.5
 
 
 def _pixel_steps(scanner: Scanner, entries: Tensor, mask: Tensor) -> tuple[Tensor, Tensor, Tensor]:
@@ -101,7 +88,7 @@ def slope_spread(scanner: Scanner, entries: Tensor, mask: Tensor, shape_operator
     turn = shape_operator.to(step.dtype)[:, None] @ step  # normal's (t, b) change per pixel step
     spread = turn @ torch.diag_embed(var) @ turn.transpose(-1, -2)
     spread = torch.where(seen[..., None, None], torch.nan_to_num(spread), torch.zeros_like(spread))
-    scale = (SPREAD_MAX / (spread[..., 0, 0] + spread[..., 1, 1]).clamp_min(1e-30)).clamp_max(1.0)
+    scale = (TUNING.footprint.spread_max / (spread[..., 0, 0] + spread[..., 1, 1]).clamp_min(1e-30)).clamp_max(1.0)
     return _flushed((spread * scale[..., None, None]).to(entries.dtype))
 
 
@@ -128,29 +115,29 @@ def tap_uv(delta: np.ndarray, uv: np.ndarray, uv_per_metre: np.ndarray) -> np.nd
 
 def albedo_blend(delta: Tensor, weight: Tensor, uv: np.ndarray, uv_per_metre: np.ndarray, albedo: np.ndarray) -> Tensor:
     """How much of its neighbours' albedo each entry's pixel sample may blend in ``(N, V, 3)``:
-    sqrt(sum_a w_a d_a^2), d_a = rho(uv_a) - rho(uv) soft-thresholded by ``BLEND_NOISE``, over the
+    sqrt(sum_a w_a d_a^2), d_a = rho(uv_a) - rho(uv) soft-thresholded by ``TUNING.footprint.blend_noise``, over the
     taps ``delta (N, V, 4, 2)`` with weights ``weight (N, V, 4)`` (``sample_points``) of texels at
     ``uv (N, 2)`` with ``uv_per_metre (N, 2, 2)`` (``io.texels``), rho the map ``albedo (H, W,
     3)`` sampled bilinearly (its unobserved texels filled). 0 where no tap is weighed or the map is
-    uniform within ``BLEND_NOISE``."""
+    uniform within ``TUNING.footprint.blend_noise``."""
     N, V = weight.shape[:2]
     at = tap_uv(delta.numpy(), uv, uv_per_metre)
     taps = bilinear(albedo, at.reshape(-1, 2)).reshape(N, V, 4, -1)
     d = taps - bilinear(albedo, uv)[:, None, None, :]
-    d = np.maximum(np.abs(d) - BLEND_NOISE, 0.0)
+    d = np.maximum(np.abs(d) - TUNING.footprint.blend_noise, 0.0)
     return torch.from_numpy(np.sqrt((weight.numpy()[..., None] * d * d).sum(2)))
 
 
 def widening(spread: Tensor, frame: Tensor) -> Tensor:
     """What each entry's pixel sample adds to a lobe's alpha_x^2, alpha_y^2 ``(N, V, 2)``:
-    ``SPREAD_WIDENING`` times the slope variance of ``spread (N, V, 2, 2)`` along the shading axes
+    ``TUNING.footprint.spread_widening`` times the slope variance of ``spread (N, V, 2, 2)`` along the shading axes
     t, b of ``frame (N, 3, 3)`` (rows t, b, n in the geometric frame; their tangent-plane parts).
     The lobe the sample sees has sqrt(alpha^2 + widening) (``refine.pixel_bases``)."""
     axes = frame[:, :2, :2].to(spread.dtype)  # (N, 2 axes, 2 tb)
-    return SPREAD_WIDENING * _flushed(torch.einsum("nai,nvij,naj->nva", axes, spread, axes))
+    return TUNING.footprint.spread_widening * _flushed(torch.einsum("nai,nvij,naj->nva", axes, spread, axes))
 
 
 def _flushed(variance: Tensor) -> Tensor:
-    """``variance`` with values below ``NEGLIGIBLE`` set to 0: a flat face's round-off (~1e-30) made
+    """``variance`` with values below ``TUNING.footprint.negligible`` set to 0: a flat face's round-off (~1e-30) made
     float32 subnormals, whose arithmetic is ~10x slower."""
-    return torch.where(variance.abs() < NEGLIGIBLE, torch.zeros_like(variance), variance)
+    return torch.where(variance.abs() < TUNING.footprint.negligible, torch.zeros_like(variance), variance)

@@ -26,14 +26,9 @@ from ..scanner.scanner import Scanner
 from .footprint import Footprint, albedo_blend, sample_points, slope_spread
 from .model import Observations, Start
 from .policy import Refined
+from .settings import TUNING
 from .support_light import SupportScene, SupportView
 
-REFINE_VIEWS = 24  # entries per texel the refinement reads (spread evenly over the trace)
-# a texel with this many clear entries (neither shadowed by its mesh nor grazing) refines on those
-# alone; with fewer it reads its marginal ones too (``refine_inputs``)
-MIN_CLEAR_ENTRIES = 1
-BLEND_ENTRIES = 1 << 18  # entries per block of with_albedo_blend (its float64 temporaries ~100 MB)
-REFINE_BATCH = 512  # texels per refinement batch: (batch, views, emitters) tensors stay ~100 MB
 # the bits the refinement sets (a texel refined again loses its previous ones)
 REFINE_FLAGS = (
     TexelFlag.SPECULAR_UNCONSTRAINED
@@ -51,7 +46,7 @@ class RefineInputs(NamedTuple):
     obs: Observations
     start: Start
     specular: torch.Tensor  # (n,) texels that seek a lobe
-    marginal: torch.Tensor  # (n,) texels that read shadowed or grazing entries (``MIN_CLEAR_ENTRIES``)
+    marginal: torch.Tensor  # (n,) texels that read shadowed or grazing entries (``TUNING.inputs.min_clear_entries``)
 
     def rows(self, idx: torch.Tensor) -> RefineInputs:
         """The same for the texels ``idx`` (rows) only."""
@@ -69,10 +64,10 @@ def refine_inputs(
     texels: Texels | None = None,
 ) -> RefineInputs:
     """What ``refine.policy.refine`` takes for the texels ``idx`` of ``traces`` (linear pixels as
-    captured: the camera model is the scanner's): their entries (``REFINE_VIEWS`` spread over each
+    captured: the camera model is the scanner's): their entries (``TUNING.inputs.refine_views`` spread over each
     trace), the start from ``fit``, which texels seek a lobe (those the highlight check did not
     flag). Marginal entries — the mesh shadows them (``traces.shadowed``) or sees them at grazing
-    angles (``traces.grazing``) — are read only by texels with fewer than ``MIN_CLEAR_ENTRIES``
+    angles (``traces.grazing``) — are read only by texels with fewer than ``TUNING.inputs.min_clear_entries``
     others (``marginal``): their model is coarser (half emitter blocks hidden or not, no light the
     mesh reflects into its own shadows; a grazing pixel spans a strip of surface) — on the knot
     reading shadowed entries everywhere cost the Cycles scan's normals 0.3-0.7 deg, on the gallery
@@ -83,9 +78,9 @@ def refine_inputs(
     rows, mask = traces.padded_rows(idx)  # every entry of each trace
     marginal_entry = mask & (shadowed(groups, traces.shadow_at(rows, mask)) | grazing(traces.entries_at(rows, mask)))
     clear = mask & ~marginal_entry
-    few = clear.sum(1) < MIN_CLEAR_ENTRIES
+    few = clear.sum(1) < TUNING.inputs.min_clear_entries
     marginal = few & marginal_entry.any(1)
-    rows, mask = spread_rows(rows, torch.where(few[:, None], mask, clear), REFINE_VIEWS)
+    rows, mask = spread_rows(rows, torch.where(few[:, None], mask, clear), TUNING.inputs.refine_views)
     i = idx.numpy()
     specular = torch.as_tensor(fit.flags[i] & TexelFlag.NO_HIGHLIGHT == 0)
     start = Start.from_fit(fit, i)
@@ -109,12 +104,12 @@ def with_albedo_blend(scanner: Scanner, traces: RaggedTraces, rho_d: np.ndarray,
     """``traces`` (trace i = texel i of ``texels``, which need ``uv_per_metre``) with each entry's
     ``albedo_blend``: how much of its neighbours' albedo its pixel sample may blend in
     (``refine.footprint.albedo_blend``), read from the map of ``rho_d (N, 3)``; texels no trace reached
-    take the nearest observed one's. In blocks of ~``BLEND_ENTRIES`` entries."""
+    take the nearest observed one's. In blocks of ~``TUNING.inputs.blend_entries`` entries."""
     assert texels.uv_per_metre is not None
     albedo = texels.image(rho_d, known=(traces.lengths > 0).numpy())
     uv = texels.uv
     out = torch.zeros(len(traces.entries), 3, dtype=torch.float32)
-    for start, stop in spans(traces.offsets.numpy(), BLEND_ENTRIES):
+    for start, stop in spans(traces.offsets.numpy(), TUNING.inputs.blend_entries):
         b = traces.block(start, stop)
         texel = torch.repeat_interleave(torch.arange(start, stop), b.lengths).numpy()
         entries = b.entries[:, None, :]

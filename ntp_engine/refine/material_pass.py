@@ -22,9 +22,8 @@ from ..io.texels import Texels
 from ..learn.ragged import RaggedTraces
 from ..physics.brdf import ALPHA_MAX, ALPHA_MIN
 from ..scanner.scanner import Scanner
-from .inputs import REFINE_BATCH, RefineInputs, refine_inputs, store_refined, turned_tangents
+from .inputs import RefineInputs, refine_inputs, store_refined, turned_tangents
 from .materials import (
-    LABEL_ROUNDS,
     BasisMaterials,
     WidthField,
     candidates,
@@ -42,25 +41,11 @@ from .materials import (
 )
 from .policy import lobe_costs, material_costs, refine_toward, turn_costs
 from .priors import LobePrior
-from .settings import ANISOTROPY_PARAMS, ISOTROPIC_RATIO, RefineSettings
+from .settings import ANISOTROPY_PARAMS, TUNING, RefineSettings
 from .support_light import SupportScene
 from .surface_fields import texel_spacing
 from .tangent_field import field_variation, fused_turns, neighbour_turns
 
-MAX_SOURCE_STD = np.radians(20.0)  # a tangent known worse than this tells its neighbours nothing (_fuse_tangents)
-TAKEN_TANGENT_STD = np.radians(20.0)  # a taken lobe's tangent: the turn its trace liked best, to about this
-MIN_SOURCE_SHARE = 0.02  # a material's texels that must have fixed their own tangents for the others to take theirs
-TURN_OBJECTION = 2.0  # a taken lobe's photos object to its neighbours' tangent at this much more cost (half chi^2)
-MIN_TURN = np.radians(0.5)  # a turn below this is not worth asking the photos about
-# a material's lobe width from its members' traces together (``pooled_widths``): this many sampled
-# members (with 256, five member samples of the knot's glossy plastic under Cycles pooled to alpha
-# 0.006-0.0205; with 1024, all of its members, 0.0119 every time), the width scaled over this grid
-# (per axis of an anisotropic lobe)
-POOL_TEXELS = 1024
-POOL_SCALES = 2.0 ** np.linspace(-2.0, 2.0, 9)
-# a texel with its own lobe takes its material's width where that costs its trace at most this more
-# than its own (AIC's 1 per parameter for the 2 alphas it would add; half chi-square units)
-WIDTH_PARAMS = 2.0
 TANGENT_PARAMS = 1  # of ANISOTROPY_PARAMS, the tangent's: each member's own (pooled_widths, materials.second_wins)
 
 
@@ -105,10 +90,10 @@ def pooled_widths(
     from a narrower one over a brighter diffuse, or a sharp one seen through an LED or two from a
     broader dimmer one, and its own solve lands by its start (the gallery's box alpha 0.5 metal
     came back 0.25 with rho_d x2.3, its glossy plastics and lacquers 1.5-4x too broad). Each of
-    ``POOL_TEXELS`` sampled members (``clear`` texels, ``members`` their material; seeded per
+    ``TUNING.materials.pool_texels`` sampled members (``clear`` texels, ``members`` their material; seeded per
     material) judges candidate widths with its own frame and its albedos re-solved
     (``refine.lobe_costs``); their clipped votes (``materials.pooled_votes``) decide. Candidates:
-    an isotropic lobe scaled over ``POOL_SCALES`` about the members' geometric-mean width and, where
+    an isotropic lobe scaled over ``TUNING.materials.pool_scales`` about the members' geometric-mean width and, where
     the members' median lobe is anisotropic, its smaller alpha scaled (the larger at the median),
     then its larger (the smaller at its pooled value). The anisotropic lobe is kept only where its
     votes beat the isotropic one's by ``ANISOTROPY_PARAMS`` — its ratio once, each member's own
@@ -121,27 +106,31 @@ def pooled_widths(
     them better (``materials.width_field``; the result's ``width``, ``BasisMaterials.alpha_at``)."""
     alpha, rho_s, lobe_rho_d = basis.alpha.copy(), basis.rho_s.copy(), basis.lobe_rho_d.copy()
     fields: list[WidthField | None] = []
-    S = len(POOL_SCALES)
+    S = len(TUNING.materials.pool_scales)
     for k in range(len(basis)):
         ids = clear[members == k]
-        ids = np.sort(np.random.default_rng(k).choice(ids, min(POOL_TEXELS, len(ids)), replace=False))
+        ids = np.sort(np.random.default_rng(k).choice(ids, min(TUNING.materials.pool_texels, len(ids)), replace=False))
         inp = refine_inputs(scanner, traces, torch.as_tensor(ids), fit, support, texels)
         a = alpha[k]
         mean = np.sqrt(a[0] * a[1]) * np.ones(2)  # the isotropic lobe of the members' mean width
-        iso = mean * POOL_SCALES[:, None]
-        if a[0] < ISOTROPIC_RATIO * a[1]:
+        iso = mean * TUNING.materials.pool_scales[:, None]
+        if a[0] < TUNING.policy.isotropic_ratio * a[1]:
             c, _, _ = member_lobe_costs(scanner, inp, iso, settings)
             profile = c.numpy()  # the isotropic lobe's
-            widths = [mean * pooled_scale(profile, POOL_SCALES)]
+            widths = [mean * pooled_scale(profile, TUNING.materials.pool_scales)]
         else:
             # the isotropic profile and the smaller alpha's in one call, then the larger alpha's
-            minor = a * np.stack([np.ones(S), POOL_SCALES], 1)
+            minor = a * np.stack([np.ones(S), TUNING.materials.pool_scales], 1)
             c, _, _ = member_lobe_costs(scanner, inp, np.concatenate([iso, minor]), settings)
-            aniso = np.clip(a * np.array([1.0, pooled_scale(c[:, S:].numpy(), POOL_SCALES)]), ALPHA_MIN, ALPHA_MAX)
+            aniso = np.clip(
+                a * np.array([1.0, pooled_scale(c[:, S:].numpy(), TUNING.materials.pool_scales)]), ALPHA_MIN, ALPHA_MAX
+            )
             profile = c[:, :S].numpy()
-            widths = [mean * pooled_scale(profile, POOL_SCALES)]
-            c, _, _ = member_lobe_costs(scanner, inp, aniso * np.stack([POOL_SCALES, np.ones(S)], 1), settings)
-            widths.append(aniso * np.array([pooled_scale(c.numpy(), POOL_SCALES), 1.0]))
+            widths = [mean * pooled_scale(profile, TUNING.materials.pool_scales)]
+            c, _, _ = member_lobe_costs(
+                scanner, inp, aniso * np.stack([TUNING.materials.pool_scales, np.ones(S)], 1), settings
+            )
+            widths.append(aniso * np.array([pooled_scale(c.numpy(), TUNING.materials.pool_scales), 1.0]))
         cand = -np.sort(-np.clip(widths, ALPHA_MIN, ALPHA_MAX), 1)  # alpha_x >= alpha_y
         c, rd, rs = member_lobe_costs(scanner, inp, cand, settings)
         j = 0  # the isotropic lobe, unless the anisotropic one wins the vote
@@ -151,14 +140,16 @@ def pooled_widths(
             # own tangent in that member's vote (the gallery box's mirror lacquer, alpha
             # 0.006: its members' own lobes 0.028 x 0.006, elongated along one diagonal of their
             # texels; with the tangents unpaid their votes pooled it 0.0098 x 0.006, 43 against 149)
-            anisotropic = cand[1, 0] >= ISOTROPIC_RATIO * cand[1, 1]
+            anisotropic = cand[1, 0] >= TUNING.policy.isotropic_ratio * cand[1, 1]
             paid = (ANISOTROPY_PARAMS - TANGENT_PARAMS, TANGENT_PARAMS) if anisotropic else (0, 0)
             j = int(second_wins(c.numpy(), *paid))
         alpha[k], rho_s[k] = cand[j], rs[:, j].median(0).values.numpy()
         lobe_rho_d[k] = rd[:, j].median(0).values.numpy()
         # an isotropic lobe's width may vary over the object (the members' profile says where)
         fields.append(
-            width_field(profile, texels.position[ids], mean, POOL_SCALES) if j == 0 and texels is not None else None
+            width_field(profile, texels.position[ids], mean, TUNING.materials.pool_scales)
+            if j == 0 and texels is not None
+            else None
         )
     return dataclasses.replace(basis, alpha=alpha, rho_s=rho_s, lobe_rho_d=lobe_rho_d, width=tuple(fields))
 
@@ -185,7 +176,7 @@ def _widths_from_materials(
     turn: np.ndarray | None = None,
 ) -> None:
     """Texels ``idx`` with a lobe of their own in a lobe material (``fit.material``) take its
-    width where their trace explains it within ``WIDTH_PARAMS`` of their own (both with the
+    width where their trace explains it within ``TUNING.materials.width_params`` of their own (both with the
     texel's frame and albedos re-solved, ``refine.lobe_costs``): alphas the material's, rho_d and
     rho_s re-solved, flagged ``TexelFlag.WIDTH_FROM_MATERIAL``. ``turn (len(idx),)`` (radians, NaN:
     none): where the material's lobe is also tried turned so about the normal — an isotropic lobe
@@ -193,7 +184,7 @@ def _widths_from_materials(
     ``neighbour_turn_costs``); the better of the two is kept, and its tangent with it. Updates ``fit``
     in place."""
     turn = np.full(len(idx), np.nan) if turn is None else turn
-    for rows in np.array_split(np.arange(len(idx)), -(-len(idx) // REFINE_BATCH)) if len(idx) else []:
+    for rows in np.array_split(np.arange(len(idx)), -(-len(idx) // TUNING.inputs.refine_batch)) if len(idx) else []:
         k = idx[rows]
         inp = refine_inputs(scanner, traces, torch.as_tensor(k), fit, support, texels)
         position = None if texels is None else texels.position[k]
@@ -212,7 +203,7 @@ def _widths_from_materials(
             j = turned[better]
             c[j, 1], rd[j, 1], rs[j, 1] = c_t[better, 0], rd_t[better, 0], rs_t[better, 0]
             angle[j] = turn[rows][j]
-        take = (c[:, 1] <= c[:, 0] + WIDTH_PARAMS).numpy()
+        take = (c[:, 1] <= c[:, 0] + TUNING.materials.width_params).numpy()
         t = k[take]
         fit.alpha[t] = alphas[take, 1]
         fit.rho_d[t], fit.rho_s[t] = rd[take, 1].numpy(), rs[take, 1].numpy()
@@ -268,7 +259,7 @@ def material_pass(
     spacing = 0.0 if texels is None else texel_spacing(texels.position)  # once for the pass
     field = neighbour_turn_costs(texels, fit, i_obs, label, own[i_obs], rest, len(basis), spacing)
     bar = progress.counter("materials", len(rest), "texel")
-    for k in np.array_split(np.arange(len(rest)), -(-len(rest) // REFINE_BATCH)) if len(rest) else []:
+    for k in np.array_split(np.arange(len(rest)), -(-len(rest) // TUNING.inputs.refine_batch)) if len(rest) else []:
         inp = refine_inputs(scanner, traces, torch.as_tensor(i_obs[rest[k]]), fit, support, texels)
         maybe = torch.as_tensor(candidates(prior[rest[k]], basis))
         near = None if field is None else (torch.as_tensor(field[0][k]), torch.as_tensor(field[1][k]))
@@ -289,7 +280,7 @@ def material_pass(
     label[rest] = np.argmin(costs[rest] + prior[rest], 1) - 1  # -1: matte
     if texels is not None:  # then by each class's share where the texel lies (materials.local_shares)
         neighbours = label_neighbours(texels.position[i_obs])
-        for _ in range(LABEL_ROUNDS):
+        for _ in range(TUNING.materials.label_rounds):
             prior = colour - np.log(local_shares(neighbours, label, shares))
             label[rest] = np.argmin(costs[rest] + prior[rest], 1) - 1
     fit.material[i_obs] = label
@@ -299,7 +290,9 @@ def material_pass(
     # turn its neighbours of the material point along
     with_own = np.nonzero(own[i_obs] & (label >= 0))[0]
     alpha_own, alpha_mat = fit.alpha[i_obs[with_own]], basis.alpha[label[with_own]]
-    ask = (alpha_own[:, 0] < ISOTROPIC_RATIO * alpha_own[:, 1]) & (alpha_mat[:, 0] >= ISOTROPIC_RATIO * alpha_mat[:, 1])
+    ask = (alpha_own[:, 0] < TUNING.policy.isotropic_ratio * alpha_own[:, 1]) & (
+        alpha_mat[:, 0] >= TUNING.policy.isotropic_ratio * alpha_mat[:, 1]
+    )
     turn = np.full(len(with_own), np.nan)
     around = neighbour_turn_costs(texels, fit, i_obs, label, own[i_obs], with_own[ask], len(basis), spacing)
     if around is not None:
@@ -340,7 +333,7 @@ def _take_material_lobes(
     fit.t_loc[i_takes] = turned_tangents(fit.t_loc[i_takes], fit.n_loc[i_takes], turn)
     sel = torch.as_tensor(np.nonzero(takes)[0])
     bar = progress.counter("material lobes", len(sel), "texel")
-    for idx in sel.split(REFINE_BATCH):
+    for idx in sel.split(TUNING.inputs.refine_batch):
         inp = refine_inputs(scanner, traces, idx, fit, support, texels)
         assert fit.material is not None  # material_pass labels every texel first
         m = fit.material[idx.numpy()]
@@ -372,20 +365,22 @@ def _fuse_tangents(
     theirs (``refine.tangent_field.fused_turns`` over the material's ``field_variation``) — a tangent
     its trace fixed stays, noise between neighbours is averaged — and ``std``'s tangent column the
     fused one. A texel that took its material's lobe (``TexelFlag.FROM_MATERIAL``) counts as knowing its
-    tangent to ``TAKEN_TANGENT_STD`` (its trace chose among turns; the LM's local std there says
+    tangent to ``TUNING.materials.taken_tangent_std`` (its trace chose among turns; the LM's local std there says
     where the lobe cannot point, not where it points) and is no source; it turns only where its
-    photos do not object (``TURN_OBJECTION`` or more under its own lobe, ``refine.policy.turn_costs``)
-    and where the field was seen on ``MIN_SOURCE_SHARE`` of the material's anisotropic texels or
+    photos do not object (``TUNING.materials.turn_objection`` or more under its own lobe, ``refine.policy.turn_costs``)
+    and where the field was seen on ``TUNING.materials.min_source_share`` of the material's anisotropic texels or
     more. Needs ``texels`` (where the texels lie; ``spacing`` their ``texel_spacing``); updates
     ``fit`` in place (docs/refinement.md, basis materials step 6)."""
     if texels is None:
         return
     alpha, flags = fit.alpha[i_obs], fit.flags[i_obs]
-    anisotropic = (label >= 0) & (alpha[:, 0] >= ISOTROPIC_RATIO * alpha[:, 1])
+    anisotropic = (label >= 0) & (alpha[:, 0] >= TUNING.policy.isotropic_ratio * alpha[:, 1])
     taken = flags & TexelFlag.FROM_MATERIAL > 0
     assert fit.std is not None  # refine_fit adds it before any pass
-    std = np.where(taken, TAKEN_TANGENT_STD, np.radians(np.nan_to_num(fit.std[i_obs, 1], nan=np.inf)))
-    constrained = anisotropic & ~taken & (flags & TexelFlag.TANGENT_UNCONSTRAINED == 0) & (std <= MAX_SOURCE_STD)
+    std = np.where(taken, TUNING.materials.taken_tangent_std, np.radians(np.nan_to_num(fit.std[i_obs, 1], nan=np.inf)))
+    constrained = (
+        anisotropic & ~taken & (flags & TexelFlag.TANGENT_UNCONSTRAINED == 0) & (std <= TUNING.materials.max_source_std)
+    )
     std_all = np.full(len(fit.std), np.inf)
     std_all[i_obs] = std
     turn, fused = np.zeros(len(i_obs)), std.copy()
@@ -397,16 +392,16 @@ def _fuse_tangents(
         turn[target], fused[target] = fused_turns(*geometry, source, i_obs[target], variation)
         # a field seen on too few of the material's texels is not laid over the rest: their own
         # traces' turns stay (the blob's underside: 20 sources, 64 deg off, for 2,624 taken lobes)
-        if len(source) < MIN_SOURCE_SHARE * len(target):
+        if len(source) < TUNING.materials.min_source_share * len(target):
             t_taken = target[taken[target]]
             turn[t_taken], fused[t_taken] = 0.0, std[t_taken]
     # a taken lobe turns only where its photos do not object
-    ask = np.nonzero(taken & anisotropic & (np.abs(turn) > MIN_TURN))[0]
-    for k in np.array_split(ask, -(-len(ask) // REFINE_BATCH)) if len(ask) else []:
+    ask = np.nonzero(taken & anisotropic & (np.abs(turn) > TUNING.materials.min_turn))[0]
+    for k in np.array_split(ask, -(-len(ask) // TUNING.inputs.refine_batch)) if len(ask) else []:
         inp = refine_inputs(scanner, traces, torch.as_tensor(i_obs[k]), fit, support, texels)
         turns = torch.stack([torch.zeros(len(k), dtype=torch.float64), torch.as_tensor(turn[k])], 1)
         c = turn_costs(inp.obs, inp.start, turns, settings).numpy()
-        objects = c[:, 1] - c[:, 0] >= TURN_OBJECTION
+        objects = c[:, 1] - c[:, 0] >= TUNING.materials.turn_objection
         turn[k[objects]], fused[k[objects]] = 0.0, std[k[objects]]
     fit.t_loc[i_obs] = turned_tangents(fit.t_loc[i_obs], fit.n_loc[i_obs], turn)
     changed = anisotropic & np.isfinite(fused)

@@ -44,15 +44,7 @@ from .pixel_bases import (
     specular_basis,
     specular_basis_and_derivatives,
 )
-from .settings import (
-    BOUNCE_NOISE,
-    CENSOR_CODE,
-    EXPANDED_BLOCKS,
-    SELECT_FLOOR,
-    SELECT_WIDEN,
-    RefineSettings,
-    SensorNoise,
-)
+from .settings import CENSOR_CODE, TUNING, RefineSettings, SensorNoise
 from .support_light import (
     Sources,
     SupportEmitters,
@@ -237,13 +229,13 @@ class Trace:
         self._add_noise(albedo_blend.to(self.y.dtype) * basis.to(self.y.dtype))
 
     def _bounce_noise(self) -> None:
-        """The bounced light's uncertainty (``BOUNCE_NOISE``) as noise on each entry, added in
+        """The bounced light's uncertainty (``TUNING.model.bounce_noise``) as noise on each entry, added in
         quadrature to the sensor's: the pixel times its share of bounced light — of the diffuse
         light at the geometric normal, per channel; fixed by the data and the geometry alone, so
         every start and round of a texel is judged on the same scale. Censoring stays the pixel's."""
         direct, bounced = self.diffuse_z[..., 2], self.support_diffuse[..., 2]  # (N, V, 3 channels)
         share = bounced / (direct + bounced).clamp_min(1e-30)
-        self._add_noise(BOUNCE_NOISE * share.to(self.y.dtype) * self.y)
+        self._add_noise(TUNING.model.bounce_noise * share.to(self.y.dtype) * self.y)
 
     def _add_noise(self, extra: Tensor) -> None:
         """``extra (N, V, 3)`` added in quadrature to each entry's sigma."""
@@ -313,9 +305,9 @@ class Round:
             seen = log_alpha.exp()
             if self.widening is not None:  # the widest lobe any entry sees
                 seen = torch.sqrt(seen**2 + self.widening.amax(1))
-            wide = (SELECT_WIDEN * seen).clamp(SELECT_FLOOR, ALPHA_MAX)
+            wide = (TUNING.model.select_widen * seen).clamp(TUNING.model.select_floor, ALPHA_MAX)
             score = lobe_weights(frame0, tr.wi_c, tr.wo, tr.falloff_c, wide, tr.srow)  # (N, V, C)
-            top = score.topk(EXPANDED_BLOCKS, -1, sorted=False).indices
+            top = score.topk(TUNING.model.expanded_blocks, -1, sorted=False).indices
             self.emitters = selected_emitters(
                 top,
                 tr.blocks.members,
@@ -424,7 +416,7 @@ def predict(tr: Trace, frame: Tensor, p: Tensor) -> tuple[Tensor, Tensor]:
 
 
 def highlight_share(tr: Trace, frame: Tensor, p: Tensor) -> Tensor:
-    """The largest share ``(N,)`` of an entry's pixel that the fitted lobe makes (``MIN_SPECULAR_SHARE``
+    """The largest share ``(N,)`` of an entry's pixel that the fitted lobe makes (``TUNING.model.min_specular_share``
     or more: some entry shows it)."""
     d, s = predict(tr, frame, p)
     pred_s = (p[:, None, P_RHO_S] * s).sum(-1)

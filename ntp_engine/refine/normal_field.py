@@ -8,7 +8,7 @@ map exists for the detail the mesh lacks (a tile's bevel, an engraving): the nei
 only as far as the data say the field is smooth — the field's semivariogram over distance beyond
 the texels' own errors (``surface_fields``), and, texel by texel, a neighbour whose offset differs
 from the texel's beyond both their errors weighs less (a bilateral range weight), and a texel whose
-neighbours disagree with it beyond ``GATE`` sigmas keeps its own.
+neighbours disagree with it beyond ``TUNING.fields.normal_gate`` sigmas keeps its own.
 
 Convention: texels ``(N,)`` with object-space ``position (N, 3)`` (m) and unit geometric (mesh)
 ``normal (N, 3)``; the field fused is each refined normal's offset from its mesh normal, ``n - m``
@@ -18,17 +18,11 @@ Convention: texels ``(N,)`` with object-space ``position (N, 3)`` (m) and unit g
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 from scipy.spatial import cKDTree
 
+from .settings import TUNING
 from .surface_fields import field_pairs, fused_with_neighbours, semivariogram, texel_spacing
-
-NEIGHBOURS = 24  # nearest texels of the group fused with each
-RANGE = 1.0  # a neighbour whose offset differs by s sigmas (both errors) weighs exp(-s^2 / 2 RANGE^2) more or less
-GATE = 3.0  # sigmas of disagreement beyond which a texel keeps its own normal
-MIN_STD = math.radians(0.1)  # a floor under the LM's normal std (its weights stay finite)
 
 
 def fused_normals(
@@ -40,16 +34,16 @@ def fused_normals(
     spacing: float | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """The ``source (S,)`` texels' refined normals ``refined (N, 3)`` (unit, object space) each
-    fused with its ``NEIGHBOURS`` nearest other sources': their offsets from the mesh ``normal``
+    fused with its ``TUNING.fields.normal_neighbours`` nearest other sources': their offsets from the mesh ``normal``
     averaged with weights 1 / (std_j^2 + 2 gamma(d)) — gamma the sources' semivariogram at the
     distance d (``surface_fields``) — times the range weight (module docstring); that mean counts
     as one measurement whose variance is its standard error (at least its spread over the square
     root of the effective number), combined with the texel's own by inverse variance unless they
-    differ by more than ``GATE`` sigmas together. Returns the fused unit normals ``(S, 3)`` and
+    differ by more than ``TUNING.fields.normal_gate`` sigmas together. Returns the fused unit normals ``(S, 3)`` and
     their std ``(S,)`` (radians). ``spacing``: ``texel_spacing`` of the positions, computed here
     unless given."""
     S = len(source)
-    own = np.maximum(std[source], MIN_STD)
+    own = np.maximum(std[source], TUNING.fields.normal_min_std)
     offset = refined[source] - normal[source]
     if S < 2:
         return refined[source].copy(), own.copy()
@@ -57,15 +51,17 @@ def fused_normals(
     spacing = texel_spacing(pos) if spacing is None else spacing
     i, j, d = field_pairs(pos)
     variation = semivariogram(d, ((offset[i] - offset[j]) ** 2).sum(1), own[i] ** 2 + own[j] ** 2, spacing, 2)
-    dist, near = cKDTree(pos).query(pos, k=min(NEIGHBOURS + 1, S))
+    dist, near = cKDTree(pos).query(pos, k=min(TUNING.fields.normal_neighbours + 1, S))
     field = 2 * np.interp(dist, *variation)  # variance of the field's change from a neighbour
     apart2 = ((offset[near] - offset[:, None]) ** 2).sum(-1) / (own[:, None] ** 2 + own[near] ** 2)
-    w = np.exp(-0.5 * apart2 / RANGE**2) / (own[near] ** 2 + field)
+    w = np.exp(-0.5 * apart2 / TUNING.fields.normal_range**2) / (own[near] ** 2 + field)
     w = w * (near != np.arange(S)[:, None])  # a texel is not its own neighbour
     safe = np.maximum(w.sum(1), 1e-300)
     mean = (w[..., None] * offset[near]).sum(1) / safe[:, None]
     spread = (w * ((offset[near] - mean[:, None]) ** 2).sum(-1)).sum(1) / safe
-    share, fused_var, _ = fused_with_neighbours(own**2, w, spread, ((mean - offset) ** 2).sum(1), GATE)
+    share, fused_var, _ = fused_with_neighbours(
+        own**2, w, spread, ((mean - offset) ** 2).sum(1), TUNING.fields.normal_gate
+    )
     fused = normal[source] + offset + share[:, None] * (mean - offset)
     fused /= np.linalg.norm(fused, axis=1, keepdims=True)
     fused_std = np.sqrt(fused_var)

@@ -21,20 +21,15 @@ from ..io.progress import QUIET, Progress
 from ..io.texels import Texels
 from ..learn.ragged import RaggedTraces
 from ..scanner.scanner import Scanner
-from .albedo_map import MIN_BLEND, sharpened_albedos, tap_texels
+from .albedo_map import sharpened_albedos, tap_texels
 from .footprint import sample_points
-from .inputs import REFINE_BATCH, refine_inputs, store_refined, with_albedo_blend
+from .inputs import refine_inputs, store_refined, with_albedo_blend
 from .material_pass import material_pass
 from .model import Start, predicted_light
 from .normal_field import fused_normals
 from .policy import calibrated, refine
-from .settings import RefineSettings
+from .settings import TUNING, RefineSettings
 from .support_light import SupportScene, face_albedo
-
-CALIBRATION_TEXELS = 512  # texels refined first to calibrate the noise and the normal's pull (refine.policy.calibrated)
-# rounds of the albedo-edge pass (from the first pass's answers); 1 lost the engine box's mirror
-# lacquer lobe (|log alpha| 0.002 -> 1.29) — docs/refinement.md, "Speed"
-EDGE_ROUNDS = 2
 
 
 def refine_fit(
@@ -65,7 +60,7 @@ def refine_fit(
     atlas the traces were assembled for, trace i = texel i), weighing most the turn its neighbours
     of the material point along (``refine.tangent_field``). With ``support`` (and ``texels``), Eq. 1
     gains the light the support reflects onto the object (``refine.support_light``). Last, the albedos
-    of the edge pass's texels that may blend ``MIN_BLEND`` or more of a neighbour's are solved
+    of the edge pass's texels that may blend ``TUNING.albedo_map.min_blend`` or more of a neighbour's are solved
     jointly from their entries' pixel samples (``sharpen_albedos``, ``settings.albedo_map``). Its batches'
     arrays reuse the memory the previous ones freed (``io.allocator``)."""
     with freed_memory_kept():
@@ -87,7 +82,7 @@ def _refine_fit(
     support = _lit_by_itself(support, texels, fit, todo)  # from the network's albedos
     if len(todo):  # the noise model, calibrated on a seeded sample of the texels
         gen = torch.Generator().manual_seed(0)
-        sample = todo[torch.randperm(len(todo), generator=gen)[:CALIBRATION_TEXELS]].sort().values
+        sample = todo[torch.randperm(len(todo), generator=gen)[: TUNING.inputs.calibration_texels]].sort().values
         inp = refine_inputs(scanner, traces, sample, fit, support, texels)
         settings = calibrated(inp.obs, inp.start, inp.specular, settings)
         fit.noise_scale = settings.noise.relative / RefineSettings().noise.relative
@@ -107,14 +102,16 @@ def _refine_fit(
         texel = np.repeat(np.arange(traces.num_traces), traces.lengths.numpy())
         np.maximum.at(per_trace, texel, traces.albedo_blend.amax(1).numpy())
         edges = todo[torch.as_tensor(per_trace[todo.numpy()] > 0)]
-        sharpened = todo[torch.as_tensor(per_trace[todo.numpy()] > MIN_BLEND)]  # the albedo map's texels
-        # from the first pass's answers, EDGE_ROUNDS and no multi-start: the blend only reweighs
+        sharpened = todo[
+            torch.as_tensor(per_trace[todo.numpy()] > TUNING.albedo_map.min_blend)
+        ]  # the albedo map's texels
+        # from the first pass's answers, TUNING.inputs.edge_rounds and no multi-start: the blend only reweighs
         # some entries. The weak pulls still centre on the start: centred on the first pass's
         # normal, which the blended entries had tipped, they held the matte normals there. A texel
         # that kept no lobe seeks none: noise on some of its entries shows no lobe that all did not
         warm = fit.copy()
         warm.flags[(fit.flags & TexelFlag.SPECULAR_UNCONSTRAINED) != 0] |= TexelFlag.NO_HIGHLIGHT
-        again = dataclasses.replace(settings, rounds=EDGE_ROUNDS, starts=False)
+        again = dataclasses.replace(settings, rounds=TUNING.inputs.edge_rounds, starts=False)
         _refine_texels(scanner, traces, fit, warm, edges, again, progress, texels, support, "albedo edges", start)
     if settings.materials:
         material_pass(scanner, traces, fit, todo, settings, progress, texels, support)
@@ -149,7 +146,8 @@ def sharpen_albedos(
     support: SupportScene | None = None,
     progress: Progress = QUIET,
 ) -> None:
-    """The albedos of the texels ``idx`` (those whose pixels may blend ``MIN_BLEND`` of a neighbour's) solved
+    """The albedos of the texels ``idx`` (those whose pixels may blend ``TUNING.albedo_map.min_blend`` of a
+    neighbour's) solved
     jointly from their entries' pixel samples at ``fit``'s answers (``refine.albedo_map``): each entry
     (those ``refine_inputs`` reads) as its diffuse light times the albedos its taps land in, its
     lobe's light taken out. ``texels`` need ``uv_per_metre``; updates ``fit.rho_d`` in place."""
@@ -159,7 +157,7 @@ def sharpen_albedos(
     uv = texels.uv
     parts: list[tuple[np.ndarray, ...]] = []
     bar = progress.counter("albedo map", len(idx), "texel")
-    for batch in idx.split(REFINE_BATCH):
+    for batch in idx.split(TUNING.inputs.refine_batch):
         inp = refine_inputs(scanner, traces, batch, fit, support, texels)
         diffuse, lobe, inv_sigma = predicted_light(inp.obs, inp.start, settings)
         delta, weight = sample_points(scanner, inp.obs.entries, inp.obs.mask)
@@ -214,7 +212,7 @@ def _refine_texels(
     """The texels ``todo`` refined from ``start`` into ``fit``, the weak pulls centred on ``centre``
     (default: the start)."""
     bar = progress.counter(name, len(todo), "texel")
-    for idx in todo.split(REFINE_BATCH):
+    for idx in todo.split(TUNING.inputs.refine_batch):
         inp = refine_inputs(scanner, traces, idx, start, support, texels)
         pulls = None if centre is None else Start.from_fit(centre, idx.numpy())
         r = refine(inp.obs, inp.start, inp.specular, settings, pulls)

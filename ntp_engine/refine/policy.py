@@ -36,24 +36,8 @@ from .model import (
     residuals,
 )
 from .priors import LobePrior, Prior, normal_prior
-from .settings import (
-    ANISOTROPY_PARAMS,
-    ANISOTROPY_TEST,
-    ISOTROPIC_RATIO,
-    ISOTROPIC_ROUNDS,
-    LOBE_EVIDENCE,
-    LOBE_PARAMS,
-    MIN_SPECULAR_SHARE,
-    NOISE_SCALE,
-    TANGENT_TURNS,
-    RefineSettings,
-    SensorNoise,
-)
+from .settings import ANISOTROPY_PARAMS, LOBE_PARAMS, TUNING, RefineSettings, SensorNoise
 from .solver import albedo_start, robust_albedos, solve
-
-# a texel whose normal's 1-sigma is below this (deg) has it from its photos, not the prior
-# (``calibrated``: where the normal's pull centres), and this many such texels decide
-NORMAL_FIXED_DEG, NORMAL_FIXED_TEXELS = 1.0, 16
 
 
 @dataclass
@@ -81,7 +65,7 @@ def refine(
     ``entries (N, V, 12)`` as captured with ``mask (N, V)`` and
     ``shadow (N, V)`` (the emitter groups the mesh hides from each entry: ``learn.ragged``);
     ``specular (N,)``: texels whose lobe is solved. A texel without one, or whose solved lobe no
-    entry shows (below ``MIN_SPECULAR_SHARE`` of every pixel), gets a diffuse-only solve from its
+    entry shows (below ``TUNING.model.min_specular_share`` of every pixel), gets a diffuse-only solve from its
     start and rho_s = 0, its lobe flagged unconstrained. ``footprint``: what each entry's pixel sample
     spans (``refine.footprint``; None: a flat surface, no albedo blend) — the normals, which widen the
     lobe it sees, and the neighbours' albedo it may blend in. Never NaN: a failed solve keeps the start."""
@@ -108,7 +92,7 @@ def _refine(
         sub = tr if len(idx) == N else tr.rows(idx)  # idx sorted: all texels or a subset
         f, q, c, h = solve(sub, frame[idx], p[idx], True, settings, weak=weak.rows(idx))
         peak = highlight_share(sub, f, q)
-        keep = (peak >= MIN_SPECULAR_SHARE) & (c < cost[idx] - evidence[idx])
+        keep = (peak >= TUNING.model.min_specular_share) & (c < cost[idx] - evidence[idx])
         diffuse_cost = cost[idx[keep]]
         highlight[idx] = torch.where(keep, peak, torch.zeros_like(peak))
         k = idx[keep]
@@ -128,7 +112,7 @@ def _prefer_isotropic(
 ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
     """Isotropic unless the trace shows otherwise: of the N solved lobes of ``tr``'s texels ``idx``
     (``frame``, ``p``, ``cost``, solved under ``prior``), those less anisotropic than
-    ``ANISOTROPY_TEST`` are solved again from the same answer with their alphas tied (at their
+    ``TUNING.policy.anisotropy_test`` are solved again from the same answer with their alphas tied (at their
     geometric mean), under the same pulls. The anisotropic answer stays only where it lowers the
     cost by more than AIC's penalty for the ``ANISOTROPY_PARAMS`` it adds (1 per parameter in half
     chi-square units; BIC's, 4.3 at 72 residuals, made a third of a 2.5:1 lobe isotropic in the
@@ -138,7 +122,7 @@ def _prefer_isotropic(
     ``sel`` take the isotropic answer, and its frame, p, cost, Hessian and highlight ``(len(sel),
     ...)``."""
     la = p[:, P_LOGA]
-    test = ((la[:, 0] - la[:, 1]).abs() < math.log(ANISOTROPY_TEST)).nonzero().squeeze(1)
+    test = ((la[:, 0] - la[:, 1]).abs() < math.log(TUNING.policy.anisotropy_test)).nonzero().squeeze(1)
     if len(test) == 0:
         none = torch.zeros(0, dtype=torch.long)
         return none, frame[:0], p[:0], cost[:0], torch.zeros(0, N_PARAMS, N_PARAMS, dtype=torch.float64), p[:0, 0]
@@ -146,9 +130,11 @@ def _prefer_isotropic(
     start = p[test].clone()
     start[:, P_LOGA] = start[:, P_LOGA].mean(1, keepdim=True)
     pulls = prior.rows(test).tied(torch.ones(len(test), dtype=torch.bool))
-    f, q, c, h = solve(sub, frame[test], start, True, dataclasses.replace(settings, rounds=ISOTROPIC_ROUNDS), pulls)
+    f, q, c, h = solve(
+        sub, frame[test], start, True, dataclasses.replace(settings, rounds=TUNING.policy.isotropic_rounds), pulls
+    )
     peak = highlight_share(sub, f, q)
-    take = torch.isfinite(c) & (peak >= MIN_SPECULAR_SHARE) & (c <= cost[test] + ANISOTROPY_PARAMS)
+    take = torch.isfinite(c) & (peak >= TUNING.model.min_specular_share) & (c <= cost[test] + ANISOTROPY_PARAMS)
     return test[take], f[take], q[take], c[take], h[take], peak[take]
 
 
@@ -162,8 +148,8 @@ def _lobe_can_pass(diffuse_cost: Tensor, evidence: Tensor) -> Tensor:
 
 def lobe_evidence(residuals: Tensor) -> Tensor:
     """How much a texel's own lobe must lower its robust cost to be kept, for its number of
-    ``residuals (N,)``: ``LOBE_EVIDENCE`` or BIC's penalty for ``LOBE_PARAMS``, the larger."""
-    return (0.5 * LOBE_PARAMS * residuals.clamp_min(1).to(torch.float32).log()).clamp_min(LOBE_EVIDENCE)
+    ``residuals (N,)``: ``TUNING.policy.lobe_evidence`` or BIC's penalty for ``LOBE_PARAMS``, the larger."""
+    return (0.5 * LOBE_PARAMS * residuals.clamp_min(1).to(torch.float32).log()).clamp_min(TUNING.policy.lobe_evidence)
 
 
 class MaterialCosts(NamedTuple):
@@ -189,11 +175,11 @@ def material_costs(
     normal and its rho_d re-solved (bounded least squares; ``(N, 1 + K, 3)``, NaN where not judged),
     and the turn ``(N, K)`` (radians, about the normal from ``start``'s tangent) that fits best (its
     rho_d the one at that turn). An anisotropic lobe at the texel's start tangent is a guess (a UV
-    direction), so it is tried at ``TANGENT_TURNS`` turns over 180 deg and its cost is the negative
+    direction), so it is tried at ``TUNING.policy.tangent_turns`` turns over 180 deg and its cost is the negative
     log of their mean likelihood (uniform over turns; the cheapest alone would let a lobe hide in
     the noise by choosing where to point). ``turn_prior`` = (turn, agree)
     ``(N, K)``: where the texel's neighbours say material k points (``refine.tangent_field``) — that
-    turn is tried too and weighs ``agree`` in the mean, the others ``(1 - agree) / TANGENT_TURNS``
+    turn is tried too and weighs ``agree`` in the mean, the others ``(1 - agree) / TUNING.policy.tangent_turns``
     (agree 0: uniform; the turns stay anchored at the start tangent, a UV direction, which is the
     better guess where neighbours disagree). Columns are comparable: each model has the same free
     rho_d."""
@@ -219,9 +205,9 @@ def material_costs(
         if len(idx) == 0:
             continue
         tr, frame, d = tr_all.rows(idx), frame_all[idx], diffuse[idx]
-        anisotropic = bool(alpha[m - 1, 0] >= ISOTROPIC_RATIO * alpha[m - 1, 1])
-        n = TANGENT_TURNS if anisotropic else 1
-        angles = (torch.arange(n, dtype=dtype) * math.pi / TANGENT_TURNS).expand(len(idx), n)
+        anisotropic = bool(alpha[m - 1, 0] >= TUNING.policy.isotropic_ratio * alpha[m - 1, 1])
+        n = TUNING.policy.tangent_turns if anisotropic else 1
+        angles = (torch.arange(n, dtype=dtype) * math.pi / TUNING.policy.tangent_turns).expand(len(idx), n)
         weight = torch.full((len(idx), n), 1.0 / n, dtype=dtype)
         if anisotropic and turn_prior is not None:  # the neighbours' turn as one more, weighing agree
             agree = turn_prior[1][idx, m - 1].to(dtype).clamp(0, 1)[:, None]
@@ -332,7 +318,7 @@ def refine_toward(obs: Observations, start: Start, prior: LobePrior, settings: R
         prior.rho_s_sigma.to(dtype).clamp_min(1e-3) ** -2,
         torch.zeros(N, dtype=dtype),
         settings.rho_s_tint_sigma**-2,
-    ).tied(p[:, 3] - p[:, 4] < math.log(ISOTROPIC_RATIO))  # an isotropic material's lobe stays isotropic
+    ).tied(p[:, 3] - p[:, 4] < math.log(TUNING.policy.isotropic_ratio))  # an isotropic material's lobe stays isotropic
     f, q, cost, H = solve(tr, frame, p, True, settings, pulls)
     bad = ~(torch.isfinite(q).all(1) & torch.isfinite(f).flatten(1).all(1) & torch.isfinite(cost))
     q[bad], f[bad] = p[bad], frame[bad]
@@ -341,12 +327,13 @@ def refine_toward(obs: Observations, start: Start, prior: LobePrior, settings: R
 
 def calibrated(obs: Observations, start: Start, specular: Tensor, settings: RefineSettings) -> RefineSettings:
     """``settings`` calibrated on a refinement of these sample traces. The noise model is scaled
-    (within ``NOISE_SCALE``) so that the answer's residuals have unit robust scale — 1.4826 x the
+    (within ``TUNING.model.noise_scale``) so that the answer's residuals have unit robust scale — 1.4826 x the
     median |normalised residual| over its entries is 1 when the model is right (Monte Carlo renders
     and unmodelled effects give more): data from a noisier source then weigh against the priors as
-    much as they deserve; a quieter source keeps the model as it is (``NOISE_SCALE``'s floor of 1).
+    much as they deserve; a quieter source keeps the model as it is (``TUNING.model.noise_scale``'s floor of 1).
     And the normal's weak pull centres on the mesh's normal where the sample's texels whose own
-    photos fix their normals (1-sigma below ``NORMAL_FIXED_DEG``, at least ``NORMAL_FIXED_TEXELS``
+    photos fix their normals (1-sigma below ``TUNING.policy.normal_fixed_deg``, at least
+    ``TUNING.policy.normal_fixed_texels``
     of them) lie nearer it than to their start's in the median — the start (the network's answer)
     reads the same photos, and where it errs a pull to it keeps the error on the texels the photos
     say little about (docs/refinement.md)."""
@@ -356,11 +343,11 @@ def calibrated(obs: Observations, start: Start, specular: Tensor, settings: Refi
     res, active = residuals(tr, *predict(tr, r.frame, p), p)
     vals = res[active].abs()
     k = float(1.4826 * vals.median()) if len(vals) else 1.0
-    k = min(max(k, NOISE_SCALE[0]), NOISE_SCALE[1])
+    k = min(max(k, TUNING.model.noise_scale[0]), TUNING.model.noise_scale[1])
     noise = SensorNoise(settings.noise.read_code * k, settings.noise.relative * k, settings.noise.robust)
-    fixed = r.std[:, 0] < NORMAL_FIXED_DEG
+    fixed = r.std[:, 0] < TUNING.policy.normal_fixed_deg
     at_mesh = settings.normal_prior_at_mesh
-    if int(fixed.sum()) >= NORMAL_FIXED_TEXELS:
+    if int(fixed.sum()) >= TUNING.policy.normal_fixed_texels:
         n = r.frame[fixed, 2]
         from_mesh = torch.acos(n[:, 2].clamp(-1, 1)).median()
         n0 = torch.nn.functional.normalize(start.normal[fixed].to(n.dtype), dim=1)
@@ -373,9 +360,9 @@ def _finish(
     frame: Tensor, p: Tensor, H: Tensor, cost: Tensor, highlight: Tensor, from_material: Tensor | None = None
 ) -> Refined:
     """Canonical lobe (alpha_x >= alpha_y), the flags and the 1-sigma uncertainties. A lobe is
-    written where seen (its ``highlight`` is ``MIN_SPECULAR_SHARE`` of some entry's pixel or more)
+    written where seen (its ``highlight`` is ``TUNING.model.min_specular_share`` of some entry's pixel or more)
     or given ``from_material``; else rho_s = 0."""
-    seen = highlight >= MIN_SPECULAR_SHARE
+    seen = highlight >= TUNING.model.min_specular_share
     from_material = torch.zeros_like(seen) if from_material is None else from_material
     kept = seen | from_material
     la = p[:, P_LOGA]
@@ -393,7 +380,7 @@ def _finish(
     )
     std = torch.where(kept[:, None], std, std.masked_fill(torch.tensor([False, True, True, True]), math.inf))
     flags = (~seen).long() * TexelFlag.SPECULAR_UNCONSTRAINED | from_material.long() * TexelFlag.FROM_MATERIAL
-    iso = (la[:, 0] - la[:, 1]) < math.log(ISOTROPIC_RATIO)
+    iso = (la[:, 0] - la[:, 1]) < math.log(TUNING.policy.isotropic_ratio)
     flags = flags | ((~seen | iso).long() * TexelFlag.TANGENT_UNCONSTRAINED)
     rho_s = torch.where(kept[:, None], p[:, P_RHO_S], torch.zeros_like(p[:, P_RHO_S]))
     return Refined(frame, la, p[:, P_RHO_D], rho_s, flags, std, cost, highlight)

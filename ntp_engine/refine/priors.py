@@ -15,7 +15,7 @@ import torch
 from torch import Tensor
 
 from .model import P_LOGA, P_RHO_S
-from .settings import ISOTROPIC_TIE, TINT_FLOOR, RefineSettings
+from .settings import TUNING, RefineSettings
 
 
 class LobePrior(NamedTuple):
@@ -33,7 +33,7 @@ class Prior(NamedTuple):
     ``normal_prior``; geometric frame, weight ``n_w = 1 / sigma^2`` in rad^-2), log alphas toward
     ``la0 (N, 2)`` (``la_w (N,)``) and rho_s toward ``rs0 (N, 3)`` (``rs_w (N,)``; 0 = none): the
     start's, or a basis material's. ``tie_w (N,)``: a pull of log alpha_x to log alpha_y
-    (``ISOTROPIC_TIE``: an isotropic lobe; 0 = none). ``tint_w``: rho_s's channels to their mean
+    (``TUNING.solver.isotropic_tie``: an isotropic lobe; 0 = none). ``tint_w``: rho_s's channels to their mean
     (``RefineSettings.rho_s_tint_sigma^-2``, relative to the mean: ``tint_scale``)."""
 
     n_prior: Tensor
@@ -60,7 +60,7 @@ class Prior(NamedTuple):
 
     def tied(self, isotropic: Tensor) -> Prior:
         """The same pulls with the lobes of the texels ``isotropic (N,)`` (bool) held isotropic."""
-        return self._replace(tie_w=torch.where(isotropic, ISOTROPIC_TIE, 0.0).to(self.la_w.dtype))
+        return self._replace(tie_w=torch.where(isotropic, TUNING.solver.isotropic_tie, 0.0).to(self.la_w.dtype))
 
     @classmethod
     def weak(cls, frame: Tensor, p: Tensor, settings: RefineSettings) -> Prior:
@@ -80,8 +80,8 @@ class Prior(NamedTuple):
 
 
 def tint_scale(rho_s: Tensor) -> Tensor:
-    """1 / (mean channel^2 + TINT_FLOOR^2) ``(N,)`` of ``rho_s (N, 3)``: the tint pull is relative."""
-    return 1.0 / (rho_s.mean(1) ** 2 + TINT_FLOOR**2)
+    """1 / (mean channel^2 + TUNING.solver.tint_floor^2) ``(N,)`` of ``rho_s (N, 3)``: the tint pull is relative."""
+    return 1.0 / (rho_s.mean(1) ** 2 + TUNING.solver.tint_floor**2)
 
 
 def prior_cost(p: Tensor, prior: Prior) -> Tensor:

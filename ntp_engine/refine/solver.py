@@ -18,15 +18,7 @@ from ..physics.brdf import ALPHA_MAX, ALPHA_MIN, RHO_D_MAX, RHO_S_MAX
 from .gauss_newton import N_PARAMS, data_cost, normal_equations
 from .model import P_LOGA, P_OMEGA, P_RHO_D, P_RHO_S, Round, Trace, fold, residuals, robust_cost
 from .priors import Prior, prior_cost, prior_normal_in, tint_scale
-from .settings import (
-    ALBEDO_ITERATIONS,
-    CLIPPED_ROUNDS,
-    CONVERGED,
-    ISOTROPIC_START,
-    MAX_TRIES,
-    SHARP_START,
-    RefineSettings,
-)
+from .settings import TUNING, RefineSettings
 
 LOWER = torch.tensor([-math.inf] * 3 + [math.log(ALPHA_MIN)] * 2 + [0.0] * 6)
 UPPER = torch.tensor([math.inf] * 3 + [math.log(ALPHA_MAX)] * 2 + [RHO_D_MAX] * 3 + [RHO_S_MAX] * 3)
@@ -52,7 +44,7 @@ def levenberg_marquardt(
     settings: RefineSettings,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Up to ``iterations`` LM steps from ``p (N, 11)`` with the parameters ``free (N, 11)``; a
-    texel whose step no longer lowers its cost by ``CONVERGED`` (relative) is done and drops out.
+    texel whose step no longer lowers its cost by ``TUNING.solver.converged`` (relative) is done and drops out.
     Each accepted rotation is folded into ``rnd``'s frame (omega stays 0 between steps). Returns p,
     the cost per texel and the Gauss-Newton Hessian (float64) of its last linearisation."""
     N = p.shape[0]
@@ -68,7 +60,7 @@ def levenberg_marquardt(
         whole = len(ids) == N
         sub = rnd if whole else rnd.rows(ids)
         q, c_new, h, lam_new = lm_step(sub, p[ids], cost[ids], lam[ids], prior.rows(ids), free[ids], settings)
-        done = cost[ids] - c_new <= CONVERGED * cost[ids].abs()  # no progress left
+        done = cost[ids] - c_new <= TUNING.solver.converged * cost[ids].abs()  # no progress left
         p[ids], cost[ids], H[ids], lam[ids] = q, c_new, h, lam_new
         if not whole:
             rnd.frame0 = rnd.frame0.index_copy(0, ids, sub.frame0)
@@ -85,7 +77,7 @@ def lm_step(
     free: Tensor,
     settings: RefineSettings,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """One LM linearisation (with up to ``MAX_TRIES`` damping increases) for all of ``rnd``'s texels:
+    """One LM linearisation (with up to ``TUNING.solver.max_tries`` damping increases) for all of ``rnd``'s texels:
     returns p (omega folded into ``rnd.frame0``), cost, the Gauss-Newton Hessian and the damping."""
     tr = rnd.tr
     N = p.shape[0]
@@ -128,7 +120,7 @@ def lm_step(
     diag = Hm.diagonal(dim1=1, dim2=2)
     p, cost, lam = p.clone(), cost.clone(), lam.clone()
     ids = torch.arange(N)  # the texels still waiting for an accepted step
-    for _try in range(MAX_TRIES):  # a rejected step is retried with more damping (same linearisation)
+    for _try in range(TUNING.solver.max_tries):  # a rejected step is retried with more damping (same linearisation)
         # only those are evaluated again: a retry on every texel made half of the model's evaluations
         sub, sub_prior = (rnd, prior) if len(ids) == N else (rnd.rows(ids), prior.rows(ids))
         dg = diag[ids]
@@ -154,7 +146,7 @@ def albedo_start(
     """p with rho_d (and rho_s unless ``keep_rho_s``) replaced by the bounded weighted least squares
     for the round's geometry (``bases``: the round's at p, where the caller has them); ``specular``
     False: rho_s = 0. A clipped entry counts, as in the data cost, where the answer predicts it
-    darker than its lower bound: up to ``CLIPPED_ROUNDS`` solves, each adding (at its bound) the
+    darker than its lower bound: up to ``TUNING.solver.clipped_rounds`` solves, each adding (at its bound) the
     clipped entries the last one fell below. Left out, a texel whose every entry is clipped (the
     vase's white print in 2-4 entries) got rho_d 0, and a lobe took its light (docs/history/accuracy.md)."""
     tr = rnd.tr
@@ -167,7 +159,7 @@ def albedo_start(
         y, s = y - p[:, None, P_RHO_S] * s, torch.zeros_like(s)
     rho_s_max = RHO_S_MAX if specular and not keep_rho_s else 0.0
     counted = tr.mask & ~tr.censored
-    for _ in range(CLIPPED_ROUNDS):
+    for _ in range(TUNING.solver.clipped_rounds):
         q = with_albedos(p, d, s, y, w * counted, rho_s_max, keep_rho_s)
         pred = q[:, None, P_RHO_D] * d + q[:, None, P_RHO_S] * s  # s: 0 where rho_s is given or none
         now = counted | (tr.censored & (pred < y))  # once below its bound, counted at it (no cycling)
@@ -240,14 +232,16 @@ def multi_start(
     tr: Trace, frame: Tensor, p: Tensor, prior: Prior, free: Tensor, settings: RefineSettings
 ) -> tuple[Tensor, Tensor]:
     """Starts where the lobe is ambiguous: as given, the tangent turned 90 deg (the other axis
-    carries alpha_x; not where the start's lobe is isotropic, ``ISOTROPIC_START`` — turned, it is
+    carries alpha_x; not where the start's lobe is isotropic, ``TUNING.solver.isotropic_start`` — turned, it is
     the same model, so the same answer), the lobe 4x sharper; one round of LM each, the cheapest kept
     per texel. The three share F0's normal, so its diffuse basis."""
     N = p.shape[0]
     sharp = p.clone()
-    sharp[:, P_LOGA] = (sharp[:, P_LOGA] + math.log(SHARP_START)).clamp(math.log(ALPHA_MIN), math.log(ALPHA_MAX))
+    sharp[:, P_LOGA] = (sharp[:, P_LOGA] + math.log(TUNING.solver.sharp_start)).clamp(
+        math.log(ALPHA_MIN), math.log(ALPHA_MAX)
+    )
     la = p[:, P_LOGA]
-    turned = ((la[:, 0] - la[:, 1]).abs() >= math.log(ISOTROPIC_START)).nonzero().squeeze(1)
+    turned = ((la[:, 0] - la[:, 1]).abs() >= math.log(TUNING.solver.isotropic_start)).nonzero().squeeze(1)
     quarter = torch.zeros(len(turned), 3, dtype=p.dtype)
     quarter[:, 2] = math.pi / 2
     best_cost = torch.full((N,), math.inf, dtype=p.dtype)
@@ -274,7 +268,7 @@ def robust_albedos(
     tr: Trace, bases: tuple[Tensor, Tensor], p: Tensor, settings: RefineSettings
 ) -> tuple[Tensor, Tensor]:
     """rho_d and rho_s of ``p (N, 11)`` re-solved under the robust cost for fixed geometry (pixel
-    ``bases``), and that cost ``(N,)``: ``ALBEDO_ITERATIONS`` of iteratively reweighted bounded least
+    ``bases``), and that cost ``(N,)``: ``TUNING.solver.albedo_iterations`` of iteratively reweighted bounded least
     squares (Cauchy weights; a clipped entry counts only while the prediction is below it), each
     kept where it lowers the cost. Why: the plain least squares leave out the clipped entries,
     which for a bright lobe are its highlights — the vase's 1:80 brushed metal pooled to a width
@@ -283,7 +277,7 @@ def robust_albedos(
     c = settings.noise.robust
     r, active = residuals(tr, d, s, p)
     cost = robust_cost(r, c)
-    for _ in range(ALBEDO_ITERATIONS):
+    for _ in range(TUNING.solver.albedo_iterations):
         q = with_albedos(p, d, s, tr.y, tr.inv_sigma**2 * active / (1.0 + (r / c) ** 2), RHO_S_MAX)
         r_q, active_q = residuals(tr, d, s, q)
         new = robust_cost(r_q, c)

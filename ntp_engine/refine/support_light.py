@@ -17,7 +17,7 @@ shifted by a hash of the entry's point: ``entry_shifts``) — from the
 normals of the round's lobe (widened) visible from the camera (specular; Heitz 2018), and
 cosine-distributed about the geometric normal (diffuse) — each one more emitter of the refinement
 with that photo's radiance as its drive and 1 / (S pdf) as its falloff; a direction that does not
-reach the support within ``MAX_REACH``, or that the object blocks, carries none. For fixed
+reach the support within ``TUNING.support.max_reach``, or that the object blocks, carries none. For fixed
 directions the sums are smooth in the parameters, so the refinement's Jacobians hold; each round
 draws them again for its lobe.
 
@@ -31,7 +31,7 @@ The object's light on itself (``SupportScene.face_albedo``): a concave object li
 emitters light one face, which reflects onto another, and the refinement explained that light by
 bending lobes (the gallery's knot under Cycles: its glossy plastic's width fell to the 0.006
 floor; rendered without bounces, it came back right — docs/history/accuracy.md). A sample direction that
-meets the mesh before the support (and within ``MAX_REACH``) carries the radiance of the point p
+meets the mesh before the support (and within ``TUNING.support.max_reach``) carries the radiance of the point p
 it meets: one diffuse bounce, rho_d(p) / pi * E_j(p), rho_d the current answer's albedo of p's
 triangle (``face_albedo``), E_j as the support's, zero where p's face looks away from the texel
 or the mesh hides the camera from p. What p's lobe reflects of the emitters (sharp, and only as
@@ -56,15 +56,7 @@ from ..physics.brdf import ALPHA_MAX, F0_DIELECTRIC, bounded_f90, fresnel_schlic
 from ..physics.emitter_blocks import EmitterBlocks, emitter_blocks
 from ..scanner import camera
 from ..scanner.scanner import Scanner
-
-SPECULAR_SAMPLES = 32  # per entry, from the round's lobe (widened); 16: Cycles box rough metal |log a| 1.02 (32: 0.26)
-DIFFUSE_SAMPLES = 32  # per entry, cosine-distributed about n^ (16: -25% on a face seen edge-on)
-SAMPLE_WIDEN, SAMPLE_FLOOR = 1.5, 0.02  # the sampled lobe: the round's alphas x1.5 (at least 0.02)
-MAX_REACH = 1.0  # m: support points farther from the texel carry no light
-RAY_OFFSET = 1e-4  # m: rays start this far off the surfaces they leave
-CELL = 0.004  # m: the albedo map's cells
-REACH_RADII = 3.0  # the map spans this many object radii around the object's footprint
-CODE_RANGE = (2.0, 250.0)  # support pixels read with every channel's 8-bit code inside (not black, not clipped)
+from .settings import TUNING
 
 
 @dataclass(frozen=True)
@@ -121,9 +113,9 @@ class SupportScene:
 
 
 def exposed(vertices: np.ndarray, position: np.ndarray, normal: np.ndarray) -> np.ndarray:
-    """``(T,)`` bool: no corner of the mesh (``vertices (P, 3)``, m) lies more than RAY_OFFSET / 2
+    """``(T,)`` bool: no corner of the mesh (``vertices (P, 3)``, m) lies more than TUNING.support.ray_offset / 2
     above the tangent plane of each texel at ``position (T, 3)`` with unit geometric ``normal (T,
-    3)`` (one frame for all). Then no ray that leaves such a texel above its plane (from RAY_OFFSET
+    3)`` (one frame for all). Then no ray that leaves such a texel above its plane (from TUNING.support.ray_offset
     off it) meets the mesh — each triangle lies within its corners' hull — and none is cast: every
     texel of a convex object (the gallery's dome), 75 / 48 / 32 / 12% of the box's (its edges'
     interpolated normals lean over the next face), vase's, blob's, knot's."""
@@ -132,7 +124,7 @@ def exposed(vertices: np.ndarray, position: np.ndarray, normal: np.ndarray) -> n
     for s in range(0, len(position), 1024):  # (P, 1024) heights at a time
         p, n = torch.as_tensor(position[s : s + 1024]).double(), torch.as_tensor(normal[s : s + 1024]).double()
         height = v @ n.T - (p * n).sum(-1)  # (P, chunk) m above each tangent plane
-        out[s : s + len(p)] = (height.amax(0) <= 0.5 * RAY_OFFSET).numpy()
+        out[s : s + len(p)] = (height.amax(0) <= 0.5 * TUNING.support.ray_offset).numpy()
     return out
 
 
@@ -284,12 +276,12 @@ def support_diffuse_basis(
     which samples lie above its horizon by as little), in ``x_cam``'s dtype."""
     f64 = torch.float64
     # geometric frame: about n^ = z, each entry's own lattice
-    omega, d_pdf = cosine_directions(_stratified(DIFFUSE_SAMPLES, entry_shifts(x_cam)))  # (N, V, Sd, 3)
+    omega, d_pdf = cosine_directions(_stratified(TUNING.support.diffuse_samples, entry_shifts(x_cam)))  # (N, V, Sd, 3)
     position, frame_world = view.position.to(f64), view.frame_world.to(f64)
     radiance = _radiance(
         view.scene, scanner, sources, position, frame_world, x_cam, frame_cam, live, omega, view.exposed
     )
-    lit = radiance * (1.0 / (DIFFUSE_SAMPLES * math.pi * d_pdf))[..., None]  # (N, V, Sd, 3)
+    lit = radiance * (1.0 / (TUNING.support.diffuse_samples * math.pi * d_pdf))[..., None]  # (N, V, Sd, 3)
     return torch.einsum("nvsc,nvsj->nvcj", lit, omega).to(x_cam.dtype)
 
 
@@ -312,14 +304,14 @@ def support_specular_emitters(
     radiance times its F over the BRDF's, per sample's w_i.h)."""
     f64 = torch.float64
     wo_, f0 = wo.to(f64), frame0.to(f64)
-    wide = (SAMPLE_WIDEN * alpha.to(f64)).clamp(SAMPLE_FLOOR, ALPHA_MAX)
+    wide = (TUNING.support.sample_widen * alpha.to(f64)).clamp(TUNING.support.sample_floor, ALPHA_MAX)
     wo_loc = (f0[:, None] @ wo_[..., None])[..., 0]  # shading frame (N, V, 3)
-    h_loc, pdf = visible_half_vectors(wo_loc, wide, _stratified(SPECULAR_SAMPLES, entry_shifts(x_cam)))
+    h_loc, pdf = visible_half_vectors(wo_loc, wide, _stratified(TUNING.support.specular_samples, entry_shifts(x_cam)))
     halves = h_loc @ f0[:, None]  # (N, V, Ss, 3) geometric frame
     o_h = (wo_[:, :, None] * halves).sum(-1)
     wi = 2 * o_h[..., None] * halves - wo_[:, :, None]
     usable = (o_h > 0) & (pdf > 0)
-    weight = torch.where(usable, 1.0 / (SPECULAR_SAMPLES * pdf.clamp_min(1e-30)), 0.0)
+    weight = torch.where(usable, 1.0 / (TUNING.support.specular_samples * pdf.clamp_min(1e-30)), 0.0)
     position, frame_world = view.position.to(f64), view.frame_world.to(f64)
     live = live & usable.any(-1)
     radiance = _radiance(view.scene, scanner, sources, position, frame_world, x_cam, frame_cam, live, wi, view.exposed)
@@ -352,27 +344,27 @@ def _radiance(
     f64 = torch.float64
     N, V, S = omega.shape[:3]
     up = frame_world[:, :, 2]  # world z in the texel's frame (N, 3)
-    height = (position[:, 2] - scene.albedo.z).clamp_min(RAY_OFFSET)
+    height = (position[:, 2] - scene.albedo.z).clamp_min(TUNING.support.ray_offset)
     down = -(omega * up[:, None, None]).sum(-1)
     reach = height[:, None, None] / down.clamp_min(1e-9)
     out = torch.zeros(N, V, S, 3, dtype=f64)
-    support = (down > 1e-3) & (reach < MAX_REACH) & live[..., None]
+    support = (down > 1e-3) & (reach < TUNING.support.max_reach) & live[..., None]
     cast = live[..., None].expand(N, V, S)
     if exposed is not None:  # nothing of the mesh above these texels' planes (``exposed``): no ray
-        # that stays above RAY_OFFSET / 2 up to the support point (or all along) can meet it
-        above = torch.where(support, reach * omega[..., 2] >= 0.5 * RAY_OFFSET, omega[..., 2] > 0)
+        # that stays above TUNING.support.ray_offset / 2 up to the support point (or all along) can meet it
+        above = torch.where(support, reach * omega[..., 2] >= 0.5 * TUNING.support.ray_offset, omega[..., 2] > 0)
         cast = cast & ~(exposed[:, None, None] & above)
     sel = cast.nonzero(as_tuple=True)
     if scene.caster is not None and len(sel[0]):  # the mesh's first face along each cast sample
-        # each ray leaves RAY_OFFSET off the surface; one that reaches the support aims at its point
+        # each ray leaves TUNING.support.ray_offset off the surface; one that reaches the support aims at its point
         # there (along omega from the offset start it slipped past the object's edge where it meets
         # the support, lighting points under the Cycles vase's rim)
         aim, to_table, reaches = omega[sel].to(f64), reach[sel], support[sel]
-        aim[:, 2] -= torch.where(reaches, RAY_OFFSET / to_table, 0.0)
+        aim[:, 2] -= torch.where(reaches, TUNING.support.ray_offset / to_table, 0.0)
         to_point = to_table * aim.norm(dim=-1)  # from the ray's start to the support point
         aim = aim / aim.norm(dim=-1, keepdim=True)
         t, prim = _first_hits(scene, position[sel[0]], frame_world[sel[0]], aim)
-        support[sel] = reaches & (t >= to_point - RAY_OFFSET)  # the object hides the support point
+        support[sel] = reaches & (t >= to_point - TUNING.support.ray_offset)  # the object hides the support point
         if scene.face_albedo is not None:
             _object_radiance(
                 scene, scanner, sources, position, frame_world, x_cam, frame_cam, aim, reach, out, sel, t, prim
@@ -410,7 +402,7 @@ def _object_radiance(
     prim: Tensor,
 ) -> None:
     """Writes into ``out (N, V, S, 3)`` the object's radiance toward each entry's texel where the ray
-    of its sample ``sel`` (M of them; unit ``aim (M, 3)``, geometric frame, from RAY_OFFSET off the
+    of its sample ``sel`` (M of them; unit ``aim (M, 3)``, geometric frame, from TUNING.support.ray_offset off the
     texel) first meets the mesh's face ``prim (M,)`` at ``t (M,)`` (``_first_hits``) before the
     support (``reach (N, V, S)``, m): one diffuse bounce (module docstring; the other arguments
     ``_radiance``'s). Only the exact test of ``exposed`` leaves a sample without its ray: 64
@@ -419,12 +411,12 @@ def _object_radiance(
     assert scene.caster is not None and scene.face_normal is not None and scene.face_albedo is not None
     f64 = torch.float64
     n, v = sel[0], sel[1]
-    k = ((prim >= 0) & (t < reach[sel].clamp_max(MAX_REACH))).nonzero().squeeze(1)
+    k = ((prim >= 0) & (t < reach[sel].clamp_max(TUNING.support.max_reach))).nonzero().squeeze(1)
     if len(k) == 0:
         return
     n, v, fw = n[k], v[k], frame_world[n[k]]
     xc, fc = x_cam[n, v].to(f64), frame_cam[n, v].to(f64)
-    p_world = position[n] + RAY_OFFSET * fw[:, 2] + t[k, None] * (aim[k][:, None] @ fw)[:, 0]
+    p_world = position[n] + TUNING.support.ray_offset * fw[:, 2] + t[k, None] * (aim[k][:, None] @ fw)[:, 0]
     # the camera (and the emitters beside it) seen from p; p itself is the ray's first hit
     seen = ~_camera_hidden(scene.caster, position[n], fw, xc, fc, p_world)
     k, n, v, fw, xc, fc, p_world = k[seen], n[seen], v[seen], fw[seen], xc[seen], fc[seen], p_world[seen]
@@ -445,7 +437,7 @@ def _first_hits(scene: SupportScene, position: Tensor, frame_world: Tensor, omeg
     for none) and the triangle ``(M,)`` if it looks back at them (-1: none, or a back face)."""
     assert scene.caster is not None
     d_world = (omega[:, None] @ frame_world)[:, 0]
-    hits = scene.caster.intersect((position + RAY_OFFSET * frame_world[:, 2]).numpy(), d_world.numpy())
+    hits = scene.caster.intersect((position + TUNING.support.ray_offset * frame_world[:, 2]).numpy(), d_world.numpy())
     prim = torch.from_numpy(np.where(hits.geom >= 0, hits.prim, -1))
     if scene.face_normal is not None:
         normal = torch.as_tensor(scene.face_normal, dtype=d_world.dtype)[prim.clamp_min(0)]
@@ -464,8 +456,10 @@ def _camera_hidden(
     to_cam = position + (camera_loc[:, None] @ frame_world)[:, 0] - p_world
     cam_dist = to_cam.norm(dim=-1).clamp_min(1e-12)
     to_cam = to_cam / cam_dist[:, None]
-    far = (cam_dist - 2 * RAY_OFFSET).clamp_min(0.0)
-    return torch.from_numpy(caster.occluded((p_world + RAY_OFFSET * to_cam).numpy(), to_cam.numpy(), far.numpy()))
+    far = (cam_dist - 2 * TUNING.support.ray_offset).clamp_min(0.0)
+    return torch.from_numpy(
+        caster.occluded((p_world + TUNING.support.ray_offset * to_cam).numpy(), to_cam.numpy(), far.numpy())
+    )
 
 
 def estimate_support_albedo(
@@ -479,18 +473,23 @@ def estimate_support_albedo(
     from ``photos`` (pairs of ``(H, W, 3)`` linear pixels and their 8-bit codes, read once, one at a
     time) with camera-from-world ``poses (4, 4)``: per cell
     and photo that sees the cell's centre (in the photo, in front, not hidden by the mesh, codes in
-    ``CODE_RANGE``) pi y / E, the median over the photos; cells no photo saw take the median of the
+    ``TUNING.support.code_range``) pi y / E, the median over the photos; cells no photo saw take the median of the
     others (``fill`` too)."""
     z = float(vertices[:, 2].min())
     lo, hi = vertices[:, :2].min(0), vertices[:, :2].max(0)
     centre = 0.5 * (lo + hi)
-    half = REACH_RADII * 0.5 * float(np.linalg.norm(hi - lo)) + CELL
-    n = int(math.ceil(2 * half / CELL))
-    origin = centre - 0.5 * n * CELL
+    half = TUNING.support.reach_radii * 0.5 * float(np.linalg.norm(hi - lo)) + TUNING.support.cell
+    n = int(math.ceil(2 * half / TUNING.support.cell))
+    origin = centre - 0.5 * n * TUNING.support.cell
     jj, ii = np.meshgrid(np.arange(n), np.arange(n))
-    cells = np.stack([origin[0] + (jj + 0.5) * CELL, origin[1] + (ii + 0.5) * CELL, np.full((n, n), z)], -1).reshape(
-        -1, 3
-    )
+    cells = np.stack(
+        [
+            origin[0] + (jj + 0.5) * TUNING.support.cell,
+            origin[1] + (ii + 0.5) * TUNING.support.cell,
+            np.full((n, n), z),
+        ],
+        -1,
+    ).reshape(-1, 3)
     sources = Sources.of(scanner)
     samples = []
     for (linear, codes), pose in zip(photos, poses):
@@ -505,13 +504,15 @@ def estimate_support_albedo(
             centre_w = -R.T @ t
             d = centre_w - cells[ok]
             dist = np.linalg.norm(d, axis=1)
-            start = cells[ok] + RAY_OFFSET * d / dist[:, None]
-            ok[np.nonzero(ok)[0][caster.occluded(start, d / dist[:, None], dist - 2 * RAY_OFFSET)]] = False
+            start = cells[ok] + TUNING.support.ray_offset * d / dist[:, None]
+            ok[np.nonzero(ok)[0][caster.occluded(start, d / dist[:, None], dist - 2 * TUNING.support.ray_offset)]] = (
+                False
+            )
         idx = np.nonzero(ok)[0]
         if len(idx):
             code = bilinear_pixels(codes.astype(np.float64), px[idx, 1], px[idx, 0])
             y = bilinear_pixels(linear.astype(np.float64), px[idx, 1], px[idx, 0])
-            good = ((code > CODE_RANGE[0]) & (code < CODE_RANGE[1])).all(1)
+            good = ((code > TUNING.support.code_range[0]) & (code < TUNING.support.code_range[1])).all(1)
             up = np.tile(R[:, 2], (len(idx), 1))
             e = irradiance(scanner, sources, torch.as_tensor(p_cam[idx]), torch.as_tensor(up)).numpy()
             good &= (e > 1e-9).all(1)
@@ -523,4 +524,4 @@ def estimate_support_albedo(
     albedo[seen] = np.nanmedian(stack[:, seen], axis=0)
     fill = np.median(albedo[seen], axis=0) if seen.any() else np.zeros(3, np.float32)
     albedo[~seen] = fill
-    return SupportAlbedo(z, origin, CELL, albedo.reshape(n, n, 3), fill.astype(np.float32))
+    return SupportAlbedo(z, origin, TUNING.support.cell, albedo.reshape(n, n, 3), fill.astype(np.float32))

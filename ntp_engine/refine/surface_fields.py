@@ -13,9 +13,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 from scipy.stats import chi2
 
-VARIATION_BINS = 12  # the semivariogram's distances: 1, 2, 4, ... 2048 texel spacings
-VARIATION_PAIRS = 8  # pairs per texel: its nearest others, and as many random ones
-MIN_PAIRS = 16  # pairs a distance bin needs (else it takes the nearer bin's value)
+from .settings import TUNING
 
 
 def texel_spacing(position: np.ndarray) -> float:
@@ -25,10 +23,10 @@ def texel_spacing(position: np.ndarray) -> float:
 
 def field_pairs(position: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Pairs of ``position (S, 3)``'s texels to measure a field's variation on: each with its
-    ``VARIATION_PAIRS`` nearest others and as many seeded random ones (far pairs too), never a
+    ``TUNING.fields.variation_pairs`` nearest others and as many seeded random ones (far pairs too), never a
     texel with itself: rows ``i, j (P,)`` and their distances ``(P,)`` (m). None for one texel."""
     S = len(position)
-    k = min(VARIATION_PAIRS + 1, S)
+    k = min(TUNING.fields.variation_pairs + 1, S)
     _, near = cKDTree(position).query(position, k=k)
     near = near.reshape(S, -1)
     rng = np.random.default_rng(0)
@@ -43,21 +41,25 @@ def semivariogram(
     distance: np.ndarray, squared_difference: np.ndarray, noise: np.ndarray, spacing: float, dof: int
 ) -> tuple[np.ndarray, np.ndarray]:
     """How far a field varies with distance beyond its texels' errors: distances ``(B,)`` (m;
-    ``VARIATION_BINS``, doubling from ``spacing``) and the semivariogram there ``(B,)`` — half the
+    ``TUNING.fields.variation_bins``, doubling from ``spacing``) and the semivariogram there ``(B,)`` — half the
     mean squared difference of two texels' values less their ``noise`` — from pairs at
     ``distance (P,)`` with ``squared_difference (P,)`` and ``noise (P,)`` (the expected squared
     difference of two equal values). Robust: from the medians, the squared difference of a
     ``dof``-component Gaussian error having median ``chi2(dof).median() / dof`` of its mean.
-    Non-decreasing with distance, 0 where a bin has fewer than ``MIN_PAIRS`` pairs from the start."""
-    bins = max(spacing, 1e-9) * 2.0 ** np.arange(VARIATION_BINS)
-    gamma = np.zeros(VARIATION_BINS)
+    Non-decreasing with distance, 0 where a bin has fewer than ``TUNING.fields.min_pairs`` pairs from the start."""
+    bins = max(spacing, 1e-9) * 2.0 ** np.arange(TUNING.fields.variation_bins)
+    gamma = np.zeros(TUNING.fields.variation_bins)
     if len(distance) == 0:
         return bins, gamma
     ratio = float(chi2(dof).median()) / dof
-    b = np.clip(np.round(np.log2(np.maximum(distance / max(spacing, 1e-9), 1.0))).astype(int), 0, VARIATION_BINS - 1)
-    for n in range(VARIATION_BINS):
+    b = np.clip(
+        np.round(np.log2(np.maximum(distance / max(spacing, 1e-9), 1.0))).astype(int),
+        0,
+        TUNING.fields.variation_bins - 1,
+    )
+    for n in range(TUNING.fields.variation_bins):
         sel = b == n
-        if sel.sum() >= MIN_PAIRS:
+        if sel.sum() >= TUNING.fields.min_pairs:
             gamma[n] = max(0.0, float(np.median(squared_difference[sel])) / ratio - float(np.median(noise[sel]))) / 2
         elif n:
             gamma[n] = gamma[n - 1]

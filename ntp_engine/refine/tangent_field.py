@@ -18,20 +18,11 @@ right-handed (``physics.frame.turned_about_normal``); axial (mod pi): a lobe's a
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 from scipy.spatial import cKDTree
 
+from .settings import TUNING
 from .surface_fields import field_pairs, fused_with_neighbours, semivariogram, texel_spacing
-
-NEIGHBOURS = 16  # nearest sources averaged per texel
-REACH = 10.0  # a source's weight falls as a Gaussian of this many texel spacings (median nearest-texel distance)
-DOUBT = 0.25  # added to the sources' weights (a source in the texel's plane weighs 1): one source is not many
-# fused_turns: a texel's own tangent with its nearest neighbours', as far as the field is smooth
-FUSE_NEIGHBOURS = 24
-GATE = 3.0  # sigmas of disagreement beyond which a texel's own tangent and its neighbours' are not fused
-MIN_STD = math.radians(0.5)  # no trace fixes a tangent better (a floor under the LM's std: 0.3 deg ones erred 0.4)
 
 
 def _object_axes(t_loc: np.ndarray, normal: np.ndarray, tangent: np.ndarray) -> np.ndarray:
@@ -75,10 +66,10 @@ def neighbour_turns(
     spacing: float | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """For the texels ``target (M,)`` (indices): the turn ``(M,)`` from their own ``t_loc`` to the
-    axis their ``NEIGHBOURS`` nearest ``source (S,)`` texels point along (each projected into the
+    axis their ``TUNING.fields.tangent_neighbours`` nearest ``source (S,)`` texels point along (each projected into the
     target's tangent plane and weighed by that projection's squared length and a Gaussian of its
-    distance, sigma ``REACH`` texel spacings; axial mean), and how much to trust it ``(M,)``: the
-    resultant of the doubled angles, weighed so, over the projections' weights plus ``DOUBT`` — 1
+    distance, sigma ``TUNING.fields.tangent_reach`` texel spacings; axial mean), and how much to trust it ``(M,)``: the
+    resultant of the doubled angles, weighed so, over the projections' weights plus ``TUNING.fields.tangent_doubt`` — 1
     for near sources along one axis, toward 0 for far or disagreeing ones (0 and turn 0: none).
     ``spacing``: ``texel_spacing(position)``, computed here unless given."""
     M = len(target)
@@ -86,14 +77,16 @@ def neighbour_turns(
     if M == 0 or len(source) == 0:
         return turn, agree
     spacing = texel_spacing(position) if spacing is None else spacing
-    psi, size, dist, _ = _neighbour_axes(position, normal, tangent, t_loc, source, target, NEIGHBOURS)
-    fall = np.exp(-0.5 * (dist / (REACH * max(spacing, 1e-9))) ** 2)
+    psi, size, dist, _ = _neighbour_axes(
+        position, normal, tangent, t_loc, source, target, TUNING.fields.tangent_neighbours
+    )
+    fall = np.exp(-0.5 * (dist / (TUNING.fields.tangent_reach * max(spacing, 1e-9))) ** 2)
     w = size * fall  # an axis nearly along the target's normal says little
     c, s = (w * np.cos(2 * psi)).sum(1), (w * np.sin(2 * psi)).sum(1)
     count = size.sum(1)
     has = count > 1e-12
     turn[has] = 0.5 * np.arctan2(s[has], c[has])
-    agree[has] = np.hypot(c[has], s[has]) / (count[has] + DOUBT)
+    agree[has] = np.hypot(c[has], s[has]) / (count[has] + TUNING.fields.tangent_doubt)
     return turn, agree
 
 
@@ -117,7 +110,10 @@ def field_variation(
     axes = _object_axes(t_loc[source], normal[source], tangent[source])
     i, j, d = field_pairs(position[source])
     angle = np.arccos(np.clip(np.abs((axes[i] * axes[j]).sum(1)), 0.0, 1.0))  # axial
-    noise = np.maximum(std[source[i]], MIN_STD) ** 2 + np.maximum(std[source[j]], MIN_STD) ** 2
+    noise = (
+        np.maximum(std[source[i]], TUNING.fields.tangent_min_std) ** 2
+        + np.maximum(std[source[j]], TUNING.fields.tangent_min_std) ** 2
+    )
     return semivariogram(d, angle**2, noise, spacing, 1)
 
 
@@ -133,7 +129,7 @@ def fused_turns(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Each of ``target (M,)``'s tangent and its neighbours' together: the turn ``(M,)`` (radians,
     from its own ``t_loc``) to the precision-weighted axial mean of its own axis (1-sigma ``std``
-    radians ``(N,)``, inf: unconstrained) and its ``FUSE_NEIGHBOURS`` nearest other ``source``
+    radians ``(N,)``, inf: unconstrained) and its ``TUNING.fields.tangent_fuse_neighbours`` nearest other ``source``
     texels' — each weighed by the squared length of its projection into the target's tangent plane
     over the variance of predicting the target from it: its own std^2 plus twice the field's
     semivariogram at its distance (``variation``: ``field_variation``'s, by default of these
@@ -141,7 +137,7 @@ def fused_turns(
     variance is its standard error (at least their spread over the square root of their effective
     number). So a texel whose own trace fixed its tangent keeps it, one that did not takes its
     neighbours' as far as the field is smooth over the distance to them, and noise between the two
-    is averaged. Where the two differ by more than ``GATE`` sigmas together the field turns there
+    is averaged. Where the two differ by more than ``TUNING.fields.tangent_gate`` sigmas together the field turns there
     (the texel keeps its own). A target without sources keeps its tangent and std."""
     M = len(target)
     turn, fused = np.zeros(M), std[target].astype(np.float64)  # a copy
@@ -149,19 +145,21 @@ def fused_turns(
         return turn, fused
     if variation is None:
         variation = field_variation(position, normal, tangent, t_loc, std, source)
-    psi, size, dist, near = _neighbour_axes(position, normal, tangent, t_loc, source, target, FUSE_NEIGHBOURS + 1)
+    psi, size, dist, near = _neighbour_axes(
+        position, normal, tangent, t_loc, source, target, TUNING.fields.tangent_fuse_neighbours + 1
+    )
     field = 2 * np.interp(dist, *variation)  # variance of the field's turn between source and target
-    w = size / (np.maximum(std[source], MIN_STD)[near] ** 2 + field)
+    w = size / (np.maximum(std[source], TUNING.fields.tangent_min_std)[near] ** 2 + field)
     w = w * (source[near] != target[:, None])  # a texel is not its own neighbour
     total = w.sum(1)
     c, s = (w * np.cos(2 * psi)).sum(1), (w * np.sin(2 * psi)).sum(1)
     mean = 0.5 * np.arctan2(s, c)  # the neighbours' axis, from the target's own
     resultant = np.clip(np.hypot(c, s) / np.maximum(total, 1e-300), 1e-12, 1.0)
     spread = -0.5 * np.log(resultant)  # variance of the axes (doubled angles' circular variance / 4)
-    own_var = np.maximum(std[target], MIN_STD) ** 2
+    own_var = np.maximum(std[target], TUNING.fields.tangent_min_std) ** 2
     # a texel that disagrees with its neighbours beyond both their errors sits where the field turns
     # (an edge of brushing): its own trace says so, and it keeps its tangent
-    share, fused_var, fuse = fused_with_neighbours(own_var, w, spread, mean**2, GATE)
+    share, fused_var, fuse = fused_with_neighbours(own_var, w, spread, mean**2, TUNING.fields.tangent_gate)
     turn[fuse] = (share * mean)[fuse]
     fused[fuse] = np.sqrt(fused_var)[fuse]
     return turn, fused

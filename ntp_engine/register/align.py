@@ -27,6 +27,7 @@ from scipy.spatial import cKDTree
 
 from ..io.mesh import Mesh
 from ..io.raycast import RayCaster
+from .settings import TUNING
 
 
 @dataclass
@@ -41,7 +42,7 @@ class Alignment:
     kept_points: int  # of which are inliers (closer to the mesh than 0.6% of its size)
     support_points: int
     # the azimuth search's candidates (one per coarse start, converged): (azimuth deg, score), best
-    # first, and how much worse the best alternative more than AMBIGUOUS_DEG away scores (relative)
+    # first, and how much worse the best alternative more than TUNING.align.ambiguous_deg away scores (relative)
     candidates: list[tuple[float, float]] = field(default_factory=list)
     azimuth_margin: float = float("inf")
 
@@ -103,13 +104,6 @@ def surface_samples(mesh: Mesh, count: int, seed: int = 0, normals: bool = False
     if not normals:
         return pts
     return pts, cross[f] / np.maximum(2 * area[f, None], 1e-300)
-
-
-INLIER_FRACTION = 0.006  # of the object's size: an SfM point this close to the mesh is an inlier (1 mm at 16 cm)
-SURFACE_SAMPLES = 200_000
-COARSE_AZIMUTHS_DEG = np.arange(0, 360, 10)
-FINE_AZIMUTHS_DEG = np.arange(-8, 8.01, 0.25)
-AMBIGUOUS_DEG = 15.0  # candidates further than this from the best are alternatives to it
 
 
 @dataclass
@@ -180,7 +174,7 @@ class _AzimuthSearch:
         self.keep, self.iterations = keep, iterations
         self.samples, self.sample_normals = samples, sample_normals
         self.tree = cKDTree(self.samples)
-        self.tau = INLIER_FRACTION * size
+        self.tau = TUNING.align.inlier_fraction * size
         self.caster = RayCaster([mesh.triangles])
         self.up = np.tile([0.0, 0.0, 1.0], (len(B), 1))
 
@@ -249,13 +243,13 @@ class _AzimuthSearch:
         score still tells)."""
         best: tuple[float, float, float, np.ndarray] | None = None
         self.candidates: list[tuple[float, float]] = []
-        for yaw0 in np.radians(COARSE_AZIMUTHS_DEG):
+        for yaw0 in np.radians(TUNING.align.coarse_azimuths_deg):
             s, yaw, txy = self.icp(s0, float(yaw0), self.target[:2].copy(), True)
             value = self.score(s, yaw, txy)[0]
             self.candidates.append((float(np.degrees(yaw)) % 360.0, value))
             best = self._keep_better(best, s, yaw, txy)
         assert best is not None
-        for yaw0 in best[2] + np.radians(FINE_AZIMUTHS_DEG):
+        for yaw0 in best[2] + np.radians(TUNING.align.fine_azimuths_deg):
             best = self._keep_better(best, *self.icp(best[1], float(yaw0), best[3].copy(), False))
         return best[1], best[2], best[3]
 
@@ -321,7 +315,7 @@ def align_to_mesh(
     s0 = working_distance / float(np.median(np.linalg.norm(centres - c, axis=1)))
     lo, hi = mesh.vertices.min(0), mesh.vertices.max(0)
     size = float(np.linalg.norm(hi - lo))
-    samples, sample_normals = surface_samples(mesh, SURFACE_SAMPLES, normals=True)
+    samples, sample_normals = surface_samples(mesh, TUNING.align.surface_samples, normals=True)
     frame = _support_frame(points, centres, c, s0, lo, hi, samples, support_plane)
     P, S = points[frame.object_mask], points[frame.support_mask]
     if len(P) < 6:
@@ -341,7 +335,7 @@ def align_to_mesh(
     final, dist = search.score(s, yaw, txy)
     best = _alignment(search, frame, s, yaw, txy, dist)
     best.candidates = sorted(search.candidates, key=lambda c: c[1])
-    away = [v for a, v in best.candidates if azimuth_apart(a, np.degrees(yaw)) > AMBIGUOUS_DEG]
+    away = [v for a, v in best.candidates if azimuth_apart(a, np.degrees(yaw)) > TUNING.align.ambiguous_deg]
     best.azimuth_margin = float((min(away) - final) / max(final, 1e-30)) if away else float("inf")
     return best
 
@@ -363,25 +357,21 @@ def turned_distance(mesh: Mesh, centre: np.ndarray, turns_deg: np.ndarray, count
     return np.array(out)
 
 
-SYMMETRY_STEP_DEG = 1.0  # the turns a mesh is tried under for a symmetry (then refined to 0.05 deg)
-SYMMETRY_SAMPLES = 5000
-
-
 def mesh_symmetry(mesh: Mesh, centre: np.ndarray) -> tuple[float, float]:
-    """The turn about the vertical through ``centre`` (degrees, more than ``AMBIGUOUS_DEG`` from 0)
+    """The turn about the vertical through ``centre`` (degrees, more than ``TUNING.align.ambiguous_deg`` from 0)
     under which the mesh lies closest to itself, and that distance (metres, ``turned_distance``):
     the lowest local minimum of the distance over the whole circle, refined. A box gives (180, ~0),
     a body of revolution ~0 everywhere, a round but asymmetric mesh no local minimum near 0 (its
     distance only grows from the zero turn): then (nan, inf)."""
-    turns = np.arange(-180.0, 180.0, SYMMETRY_STEP_DEG)
-    d = turned_distance(mesh, centre, turns, count=SYMMETRY_SAMPLES)
-    lowest = (d <= np.roll(d, 1)) & (d <= np.roll(d, -1)) & (np.abs(turns) > AMBIGUOUS_DEG)
+    turns = np.arange(-180.0, 180.0, TUNING.align.symmetry_step_deg)
+    d = turned_distance(mesh, centre, turns, count=TUNING.align.symmetry_samples)
+    lowest = (d <= np.roll(d, 1)) & (d <= np.roll(d, -1)) & (np.abs(turns) > TUNING.align.ambiguous_deg)
     if not lowest.any():
         return float("nan"), float("inf")
     i = int(np.argmin(np.where(lowest, d, np.inf)))
     best = minimize_scalar(
-        lambda a: turned_distance(mesh, centre, np.array([a]), count=SYMMETRY_SAMPLES)[0],
-        bounds=(turns[i] - SYMMETRY_STEP_DEG, turns[i] + SYMMETRY_STEP_DEG),
+        lambda a: turned_distance(mesh, centre, np.array([a]), count=TUNING.align.symmetry_samples)[0],
+        bounds=(turns[i] - TUNING.align.symmetry_step_deg, turns[i] + TUNING.align.symmetry_step_deg),
         method="bounded",
         options={"xatol": 0.05},
     )

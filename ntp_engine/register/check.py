@@ -17,13 +17,9 @@ import numpy as np
 from ..io.errors import NtpInputError
 from ..io.mesh import Mesh, load_mesh
 from ..scanner.scan_folder import Scan, read_photo
-from .align import AMBIGUOUS_DEG, Alignment, align_to_mesh, azimuth_apart, mesh_symmetry, turned_distance
+from .align import Alignment, align_to_mesh, azimuth_apart, mesh_symmetry, turned_distance
 from .photo_stack import PhotoStack
 from .photometric import (
-    BLUR_LEVELS_PX,
-    CANDIDATE_POINTS,
-    FINE_POINTS,
-    SHARPNESS_SIGMA_PX,
     Correction,
     PhotometricFit,
     PhotometricRegistration,
@@ -32,16 +28,8 @@ from .photometric import (
     object_distance,
     rotation_matrix,
 )
+from .settings import TUNING
 from .sfm import SfmResult
-
-CANDIDATE_ROUNDS = 2  # re-linearisations a candidate gets before the candidates are compared
-MAX_PHOTOS = 40  # photos (evenly spread over the sweep) that judge and refine a registration
-# the whole-circle azimuth sweep: a scout of fewer photos and points, a coarser edge map; its step is
-# within the coarse refinement's own azimuth grid (+-4 deg), so a rival's basin is not stepped over
-SWEEP_STEP_DEG, SWEEP_PHOTOS, SWEEP_POINTS, SWEEP_EDGE_STRIDE = 3.0, 20, 1000, 3
-
-
-RIVALS = 3  # the sweep's best other azimuths (more than AMBIGUOUS_DEG apart) refined as rivals
 
 
 @dataclass
@@ -49,7 +37,7 @@ class PhotoCheck:
     """A registration chosen, refined and judged by the photos.
 
     ``fit``: the refined registration's photometric fit; ``sharpness``: how much the cost rises
-    (relative) when it is moved ``SHARPNESS_SHIFT_PX`` along each mesh axis — a right registration
+    (relative) when it is moved ``TUNING.photometric.sharpness_shift_px`` along each mesh axis — a right registration
     is a sharp minimum, a wrong one sits on a plateau of random matches; ``margin``: how much worse
     (relative cost) the best other azimuth fits the photos after the same refinement (inf: none);
     ``candidates``: per candidate its azimuth change from the chosen one, coarse cost and how far
@@ -65,7 +53,7 @@ class PhotoCheck:
     profile: list[tuple[float, float]]
     trials: list[Alignment] = field(default_factory=list)  # each candidate after its coarse refinement
     # the mesh's own closest symmetry (turn deg, how far the turned mesh lies from itself in mm) and
-    # the distance no photo at this size can see (SYMMETRY_PX at the object's distance, mm)
+    # the distance no photo at this size can see (TUNING.check.symmetry_px at the object's distance, mm)
     symmetry: tuple[float, float] = (float("nan"), float("inf"))
     symmetry_tolerance_mm: float = 0.0
     height_from_photos: bool = False  # on a support: the refinement moved the height (``frees_height``)
@@ -97,7 +85,7 @@ def corrected(alignment: Alignment, g: Correction) -> Alignment:
     return replace(alignment, scale=e * alignment.scale, rotation=Rw @ alignment.rotation, translation=t)
 
 
-def spread(names: list[str], count: int = MAX_PHOTOS) -> list[str]:
+def spread(names: list[str], count: int = TUNING.check.max_photos) -> list[str]:
     """At most ``count`` of ``names`` (sorted: the sweep's order), evenly spread."""
     names = sorted(names)
     if len(names) <= count:
@@ -105,16 +93,16 @@ def spread(names: list[str], count: int = MAX_PHOTOS) -> list[str]:
     return [names[i] for i in np.linspace(0, len(names) - 1, count).round().astype(int)]
 
 
-def rival_turns(turns: np.ndarray, costs: np.ndarray, count: int = RIVALS) -> list[float]:
+def rival_turns(turns: np.ndarray, costs: np.ndarray, count: int = TUNING.check.rivals) -> list[float]:
     """The ``count`` lowest local minima of a circular azimuth profile (degrees) more than
-    ``AMBIGUOUS_DEG`` from 0 (the alignment swept) and from each other."""
+    ``TUNING.align.ambiguous_deg`` from 0 (the alignment swept) and from each other."""
     lower = (costs <= np.roll(costs, 1)) & (costs <= np.roll(costs, -1)) & np.isfinite(costs)
     taken: list[float] = []
     for i in np.argsort(costs):
         if len(taken) == count:
             break
         turn = float(turns[i])
-        if lower[i] and all(azimuth_apart(turn, t) > AMBIGUOUS_DEG for t in [0.0, *taken]):
+        if lower[i] and all(azimuth_apart(turn, t) > TUNING.align.ambiguous_deg for t in [0.0, *taken]):
             taken.append(turn)
     return taken
 
@@ -131,9 +119,13 @@ def check_registration(
     poses are kept), its rivals found by sweeping the azimuth over the whole circle and refined the
     same way, the best chosen and judged (see ``PhotoCheck``)."""
     # candidates are compared on half the photos and fewer points (the chosen one is refined on all)
-    pick = [names.index(n) for n in spread(names, SWEEP_PHOTOS)]
+    pick = [names.index(n) for n in spread(names, TUNING.check.sweep_photos)]
     judge = PhotometricRegistration(
-        mesh, photos.subset(pick), support_z, points=CANDIDATE_POINTS, edge_stride=edge_stride(photos)
+        mesh,
+        photos.subset(pick),
+        support_z,
+        points=TUNING.photometric.candidate_points,
+        edge_stride=edge_stride(photos),
     )
     sfm = np.stack([camera_from_sfm[n] for n in names])
 
@@ -141,15 +133,23 @@ def check_registration(
         return np.stack([al.camera_from_mesh(m) for m in sfm])
 
     def coarse(al: Alignment) -> tuple[Alignment, PhotometricFit]:
-        g, fit = judge.refine(placed(al)[pick], levels=BLUR_LEVELS_PX[:1], max_rounds=CANDIDATE_ROUNDS)
+        g, fit = judge.refine(
+            placed(al)[pick], levels=TUNING.photometric.blur_levels_px[:1], max_rounds=TUNING.check.candidate_rounds
+        )
         return corrected(al, g), fit
 
     trials = [coarse(alignment)]
     # a point cloud with few points on the object can land at any azimuth: the photos vote on all
     scout = PhotometricRegistration(
-        mesh, photos.subset(pick), support_z, points=SWEEP_POINTS, edge_stride=SWEEP_EDGE_STRIDE
+        mesh,
+        photos.subset(pick),
+        support_z,
+        points=TUNING.check.sweep_points,
+        edge_stride=TUNING.check.sweep_edge_stride,
     )
-    turns, costs = scout.azimuth_profile(placed(trials[0][0])[pick], BLUR_LEVELS_PX[0], SWEEP_STEP_DEG)
+    turns, costs = scout.azimuth_profile(
+        placed(trials[0][0])[pick], TUNING.photometric.blur_levels_px[0], TUNING.check.sweep_step_deg
+    )
     for turn in rival_turns(turns, costs):
         turned = Correction(np.array([0.0, 0.0, np.radians(turn)]), np.zeros(3), 0.0, judge.pivot)
         trials.append(coarse(corrected(trials[0][0], turned)))
@@ -158,16 +158,21 @@ def check_registration(
     yaw = [float(np.degrees(np.arctan2(a.rotation[1, 0], a.rotation[0, 0]))) for a, _ in trials]
     change = [(y - yaw[chosen] + 180.0) % 360.0 - 180.0 for y in yaw]
     # candidates the refinement brought into the chosen one's azimuth are the same answer, not rivals
-    others = [fit.cost for c, (_, fit) in zip(change, trials, strict=True) if abs(c) > AMBIGUOUS_DEG]
+    others = [fit.cost for c, (_, fit) in zip(change, trials, strict=True) if abs(c) > TUNING.align.ambiguous_deg]
     margin = (min(others) - trials[chosen][1].cost) / trials[chosen][1].cost if others else float("inf")
     pixel_m = object_distance(placed(best), judge.centre) / photos.scanner.fx
     free_height = support_z is not None and frees_height(pixel_m)
     finisher = PhotometricRegistration(
-        mesh, photos, support_z, points=FINE_POINTS, edge_stride=edge_stride(photos), free_height=free_height
+        mesh,
+        photos,
+        support_z,
+        points=TUNING.photometric.fine_points,
+        edge_stride=edge_stride(photos),
+        free_height=free_height,
     )
-    g, fit = finisher.refine(placed(best), levels=BLUR_LEVELS_PX[1:])
+    g, fit = finisher.refine(placed(best), levels=TUNING.photometric.blur_levels_px[1:])
     best = corrected(best, g)
-    sharpness = finisher.sharpness(placed(best), SHARPNESS_SIGMA_PX)
+    sharpness = finisher.sharpness(placed(best), TUNING.photometric.sharpness_sigma_px)
     apart = turned_distance(mesh, judge.centre, np.array(change))
     candidates = [
         {"azimuth_change_deg": c, "coarse_cost": f.cost, "mesh_turned_mm": 1e3 * d}
@@ -187,13 +192,10 @@ def check_registration(
         profile,
         [a for a, _ in trials],
         (turn, 1e3 * turned_m),
-        1e3 * SYMMETRY_PX * distance / photos.scanner.fx,
+        1e3 * TUNING.check.symmetry_px * distance / photos.scanner.fx,
         free_height,
         1e3 * pixel_m,
     )
-
-
-SYMMETRY_PX = 0.25  # a turned mesh lying closer to itself than this (at the object's distance) is a symmetry
 
 
 @dataclass
@@ -212,7 +214,7 @@ class MeshRegistration:
 
 def register_to_mesh(scan: Scan, reg: SfmResult) -> MeshRegistration:
     """The similarity from ``reg``'s frame to the mesh: aligned by the point cloud, then refined and
-    judged by (at most ``MAX_PHOTOS`` of) the photos; ``NtpInputError`` when nothing can be aligned."""
+    judged by (at most ``TUNING.check.max_photos`` of) the photos; ``NtpInputError`` when nothing can be aligned."""
     names = sorted(reg.poses)
     mesh = load_mesh(scan.mesh_path)
     t0 = time.perf_counter()

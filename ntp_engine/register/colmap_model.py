@@ -5,7 +5,7 @@ as ``.bin`` or ``.txt``. Its ``cam_from_world`` is camera-from-world in OpenCV c
 y down, z forward) — ntp's own convention — in COLMAP's arbitrary world frame and scale, so the
 model is aligned to the mesh exactly as ntp's own SfM is (``align.align_to_mesh``). Images are
 matched to photos by file name. Cameras must have the photos' size; their intrinsics are COLMAP's
-business (ntp projects with the device file's), so a focal length more than ``FOCAL_TOLERANCE`` off
+business (ntp projects with the device file's), so a focal length more than ``TUNING.sfm.focal_tolerance`` off
 the device's is warned about, not refused.
 """
 
@@ -18,10 +18,10 @@ import numpy as np
 from ..io.errors import NtpInputError
 from ..io.progress import warn
 from ..scanner.scanner import Scanner
-from .sfm import MIN_REGISTERED, SfmResult
+from .settings import TUNING
+from .sfm import SfmResult
 
 MODEL_FILES = ("cameras", "images", "points3D")
-FOCAL_TOLERANCE = 0.02
 
 
 def model_files(folder: Path) -> list[Path]:
@@ -52,7 +52,7 @@ def read_colmap_model(folder: Path, scanner: Scanner, names: list[str]) -> SfmRe
             )
         focal = float(np.mean([cam.focal_length_x, cam.focal_length_y]))
         device = float(np.mean([scanner.K[0, 0], scanner.K[1, 1]]))
-        if abs(focal / device - 1) > FOCAL_TOLERANCE:
+        if abs(focal / device - 1) > TUNING.sfm.focal_tolerance:
             warn(f"{files[0]}: camera {cam.camera_id}'s focal length {focal:.1f} px is not the device's {device:.1f}")
     wanted, poses = set(names), {}
     for image in rec.images.values():
@@ -60,10 +60,11 @@ def read_colmap_model(folder: Path, scanner: Scanner, names: list[str]) -> SfmRe
             m = np.eye(4)
             m[:3, :4] = image.cam_from_world().matrix()
             poses[image.name] = m
-    if len(poses) < MIN_REGISTERED:
+    if len(poses) < TUNING.sfm.min_registered:
         raise NtpInputError(
             files[1],
-            f"only {len(poses)} of its images are this scan's photos (need {MIN_REGISTERED}; matched by file name)",
+            f"only {len(poses)} of its images are this scan's photos (need {TUNING.sfm.min_registered}; "
+            "matched by file name)",
         )
     points = np.array([p.xyz for p in rec.points3D.values()]) if rec.num_points3D() else np.zeros((0, 3))
     return SfmResult(poses, points, sorted(wanted - set(poses)))

@@ -20,9 +20,8 @@ from ..physics.frame import any_tangent
 from ..physics.measurement import local_emitter_geometry, terms_from_lobe
 from ..scanner import camera
 from ..scanner.scanner import Scanner
+from .settings import TUNING
 
-CODE_RANGE = (6.0, 249.0)  # 8-bit codes used: above the noise floor, below clipping
-MAX_WORKING_WIDTH = 640  # photos are averaged down to at most this width (a registration needs no more)
 # the per-observation arrays (pixels, residuals, Jacobians): float32 holds a pixel to 1e-4 px and a log
 # residual to 1e-7, far below the photos' noise; only the 7 x 7 normal equations are solved in float64
 WORK = torch.float32
@@ -33,11 +32,13 @@ class PhotoStack:
 
     def __init__(self, codes: list[np.ndarray], scanner: Scanner):
         """``codes``: 8-bit ``(H, W, 3)`` photos of ``scanner``'s camera."""
-        factor = max(1, int(np.ceil(scanner.width / MAX_WORKING_WIDTH)))
+        factor = max(1, int(np.ceil(scanner.width / TUNING.stack.max_working_width)))
         self.scanner = camera.resampled(scanner, 1.0 / factor) if factor > 1 else scanner
         stack = torch.as_tensor(np.stack(codes), dtype=torch.float32).permute(0, 3, 1, 2)
         linear = camera.decode(scanner, stack)
-        usable = ((stack >= CODE_RANGE[0]) & (stack <= CODE_RANGE[1])).all(1, keepdim=True).float()
+        usable = (
+            ((stack >= TUNING.stack.code_range[0]) & (stack <= TUNING.stack.code_range[1])).all(1, keepdim=True).float()
+        )
         if factor > 1:  # area average; a pixel with any clipped source pixel is unusable
             linear = F.avg_pool2d(linear, factor)
             usable = (F.avg_pool2d(usable, factor) > 0.999).float()
@@ -72,10 +73,7 @@ class PhotoStack:
         return self._gradients[sigma]
 
 
-SHADING_CELLS = (8, 4)  # the emitters are merged into this many groups along the array's two axes
-
-
-def shading_lights(scanner: Scanner, cells: tuple[int, int] = SHADING_CELLS) -> tuple[Scanner, np.ndarray]:
+def shading_lights(scanner: Scanner, cells: tuple[int, int] = TUNING.stack.shading_cells) -> tuple[Scanner, np.ndarray]:
     """A scanner whose point emitters are the drive-weighted centres of groups of the real ones
     (a grid of ``cells`` over the array's two principal axes), and the groups' summed effective
     pattern ``(G, 3)``: the diffuse term changes slowly across an LED array seen from 0.3 m, so it

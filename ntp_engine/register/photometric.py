@@ -18,7 +18,7 @@ acts on every camera at once — the SfM model's own relative poses are kept, so
 whole sweep vote on the 7 degrees of freedom SfM cannot know (4 on a support, whose plane already
 fixed tilt and height: G turns about the vertical and scales about the object's foot; 5 where the
 photos are sharp enough to set the height too, ``frees_height``) — then scores the result:
-``agreement`` is the fraction of observations within ``AGREE_LOG`` of their point's albedo (and
+``agreement`` is the fraction of observations within ``TUNING.photometric.agree_log`` of their point's albedo (and
 their photo's field).
 """
 
@@ -37,28 +37,14 @@ from ..physics.shadows import MIN_COS_VIEW, SupportShadow
 from ..scanner import camera
 from .align import surface_samples
 from .photo_stack import WORK, PhotoStack, diffuse_shading, edge_mask, eliminate_nuisances, shading_lights
-
-SURFACE_POINTS = 3000  # surface samples of a PhotometricRegistration by default
-CANDIDATE_POINTS = 1500  # ... that compare the candidate azimuths (on SWEEP_PHOTOS photos)
-FINE_POINTS = 8000  # ... and that refine the chosen one: its error is sampling noise (gallery dome, 40 photos:
-# 3000 points left 1.10 mm / 0.36 deg, 8000 points 0.54 mm / 0.14 deg)
-# Gaussian sigma of the photos per level, pixels of the working size: the coarse level widens the
-# basin, the finest takes out the blur's own bias (at the true poses of the gallery dome the cost's
-# minimum lies 0.20 deg off in azimuth at sigma 1 px, 0.04 deg at 0.5 px)
-BLUR_LEVELS_PX = (2.0, 1.0, 0.5)
-CAUCHY_LOG = 0.1  # scale of the robust loss on log residuals (10%)
-AGREE_LOG = 0.1  # an observation within 10% of its point's albedo and photo's field agrees
-EDGE_CLEARANCE = 2.0  # points used lie this many blur sigmas (+ 1 px) from every edge of the mesh's image
-MIN_VIEWS = 3  # a point enters the cost once this many photos see it
-MAX_ROUNDS = 5  # re-linearisations per blur level
-SETTLED_RAD, SETTLED_M = 2e-4, 5e-5  # a round that moves the pose less than this ends the level
-AZIMUTH_GRID_DEG = np.arange(-4.0, 4.01, 0.25)  # searched before the first level's descent
+from .settings import TUNING
 
 
 @dataclass
 class PhotometricFit:
     """How the photos agree with a registration: the mean robust cost, the fraction of observations
-    within ``AGREE_LOG`` of their point's albedo and photo's field, and how many observations and points entered."""
+    within ``TUNING.photometric.agree_log`` of their point's albedo and photo's field, and how many
+    observations and points entered."""
 
     cost: float
     agreement: float
@@ -96,18 +82,11 @@ class Correction:
         return out
 
 
-# how far a correction may move the point cloud's alignment: its scale within 20%, its shift within
-# a quarter of the object's size. Beyond, the alignment was wrong, not imprecise — and on an object
-# the photos cannot pin (an untextured body of revolution) the descent, its observations held for a
-# round, otherwise wandered off (scale x2.5) until no photo saw the mesh
-MAX_LOG_SCALE, MAX_SHIFT = 0.2, 0.25
-
-
 def _bounded(params: np.ndarray) -> np.ndarray:
     """Correction parameters (omega, tau / size, lambda) within the bounds above."""
     out = params.copy()
-    out[3:6] = np.clip(out[3:6], -MAX_SHIFT, MAX_SHIFT)
-    out[6] = np.clip(out[6], -MAX_LOG_SCALE, MAX_LOG_SCALE)
+    out[3:6] = np.clip(out[3:6], -TUNING.photometric.max_shift, TUNING.photometric.max_shift)
+    out[6] = np.clip(out[6], -TUNING.photometric.max_log_scale, TUNING.photometric.max_log_scale)
     return out
 
 
@@ -165,7 +144,7 @@ class PhotometricRegistration:
         mesh: Mesh,
         photos: PhotoStack,
         support_z: float | None,
-        points: int = SURFACE_POINTS,
+        points: int = TUNING.photometric.surface_points,
         seed: int = 0,
         edge_stride: int = 1,
         free_height: bool = False,
@@ -246,7 +225,7 @@ class PhotometricRegistration:
         neither clipped nor in the noise."""
         px = self._pixels(poses, params)
         usable = (self._sample(self.photos.usable, px)[..., 0] > 0.999).numpy()
-        return seen & usable & (edge_px > EDGE_CLEARANCE * sigma + 1)
+        return seen & usable & (edge_px > TUNING.photometric.edge_clearance * sigma + 1)
 
     def _camera(self, poses: np.ndarray, params: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The mesh samples and their normals in every camera ``(V, N, 3)`` under the correction
@@ -351,20 +330,24 @@ class PhotometricRegistration:
         # a log residual that is not finite (a point the model shades black at this pose) is no
         # observation: left in, it would make every weight and field NaN
         ok = ok & torch.isfinite(r).all(-1)
-        enough = ok.sum(0) >= MIN_VIEWS
+        enough = ok.sum(0) >= TUNING.photometric.min_views
         ok = ok & enough[None, :]
         centre = torch.nanmedian(torch.where(ok[..., None], r, torch.nan), dim=0).values
         e = torch.where(ok[..., None], r - centre[None], 0.0)
         for _ in range(3):  # from the median to the Cauchy M-estimate (IRLS): the cost's own minimiser
-            w = ok[..., None] / (1 + (e / CAUCHY_LOG) ** 2)
+            w = ok[..., None] / (1 + (e / TUNING.photometric.cauchy_log) ** 2)
             e = torch.where(ok[..., None], eliminate_nuisances(self.field, w, r[..., None])[..., 0], 0.0)
         count = int(ok.sum())
         # nothing seen fits nothing: a pose that lost every observation never wins
-        cost = float(torch.log1p((e / CAUCHY_LOG) ** 2).sum(dtype=torch.float64)) / count if count else float("inf")
-        agree = (e.abs().amax(-1) < AGREE_LOG) & ok
+        cost = (
+            float(torch.log1p((e / TUNING.photometric.cauchy_log) ** 2).sum(dtype=torch.float64)) / count
+            if count
+            else float("inf")
+        )
+        agree = (e.abs().amax(-1) < TUNING.photometric.agree_log) & ok
         return e, ok, PhotometricFit(cost, float(agree.sum()) / max(count, 1), count, int(enough.sum()))
 
-    def evaluate(self, poses: np.ndarray, sigma: float = BLUR_LEVELS_PX[-1]) -> PhotometricFit:
+    def evaluate(self, poses: np.ndarray, sigma: float = TUNING.photometric.blur_levels_px[-1]) -> PhotometricFit:
         """The cost and agreement of ``poses (V, 4, 4)`` as they are."""
         seen = self._usable(np.asarray(poses), np.zeros(7), sigma, *self._observations(poses))
         self._hold_shading(np.asarray(poses), np.zeros(7), seen)
@@ -373,9 +356,9 @@ class PhotometricRegistration:
     def refine(
         self,
         poses: np.ndarray,
-        levels: tuple[float, ...] = BLUR_LEVELS_PX,
+        levels: tuple[float, ...] = TUNING.photometric.blur_levels_px,
         iterations: int = 15,
-        max_rounds: int = MAX_ROUNDS,
+        max_rounds: int = TUNING.photometric.max_rounds,
     ) -> tuple[Correction, PhotometricFit]:
         """The correction G that minimises the cost — Levenberg-Marquardt on iteratively reweighted
         (Cauchy) least squares, each point's log albedo eliminated as its weighted mean — coarse to
@@ -394,13 +377,14 @@ class PhotometricRegistration:
             start = params.copy()
             seen = self._held(poses, params, sigma)
             # the azimuth first (coarsest level): nearly round objects make it the shallow direction
-            if sigma == BLUR_LEVELS_PX[0] and k == 0:
+            if sigma == TUNING.photometric.blur_levels_px[0] and k == 0:
                 params = self._azimuth_search(poses, params, sigma, seen)
             params, fit = self._descend(poses, params, sigma, seen, iterations)
             # visibility, edges and shading were held for this round: again until the pose stops moving
             step = params - start
             settled = bool(
-                np.abs(step[[0, 1, 2, 6]]).max() < SETTLED_RAD and np.abs(step[3:6]).max() * self.size < SETTLED_M
+                np.abs(step[[0, 1, 2, 6]]).max() < TUNING.photometric.settled_rad
+                and np.abs(step[3:6]).max() * self.size < TUNING.photometric.settled_m
             )
             # the robust cost anchors each round near its start, so rounds walk a shallow valley in
             # shrinking steps along one direction: jump to the walk's limit when the photos agree
@@ -422,7 +406,7 @@ class PhotometricRegistration:
         J, ok = self._jacobian(poses, at, sigma, ok)
         e, used, fit = self._cost(r, ok)
         for _ in range(iterations):
-            w = used[..., None] / (1 + (e / CAUCHY_LOG) ** 2)  # IRLS weights (V, N, 3)
+            w = used[..., None] / (1 + (e / TUNING.photometric.cauchy_log) ** 2)  # IRLS weights (V, N, 3)
             # the nuisances (each point's albedo, each photo's field) eliminated from both
             both = eliminate_nuisances(self.field, w, torch.cat([J, r[..., None]], -1))
             Jc, ec = both[..., :7], both[..., 7]
@@ -457,9 +441,9 @@ class PhotometricRegistration:
 
     def _azimuth_search(self, poses, params, sigma, seen) -> np.ndarray:
         """``params`` turned about the vertical through the object's centre to the best of
-        ``AZIMUTH_GRID_DEG`` (visibility held)."""
+        ``TUNING.photometric.azimuth_grid_deg`` (visibility held)."""
         best, best_cost = params, float("inf")
-        for a in np.radians(AZIMUTH_GRID_DEG):
+        for a in np.radians(TUNING.photometric.azimuth_grid_deg):
             trial = params.copy()
             trial[2] += a
             cost = self._fit_at(poses, trial, sigma, seen).cost
@@ -478,17 +462,17 @@ class PhotometricRegistration:
             params[2] = np.radians(turn)
             seen = self._held(poses, params, sigma, jacobian=False)
             fit = self._fit_at(poses, params, sigma, seen)
-            if fit.points >= MIN_VIEWS:
+            if fit.points >= TUNING.photometric.min_views:
                 costs[i] = fit.cost
         return turns, costs
 
     def sharpness(self, poses: np.ndarray, sigma: float) -> float:
-        """Mean relative rise of the cost when ``poses`` move ``SHARPNESS_SHIFT_PX`` (at the object's
+        """Mean relative rise of the cost when ``poses`` move ``TUNING.photometric.sharpness_shift_px`` (at the object's
         distance) either way along each mesh axis, observations held."""
         seen = self._usable(poses, np.zeros(7), sigma, *self._observations(poses))
         self._hold_shading(poses, np.zeros(7), seen)
         distance = object_distance(poses, self.centre)
-        shift = SHARPNESS_SHIFT_PX * distance / self.scanner.fx / self.size
+        shift = TUNING.photometric.sharpness_shift_px * distance / self.scanner.fx / self.size
 
         def cost(params: np.ndarray) -> float:
             return self._fit_at(poses, params, sigma, seen).cost
@@ -501,24 +485,16 @@ class PhotometricRegistration:
         return Correction(params[:3].copy(), params[3:6] * self.size, float(params[6]), self.pivot.copy())
 
 
-# photos this sharp at the object move the height too (``frees_height``): between the demo's working
-# pixel (0.53 mm; the scanner's photos averaged to 640 px at the sweep's distance) and the gallery's (1.05 mm)
-HEIGHT_PIXEL_M = 0.75e-3
-SHARPNESS_SHIFT_PX = 4.0  # the registration moved this far along each mesh axis: beyond the edge clearance
-SHARPNESS_SIGMA_PX = 1.0  # the blur the sharpness is measured at (its threshold was set at this blur)
-EDGE_GRID_WIDTH = 320  # the mesh's image (for edge distances) is cast on a grid at most about this wide
-
-
 def frees_height(pixel_m: float) -> bool:
     """Whether photos whose working-size pixel spans ``pixel_m`` metres at the object move the height
     of a registration on a support. SfM's support points, and so the plane the alignment puts the
     object's foot on, lie 0.5-0.8 px low (docs/pipeline.md); photos this sharp set the height and
     the scale about the foot together, coarser ones leave them on a valley whose floor the cost's
     model errors tilt (the gallery dome at 1.05 mm a pixel: 0.4 mm low from the true poses)."""
-    return pixel_m <= HEIGHT_PIXEL_M
+    return pixel_m <= TUNING.photometric.height_pixel_m
 
 
 def edge_stride(photos: PhotoStack) -> int:
     """Every how many pixels the mesh's image is cast for the edge distances of ``photos``: an edge
     located to a pixel of a ~320-wide grid is enough to keep points ~2 px clear of it."""
-    return max(1, round(photos.scanner.width / EDGE_GRID_WIDTH))
+    return max(1, round(photos.scanner.width / TUNING.photometric.edge_grid_width))

@@ -11,21 +11,15 @@ import numpy as np
 from ..io.mesh import Mesh
 from ..io.raycast import RayCaster
 from ..scanner import camera
-from .align import AMBIGUOUS_DEG
 from .check import PhotoCheck
 from .photo_stack import PhotoStack, edge_mask
-from .photometric import MIN_VIEWS, SHARPNESS_SHIFT_PX
-
-# set from the gallery (docs/pipeline.md, ntp bench registration): right registrations had sharpness
-# >= 1.01 and margin >= 0.73; wrong ones that were not a symmetry of the mesh sharpness <= 0.48
-MIN_SHARPNESS = 0.8
-MIN_MARGIN = 0.5  # the best other azimuth must fit the photos at least 50% worse
+from .settings import TUNING
 
 
 def named_rival(candidates: list[dict]) -> int | None:
     """The candidate an ambiguity names: the best-fitting one (coarse cost) more than
-    ``AMBIGUOUS_DEG`` from the chosen; None when there is none."""
-    rivals = [i for i, c in enumerate(candidates) if abs(c["azimuth_change_deg"]) > AMBIGUOUS_DEG]
+    ``TUNING.align.ambiguous_deg`` from the chosen; None when there is none."""
+    rivals = [i for i, c in enumerate(candidates) if abs(c["azimuth_change_deg"]) > TUNING.align.ambiguous_deg]
     return min(rivals, key=lambda i: candidates[i]["coarse_cost"]) if rivals else None
 
 
@@ -36,9 +30,9 @@ def refusal_kind(check: PhotoCheck) -> str | None:
     photo), so no cost of them can choose."""
     if check.symmetry[1] <= check.symmetry_tolerance_mm:
         return "symmetric"
-    if check.fit.points < MIN_VIEWS or check.sharpness < MIN_SHARPNESS:
+    if check.fit.points < TUNING.photometric.min_views or check.sharpness < TUNING.refusal.min_sharpness:
         return "unconfirmed"
-    if check.margin < MIN_MARGIN:
+    if check.margin < TUNING.refusal.min_margin:
         return "ambiguous"
     return None
 
@@ -55,8 +49,9 @@ def refusal(check: PhotoCheck) -> str | None:
         )
     if kind == "unconfirmed":
         return (
-            f"the photos cannot confirm where the mesh is (moved {SHARPNESS_SHIFT_PX:g} px it fits them "
-            f"{100 * max(check.sharpness, 0.0):.0f}% worse, a confirmed registration >= {100 * MIN_SHARPNESS:.0f}%): "
+            f"the photos cannot confirm where the mesh is (moved {TUNING.photometric.sharpness_shift_px:g} px it "
+            f"fits them {100 * max(check.sharpness, 0.0):.0f}% worse, a confirmed registration "
+            f">= {100 * TUNING.refusal.min_sharpness:.0f}%): "
             "the mesh is not where the photos show it, or the object is too plain to tell"
         )
     if kind == "ambiguous":
@@ -65,7 +60,7 @@ def refusal(check: PhotoCheck) -> str | None:
         rival = check.candidates[i]
         return (
             f"the object's azimuth is ambiguous: turned by {rival['azimuth_change_deg']:.0f} deg it fits the photos "
-            f"nearly as well (margin {check.margin:.2f} < {MIN_MARGIN}; the mesh turned so lies "
+            f"nearly as well (margin {check.margin:.2f} < {TUNING.refusal.min_margin}; the mesh turned so lies "
             f"{rival['mesh_turned_mm']:.1f} mm from itself)"
         )
     return None

@@ -8,7 +8,7 @@ are reported as unregistered.
 Mappers (``MAPPERS``): ``incremental`` (COLMAP's), ``global`` (GLOMAP: rotation averaging and global
 positioning, then one bundle adjustment) and ``hierarchical`` (the sweep cut into overlapping
 clusters mapped incrementally, then merged). ``auto`` (the default) picks by photo count, as ``ntp
-bench sfm`` measured them: incremental below ``GLOBAL_FROM_PHOTOS``, global from there (at 300
+bench sfm`` measured them: incremental below ``TUNING.sfm.global_from_photos``, global from there (at 300
 photos as fast and more accurate, at 1000 twice as fast and more accurate; on tens of photos it
 is the least reliable).
 """
@@ -25,16 +25,15 @@ from ..io.errors import NtpInputError
 from ..io.progress import QUIET, Progress
 from ..io.threads import colmap_threads
 from ..scanner.scanner import Scanner
+from .settings import TUNING
 
-MIN_REGISTERED = 3
 MAPPERS = ("incremental", "global", "hierarchical")
-GLOBAL_FROM_PHOTOS = 300  # ``auto`` maps this many photos or more with the global mapper
 
 
 def chosen_mapper(mapper: str, photos: int) -> str:
     """The mapper ``mapper`` (one of ``MAPPERS`` or ``auto``) names for ``photos`` photos."""
     if mapper == "auto":
-        return "global" if photos >= GLOBAL_FROM_PHOTOS else "incremental"
+        return "global" if photos >= TUNING.sfm.global_from_photos else "incremental"
     if mapper not in MAPPERS:
         raise ValueError(f"unknown mapper {mapper!r} (have auto, {', '.join(MAPPERS)})")
     return mapper
@@ -114,8 +113,8 @@ def structure_from_motion(
         m = np.eye(4)
         m[:3, :4] = image.cam_from_world().matrix()
         poses[image.name] = m
-    if len(poses) < MIN_REGISTERED:
-        raise NtpInputError(photos_dir, f"only {len(poses)} photos registered (need {MIN_REGISTERED})")
+    if len(poses) < TUNING.sfm.min_registered:
+        raise NtpInputError(photos_dir, f"only {len(poses)} photos registered (need {TUNING.sfm.min_registered})")
     points = np.array([p.xyz for p in rec.points3D.values()]) if rec.num_points3D() else np.zeros((0, 3))
     return SfmResult(poses, points, sorted(set(names) - set(poses)), model_dir if model_dir.is_dir() else None)
 

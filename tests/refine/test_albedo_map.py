@@ -1,5 +1,6 @@
 import numpy as np
 
+from ntp_engine.io.tuned import retuned
 from ntp_engine.refine import albedo_map
 from ntp_engine.refine.albedo_map import sharpened_albedos, tap_texels
 
@@ -66,7 +67,7 @@ def test_an_albedo_step_blurred_by_the_pixel_samples_comes_back_sharp(monkeypatc
     default = sharpened_albedos(d, y, s, taps, w, own, np.arange(20))
     assert np.isfinite(default).all()
     assert (np.abs(default[step] - truth[step]) < np.abs(own[step] - truth[step])).all()
-    monkeypatch.setattr(albedo_map, "PRIOR_WEIGHT", 0.01)
+    monkeypatch.setattr(albedo_map, "TUNING", retuned(albedo_map.TUNING, "albedo_map", prior_weight=0.01))
     weak = sharpened_albedos(d, y, s, taps, w, own, np.arange(20))
     assert np.abs(weak - truth).max() < 0.005
 

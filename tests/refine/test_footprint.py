@@ -6,15 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from ntp_engine.refine.footprint import (
-    BLEND_NOISE,
-    SPREAD_MAX,
-    SPREAD_WIDENING,
-    albedo_blend,
-    sample_points,
-    slope_spread,
-    widening,
-)
+from ntp_engine.refine.footprint import albedo_blend, sample_points, slope_spread, widening
+from ntp_engine.refine.settings import TUNING
 from ntp_engine.scanner import camera
 from ntp_engine.scanner.device_file import load_scanner
 
@@ -62,7 +55,7 @@ def test_padding_and_grazing_entries_are_bounded_and_finite():
     mask = torch.tensor([[True, True]])
     spread = slope_spread(DEV, entries, mask, S)
     assert torch.isfinite(spread).all()
-    assert (spread[..., 0, 0] + spread[..., 1, 1]).max().item() <= SPREAD_MAX * (1 + 1e-9)
+    assert (spread[..., 0, 0] + spread[..., 1, 1]).max().item() <= TUNING.footprint.spread_max * (1 + 1e-9)
     assert slope_spread(DEV, entries, torch.tensor([[False, False]]), S).abs().max().item() == 0
 
 
@@ -71,8 +64,8 @@ def test_the_lobe_is_widened_along_the_axis_the_normals_spread():
     spread[..., 0, 0] = 0.004  # along t^ only
     frame = torch.eye(3, dtype=torch.float64)[None]
     turned = torch.tensor([[[0.0, 1, 0], [-1, 0, 0], [0, 0, 1]]], dtype=torch.float64)  # shading t along b^
-    assert widening(spread, frame)[0, 0].tolist() == pytest.approx([SPREAD_WIDENING * 0.004, 0.0])
-    assert widening(spread, turned)[0, 0].tolist() == pytest.approx([0.0, SPREAD_WIDENING * 0.004])
+    assert widening(spread, frame)[0, 0].tolist() == pytest.approx([TUNING.footprint.spread_widening * 0.004, 0.0])
+    assert widening(spread, turned)[0, 0].tolist() == pytest.approx([0.0, TUNING.footprint.spread_widening * 0.004])
     # round-off on a flat face is no spread (float32 subnormals would slow every lobe sum)
     assert widening(torch.full((1, 1, 2, 2), 1e-30), frame.float()).abs().max().item() == 0
 
@@ -109,8 +102,8 @@ def test_the_sample_points_are_where_the_four_pixels_see_the_tangent_plane():
 
 def test_the_albedo_blend_is_how_far_the_taps_reach_across_an_edge():
     """On a map with one albedo edge (0.4 | 0.8): taps that reach across it blend sqrt(sum w d^2),
-    each difference less ``BLEND_NOISE``; taps along the edge, a uniform map, a map varying by less
-    than ``BLEND_NOISE`` and unweighted taps blend nothing."""
+    each difference less ``TUNING.footprint.blend_noise``; taps along the edge, a uniform map, a map varying by less
+    than ``TUNING.footprint.blend_noise`` and unweighted taps blend nothing."""
     H = W = 8
     albedo = np.full((H, W, 3), 0.4)
     albedo[:, 4:] = 0.8  # columns 4.. brighter
@@ -122,11 +115,11 @@ def test_the_albedo_blend_is_how_far_the_taps_reach_across_an_edge():
     weight = torch.full((2, 1, 4), 0.25, dtype=torch.float64)
     out = albedo_blend(delta, weight, uv, per_metre, albedo)
     # right-hand taps at column 3.5 read 0.6 (0.2 brighter), the left ones 0.4
-    expect = math.sqrt(0.5 * (0.2 - BLEND_NOISE) ** 2)
+    expect = math.sqrt(0.5 * (0.2 - TUNING.footprint.blend_noise) ** 2)
     np.testing.assert_allclose(out[0, 0].numpy(), [expect] * 3, atol=1e-12)
     np.testing.assert_allclose(out[1, 0].numpy(), [0.0] * 3, atol=1e-12)
     faint = np.full((H, W, 3), 0.4)
-    faint[:, 4:] = 0.4 + BLEND_NOISE
+    faint[:, 4:] = 0.4 + TUNING.footprint.blend_noise
     for flat in (np.full((H, W, 3), 0.4), faint):
         assert albedo_blend(delta, weight, uv, per_metre, flat).abs().max().item() < 1e-12
     assert albedo_blend(delta, 0 * weight, uv, per_metre, albedo).abs().max().item() == 0

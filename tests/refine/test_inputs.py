@@ -2,23 +2,25 @@ import numpy as np
 import torch
 
 from ntp_engine.fit.texel_fit import TexelFit
+from ntp_engine.io.tuned import retuned
 from ntp_engine.learn.ragged import RaggedTraces
 from ntp_engine.refine import inputs as inputs_module
 from ntp_engine.scanner.device_file import load_scanner
 
 
 def test_refine_inputs_read_marginal_entries_only_where_too_few_others_are_left():
-    """A texel with at least ``MIN_CLEAR_ENTRIES`` clear entries — neither shadowed by its mesh
+    """A texel with at least ``TUNING.inputs.min_clear_entries`` clear entries — neither shadowed by its mesh
     (over ``MAX_SHADOWED_DRIVE`` of the drive hidden) nor grazing (wo . n^ <= ``MIN_COS_VIEW``) —
     is refined on those alone; one with fewer reads its marginal entries too, with their masks,
     and is flagged ``marginal``."""
     from ntp_engine.physics.emitter_blocks import shadow_groups
-    from ntp_engine.refine.inputs import MIN_CLEAR_ENTRIES, REFINE_VIEWS, refine_inputs
+    from ntp_engine.refine.inputs import refine_inputs
+    from ntp_engine.refine.settings import TUNING
 
     dev = load_scanner()
     half = (1 << (len(shadow_groups(dev).points) // 2)) - 1  # half the groups hidden: shadowed
     # kinds of each trace's entries (c clear, s shadowed, g grazing): plenty clear, too few, none, no entries
-    kinds = ["csg" * 13 + "c", "c" * (MIN_CLEAR_ENTRIES - 1) + "sg" * 15, "sgsgs", ""]
+    kinds = ["csg" * 13 + "c", "c" * (TUNING.inputs.min_clear_entries - 1) + "sg" * 15, "sgsgs", ""]
     table = [torch.tensor([half if k == "s" else 0 for k in t], dtype=torch.int64) for t in kinds]
     shadow = torch.cat(table)
     lengths = [len(t) for t in kinds]
@@ -38,12 +40,12 @@ def test_refine_inputs_read_marginal_entries_only_where_too_few_others_are_left(
     ent, mask, masks, marginal = inp.obs.entries, inp.obs.mask, inp.obs.shadow, inp.marginal
     assert inp.obs.support is None  # none asked for
     clear = [{k for k, c in enumerate(t) if c == "c"} for t in kinds]
-    few = [len(c) < MIN_CLEAR_ENTRIES for c in clear]
+    few = [len(c) < TUNING.inputs.min_clear_entries for c in clear]
     assert marginal.tolist() == [few[0], few[1], True, False]
     for i, n in enumerate(lengths):
         got = ent[i, mask[i], 0].long()
         usable = set(range(n)) if few[i] else clear[i]
-        assert len(got) == min(len(usable), REFINE_VIEWS) and set(got.tolist()) <= usable
+        assert len(got) == min(len(usable), TUNING.inputs.refine_views) and set(got.tolist()) <= usable
         assert torch.equal(masks[i, mask[i]], table[i][got])
     assert not few[0] and few[1] and mask[2].sum() == 5  # both cases are there
 
@@ -84,7 +86,7 @@ def test_each_entry_gets_the_albedo_its_pixel_may_blend_in_near_an_edge_only(mon
     tx, traces = _square_in_two_views(0.3, (0.5, 0.5))
     entries = traces.entries
     rho_d = np.where(tx.col[:, None] < 16, 0.3, 0.7) * np.ones(3)
-    monkeypatch.setattr(inputs_module, "BLEND_ENTRIES", 7)
+    monkeypatch.setattr(inputs_module, "TUNING", retuned(inputs_module.TUNING, "inputs", blend_entries=7))
     dev = load_scanner()
     out = inputs_module.with_albedo_blend(dev, traces, rho_d, tx).albedo_blend
     assert out is not None and out.shape == (len(entries), 3)

@@ -7,10 +7,6 @@ import numpy as np
 import pytest
 
 from ntp_engine.refine.materials import (
-    LABEL_NEIGHBOURS,
-    MATTE_SHARE,
-    MATTE_SHARE_RANGE,
-    SHARE_PSEUDO,
     BasisMaterials,
     candidates,
     class_costs,
@@ -26,6 +22,7 @@ from ntp_engine.refine.materials import (
     pooled_votes,
     second_wins,
 )
+from ntp_engine.refine.settings import TUNING
 
 
 def _two_materials(rng: np.random.Generator, n: int = 200):
@@ -45,7 +42,7 @@ def test_clusters_separate_distinct_groups_deterministically():
     f = np.concatenate([rng.normal(0, 0.3, (100, 3)), rng.normal(5, 0.3, (80, 3)), rng.normal(-5, 0.3, (5, 3))])
     labels = clusters(f)
     assert (labels == clusters(f)).all()
-    # two big groups; the 5 stragglers (fewer than MIN_MEMBERS) joined the nearest
+    # two big groups; the 5 stragglers (fewer than min_members) joined the nearest
     assert len(np.unique(labels)) == 2
     assert len(np.unique(labels[:100])) == 1 and len(np.unique(labels[100:180])) == 1
     assert labels[0] != labels[100]
@@ -75,7 +72,7 @@ def test_lobe_materials_are_their_members_medians():
     order = np.argsort(m.alpha[:, 0])
     np.testing.assert_allclose(m.alpha[order], [[0.05, 0.05], [0.3, 0.05]], rtol=0.05)
     np.testing.assert_allclose(m.rho_s[order].mean(1), [3.0, 1.0], rtol=0.05)
-    np.testing.assert_allclose(m.share.sum(), 1 - MATTE_SHARE)
+    np.testing.assert_allclose(m.share.sum(), 1 - TUNING.materials.matte_share)
     back = BasisMaterials.from_arrays(m.to_arrays())
     for a, b in zip(back.to_arrays().values(), m.to_arrays().values(), strict=True):
         np.testing.assert_array_equal(a, b)
@@ -149,7 +146,7 @@ def test_a_cluster_counts_as_a_material_by_how_many_of_its_lobes_showed_themselv
         out[(m.alpha[:, 0] > 0.1).astype(int)] = m.share  # blue alpha 0.05, grey 0.3
         return out
 
-    full = (1 - MATTE_SHARE) / 2
+    full = (1 - TUNING.materials.matte_share) / 2
     np.testing.assert_allclose(shares(1), [full, full])
     # by degree: the weight is members x f^2, f the share of them that showed themselves
     np.testing.assert_allclose(shares(0.5), [full / 4, full])
@@ -157,10 +154,10 @@ def test_a_cluster_counts_as_a_material_by_how_many_of_its_lobes_showed_themselv
     assert material_weight(metal, faint) == 100 * 0.3**2
     assert material_weight(metal, dielectric) == 100
     assert material_weight(metal[:0], faint[:0]) == 0
-    # no step at a median of MIN_HIGHLIGHT: 49% and 51% of the lobes highlighted weigh nearly the same
+    # no step at a median of min_highlight: 49% and 51% of the lobes highlighted weigh nearly the same
     lo, hi = shares(0.49)[0], shares(0.51)[0]
     assert 0 < lo < hi < 1.1 * lo
-    # a cluster few of whose lobes showed themselves (weighing under MIN_MEMBERS texels) is none
+    # a cluster few of whose lobes showed themselves (weighing under min_members texels) is none
     assert shares(0)[0] == 0 and shares(0.25)[0] == 0  # 200 x 0.25^2 = 12.5 < 16
     assert shares(0.3)[0] > 0  # 18
 
@@ -201,7 +198,7 @@ def test_a_texel_judged_under_a_lobe_is_coloured_as_under_it():
     judged[0, 1 + grey] = 0.05  # under the grey material's lobe
     c = judged_colour_costs(judged, m)
     assert c.shape == (2, 3) and np.isfinite(c).all()
-    shares = np.log(np.concatenate([[MATTE_SHARE], m.share]))
+    shares = np.log(np.concatenate([[TUNING.materials.matte_share], m.share]))
     np.testing.assert_allclose(c[:, 0], class_costs(judged[:1, 0], m)[0, 0] + shares[0])
     np.testing.assert_allclose(c[0, 1 + grey], 3 * np.log(m.colour_sigma[grey]))  # its colour exactly
     assert class_costs(judged[:1, 1 + grey], m)[0, 1 + grey] + shares[1 + grey] > c[0, 1 + grey] + 10
@@ -217,7 +214,7 @@ def test_the_matte_share_is_the_objects_own():
         np.full(1, 0.1),
         np.full(1, 0.25),
         np.full(1, 0.25),
-        np.array([1 - MATTE_SHARE]),
+        np.array([1 - TUNING.materials.matte_share]),
         np.full((1, 3), 0.2),
     )
     # 30% of the texels' traces say matte, 20% kept a lobe of their own, half cannot tell: the
@@ -225,9 +222,9 @@ def test_the_matte_share_is_the_objects_own():
     costs = np.concatenate([np.tile([0.0, 10.0], (300, 1)), np.tile([np.inf, 0.0], (200, 1)), np.zeros((500, 2))])
     assert abs(estimated_matte_share(costs, one) - 0.6) < 0.01
     # a glossy object whose texels never say matte: the share falls to its floor, not 0
-    assert estimated_matte_share(costs[300:], one) == MATTE_SHARE_RANGE[0]
-    assert estimated_matte_share(costs[:300], one) == MATTE_SHARE_RANGE[1]
-    assert estimated_matte_share(np.full((4, 2), np.inf), one) == MATTE_SHARE  # nobody could be either
+    assert estimated_matte_share(costs[300:], one) == TUNING.materials.matte_share_range[0]
+    assert estimated_matte_share(costs[:300], one) == TUNING.materials.matte_share_range[1]
+    assert estimated_matte_share(np.full((4, 2), np.inf), one) == TUNING.materials.matte_share  # nobody could be either
     # a lower matte share moves a texel that cannot tell to its colour's lobe material
     grey = np.array([[0.2, 0.2, 0.2]])
     assert np.argmin(class_costs(grey, one)[0]) == 1
@@ -305,7 +302,7 @@ def test_a_width_that_varies_over_the_object_becomes_a_field_and_a_constant_one_
 
 def test_local_shares_are_the_neighbours_classes_with_the_objects_as_more():
     """A plane of texels, matte on the left and material 1 on the right: far from the border a
-    texel's shares are its side's class by ``LABEL_NEIGHBOURS`` to the object's ``SHARE_PSEUDO``;
+    texel's shares are its side's class by ``label_neighbours`` to the object's ``share_pseudo``;
     at the border both; a lone texel has the object's shares."""
     x, y = np.meshgrid(np.arange(20.0), np.arange(20.0))
     position = np.stack([x.ravel(), y.ravel(), np.zeros(400)], 1) * 1e-3
@@ -314,10 +311,13 @@ def test_local_shares_are_the_neighbours_classes_with_the_objects_as_more():
     local = local_shares(label_neighbours(position), label, shares)
     assert local.shape == (400, 3)
     np.testing.assert_allclose(local.sum(1), 1.0)
-    base, total = SHARE_PSEUDO * shares, LABEL_NEIGHBOURS + SHARE_PSEUDO
+    base, total = (
+        TUNING.materials.share_pseudo * shares,
+        TUNING.materials.label_neighbours + TUNING.materials.share_pseudo,
+    )
     far_left, far_right = 10 * 20 + 0, 10 * 20 + 19
-    np.testing.assert_allclose(local[far_left], (base + [LABEL_NEIGHBOURS, 0, 0]) / total)
-    np.testing.assert_allclose(local[far_right], (base + [0, 0, LABEL_NEIGHBOURS]) / total)
+    np.testing.assert_allclose(local[far_left], (base + [TUNING.materials.label_neighbours, 0, 0]) / total)
+    np.testing.assert_allclose(local[far_right], (base + [0, 0, TUNING.materials.label_neighbours]) / total)
     border = 10 * 20 + 9  # last matte column: about half its neighbours are material 1
     assert 0.3 < local[border, 0] < 0.7 and 0.3 < local[border, 2] < 0.7
     np.testing.assert_allclose(local_shares(label_neighbours(position[:1]), label[:1], shares), [shares / shares.sum()])

@@ -13,7 +13,7 @@ from ntp_engine.scanner.device_file import load_scanner
 def test_the_edge_pass_starts_from_the_first_pass_and_seeks_a_lobe_only_where_it_kept_one(monkeypatch):
     """``refine_fit`` on a flat square of two albedos (0.3 | 0.7) seen in two views: the texels next
     to the edge are refined again with the blend as noise, from the first pass's answers in
-    ``EDGE_ROUNDS`` without the multi-start, the pulls centred on the start; those whose first pass
+    ``edge_rounds`` without the multi-start, the pulls centred on the start; those whose first pass
     kept no lobe seek none there (their warm start says no highlight); their answers have none."""
 
     from ntp_engine.refine.settings import RefineSettings
@@ -38,7 +38,7 @@ def test_the_edge_pass_starts_from_the_first_pass_and_seeks_a_lobe_only_where_it
     assert [c[0] for c in calls] == ["refine", "albedo edges"]
     _, edges, warm, settings, centre, first = calls[1]
     assert 0 < len(edges) < N
-    assert settings.rounds == passes_module.EDGE_ROUNDS and not settings.starts
+    assert settings.rounds == passes_module.TUNING.inputs.edge_rounds and not settings.starts
     for key in ("n_loc", "t_loc", "alpha", "rho_d", "rho_s"):
         np.testing.assert_array_equal(getattr(warm, key), getattr(first, key))  # the first pass's answers
         np.testing.assert_array_equal(getattr(centre, key), getattr(start, key))  # the pulls: the start's
@@ -132,7 +132,7 @@ def test_the_albedos_next_to_an_edge_come_back_sharper_from_the_entries_pixel_sa
 
 def test_refine_fit_sharpens_the_albedos_of_the_edge_pass_texels_only_when_asked(monkeypatch):
     """``refine_fit`` solves the albedo map (``sharpen_albedos``) over texels the edge pass refined
-    (those that may blend ``MIN_BLEND`` or more), after every other step;
+    (those that may blend ``min_blend`` or more), after every other step;
     ``RefineSettings(albedo_map=False)`` leaves it out."""
     from ntp_engine.refine.settings import RefineSettings
 

@@ -12,8 +12,7 @@ from ntp_engine.learn.synthetic import SyntheticConfig, sample_batch
 from ntp_engine.physics.emitter_blocks import shadow_groups
 from ntp_engine.physics.frame import cross, rotation_from_vector, safe_normalize, turned_about_normal
 from ntp_engine.physics.measurement import emitter_terms, measure_terms
-from ntp_engine.refine.footprint import SPREAD_WIDENING, Footprint
-from ntp_engine.refine.material_pass import POOL_SCALES
+from ntp_engine.refine.footprint import Footprint
 from ntp_engine.refine.materials import pooled_scale
 from ntp_engine.refine.model import Observations, Start
 from ntp_engine.refine.policy import (
@@ -26,7 +25,7 @@ from ntp_engine.refine.policy import (
     turn_costs,
 )
 from ntp_engine.refine.priors import LobePrior
-from ntp_engine.refine.settings import ISOTROPIC_RATIO, LOBE_EVIDENCE, RefineSettings, SensorNoise
+from ntp_engine.refine.settings import TUNING, RefineSettings, SensorNoise
 from ntp_engine.scanner.device_file import load_scanner
 
 DEV = load_scanner()
@@ -122,7 +121,7 @@ def test_a_lobe_is_isotropic_unless_its_trace_pays_for_the_anisotropy():
     seen = _seen(r)
     assert seen.float().mean() > 0.25
     la = r.log_alpha[seen]
-    iso = la[:, 0] - la[:, 1] < math.log(ISOTROPIC_RATIO)
+    iso = la[:, 0] - la[:, 1] < math.log(TUNING.policy.isotropic_ratio)
     assert iso.float().mean() > 0.9
     assert (r.flags[seen][iso] & TexelFlag.TANGENT_UNCONSTRAINED != 0).all()  # no tangent it cannot support
     assert (la - math.log(0.03)).abs().median() < 0.1
@@ -130,7 +129,7 @@ def test_a_lobe_is_isotropic_unless_its_trace_pays_for_the_anisotropy():
     r = refine(Observations(DEV, entries, mask), Start(*_perturbed(p, 12)), torch.ones(64, dtype=torch.bool))
     seen = _seen(r)
     la = r.log_alpha[seen]
-    assert (la[:, 0] - la[:, 1] < math.log(ISOTROPIC_RATIO)).float().mean() < 0.1
+    assert (la[:, 0] - la[:, 1] < math.log(TUNING.policy.isotropic_ratio)).float().mean() < 0.1
     assert (la - torch.log(torch.tensor([0.15, 0.05]))).abs().median() < 0.1
     tangent = torch.rad2deg(torch.acos((r.frame[:, 0] * _major(p)).sum(-1).abs().clamp(0, 1)))
     assert tangent[seen].median() < 3.0
@@ -319,7 +318,7 @@ def test_never_nan(case):
 def test_lobe_evidence_grows_with_the_trace():
     n = torch.tensor([0, 1, 10, 100, 10000])
     e = lobe_evidence(n)
-    assert (e >= LOBE_EVIDENCE).all() and (e[1:] >= e[:-1]).all()
+    assert (e >= TUNING.policy.lobe_evidence).all() and (e[1:] >= e[:-1]).all()
     torch.testing.assert_close(e[-1], torch.tensor(3 * math.log(10000.0)))
 
 
@@ -458,13 +457,17 @@ def test_lobe_costs_profile_a_materials_width_from_its_texels_traces():
     off = 0.5
     entries, mask, p = _traces(48, 21, (0.05, 0.05, 0.05), (6.0, 6.0, 6.0), (0.3, 0.3))
     start = Start(p["n_local"], p["t_local"], torch.full((48, 2), 0.3), torch.zeros(48, 3), torch.zeros(48, 3))
-    grid = torch.as_tensor(0.3 * off * POOL_SCALES)[None, :, None].expand(48, -1, 2)
+    grid = torch.as_tensor(0.3 * off * TUNING.materials.pool_scales)[None, :, None].expand(48, -1, 2)
     cost, rho_d, rho_s = lobe_costs(Observations(DEV, entries, mask), start, grid)
-    assert cost.shape == (48, len(POOL_SCALES)) and rho_d.shape == rho_s.shape == (48, len(POOL_SCALES), 3)
+    assert cost.shape == (48, len(TUNING.materials.pool_scales)) and rho_d.shape == rho_s.shape == (
+        48,
+        len(TUNING.materials.pool_scales),
+        3,
+    )
     assert torch.isfinite(cost).all()
-    width = 0.3 * off * pooled_scale(cost.numpy(), POOL_SCALES)
+    width = 0.3 * off * pooled_scale(cost.numpy(), TUNING.materials.pool_scales)
     assert abs(math.log(width / 0.3)) < 0.05
-    at = lambda scale: int((torch.as_tensor(POOL_SCALES) - scale).abs().argmin())  # noqa: E731
+    at = lambda scale: int((torch.as_tensor(TUNING.materials.pool_scales) - scale).abs().argmin())  # noqa: E731
     assert (rho_d[:, at(1 / off)] - 0.05).abs().median() < 0.005
     assert (rho_s[:, at(1 / off)].mean(1) / 6.0).log().abs().median() < 0.1
     assert rho_d[:, at(1.0)].median() > 0.065  # the case is real: the narrow lobe's tails in rho_d
@@ -472,7 +475,7 @@ def test_lobe_costs_profile_a_materials_width_from_its_texels_traces():
 
 def test_a_sharp_lobe_seen_through_pixel_samples_on_a_curved_surface_is_recovered():
     """Entries whose pixel samples span normals (slope variance 0.004 along t: a ~6 mm tube at the
-    scanner's distance) see an alpha 0.02 lobe widened along t (to 0.049 with ``SPREAD_WIDENING``
+    scanner's distance) see an alpha 0.02 lobe widened along t (to 0.049 with ``TUNING.footprint.spread_widening``
     0.5); told the spread (``refine.footprint``), the refinement returns nearly the surface's own lobe.
     A sharp lobe's alpha along the spread moves the pixels little: the answer is less sure there."""
     n, var = 48, 0.004
@@ -487,8 +490,8 @@ def test_a_sharp_lobe_seen_through_pixel_samples_on_a_curved_surface_is_recovere
     # the lobe's own axes: the variance along them (t_local's tangent-plane part)
     t2 = p["t_local"][:, :2] / p["t_local"][:, :2].norm(dim=1, keepdim=True)
     b2 = torch.stack([-t2[:, 1], t2[:, 0]], 1)
-    seen_x = torch.sqrt(0.02**2 + SPREAD_WIDENING * var * t2[:, 0] ** 2)[:, None].expand(n, 24)
-    seen_y = torch.sqrt(0.02**2 + SPREAD_WIDENING * var * b2[:, 0] ** 2)[:, None].expand(n, 24)
+    seen_x = torch.sqrt(0.02**2 + TUNING.footprint.spread_widening * var * t2[:, 0] ** 2)[:, None].expand(n, 24)
+    seen_y = torch.sqrt(0.02**2 + TUNING.footprint.spread_widening * var * b2[:, 0] ** 2)[:, None].expand(n, 24)
     n_cam = torch.einsum("nvij,ni->nvj", _geo(b), p["n_local"])
     t_cam = torch.einsum("nvij,ni->nvj", _geo(b), p["t_local"])
     a_l, s_l = emitter_terms(DEV, b.position, n_cam, t_cam, seen_x, seen_y)

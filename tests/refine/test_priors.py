@@ -7,7 +7,7 @@ import torch
 
 from ntp_engine.refine.model import P_LOGA, P_RHO_S
 from ntp_engine.refine.priors import Prior, normal_prior, prior_cost, tint_scale
-from ntp_engine.refine.settings import TINT_FLOOR, RefineSettings
+from ntp_engine.refine.settings import TUNING, RefineSettings
 
 
 def _prior(n: int, **weights) -> Prior:
@@ -46,7 +46,7 @@ def test_each_pull_is_zero_at_its_centre_and_half_chi_square_away_from_it():
 def test_the_tint_pull_is_relative_to_the_lobes_brightness_above_its_floor():
     rs = torch.tensor([[0.0, 0.0, 0.0], [4.0, 4.0, 4.0], [8.0, 8.0, 8.0]], dtype=torch.float64)
     s = tint_scale(rs)
-    assert abs(s[0].item() - 1 / TINT_FLOOR**2) < 1e-12
+    assert abs(s[0].item() - 1 / TUNING.solver.tint_floor**2) < 1e-12
     assert 3.9 < (s[1] / s[2]).item() < 4.0  # ~ 1 / mean^2 well above the floor
 
 

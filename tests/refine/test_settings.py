@@ -6,7 +6,7 @@ import dataclasses
 import pytest
 import torch
 
-from ntp_engine.refine.settings import NOISE_SCALE, RefineSettings, SensorNoise
+from ntp_engine.refine.settings import TUNING, RefineSettings, SensorNoise
 
 
 def test_the_noise_has_a_floor_for_dark_pixels_and_grows_with_the_signal():
@@ -21,6 +21,6 @@ def test_the_noise_has_a_floor_for_dark_pixels_and_grows_with_the_signal():
 def test_the_defaults_are_usable_and_the_settings_are_frozen():
     st = RefineSettings()
     assert st.rounds > 0 and st.iterations > 0 and st.noise.robust > 1
-    assert NOISE_SCALE[0] <= 1.0 <= NOISE_SCALE[1]
+    assert TUNING.model.noise_scale[0] <= 1.0 <= TUNING.model.noise_scale[1]
     with pytest.raises(dataclasses.FrozenInstanceError):
         st.rounds = 1  # type: ignore[misc]

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 import torch
 
+from ntp_engine.io.tuned import retuned
 from ntp_engine.physics.brdf import fresnel_schlick, ggx
 from ntp_engine.physics.frame import frame_from_normal_tangent
 from ntp_engine.refine import support_light as sl
@@ -69,8 +70,8 @@ def test_the_support_sums_converge_to_the_integral_over_the_plane(monkeypatch):
     eye = torch.eye(3, dtype=torch.float64)[None]
     for samples, each, mean in ((None, 0.4, 0.04), (256, 0.06, 0.01)):
         if samples:
-            monkeypatch.setattr(sl, "SPECULAR_SAMPLES", samples)
-            monkeypatch.setattr(sl, "DIFFUSE_SAMPLES", samples)
+            retune = retuned(sl.TUNING, "support", specular_samples=samples, diffuse_samples=samples)
+            monkeypatch.setattr(sl, "TUNING", retune)
         diff = sl.support_diffuse_basis(view, DEV, sl.Sources.of(DEV), x_e, fc_e, live)[0, :, :, 2] / diff_ref
         assert ((diff - 1).abs() < each).all() and ((diff.mean(0) - 1).abs() < mean).all(), (samples, diff.mean(0))
         for alpha, ref in zip(alphas, spec_ref):
@@ -165,8 +166,7 @@ def test_the_refinement_with_the_support_recovers_a_glossy_face_it_lights():
     alpha = torch.stack([p["alpha_x"], p["alpha_y"]], 1).double()
     src = sl.Sources.of(DEV)
     with pytest.MonkeyPatch.context() as patch:  # the truth: many samples, the bounded Fresnel
-        patch.setattr(sl, "SPECULAR_SAMPLES", 512)
-        patch.setattr(sl, "DIFFUSE_SAMPLES", 512)
+        patch.setattr(sl, "TUNING", retuned(sl.TUNING, "support", specular_samples=512, diffuse_samples=512))
         em = sl.support_specular_emitters(view, DEV, src, x, fc, mask, wo, true_frame, alpha, p["rho_s"].double())
         spec = specular_basis(true_frame, pack_emitters(em.wi.transpose(-1, -2), em.weight, em.drive), wo, alpha)
         diff = (sl.support_diffuse_basis(view, DEV, src, x, fc, mask) * true_frame[:, None, None, 2]).sum(-1)
@@ -191,13 +191,13 @@ def test_the_refinement_with_the_support_recovers_a_glossy_face_it_lights():
 
 
 def test_the_light_bounced_onto_an_entry_weighs_it_down():
-    """The model's bounced light is uncertain (``refine.BOUNCE_NOISE``): each entry's sigma gains that
+    """The model's bounced light is uncertain (``RefineTuning.model.bounce_noise``): each entry's sigma gains that
     factor times its pixel times its share of bounced light (of the diffuse light at the geometric
     normal), in quadrature, whatever the answer judged; without a support the sensor's alone."""
     from refine.test_policy import _perturbed, _traces
 
     from ntp_engine.refine.model import Start, predicted_light
-    from ntp_engine.refine.settings import BOUNCE_NOISE
+    from ntp_engine.refine.settings import TUNING
 
     n = 8
     entries, mask, p = _traces(n, 3, (0.3, 0.3, 0.3), (0.5, 0.5, 0.5), (0.2, 0.2), noise=0.0)
@@ -214,7 +214,7 @@ def test_the_light_bounced_onto_an_entry_weighs_it_down():
     share = ((d_with - d_without) / d_with).double()
     assert (share[live] > 0.1).float().mean() > 0.2  # the case is real: a fifth of the entries 10% bounced
     sigma = 1.0 / inv_without.double()
-    expected = torch.rsqrt(sigma**2 + (BOUNCE_NOISE * share * entries[..., :3].double()) ** 2)
+    expected = torch.rsqrt(sigma**2 + (TUNING.model.bounce_noise * share * entries[..., :3].double()) ** 2)
     assert torch.allclose(inv_with[live].double(), expected[live], rtol=1e-4)
     bounced = live & (share > 0.1)
     assert inv_with[bounced].mean() < 0.8 * inv_without[bounced].mean()  # they weigh less
@@ -295,7 +295,7 @@ def test_the_objects_own_light_converges_to_the_integral_over_its_lit_face(monke
     live = torch.ones(1, 1, dtype=torch.bool)
     for samples, tol in ((None, 0.25), (256, 0.04), (2048, 0.01)):
         if samples:
-            monkeypatch.setattr(sl, "DIFFUSE_SAMPLES", samples)
+            monkeypatch.setattr(sl, "TUNING", retuned(sl.TUNING, "support", diffuse_samples=samples))
         lit, dark = (sl.support_diffuse_basis(v, DEV, sl.Sources.of(DEV), x_cam, fc, live)[0, 0, :, 2] for v in views)
         assert ((lit - dark) / ref - 1).abs().max() < tol, (samples, (lit - dark) / ref)
     # two entries summed together as each alone
@@ -326,8 +326,8 @@ def _box_triangles(lo, hi):
 
 def test_a_texel_is_exposed_only_with_the_whole_mesh_behind_its_plane():
     """``exposed``: a box's face centres and an edge texel whose normal leans over the edge are (the
-    other corners lie behind their planes, one within RAY_OFFSET / 2 counts as on it); a texel on
-    the floor beside a wall is not, nor one with a corner 0.6 RAY_OFFSET above its plane."""
+    other corners lie behind their planes, one within ray_offset / 2 counts as on it); a texel on
+    the floor beside a wall is not, nor one with a corner 0.6 ray_offset above its plane."""
     box = _box_triangles(np.array([-0.03, -0.03, 0.0]), np.array([0.03, 0.03, 0.04])).reshape(-1, 3)
     lean = np.array([1.0, 0.0, 1.0]) / math.sqrt(2)
     pos = np.array([[0.03, 0.0, 0.02], [0.0, 0.0, 0.04], [0.03, 0.0, 0.04]])
@@ -336,7 +336,7 @@ def test_a_texel_is_exposed_only_with_the_whole_mesh_behind_its_plane():
     floor_and_wall = np.array([[-0.1, -0.1, 0.0], [0.1, -0.1, 0.0], [0.1, 0.1, 0.0], [0.05, 0.0, 0.03]])
     assert sl.exposed(floor_and_wall, np.zeros((1, 3)), np.array([[0, 0, 1.0]])).tolist() == [False]
     for height, want in ((0.4, True), (0.6, False)):
-        corner = np.array([[0.02, 0.0, height * sl.RAY_OFFSET], [-0.02, 0.0, -0.01]])
+        corner = np.array([[0.02, 0.0, height * sl.TUNING.support.ray_offset], [-0.02, 0.0, -0.01]])
         assert sl.exposed(corner, np.zeros((1, 3)), np.array([[0, 0, 1.0]])).tolist() == [want]
 
 
@@ -360,7 +360,7 @@ def test_an_exposed_texels_rays_above_its_plane_are_not_cast(monkeypatch):
     every = sl.support_diffuse_basis(
         sl.SupportView(scene, view.position, view.frame_world), DEV, sl.Sources.of(DEV), x_cam, fc, live
     )
-    assert sum(cast) == sl.DIFFUSE_SAMPLES
+    assert sum(cast) == sl.TUNING.support.diffuse_samples
     cast.clear()
     view_exposed = sl.SupportView(scene, view.position, view.frame_world, flag)
     skipped = sl.support_diffuse_basis(view_exposed, DEV, sl.Sources.of(DEV), x_cam, fc, live)

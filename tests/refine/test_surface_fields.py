@@ -3,7 +3,8 @@
 import numpy as np
 import pytest
 
-from ntp_engine.refine.surface_fields import VARIATION_PAIRS, field_pairs, semivariogram, texel_spacing
+from ntp_engine.refine.settings import TUNING
+from ntp_engine.refine.surface_fields import field_pairs, semivariogram, texel_spacing
 
 
 def _grid(n: int = 40, spacing: float = 0.001) -> np.ndarray:
@@ -15,7 +16,7 @@ def test_pairs_are_near_and_random_others_never_a_texel_with_itself():
     position = _grid()
     assert texel_spacing(position) == pytest.approx(0.001) and texel_spacing(position[:1]) == 0.0
     i, j, d = field_pairs(position)
-    assert (i != j).all() and len(i) > len(position) * VARIATION_PAIRS
+    assert (i != j).all() and len(i) > len(position) * TUNING.fields.variation_pairs
     np.testing.assert_allclose(d, np.linalg.norm(position[i] - position[j], axis=1))
     assert np.median(d) < 0.01 < d.max()  # near pairs and far ones
 

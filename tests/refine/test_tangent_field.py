@@ -5,8 +5,9 @@ import math
 import numpy as np
 import pytest
 
+from ntp_engine.refine.settings import TUNING
 from ntp_engine.refine.surface_fields import texel_spacing
-from ntp_engine.refine.tangent_field import MIN_STD, field_variation, fused_turns, neighbour_turns
+from ntp_engine.refine.tangent_field import field_variation, fused_turns, neighbour_turns
 
 
 def _plane(n: int = 20, spacing: float = 0.002):
@@ -62,7 +63,7 @@ def test_no_far_or_disagreeing_neighbours_give_no_confidence():
     _, agree = neighbour_turns(position, normal, tangent, t_loc, corner, rest)
     d = np.linalg.norm(position[rest], axis=1)
     assert agree[d < 0.01].min() > agree[d > 0.03].max()
-    assert agree[d > 0.04].max() < 0.2  # 2 sigma (REACH 10 x 2 mm) away
+    assert agree[d > 0.04].max() < 0.2  # 2 sigma (tangent_reach 10 x 2 mm) away
 
 
 def _turned(t_loc: np.ndarray, turn: np.ndarray) -> np.ndarray:
@@ -77,20 +78,20 @@ def test_an_unconstrained_tangent_takes_its_neighbours_and_a_known_one_keeps_its
     std = np.full(N, math.radians(2.0))
     free, fixed = 105, 294  # two texels far apart
     t_loc[free], std[free] = _axis(-45.0), np.inf  # a guess: its trace did not say
-    t_loc[fixed], std[fixed] = _axis(0.0), MIN_STD  # its trace fixed it
+    t_loc[fixed], std[fixed] = _axis(0.0), TUNING.fields.tangent_min_std  # its trace fixed it
     source = np.setdiff1d(np.arange(N), [free])
     turn, fused = fused_turns(position, normal, tangent, t_loc, std, source, np.array([free, fixed]))
     angle = _turned(t_loc[[free, fixed]], turn)
     assert angle[0] == pytest.approx(30.0, abs=1e-6) and fused[0] < math.radians(1.0)
     assert angle[1] == pytest.approx(0.0, abs=1e-9)  # 30 deg from 24 neighbours at 2 deg: the field turns there
-    assert fused[1] == MIN_STD  # and its std stays its own
+    assert fused[1] == TUNING.fields.tangent_min_std  # and its std stays its own
     # one that its neighbours agree with within the errors is averaged with them
     t_loc[fixed] = _axis(29.5)
     turn, fused = fused_turns(position, normal, tangent, t_loc, std, source, np.array([fixed]))
-    assert 29.6 < _turned(t_loc[[fixed]], turn)[0] < 30.0 and fused[0] < MIN_STD
+    assert 29.6 < _turned(t_loc[[fixed]], turn)[0] < 30.0 and fused[0] < TUNING.fields.tangent_min_std
     # no sources: nothing moves
     turn, fused = fused_turns(position, normal, tangent, t_loc, std, np.zeros(0, int), np.array([free, fixed]))
-    assert (turn == 0).all() and fused[0] == np.inf and fused[1] == MIN_STD
+    assert (turn == 0).all() and fused[0] == np.inf and fused[1] == TUNING.fields.tangent_min_std
 
 
 def test_noise_between_neighbours_is_averaged_where_the_field_is_smooth():

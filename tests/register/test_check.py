@@ -20,5 +20,5 @@ def test_rival_turns_are_the_lowest_distinct_minima_away_from_zero():
         for c, h in [(0, 1.0), (90, 0.8), (99, 0.7), (-120, 0.5), (150, 0.3)]
     )
     rivals = rival_turns(turns, costs, count=3)
-    assert rivals == [90.0, -120.0, 150.0]  # 99 is within AMBIGUOUS_DEG of 90; 0 is not a rival
+    assert rivals == [90.0, -120.0, 150.0]  # 99 is within ambiguous_deg of 90; 0 is not a rival
     assert rival_turns(turns, np.full(len(turns), np.inf)) == []

@@ -12,15 +12,9 @@ from ntp_engine.io.mesh import load_mesh
 from ntp_engine.register.align import Alignment, turned_distance
 from ntp_engine.register.check import corrected, spread
 from ntp_engine.register.photo_stack import PhotoStack
-from ntp_engine.register.photometric import (
-    BLUR_LEVELS_PX,
-    FINE_POINTS,
-    Correction,
-    PhotometricRegistration,
-    frees_height,
-    object_distance,
-)
+from ntp_engine.register.photometric import Correction, PhotometricRegistration, frees_height, object_distance
 from ntp_engine.register.refusal import outline_picture
+from ntp_engine.register.settings import TUNING
 from ntp_engine.scanner.scan_folder import load_poses, load_scan, read_photo
 from ntp_engine.sim.evaluate import pose_error
 from ntp_engine.sim.shapes import box_mesh
@@ -105,7 +99,7 @@ def test_the_jacobian_is_the_residuals_derivative(judge):
     pr, names, truth, _, _ = judge
     poses = np.stack([truth[n] for n in names])
     params = np.array([0.002, -0.001, 0.01, 0.01, -0.005, 0.0, 0.003])  # away from 0: every term counts
-    sigma = BLUR_LEVELS_PX[1]
+    sigma = TUNING.photometric.blur_levels_px[1]
     seen = pr._held(poses, params, sigma)
     r, ok, at = pr._residuals(poses, params, sigma, seen)
     J, ok = pr._jacobian(poses, at, sigma, ok)
@@ -157,13 +151,13 @@ def test_sharp_photos_set_the_height_the_support_plane_gave_wrong(scan24):
     errors, heights = {}, {}
     for free in (False, True):
         # as the finisher of ``check_registration`` refines
-        reg = PhotometricRegistration(mesh, photos, support_z, points=FINE_POINTS, free_height=free)
+        reg = PhotometricRegistration(mesh, photos, support_z, points=TUNING.photometric.fine_points, free_height=free)
         lifted = Correction(np.zeros(3), np.array([0.0, 0.0, 0.6e-3]), 0.0, reg.pivot)  # the foot 0.6 mm up
         start = np.stack([lifted.camera_from_mesh(p) for p in true])
         if free:
             pixel_m = object_distance(start, reg.centre) / photos.scanner.fx
             assert frees_height(pixel_m) and not frees_height(2 * pixel_m)  # the gallery's half-size photos
-        g, fit = reg.refine(start, levels=BLUR_LEVELS_PX[1:])
+        g, fit = reg.refine(start, levels=TUNING.photometric.blur_levels_px[1:])
         moved = dict(zip(names, (g.camera_from_mesh(p) for p in start), strict=True))
         errors[free], heights[free] = pose_error(moved, truth)["centre_median_m"], g.tau[2]
         assert np.isfinite(fit.cost)

@@ -6,7 +6,8 @@ import pytest
 
 from ntp_engine.io.errors import NtpInputError
 from ntp_engine.io.images import write_png
-from ntp_engine.register.sfm import GLOBAL_FROM_PHOTOS, chosen_mapper, structure_from_motion
+from ntp_engine.register.settings import TUNING
+from ntp_engine.register.sfm import chosen_mapper, structure_from_motion
 from ntp_engine.scanner.device_file import load_scanner
 from ntp_engine.scanner.scan_folder import load_poses
 from ntp_engine.sim.evaluate import pose_error, similarity_fit
@@ -65,8 +66,11 @@ def test_similarity_fit_takes_out_exactly_a_similarity():
 
 
 def test_auto_picks_the_mapper_by_photo_count():
-    assert chosen_mapper("auto", 24) == "incremental" and chosen_mapper("auto", GLOBAL_FROM_PHOTOS - 1) == "incremental"
-    assert chosen_mapper("auto", GLOBAL_FROM_PHOTOS) == "global" and chosen_mapper("auto", 1000) == "global"
+    assert (
+        chosen_mapper("auto", 24) == "incremental"
+        and chosen_mapper("auto", TUNING.sfm.global_from_photos - 1) == "incremental"
+    )
+    assert chosen_mapper("auto", TUNING.sfm.global_from_photos) == "global" and chosen_mapper("auto", 1000) == "global"
     assert chosen_mapper("hierarchical", 24) == "hierarchical"  # a named mapper is kept
 
 

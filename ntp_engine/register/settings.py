@@ -1,0 +1,170 @@
+"""The registration's tuned constants (``RegistrationTuning``, one section per part: the photo stack,
+the photometric refinement, the check, the refusal, the mesh alignment, SfM and COLMAP import), every
+value declared with its provenance (``io.tuned``; the table of them all is ``docs/tuning.md``,
+generated from here).
+
+Every measurement so far was made on the gallery's five objects (and the demo) at 40 photos: the
+tuning set. A value of kind *unmeasured* is a choice that no measurement backs yet.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..io.tuned import budget, derived, measured, unmeasured
+
+REGISTRATION_BENCH = "the gallery's registrations (40 photos): ntp bench registration"
+
+
+@dataclass(frozen=True)
+class StackTuning:
+    """The photos as the photometric registration reads them (``register.photo_stack``)."""
+
+    code_range: tuple[float, float] = derived((6.0, 249.0), "8-bit codes used: above the noise floor, below clipping")
+    max_working_width: int = budget(
+        640, "photos are averaged down to at most this width (a registration needs no more)"
+    )
+    shading_cells: tuple[int, int] = unmeasured(
+        (8, 4), "the emitters are merged into this many groups along the array's two axes"
+    )
+
+
+@dataclass(frozen=True)
+class PhotometricTuning:
+    """The photometric refinement of a registration (``register.photometric``)."""
+
+    surface_points: int = budget(3000, "surface samples of a PhotometricRegistration by default")
+    candidate_points: int = budget(1500, "... that compare the candidate azimuths (on the sweep's photos)")
+    fine_points: int = measured(
+        8000,
+        "... and that refine the chosen one: its error is sampling noise (3000 points left 1.10 mm / 0.36 deg, "
+        "8000 points 0.54 mm / 0.14 deg)",
+        on="the gallery dome, 40 photos: " + REGISTRATION_BENCH,
+    )
+    blur_levels_px: tuple[float, ...] = measured(
+        (2.0, 1.0, 0.5),
+        "Gaussian sigma of the photos per level, pixels of the working size: the coarse level widens the basin, "
+        "the finest takes out the blur's own bias (at the dome's true poses the cost's minimum lies 0.20 deg off "
+        "in azimuth at sigma 1 px, 0.04 deg at 0.5 px)",
+        on="the gallery dome at its true poses: " + REGISTRATION_BENCH,
+    )
+    cauchy_log: float = unmeasured(0.1, "scale of the robust loss on log residuals (10%)")
+    agree_log: float = unmeasured(0.1, "an observation within 10% of its point's albedo and photo's field agrees")
+    edge_clearance: float = derived(
+        2.0, "points used lie this many blur sigmas (+ 1 px) from every edge of the mesh's image: 95% of the blur"
+    )
+    min_views: int = derived(
+        3, "a point enters the cost once this many photos see it: its albedo is fitted, 3 leave it 2 residuals"
+    )
+    max_rounds: int = budget(5, "re-linearisations per blur level")
+    settled_rad: float = budget(2e-4, "a round that turns the pose less than this (rad) ...")
+    settled_m: float = budget(5e-5, "... and moves it less than this (m) ends the level")
+    azimuth_grid_deg: np.ndarray = budget(
+        np.arange(-4.0, 4.01, 0.25), "searched before the first level's descent: a quarter degree, +-4 deg"
+    )
+    max_log_scale: float = unmeasured(
+        0.2,
+        "a correction scales the point cloud's alignment within 20% (and shifts it within max_shift): beyond, the "
+        "alignment was wrong, not imprecise. Unbounded, the descent wandered off on an untextured body of "
+        "revolution (scale x2.5) until no photo saw the mesh; the bound's value was not measured",
+    )
+    max_shift: float = unmeasured(0.25, "a correction's shift at most, in object sizes (see max_log_scale)")
+    height_pixel_m: float = measured(
+        0.75e-3,
+        "photos this sharp at the object move the height too (frees_height): between the demo's working pixel "
+        "(0.53 mm) and the gallery's (1.05 mm)",
+        on="the demo (ntp demo) and " + REGISTRATION_BENCH,
+    )
+    sharpness_shift_px: float = derived(
+        4.0, "the registration moved this far along each mesh axis for its sharpness: beyond the edge clearance"
+    )
+    sharpness_sigma_px: float = measured(
+        1.0,
+        "the blur the sharpness is measured at (refusal.min_sharpness was set at this blur)",
+        on=REGISTRATION_BENCH,
+    )
+    edge_grid_width: int = budget(
+        320, "the mesh's image (for edge distances) is cast on a grid at most about this wide"
+    )
+
+
+@dataclass(frozen=True)
+class CheckTuning:
+    """The check of a registration against its rivals (``register.check``)."""
+
+    candidate_rounds: int = budget(2, "re-linearisations a candidate gets before the candidates are compared")
+    max_photos: int = budget(40, "photos (evenly spread over the sweep) that judge and refine a registration")
+    sweep_step_deg: float = derived(
+        3.0,
+        "the whole-circle azimuth sweep's step: within the coarse refinement's own azimuth grid (+-4 deg), so a "
+        "rival's basin is not stepped over",
+    )
+    sweep_photos: int = budget(20, "the sweep is a scout: fewer photos ...")
+    sweep_points: int = budget(1000, "... fewer points ...")
+    sweep_edge_stride: int = budget(3, "... and a coarser edge map")
+    rivals: int = budget(3, "the sweep's best other azimuths (more than align.ambiguous_deg apart) refined as rivals")
+    symmetry_px: float = unmeasured(
+        0.25, "a turned mesh lying closer to itself than this (at the object's distance) is a symmetry"
+    )
+
+
+@dataclass(frozen=True)
+class RefusalTuning:
+    """When a registration is refused (``register.refusal``)."""
+
+    min_sharpness: float = measured(
+        0.8,
+        "right registrations had sharpness >= 1.01 and margin >= 0.73; wrong ones that were not a symmetry of the "
+        "mesh sharpness <= 0.48 (docs/pipeline.md)",
+        on=REGISTRATION_BENCH,
+    )
+    min_margin: float = unmeasured(0.5, "the best other azimuth must fit the photos at least 50% worse")
+
+
+@dataclass(frozen=True)
+class AlignTuning:
+    """The alignment of an SfM cloud to the mesh (``register.align``)."""
+
+    inlier_fraction: float = unmeasured(
+        0.006, "of the object's size: an SfM point this close to the mesh is an inlier (1 mm at 16 cm)"
+    )
+    surface_samples: int = budget(200_000, "mesh surface samples the cloud's distances are measured to")
+    coarse_azimuths_deg: np.ndarray = derived(
+        np.arange(0, 360, 10), "the whole circle, 10 deg apart: within the fine search's +-8 deg"
+    )
+    fine_azimuths_deg: np.ndarray = budget(np.arange(-8, 8.01, 0.25), "around the best coarse one, a quarter degree")
+    ambiguous_deg: float = unmeasured(15.0, "candidates further than this from the best are alternatives to it")
+    symmetry_step_deg: float = budget(1.0, "the turns a mesh is tried under for a symmetry (then refined to 0.05 deg)")
+    symmetry_samples: int = budget(5000, "surface samples a turned mesh is compared with itself on")
+
+
+@dataclass(frozen=True)
+class SfmTuning:
+    """Structure from motion (``register.sfm``) and COLMAP import (``register.colmap_model``)."""
+
+    min_registered: int = unmeasured(3, "photos a scan needs registered")
+    global_from_photos: int = measured(
+        300,
+        "``auto`` maps this many photos or more with the global mapper, fewer with the incremental one",
+        on="ntp bench sfm (docs/pipeline.md)",
+    )
+    focal_tolerance: float = unmeasured(
+        0.02, "a COLMAP model's focal length this far off the device file's is refused (relative)"
+    )
+
+
+@dataclass(frozen=True)
+class RegistrationTuning:
+    """The registration's tuned constants, one section per part (fixed per release; ``docs/tuning.md``)."""
+
+    stack: StackTuning = field(default_factory=StackTuning)
+    photometric: PhotometricTuning = field(default_factory=PhotometricTuning)
+    check: CheckTuning = field(default_factory=CheckTuning)
+    refusal: RefusalTuning = field(default_factory=RefusalTuning)
+    align: AlignTuning = field(default_factory=AlignTuning)
+    sfm: SfmTuning = field(default_factory=SfmTuning)
+
+
+TUNING = RegistrationTuning()
