@@ -116,7 +116,7 @@ def _register(args: argparse.Namespace) -> int:
         cache=args.cache,
     )
     write_registration(args.out, poses, rep)
-    reg = rep["registration"]
+    reg = rep.registration or {}
     print(f"{len(poses)} photos registered ({reg['source']}){_alignment_note(reg)}; wrote {args.out / 'poses.json'}")
     return 0
 
@@ -135,10 +135,11 @@ def _reconstruct(args: argparse.Namespace) -> int:
         cache=args.cache,
         ray=args.ray,
     )
+    assert rep.texels is not None and rep.photos is not None and rep.seconds is not None  # a finished run
     print(
-        f"wrote {args.out}: {rep['texels']['coverage']:.1%} of {rep['texels']['total']} texels observed, "
-        f"{rep['photos']['used']} of {rep['photos']['total']} photos used"
-        f"{_alignment_note(rep['registration'])}, {rep['seconds']:.1f} s"
+        f"wrote {args.out}: {rep.texels.coverage:.1%} of {rep.texels.total} texels observed, "
+        f"{rep.photos.used} of {rep.photos.total} photos used"
+        f"{_alignment_note(rep.registration or {})}, {rep.seconds:.1f} s"
     )
     return 0
 

@@ -116,7 +116,7 @@ def _evaluate(settings: GallerySettings, scan_dir: Path, poses: str, out: Path, 
     except NtpInputError as err:  # registration can fail on a hard object: that is a result too
         return {"failed": str(err), "seconds_reconstruct": time.perf_counter() - t0}
     seconds = time.perf_counter() - t0
-    run: dict = {"stages": rep["stages"], "seconds_reconstruct": seconds}
+    run: dict = {"stages": rep.stages, "seconds_reconstruct": seconds}
     if poses == "sfm":
         used, _, _ = register_photos(scan, out)
         run["pose_error"] = pose_error(used, load_poses(gt / "poses.json"))

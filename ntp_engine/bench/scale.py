@@ -21,6 +21,7 @@ import time
 from pathlib import Path
 
 from ..io.output_folder import claim
+from ..pipeline.report import Report
 from ..sim.virtual_scan import ScanConfig, virtual_scan
 from . import dump_json, print_table
 
@@ -125,8 +126,9 @@ def _measure(scan: Path, result: Path, resolution: int, threads: int) -> dict:
     wall = time.perf_counter() - t0
     if child.returncode != 0:
         raise RuntimeError(f"ntp reconstruct {scan} failed: {child.stderr.read() if child.stderr else ''}")
-    report = json.loads((result / "report.json").read_text())
-    st = report["stages"]
+    report = Report.from_json(json.loads((result / "report.json").read_text()))
+    assert report.texels is not None and report.traces is not None  # a finished reconstruction's
+    st = report.stages
     seconds = {
         "select": st["select"],
         "atlas": st["atlas"],
@@ -134,12 +136,12 @@ def _measure(scan: Path, result: Path, resolution: int, threads: int) -> dict:
         "fit": st["network_and_fit"],
         "maps": st["maps"],
     }
-    observed = report["texels"]["observed"]
+    observed = report.texels.observed
     return {
         "texels_observed": observed,
-        "entries": report["traces"]["entries"],
+        "entries": report.traces.entries,
         # every row, in range or not: 12 float32 + the in-range flag
-        "table_gb": report["traces"].get("table_entries", report["traces"]["entries"]) * 49 / 1e9,
+        "table_gb": report.traces.table_entries * 49 / 1e9,
         "seconds": seconds,
         "wall_s": round(wall, 1),
         "fit_texels_per_s": round(observed / max(seconds["fit"], 1e-9)),

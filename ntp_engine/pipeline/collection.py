@@ -93,7 +93,7 @@ def _reconstruct_one(job: tuple[Path, Path], options: BatchOptions, progress: Pr
             refine=options.refine,
             progress=progress,
         )
-        outcome.update(ok=True, coverage=rep["texels"]["coverage"])
+        outcome.update(ok=True, coverage=rep.texels.coverage if rep.texels else 0.0)
     except (NtpInputError, OSError) as err:
         outcome["error"] = error_line(err)
     except Exception as err:  # a bug on one scan must not stop the collection: say what it was

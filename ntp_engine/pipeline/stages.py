@@ -58,6 +58,7 @@ from ..scanner.scan_folder import Scan, check_mesh_size, read_photo
 from . import traces as trace_assembly
 from .fit_traces import ALBEDO_VIEWS, FIT_BLOCK, NETWORK_VIEWS, RHO_S_PRIOR_WEIGHT, fit_blocks
 from .photo_selection import BLUR_MARGIN, Selection, select_photos
+from .report import PhotoCounts, RefineSummary, Report, TexelCounts, TraceCounts
 from .result import write_result
 from .task_pool import LocalPool, RayPool, TaskPool
 
@@ -91,17 +92,6 @@ def _stage_code(stage: str) -> str:
     return code_version(STAGE_CODE[stage], alone=[__name__])
 
 
-class _Report:
-    """The run's report: a dict with a ``stages`` table of wall seconds, filled as stages finish."""
-
-    def __init__(self, **entries: object):
-        self.data: dict = {**entries, "stages": {}}
-
-    def timed(self, name: str, t0: float) -> None:
-        """Record stage ``name``'s wall seconds since ``t0``."""
-        self.data["stages"][name] = round(time.perf_counter() - t0, 3)
-
-
 def register_photos(
     scan: Scan,
     out: Path,
@@ -131,12 +121,12 @@ def _stage_cache(out: Path, cache: Path | None, scan: Scan) -> Iterator[StageCac
 
 
 class Registration(NamedTuple):
-    """What stages 1-2 hand on: the camera-from-world pose of each photo used, by name; the report's
-    entries (``photos``, ``registration``, ``stages``); and the poses' key (chained into the traces
-    stage's)."""
+    """What stages 1-2 hand on: the camera-from-world pose of each photo used, by name; the report
+    with its ``photos``, ``registration`` and ``stages`` filled; and the poses' key (chained into the
+    traces stage's)."""
 
     poses: dict[str, np.ndarray]
-    report: dict
+    report: Report
     key: str
 
 
@@ -147,16 +137,11 @@ class RegistrationRefused(NtpInputError):
 def _registration(
     scan: Scan, out: Path, cache: StageCache, blur_margin: float, progress: Progress, force: bool
 ) -> Registration:
-    report = _Report()
+    report = Report()
     t0 = time.perf_counter()
     sel, h_sel = _select_stage(scan, cache, blur_margin, progress)
     report.timed("select", t0)
-    report.data["photos"] = {
-        "total": len(scan.photo_paths),
-        "kept": len(sel.kept),
-        "blurry": sel.blurry,
-        "unreadable": sel.unreadable,
-    }
+    report.photos = PhotoCounts(len(scan.photo_paths), len(sel.kept), sel.blurry, sel.unreadable)
     if len(sel.kept) < REGISTRATION_TUNING.sfm.min_registered:
         raise NtpInputError(
             scan.photos_dir,
@@ -172,16 +157,16 @@ def _registration(
         poses, reg_info, h_pose = _register_stage(scan, cache, sel, h_sel, progress)
         _diagnostics(out, cache, reg_info, force)
     report.timed("register", t0)
-    report.data["registration"] = reg_info
+    report.registration = reg_info
     if not poses:
         raise NtpInputError(scan.photos_dir, "no selected photo has a pose")
-    return Registration(poses, report.data, h_pose)
+    return Registration(poses, report, h_pose)
 
 
-def write_registration(out: Path, poses: dict[str, np.ndarray], report: dict) -> None:
+def write_registration(out: Path, poses: dict[str, np.ndarray], report: Report) -> None:
     """``out/poses.json`` (camera-from-world per photo) and ``out/registration.json`` (the report)."""
     write_text_atomic(out / "poses.json", json.dumps({n: m.tolist() for n, m in poses.items()}, indent=1))
-    write_text_atomic(out / "registration.json", json.dumps(report, indent=2))
+    write_text_atomic(out / "registration.json", json.dumps(report.to_json(), indent=2))
 
 
 def _diagnostics(out: Path, cache: StageCache, reg_info: dict, force: bool) -> None:
@@ -293,7 +278,7 @@ def reconstruct(
     refine: bool = False,
     cache: Path | None = None,
     ray: str | None = None,
-) -> dict:
+) -> Report:
     """Run the pipeline on ``scan`` into ``out`` (``refine``: the analysis-by-synthesis refinement
     after the network's fit; ``ray``: the fit stage's blocks as tasks on that Ray cluster,
     ``task_pool.LOCAL`` for one on this machine — the same result); returns the report (also in
@@ -323,12 +308,10 @@ def _reconstruct(
     force_registration: bool,
     refine: bool,
     pool: TaskPool,
-) -> dict:
+) -> Report:
     t_all = time.perf_counter()
-    report = _Report(scan=str(scan.folder))
-    poses, reg_report, h_pose = _registration(scan, out, cache, blur_margin, progress, force_registration)
-    report.data["stages"].update(reg_report.pop("stages"))
-    report.data.update(reg_report)
+    poses, report, h_pose = _registration(scan, out, cache, blur_margin, progress, force_registration)
+    report.scan = str(scan.folder)
     net, meta = models.load(model, scan.scanner)  # before any work: the model must fit the scanner
 
     t0 = time.perf_counter()
@@ -342,7 +325,7 @@ def _reconstruct(
     lengths = (traces.lengths if refine else traces.in_range_lengths()).numpy()
     _check_measured(scan, stats, lengths, len(poses))
     scale = net.exposure() / float(scan.scanner.exposure(scan.scanner.pattern))  # captured -> the model's
-    report.data["traces"] = stats
+    report.traces = stats
     report.timed("traces", t0)
 
     t0 = time.perf_counter()
@@ -394,7 +377,7 @@ def _reconstruct(
         }
         folder, _ = cache.get("refine", key, refine_stage)
         fitted = TexelFit.load(folder / "refined.npz")
-        report.data["refine"] = refine_summary(fitted)
+        report.refine = refine_summary(fitted)
         report.timed("refine", t0)
 
     t0 = time.perf_counter()
@@ -403,43 +386,36 @@ def _reconstruct(
         write_result(staging, mesh, texels, fitted, lengths)
         report.timed("maps", t0)
         observed = lengths > 0
-        report.data.update(
-            {
-                "texels": {
-                    "total": len(texels),
-                    "observed": int(observed.sum()),
-                    "coverage": float(observed.mean()) if len(texels) else 0.0,
-                    "flagged": int((fitted.flags != 0).sum()),
-                    "resolution": resolution,
-                },
-                "model": {"name": str(model_folder), **meta.get("summary", {})},
-                "cached_stages": cache.hits,
-                "recomputed_damaged_stages": cache.recomputed,
-                "seconds": round(time.perf_counter() - t_all, 3),
-            }
-        )
-        report.data["photos"]["used"] = stats["views_used"]
-        publish(staging, out, json.dumps(report.data, indent=2))
+        coverage = float(observed.mean()) if len(texels) else 0.0
+        flagged = int((fitted.flags != 0).sum())
+        report.texels = TexelCounts(len(texels), int(observed.sum()), coverage, flagged, resolution)
+        report.model = {"name": str(model_folder), **meta.get("summary", {})}
+        report.cached_stages = cache.hits
+        report.recomputed_damaged_stages = cache.recomputed
+        report.seconds = round(time.perf_counter() - t_all, 3)
+        assert report.photos is not None  # filled by the registration
+        report.photos.used = stats.views_used
+        publish(staging, out, json.dumps(report.to_json(), indent=2))
     finally:
         shutil.rmtree(staging, ignore_errors=True)
-    return report.data
+    return report
 
 
-def refine_summary(fitted: TexelFit) -> dict:
+def refine_summary(fitted: TexelFit) -> RefineSummary:
     """``report.json``'s ``refine``: the noise calibration and the basis materials' reach."""
-    out: dict = {}
+    out = RefineSummary()
     if fitted.noise_scale is not None:
-        out["noise_scale"] = float(fitted.noise_scale)
+        out.noise_scale = float(fitted.noise_scale)
     if fitted.normal_prior_at_mesh is not None:  # where the normal's weak pull centred (refine.policy.calibrated)
-        out["normal_prior"] = "mesh" if fitted.normal_prior_at_mesh else "start"
+        out.normal_prior = "mesh" if fitted.normal_prior_at_mesh else "start"
     if fitted.material is not None:
-        out["basis_materials"] = int(len(fitted.materials["material_share"])) if fitted.materials else 0
+        out.basis_materials = int(len(fitted.materials["material_share"])) if fitted.materials else 0
         if fitted.matte_share is not None:  # the matte class's share estimated on this object
-            out["matte_share"] = round(fitted.matte_share, 4)
-        out["texels_lobe_from_material"] = int((fitted.flags & TexelFlag.FROM_MATERIAL != 0).sum())
-        out["texels_width_from_material"] = int((fitted.flags & TexelFlag.WIDTH_FROM_MATERIAL != 0).sum())
+            out.matte_share = round(fitted.matte_share, 4)
+        out.texels_lobe_from_material = int((fitted.flags & TexelFlag.FROM_MATERIAL != 0).sum())
+        out.texels_width_from_material = int((fitted.flags & TexelFlag.WIDTH_FROM_MATERIAL != 0).sum())
         if fitted.width_varies is not None:  # materials whose width is a field over the object
-            out["materials_width_varies"] = int(fitted.width_varies.sum())
+            out.materials_width_varies = int(fitted.width_varies.sum())
     return out
 
 
@@ -450,14 +426,14 @@ def cached_fit(out: Path) -> tuple[RaggedTraces, TexelFit]:
     return traces, TexelFit.load(out / "cache" / "fit" / "fit.npz")
 
 
-def _check_measured(scan: Scan, stats: dict, lengths: np.ndarray, posed: int) -> None:
+def _check_measured(scan: Scan, stats: TraceCounts, lengths: np.ndarray, posed: int) -> None:
     """Refuse a run that measured too little to be a result (``MIN_PHOTOS_USED``, ``MIN_COVERAGE``),
     naming the likely cause: a mesh not where the photos look, or poses of other photos."""
     cause = "are the mesh and the poses in the same frame and units (metres)?"
-    if stats["views_used"] < MIN_PHOTOS_USED:
+    if stats.views_used < MIN_PHOTOS_USED:
         raise NtpInputError(
             scan.mesh_path,
-            f"only {stats['views_used']} of {posed} posed photos see this mesh (need {MIN_PHOTOS_USED}) — {cause}",
+            f"only {stats.views_used} of {posed} posed photos see this mesh (need {MIN_PHOTOS_USED}) — {cause}",
         )
     coverage = float((lengths > 0).mean()) if len(lengths) else 0.0
     if coverage < MIN_COVERAGE:
@@ -532,7 +508,7 @@ def _traces_stage(
     poses: dict[str, np.ndarray],
     h_pose: str,
     progress: Progress,
-) -> tuple[RaggedTraces, dict, str]:
+) -> tuple[RaggedTraces, TraceCounts, str]:
     """Every texel's trace (linear pixels as captured) and the assembly's statistics."""
     names = sorted(poses)
     support_z = float(mesh.vertices[:, 2].min()) if scan.support_plane else None
@@ -578,4 +554,5 @@ def _traces_stage(
         "code": _stage_code("traces"),
     }
     folder, h_tr = cache.get("traces", key, compute)
-    return trace_assembly.load_table(folder), json.loads((folder / "stats.json").read_text()), h_tr
+    stats = TraceCounts(**json.loads((folder / "stats.json").read_text()))
+    return trace_assembly.load_table(folder), stats, h_tr

@@ -18,6 +18,7 @@ import json
 import subprocess
 import time
 from pathlib import Path
+from typing import Any
 
 from ..io.atomic import write_text_atomic
 from ..io.blender_process import blender_command, has_bpy
@@ -114,10 +115,10 @@ def run(
             "relit_ssim": errors["relit_ssim"],
             "normal_median_deg": errors["normal_median_deg"],
             "diffuse_rmse": errors["diffuse_rmse"],
-            "coverage": rep["texels"]["coverage"],
+            "coverage": rep.texels.coverage if rep.texels else 0.0,
             "seconds": time.perf_counter() - t_all,
         }
-        summary = {
+        summary: dict[str, Any] = {
             "config": {
                 "views": views,
                 "scale": scale,
@@ -129,13 +130,13 @@ def run(
             "metrics": metrics,
             "errors": errors,
             "pose_error": pose_error(poses, truth),
-            "alignment": rep["registration"].get("alignment"),
+            "alignment": (rep.registration or {}).get("alignment"),
             "seconds": {
                 "virtual_scan": round(t_scan, 2),
                 "reconstruct": round(t_rec, 2),
                 "evaluate": round(t_eval, 2),
                 "blender": round(t_blend, 2),
-                "stages": rep["stages"],
+                "stages": rep.stages,
             },
             "blender": blender,
         }

@@ -21,6 +21,6 @@ def test_blurry_and_corrupt_photos_are_skipped_and_listed(scan24, tmp_path):
     (scan / "photos" / "0008.png").write_bytes((scan / "photos" / "0008.png").read_bytes()[:200])  # truncated
     assert blur_score(np.round(photo * 255)) < blur_score(np.round(gaussian_filter(photo, (1.5, 1.5, 0)) * 255))
     rep = reconstruct(load_scan(scan, scan / "ground_truth" / "poses.json"), tmp_path / "rec", resolution=24)
-    assert list(rep["photos"]["blurry"]) == ["0003.png"]
-    assert sorted(rep["photos"]["unreadable"]) == ["0007.png", "0008.png"]
-    assert rep["photos"]["kept"] == 21
+    assert list(rep.photos.blurry) == ["0003.png"]
+    assert sorted(rep.photos.unreadable) == ["0007.png", "0008.png"]
+    assert rep.photos.kept == 21

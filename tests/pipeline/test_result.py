@@ -22,8 +22,8 @@ def test_maps_from_given_poses(small_scan, tmp_path):
     before = {p: p.stat().st_mtime_ns for p in small_scan.rglob("*")}
     rep = reconstruct(scan, tmp_path / "rec", resolution=48)
     assert {p: p.stat().st_mtime_ns for p in small_scan.rglob("*")} == before  # inputs untouched
-    assert rep["texels"]["coverage"] > 0.9 and rep["photos"]["used"] >= 6
-    assert rep["photos"]["used"] + rep["traces"]["views_seeing_no_texel"] == 12
+    assert rep.texels.coverage > 0.9 and rep.photos.used >= 6
+    assert rep.photos.used + rep.traces.views_seeing_no_texel == 12
     rec, gt = SVBRDFMaps.load(tmp_path / "rec"), SVBRDFMaps.load(small_scan / "ground_truth")
     for name in ("diffuse_albedo", "specular_albedo", "normal", "tangent", "roughness"):
         assert np.isfinite(getattr(rec, name)).all()

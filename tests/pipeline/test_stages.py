@@ -41,7 +41,7 @@ def test_sfm_end_to_end_poses_match_the_truth(scan24, colmap24, tmp_path, monkey
     truth = load_poses(scan / "ground_truth" / "poses.json")
     rep = reconstruct(load_scan(scan), tmp_path / "rec", resolution=64)
     assert _mtimes(scan) == before  # inputs untouched
-    reg = rep["registration"]
+    reg = rep.registration
     assert reg["source"] == "structure from motion" and reg["registered"] >= 18 and asked == [True]
     err = pose_error(pipeline.register_photos(load_scan(scan), tmp_path / "rec")[0], truth)
     print("pose error vs truth:", err, "alignment:", reg["alignment"])
@@ -49,8 +49,8 @@ def test_sfm_end_to_end_poses_match_the_truth(scan24, colmap24, tmp_path, monkey
     assert err["centre_median_m"] < 1.6e-3 and err["rotation_median_deg"] < 0.45
     assert reg["alignment"]["residual_m"] < 1e-3 and reg["alignment"]["inlier_points"] >= 8
     assert reg["confidence"]["accepted"] and (tmp_path / "rec" / "registration.png").is_file()
-    assert rep["texels"]["coverage"] > 0.9
-    assert set(rep["stages"]) == {"select", "register", "atlas", "traces", "network_and_fit", "maps"}
+    assert rep.texels.coverage > 0.9
+    assert set(rep.stages) == {"select", "register", "atlas", "traces", "network_and_fit", "maps"}
     for f in ("diffuse_albedo.exr", "normal.exr", "confidence.exr", "mesh.obj", "material.json", "report.json"):
         assert (tmp_path / "rec" / f).is_file()
 
@@ -68,12 +68,12 @@ def test_given_poses_resume_and_changed_model(scan24, tmp_path, monkeypatch):
     assert sorted(p.name for p in (out / "cache").iterdir()) == ["atlas", "select", "traces"]  # no half stage
     monkeypatch.undo()
     rep = reconstruct(scan, out, resolution=32)
-    assert rep["cached_stages"] == ["select", "atlas", "traces"] and rep["registration"]["source"] == "poses file"
+    assert rep.cached_stages == ["select", "atlas", "traces"] and rep.registration["source"] == "poses file"
     rep = reconstruct(scan, out, resolution=32)
-    assert rep["cached_stages"] == ["select", "atlas", "traces", "fit"]
+    assert rep.cached_stages == ["select", "atlas", "traces", "fit"]
     other = _retrained_copy(tmp_path / "other_model")  # a later option changed: another model, same pattern
     rep = reconstruct(scan, out, resolution=32, model=str(other))
-    assert rep["cached_stages"] == ["select", "atlas", "traces"] and "other_model" in rep["model"]["name"]
+    assert rep.cached_stages == ["select", "atlas", "traces"] and "other_model" in rep.model["name"]
     with pytest.raises(
         NtpInputError, match="pattern.csv.*another lighting pattern"
     ):  # the model's pattern is not the scan's
@@ -104,7 +104,7 @@ def test_mesh_without_uvs_gets_an_xatlas_atlas(scan24, tmp_path):
     shutil.copytree(scan24, scan)
     save_obj(scan / "mesh.obj", bare)
     rep = reconstruct(load_scan(scan, scan / "ground_truth" / "poses.json"), tmp_path / "rec", resolution=32)
-    assert rep["texels"]["coverage"] > 0.8 and load_mesh(tmp_path / "rec" / "mesh.obj").uv is not None
+    assert rep.texels.coverage > 0.8 and load_mesh(tmp_path / "rec" / "mesh.obj").uv is not None
 
 
 def test_refinement_stage_writes_uncertainty_and_resumes(scan24, tmp_path):
@@ -114,7 +114,7 @@ def test_refinement_stage_writes_uncertainty_and_resumes(scan24, tmp_path):
     scan = load_scan(scan24, scan24 / "ground_truth" / "poses.json")
     plain = reconstruct(scan, tmp_path / "plain", resolution=24)
     rep = reconstruct(scan, tmp_path / "rec", resolution=24, refine=True)
-    assert "refine" in rep["stages"] and not (tmp_path / "plain" / "uncertainty.exr").exists()
+    assert "refine" in rep.stages and not (tmp_path / "plain" / "uncertainty.exr").exists()
     unc = read_image(tmp_path / "rec" / "uncertainty.exr")
     assert unc.shape == (24, 24, 4) and np.isfinite(unc).all() and (unc > 0).all()
     doc = json.loads((tmp_path / "rec" / "material.json").read_text())["uncertainty"]
@@ -123,21 +123,21 @@ def test_refinement_stage_writes_uncertainty_and_resumes(scan24, tmp_path):
     # the basis materials: a table in material.json, each texel's in confidence.exr's B, counted in the report
     basis = json.loads((tmp_path / "rec" / "material.json").read_text())["basis_materials"]
     ids = read_image(tmp_path / "rec" / "confidence.exr")[..., 2]
-    assert len(basis["table"]) == rep["refine"]["basis_materials"]
+    assert len(basis["table"]) == rep.refine.basis_materials
     assert set(np.unique(ids).astype(int)) <= set(range(len(basis["table"]) + 1))
-    assert 0 <= rep["refine"]["texels_lobe_from_material"] <= rep["texels"]["observed"]
-    assert 0 <= rep["refine"]["texels_width_from_material"] <= rep["texels"]["observed"]
+    assert 0 <= rep.refine.texels_lobe_from_material <= rep.texels.observed
+    assert 0 <= rep.refine.texels_width_from_material <= rep.texels.observed
     if basis["table"]:  # the matte class's share, estimated on this object; which widths vary
-        assert 0.05 <= rep["refine"]["matte_share"] <= 0.95
+        assert 0.05 <= rep.refine.matte_share <= 0.95
         varies = [m["width_varies"] for m in basis["table"]]
-        assert all(isinstance(v, bool) for v in varies) and sum(varies) == rep["refine"]["materials_width_varies"]
+        assert all(isinstance(v, bool) for v in varies) and sum(varies) == rep.refine.materials_width_varies
     truth = scan24 / "ground_truth"
     before, after = map_errors(tmp_path / "plain", truth), map_errors(tmp_path / "rec", truth)
     assert after["normal_median_deg"] < before["normal_median_deg"] + 0.3
     assert after["diffuse_rmse"] < before["diffuse_rmse"] + 0.01
-    assert rep["texels"]["observed"] >= plain["texels"]["observed"]  # dark and clipped entries count too
+    assert rep.texels.observed >= plain.texels.observed  # dark and clipped entries count too
     again = reconstruct(scan, tmp_path / "rec", resolution=24, refine=True)
-    assert again["cached_stages"][-2:] == ["fit", "refine"]
+    assert again.cached_stages[-2:] == ["fit", "refine"]
 
 
 def test_fit_stage_on_ray_is_identical_even_with_a_worker_killed_mid_block(scan24, ray_local, tmp_path):
@@ -148,7 +148,7 @@ def test_fit_stage_on_ray_is_identical_even_with_a_worker_killed_mid_block(scan2
     killed = kill_task_once("_fit_block")
     with_ray = reconstruct(scan, tmp_path / "ray", resolution=48, ray=LOCAL)
     assert killed, "no worker was killed: the test did not test anything"
-    assert with_ray["texels"] == local["texels"]
+    assert with_ray.texels == local.texels
     for name in ("diffuse_albedo.exr", "specular_albedo.exr", "normal.exr", "tangent.exr", "roughness.exr"):
         assert (tmp_path / "ray" / name).read_bytes() == (tmp_path / "local" / name).read_bytes(), name
     with (
@@ -164,7 +164,7 @@ def refined16(scan24, tmp_path_factory):
     scan = load_scan(scan24, scan24 / "ground_truth" / "poses.json")
     out = tmp_path_factory.mktemp("refined16") / "rec"
     reconstruct(scan, out, resolution=16, refine=True)
-    assert reconstruct(scan, out, resolution=16, refine=True)["cached_stages"] == STAGES
+    assert reconstruct(scan, out, resolution=16, refine=True).cached_stages == STAGES
     return scan, out
 
 
@@ -195,4 +195,4 @@ def test_a_change_to_a_stages_code_recomputes_that_stage_and_the_ones_after_it_o
         rep = reconstruct(scan, out, resolution=16, refine=True)
     finally:
         stage_cache._module_code.cache_clear()
-    assert rep["cached_stages"] == [s for s in STAGES if s not in recomputed]
+    assert rep.cached_stages == [s for s in STAGES if s not in recomputed]

@@ -126,5 +126,5 @@ def test_the_support_stage_runs_where_the_scan_says_its_photos_hold_that_light(s
     poses = scan24 / "ground_truth" / "poses.json"
     for run in range(2):
         rep = reconstruct(load_scan(scan, poses), tmp_path / "out", resolution=16, refine=True)
-        assert "support" in rep["stages"] and (tmp_path / "out" / "cache" / "support" / "support.npz").is_file()
-        assert ("support" in rep["cached_stages"]) == (run == 1)
+        assert "support" in rep.stages and (tmp_path / "out" / "cache" / "support" / "support.npz").is_file()
+        assert ("support" in rep.cached_stages) == (run == 1)
