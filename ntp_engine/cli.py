@@ -16,7 +16,7 @@ from .learn import models
 from .learn.network import NetworkConfig
 from .learn.train import LR_SCHEDULES, TrainConfig, train
 from .pipeline.collection import SUMMARY, BatchOptions, reconstruct_collection
-from .pipeline.photo_selection import BLUR_MARGIN
+from .pipeline.settings import TUNING as PIPELINE_TUNING
 from .pipeline.stages import DEFAULT_RESOLUTION, reconstruct, register_photos, write_registration
 from .pipeline.task_pool import LOCAL, LocalPool, RayPool, TaskPool
 from .scanner.device_file import DEFAULT_DEVICE, list_devices, load_scanner, write_pattern
@@ -290,7 +290,7 @@ def _add_reconstruct(sub: Subcommands) -> None:
     rc.add_argument(
         "--blur-margin",
         type=float,
-        default=BLUR_MARGIN,
+        default=PIPELINE_TUNING.select.blur_margin,
         help="drop photos whose blur score exceeds the scan's median by this much",
     )
     rc.add_argument("--force-registration", action="store_true", help=FORCE_HELP)
@@ -324,7 +324,7 @@ def _add_register(sub: Subcommands) -> None:
     rg.add_argument("--out", type=Path, required=True, help="result folder (its cache is shared with reconstruct)")
     rg.add_argument("--device", type=Path, default=None, help="device TOML instead of the one scan.toml names")
     rg.add_argument("--colmap", type=Path, default=None, help=COLMAP_HELP)
-    rg.add_argument("--blur-margin", type=float, default=BLUR_MARGIN)
+    rg.add_argument("--blur-margin", type=float, default=PIPELINE_TUNING.select.blur_margin)
     rg.add_argument("--force-registration", action="store_true", help=FORCE_HELP)
     _run_options(rg)
     add_progress_arguments(rg)

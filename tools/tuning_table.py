@@ -11,12 +11,14 @@ import sys
 from pathlib import Path
 
 from ntp_engine.io.tuned import Kind, provenance
+from ntp_engine.pipeline.settings import PipelineTuning
 from ntp_engine.refine.settings import RefineSettings, RefineTuning
 from ntp_engine.register.settings import RegistrationTuning
 
 ROOT = Path(__file__).resolve().parent.parent
 DOC = ROOT / "docs" / "tuning.md"
 SETTINGS = [
+    ("ntp_engine/pipeline/settings.py", "PipelineTuning", PipelineTuning, "the pipeline stages' constants"),
     ("ntp_engine/refine/settings.py", "RefineSettings", RefineSettings, "one run's effort and noise model"),
     ("ntp_engine/refine/settings.py", "RefineTuning", RefineTuning, "the refinement's constants"),
     ("ntp_engine/register/settings.py", "RegistrationTuning", RegistrationTuning, "the registration's constants"),

@@ -22,7 +22,8 @@ from ..learn import models
 from ..learn.inference import predict
 from ..learn.ragged import RaggedTraces
 from ..learn.synthetic import SyntheticConfig, sample_batch
-from ..pipeline.fit_traces import NETWORK_VIEWS, fit_traces
+from ..pipeline.fit_traces import fit_traces
+from ..pipeline.settings import TUNING as PIPELINE_TUNING
 from ..scanner.device_file import load_scanner
 from . import dump_json, print_table
 
@@ -125,7 +126,9 @@ def _compressed_vs_exact(net, meta: dict, scanner, traces: RaggedTraces) -> dict
     for _ in range(2):
         for name, model in (("exact", exact), ("compressed", net)):
             t0 = time.perf_counter()
-            out[name] = torch.cat([s for _, _, s in predict(model, traces, max_views=NETWORK_VIEWS)])
+            out[name] = torch.cat(
+                [s for _, _, s in predict(model, traces, max_views=PIPELINE_TUNING.fit.network_views)]
+            )
             best[name] = min(best[name], time.perf_counter() - t0)
     err = (torch.log1p(out["compressed"]) - torch.log1p(out["exact"])).abs()
     return {

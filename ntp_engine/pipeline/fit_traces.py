@@ -1,5 +1,5 @@
 """The fit stage: every trace through the network, then the geometry fit, the highlight check and
-the RGB albedo (paper §6-7), in blocks of ``FIT_BLOCK`` texels — the unit of work, run one after
+the RGB albedo (paper §6-7), in blocks of ``TUNING.fit.fit_block`` texels — the unit of work, run one after
 the other in this process or as Ray tasks (``pipeline.task_pool``), with the same result. The refinement
 against the photos that may follow is ``refine.passes.refine_fit``.
 
@@ -24,17 +24,8 @@ from ..learn.inference import predict
 from ..learn.network import TraceNet
 from ..learn.ragged import RaggedTraces
 from ..scanner.scanner import Scanner
+from .settings import TUNING
 from .task_pool import LocalPool, TaskPool
-
-# entries per trace the network reads, spread evenly over the trace: the length it was trained on,
-# and its validation loss is lowest there (2.08 at 64 views vs 2.15 at 128; docs/network.md); a
-# 1000-photo scan's ~323-entry traces cost the network 5x less
-NETWORK_VIEWS = 64
-ALBEDO_VIEWS = 16  # entries per texel for the beta check and the albedo LS (Eq. 1 per entry and emitter)
-RHO_S_PRIOR_WEIGHT = 1.0  # the network's rho_s counts as one view in the albedo LS (fit._albedo_ls)
-# texels per unit of work of the fit stage (a Ray task with --ray): a few seconds of work and ~10 MB
-# of traces at 60 photos; only one block's traces are in memory at a time (the table is on disk)
-FIT_BLOCK = 4096
 
 
 def fit_blocks(
@@ -49,8 +40,8 @@ def fit_blocks(
     block on ``pool`` (default: this process); each block's pixels are scaled by ``pixel_scale`` on
     its own copy. The same arrays as ``fit_traces`` on the whole table, bit for bit whichever pool."""
     N = traces.num_traces
-    starts = range(0, N, FIT_BLOCK)
-    blocks = (_own_block(traces, a, min(a + FIT_BLOCK, N)) for a in starts)
+    starts = range(0, N, TUNING.fit.fit_block)
+    blocks = (_own_block(traces, a, min(a + TUNING.fit.fit_block, N)) for a in starts)
     observed = int((traces.lengths > 0).sum())
     bar = progress.counter("network + fit", observed, "texel")
     out: dict[str, np.ndarray] = {}
@@ -61,7 +52,7 @@ def fit_blocks(
         a = starts[b]
         for k, v in arrays.items():
             out[k][a : a + len(v)] = v
-        bar.update(int((traces.lengths[a : a + FIT_BLOCK] > 0).sum()))
+        bar.update(int((traces.lengths[a : a + TUNING.fit.fit_block] > 0).sum()))
     bar.close()
     # no trace at all: the empty arrays
     return TexelFit.from_arrays(out) if out else fit_traces(net, scanner, traces, pixel_scale)
@@ -104,7 +95,7 @@ def fit_traces(
     observed = int((traces.lengths > 0).sum())
     bar = progress.counter("network + fit", observed, "texel")
     t0 = time.perf_counter()
-    for idx, d, s in predict(net, traces, max_entries=batch * 32, max_views=NETWORK_VIEWS):
+    for idx, d, s in predict(net, traces, max_entries=batch * 32, max_views=TUNING.fit.network_views):
         t1 = time.perf_counter()
         clock["network"] += t1 - t0
         keep = traces.lengths[idx] > 0
@@ -120,7 +111,7 @@ def fit_traces(
         out.alpha[i, 0], out.alpha[i, 1], out.flags[i] = g.alpha_x.numpy(), g.alpha_y.numpy(), g.flags.numpy()
         for a in range(0, len(idx), 256):  # (n, V, L) Eq. 1 terms: keep them cache-sized
             sub = slice(a, a + 256)
-            ent, mask = traces.padded(idx[sub], max_views=ALBEDO_VIEWS)
+            ent, mask = traces.padded(idx[sub], max_views=TUNING.fit.albedo_views)
             gs = g.rows(sub)
             _, rd, rs = highlights_and_albedo(
                 scanner,
@@ -130,7 +121,7 @@ def fit_traces(
                 ent[..., 9:12],
                 mask,
                 gs,
-                prior_weight=RHO_S_PRIOR_WEIGHT,
+                prior_weight=TUNING.fit.rho_s_prior_weight,
             )
             out.rho_d[i[sub]], out.rho_s[i[sub]] = rd.numpy(), rs.numpy()
             out.alpha[i[sub], 0], out.alpha[i[sub], 1] = gs.alpha_x.numpy(), gs.alpha_y.numpy()

@@ -17,8 +17,7 @@ from ..io.errors import NtpInputError
 from ..io.progress import QUIET, Progress, warn
 from ..scanner.scan_folder import read_photo
 from ..scanner.scanner import Scanner
-
-BLUR_MARGIN = 0.08
+from .settings import TUNING
 
 
 @dataclass
@@ -48,7 +47,7 @@ def blur_score(codes: np.ndarray) -> float:
 
 
 def select_photos(
-    paths: list[Path], scanner: Scanner, margin: float = BLUR_MARGIN, progress: Progress = QUIET
+    paths: list[Path], scanner: Scanner, margin: float = TUNING.select.blur_margin, progress: Progress = QUIET
 ) -> Selection:
     """Keep the readable photos of the camera's size whose blur is at most the median + ``margin``;
     each photo left out as unreadable (truncated, corrupt, wrong size) is named on stderr."""

@@ -11,7 +11,8 @@ from the first stage it affects; an interrupted run resumes from the last finish
 report (``report.json``) gives each stage's wall seconds, what was kept and why, and the counts;
 it is written last and marks a complete result. ``OUT`` is claimed first (``output_folder``: absent,
 empty or an ntp result, outside the scan folder), and a run that measured too little is refused
-before the fit (``MIN_PHOTOS_USED``, ``MIN_COVERAGE``; a mesh of implausible size before any work).
+before the fit (``TUNING.run.min_photos_used``, ``TUNING.run.min_coverage``; a mesh of implausible size before
+any work).
 """
 
 from __future__ import annotations
@@ -56,17 +57,15 @@ from ..scanner import camera
 from ..scanner.device_file import scanner_to_dict
 from ..scanner.scan_folder import Scan, check_mesh_size, read_photo
 from . import traces as trace_assembly
-from .fit_traces import ALBEDO_VIEWS, FIT_BLOCK, NETWORK_VIEWS, RHO_S_PRIOR_WEIGHT, fit_blocks
-from .photo_selection import BLUR_MARGIN, Selection, select_photos
+from .fit_traces import fit_blocks
+from .photo_selection import Selection, select_photos
 from .report import PhotoCounts, RefineSummary, Report, TexelCounts, TraceCounts
 from .result import write_result
+from .settings import TUNING
 from .task_pool import LocalPool, RayPool, TaskPool
 
 DEFAULT_RESOLUTION = 1024  # texture maps are DEFAULT_RESOLUTION^2 unless asked otherwise
 MIN_RESOLUTION = 8
-# below these a run has measured too little to be a result: refused (exit 2), not written
-MIN_PHOTOS_USED = 3
-MIN_COVERAGE = 0.05  # fraction of texels with a trace
 REFINE = RefineSettings()
 # the code behind each stage (``io.stage_cache.code_version``: these modules and every engine module
 # they import; this module's own code runs every stage, so a change to it recomputes them all)
@@ -95,7 +94,7 @@ def _stage_code(stage: str) -> str:
 def register_photos(
     scan: Scan,
     out: Path,
-    blur_margin: float = BLUR_MARGIN,
+    blur_margin: float = TUNING.select.blur_margin,
     progress: Progress = QUIET,
     force_registration: bool = False,
     cache: Path | None = None,
@@ -272,7 +271,7 @@ def reconstruct(
     out: Path,
     resolution: int = DEFAULT_RESOLUTION,
     model: str | None = None,
-    blur_margin: float = BLUR_MARGIN,
+    blur_margin: float = TUNING.select.blur_margin,
     progress: Progress = QUIET,
     force_registration: bool = False,
     refine: bool = False,
@@ -341,10 +340,10 @@ def _reconstruct(
             fit_blocks(net, scan.scanner, traces, scale, p, progress).save(d / "fit.npz")
 
     fit_key = {
-        "albedo_views": ALBEDO_VIEWS,
-        "rho_s_prior_weight": RHO_S_PRIOR_WEIGHT,
-        "network_views": NETWORK_VIEWS,
-        "block": FIT_BLOCK,
+        "albedo_views": TUNING.fit.albedo_views,
+        "rho_s_prior_weight": TUNING.fit.rho_s_prior_weight,
+        "network_views": TUNING.fit.network_views,
+        "block": TUNING.fit.fit_block,
         "code": _stage_code("fit"),
     }
     folder, h_fit = cache.get("fit", {"traces": h_tr, **model_key, **fit_key}, fit_stage)
@@ -427,19 +426,22 @@ def cached_fit(out: Path) -> tuple[RaggedTraces, TexelFit]:
 
 
 def _check_measured(scan: Scan, stats: TraceCounts, lengths: np.ndarray, posed: int) -> None:
-    """Refuse a run that measured too little to be a result (``MIN_PHOTOS_USED``, ``MIN_COVERAGE``),
-    naming the likely cause: a mesh not where the photos look, or poses of other photos."""
+    """Refuse a run that measured too little to be a result (``TUNING.run.min_photos_used``,
+    ``TUNING.run.min_coverage``), naming the likely cause: a mesh not where the photos look, or poses of
+    other photos."""
     cause = "are the mesh and the poses in the same frame and units (metres)?"
-    if stats.views_used < MIN_PHOTOS_USED:
+    if stats.views_used < TUNING.run.min_photos_used:
         raise NtpInputError(
             scan.mesh_path,
-            f"only {stats.views_used} of {posed} posed photos see this mesh (need {MIN_PHOTOS_USED}) — {cause}",
+            f"only {stats.views_used} of {posed} posed photos see this mesh "
+            f"(need {TUNING.run.min_photos_used}) — {cause}",
         )
     coverage = float((lengths > 0).mean()) if len(lengths) else 0.0
-    if coverage < MIN_COVERAGE:
+    if coverage < TUNING.run.min_coverage:
         raise NtpInputError(
             scan.mesh_path,
-            f"only {coverage:.1%} of the mesh's texels are seen in any photo (need {MIN_COVERAGE:.0%}) — {cause}",
+            f"only {coverage:.1%} of the mesh's texels are seen in any photo "
+            f"(need {TUNING.run.min_coverage:.0%}) — {cause}",
         )
 
 
@@ -543,10 +545,10 @@ def _traces_stage(
         "poses": h_pose,
         "support": scan.support_plane,
         "max_shadowed_drive": trace_assembly.MAX_SHADOWED_DRIVE,
-        "emitter_shadows": trace_assembly.SKY_RAYS,  # entries the mesh shadows: kept with their masks
+        "emitter_shadows": TUNING.traces.sky_rays,  # entries the mesh shadows: kept with their masks
         "shadow_splits": SHADOW_SPLITS,
-        "min_cos_grazing": trace_assembly.MIN_COS_GRAZING,  # grazing entries: kept, flagged
-        "max_tap_tilt_deg": trace_assembly.MAX_TAP_TILT_DEG,  # pixels that see another surface: not read
+        "min_cos_grazing": TUNING.traces.min_cos_grazing,  # grazing entries: kept, flagged
+        "max_tap_tilt_deg": TUNING.traces.max_tap_tilt_deg,  # pixels that see another surface: not read
         "out_of_range_kept": True,
         "support_shadowed_kept": True,  # the support's shadow: entries kept out of range, its groups masked
         "files": trace_assembly.TABLE_FILES,

@@ -41,21 +41,8 @@ from ..physics.emitter_blocks import shadow_groups
 from ..physics.shadows import MAX_SHADOWED_DRIVE, SupportShadow, grazing, shadowed
 from ..scanner import camera
 from ..scanner.scanner import Scanner
+from .settings import TUNING
 
-# wo . n^ in (MIN_COS_GRAZING, MIN_COS_VIEW]: kept, flagged out of range, and read by the refinement
-# only for texels with no other entry (``refine.inputs.refine_inputs``): at grazing angles a
-# pixel spans a strip of surface, which Eq. 1 for one texel does not describe; 0.2 rather than 0.15
-# halves what the gained texels cost the knot's albedo (docs/history/accuracy.md, "Grazing entries")
-MIN_COS_GRAZING = 0.2
-# a bilinear tap whose pixel centre's ray hits the mesh at a point seen from the entry's point more
-# than this far off its tangent plane sees another surface (chord angle, degrees): on one smooth
-# surface the chord across a pixel's footprint tilts by half the normal's turn (a few degrees at the
-# gallery's pixel sizes), to another surface by far more; at 20 and 30 nearly the same of the knot's
-# grazing entries have a tap off their surface (7,832 and 7,818; docs/history/accuracy.md, "Pixels that see
-# another surface")
-MAX_TAP_TILT_DEG = 20.0
-TAP_TOLERANCE = 1e-6  # metres off the plane always accepted: the hit's float32 rounding
-SKY_RAYS = 64  # directions over a texel's hemisphere: none hitting the mesh = it cannot shadow its emitters
 TABLE_FILES = ("entries", "offsets", "in_range", "shadow")  # a table on disk: one .npy each (``load_table``)
 # the per-entry columns: dtype and shape after the entry axis
 _COLUMNS: dict[str, tuple[type, tuple[int, ...]]] = {
@@ -63,8 +50,6 @@ _COLUMNS: dict[str, tuple[type, tuple[int, ...]]] = {
     "in_range": (np.bool_, ()),
     "shadow": (np.int64, ()),
 }
-# entries per block when a table on disk is regrouped by texel: ~400 MB of rows in memory at a time
-TABLE_BLOCK_ENTRIES = 1 << 23
 
 
 @dataclass
@@ -82,7 +67,7 @@ class EmitterShadow:
     own light: a knot's inner loops, a box's inside corners): one shadow ray from the point (offset
     ``eps`` along its normal) to each group of ``physics.emitter_blocks.shadow_groups`` (half an
     emitter block; each sample on small devices) above the point's horizon. Texels whose
-    hemisphere is open (``SKY_RAYS`` rays, none hitting the mesh) are never tested — on convex
+    hemisphere is open (``TUNING.traces.sky_rays`` rays, none hitting the mesh) are never tested — on convex
     parts the test is free."""
 
     def __init__(self, scanner: Scanner, caster: RayCaster, texels: Texels, eps: float):
@@ -92,10 +77,10 @@ class EmitterShadow:
         self.open = self._open_sky(texels)
 
     def _open_sky(self, texels: Texels) -> np.ndarray:
-        """``(T,)`` True where none of ``SKY_RAYS`` directions over the texel's hemisphere (a
+        """``(T,)`` True where none of ``TUNING.traces.sky_rays`` directions over the texel's hemisphere (a
         Fibonacci spiral, cosine-spread about the normal) meets the mesh."""
-        k = np.arange(SKY_RAYS) + 0.5
-        r, phi = np.sqrt(k / SKY_RAYS), np.pi * (3 - np.sqrt(5)) * k
+        k = np.arange(TUNING.traces.sky_rays) + 0.5
+        r, phi = np.sqrt(k / TUNING.traces.sky_rays), np.pi * (3 - np.sqrt(5)) * k
         local = np.stack([r * np.cos(phi), r * np.sin(phi), np.sqrt(1 - r**2)], -1)  # (S, 3), z up
         n, t = texels.normal, texels.tangent
         b = np.cross(n, t)
@@ -142,8 +127,8 @@ def pixel_taps(
     see the entry's own surface: ``(N, 4)`` bool in ``io.maps.bilinear_corners``' order. Each
     distinct pixel's centre ray is cast once (Embree, camera at ``pose``, camera-from-world); a tap
     sees the surface of the point ``position (N, 3)`` with unit ``normal (N, 3)`` (world) when its
-    ray hits the mesh within ``MAX_TAP_TILT_DEG`` of the point's tangent plane as seen from the
-    point (or within ``TAP_TOLERANCE`` of it); no hit is another surface (the background)."""
+    ray hits the mesh within ``TUNING.traces.max_tap_tilt_deg`` of the point's tangent plane as seen from the
+    point (or within ``TUNING.traces.tap_tolerance`` of it); no hit is another surface (the background)."""
     h, w = scanner.height, scanner.width
     rows, cols, _, _ = bilinear_corners(h, w, px[:, 1], px[:, 0])
     pixel = rows * w + cols  # (N, 4)
@@ -163,9 +148,9 @@ def pixel_taps(
     chord = hit[inverse] - position[:, None]  # (N, 4, 3)
     off = np.einsum("nkc,nc->nk", chord, normal)
     # within the tilt limit (squared: no square roots), or within the tolerance
-    flat = (off**2 <= np.sin(np.radians(MAX_TAP_TILT_DEG)) ** 2 * np.einsum("nkc,nkc->nk", chord, chord)) | (
-        np.abs(off) <= TAP_TOLERANCE
-    )
+    flat = (
+        off**2 <= np.sin(np.radians(TUNING.traces.max_tap_tilt_deg)) ** 2 * np.einsum("nkc,nkc->nk", chord, chord)
+    ) | (np.abs(off) <= TUNING.traces.tap_tolerance)
     return flat & ~missed[inverse]
 
 
@@ -198,7 +183,7 @@ def _visible(
     rejected["valid_volume"] += int((~in_box).sum())
     idx = idx[in_box]
     wo = -x[idx] / np.linalg.norm(x[idx], axis=1, keepdims=True)
-    facing = (wo * (texels.normal[idx] @ R.T)).sum(1) > MIN_COS_GRAZING
+    facing = (wo * (texels.normal[idx] @ R.T)).sum(1) > TUNING.traces.min_cos_grazing
     rejected["grazing"] += int((~facing).sum())
     idx = idx[facing]
     if len(idx) == 0:
@@ -249,7 +234,7 @@ def assemble(
     memory (texel by texel, views in photo order; peak ~1.1x the table); with ``folder``, the table
     is written there as ``TABLE_FILES`` and returned memory-mapped (``load_table``), the same bit
     for bit: entries are streamed to disk in photo order, then regrouped by texel one block of
-    ``TABLE_BLOCK_ENTRIES`` at a time — the process holds the indices and one block, not the table."""
+    ``TUNING.traces.table_block_entries`` at a time — the process holds the indices and one block, not the table."""
     n_tex = len(texels)
     rejected = {
         "behind_or_outside": 0,
@@ -391,13 +376,13 @@ def _by_texel(
     progress: Progress,
 ) -> None:
     """The photo-ordered columns ``spill`` (``_COLUMNS``) regrouped by texel into ``folder``'s
-    ``TABLE_FILES``, one block of texels (<= ``TABLE_BLOCK_ENTRIES`` entries, at least one texel)
+    ``TABLE_FILES``, one block of texels (<= ``TUNING.traces.table_block_entries`` entries, at least one texel)
     at a time: each view's entries of a block are one contiguous run (its texel indices ascend)."""
     n_tex, n_entries = len(offsets) - 1, int(offsets[-1])
     np.save(folder / "offsets.npy", offsets)
     out = {k: _column(folder / f"{k}.npy", k, n_entries) for k in _COLUMNS}
     bar = progress.counter("trace table", n_tex, "texel")
-    for a, b in spans(offsets, TABLE_BLOCK_ENTRIES):
+    for a, b in spans(offsets, TUNING.traces.table_block_entries):
         base = int(offsets[a])
         block = {k: _column(None, k, int(offsets[b]) - base) for k in _COLUMNS}
         cursor = offsets[a:b] - base  # each texel's next free row in the block

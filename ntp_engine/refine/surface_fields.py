@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 from scipy.spatial import cKDTree
-from scipy.stats import chi2
+from scipy.special import gammaincinv
 
 from .settings import TUNING
 
@@ -51,7 +51,7 @@ def semivariogram(
     gamma = np.zeros(TUNING.fields.variation_bins)
     if len(distance) == 0:
         return bins, gamma
-    ratio = float(chi2(dof).median()) / dof
+    ratio = 2.0 * float(gammaincinv(dof / 2.0, 0.5)) / dof  # chi2(dof)'s median, as scipy.stats computes it
     b = np.clip(
         np.round(np.log2(np.maximum(distance / max(spacing, 1e-9), 1.0))).astype(int),
         0,

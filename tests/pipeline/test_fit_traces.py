@@ -2,6 +2,7 @@ import numpy as np
 import torch
 
 from ntp_engine.fit.geometry import FALLBACK_ALPHA
+from ntp_engine.io.tuned import retuned
 from ntp_engine.learn import models
 from ntp_engine.learn.ragged import RaggedTraces
 from ntp_engine.learn.synthetic import SyntheticConfig, sample_batch
@@ -47,7 +48,7 @@ def test_blocks_give_the_whole_tables_answer_from_unscaled_pixels(monkeypatch):
     scaled = RaggedTraces(captured.entries.clone(), captured.offsets)
     scaled.entries[:, :3] *= scale
     whole = fit_traces(net, scanner, scaled, scale)
-    monkeypatch.setattr(fit_traces_module, "FIT_BLOCK", 5)
+    monkeypatch.setattr(fit_traces_module, "TUNING", retuned(fit_traces_module.TUNING, "fit", fit_block=5))
     blocks = fit_blocks(net, scanner, captured, scale)
     assert torch.equal(captured.entries, before)
     assert set(blocks.arrays()) == set(whole.arrays())

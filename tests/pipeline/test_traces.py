@@ -4,10 +4,12 @@ import torch
 
 from ntp_engine.io.raycast import RayCaster
 from ntp_engine.io.texels import rasterize
+from ntp_engine.io.tuned import retuned
 from ntp_engine.physics.emitter_blocks import shadow_groups
 from ntp_engine.physics.measurement import measurement_rgb
 from ntp_engine.physics.shadows import MAX_SHADOWED_DRIVE, MIN_COS_VIEW, grazing, shadowed
-from ntp_engine.pipeline.traces import MIN_COS_GRAZING, assemble
+from ntp_engine.pipeline.settings import TUNING
+from ntp_engine.pipeline.traces import assemble
 from ntp_engine.scanner.camera import code_is_valid, look_at, resampled
 from ntp_engine.scanner.device_file import load_scanner
 from ntp_engine.sim.renderer import Scene
@@ -47,7 +49,9 @@ def test_traces_from_a_virtual_scan_match_the_renderer_and_respect_the_filters()
     # filters: facing the camera, inside the valid volume; dark and near-clipped entries kept, flagged
     wo = -e[:, 3:6] / np.linalg.norm(e[:, 3:6], axis=1, keepdims=True)
     cos = (wo * e[:, 6:9]).sum(1)
-    assert (cos > MIN_COS_GRAZING).all() and stats.rejected["grazing_flagged"] == (cos <= MIN_COS_VIEW).sum() > 0
+    assert (cos > TUNING.traces.min_cos_grazing).all() and stats.rejected["grazing_flagged"] == (
+        cos <= MIN_COS_VIEW
+    ).sum() > 0
     assert dev.in_valid_volume(torch.as_tensor(e[:, 3:6])).all()
     codes = 255 * e[:, :3] * cfg.exposure
     code_ok = ((codes >= 32) & (codes <= 224)).all(1)
@@ -179,7 +183,7 @@ def test_two_pass_assembly_equals_the_one_pass_table_at_a_fraction_of_its_memory
         base = tracemalloc.get_traced_memory()[0]
         entries, counts, in_range, masks = _reference_assemble(tx, photos, poses, cam, caster)
         one_pass = tracemalloc.get_traced_memory()[1] - base
-        monkeypatch.setattr(tr, "TABLE_BLOCK_ENTRIES", 150)
+        monkeypatch.setattr(tr, "TUNING", retuned(tr.TUNING, "traces", table_block_entries=150))
         tracemalloc.reset_peak()
         base = tracemalloc.get_traced_memory()[0]
         on_disk, disk_stats = assemble(tx, photos, poses, cam, caster, folder=tmp_path)
@@ -199,7 +203,7 @@ def test_two_pass_assembly_equals_the_one_pass_table_at_a_fraction_of_its_memory
     assert peak <= 1.25 * table < one_pass
     print(f"on disk: peak / table {disk_peak / table:.2f}")
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted(f"{n}.npy" for n in tr.TABLE_FILES)  # no spill left
-    assert int(counts.max()) > tr.TABLE_BLOCK_ENTRIES  # a block of one texel over the budget
+    assert int(counts.max()) > tr.TUNING.traces.table_block_entries  # a block of one texel over the budget
     for a, b in (
         (on_disk.entries, traces.entries),
         (on_disk.offsets, traces.offsets),
@@ -301,7 +305,7 @@ def test_pixel_taps_read_only_pixels_that_see_the_entry_s_own_surface():
     assert ((~taps).any(1) & on_card).any() and ((~taps).any(1) & ~on_card).any()
     # the tilt limit: judged against a normal turned 10 deg past it (about y), many taps on the
     # point's own plane are another surface
-    tilt = np.radians(tr.MAX_TAP_TILT_DEG + 10)
+    tilt = np.radians(tr.TUNING.traces.max_tap_tilt_deg + 10)
     turned = tr.pixel_taps(cam, caster, pose, px, position, np.tile([np.sin(tilt), 0.0, np.cos(tilt)], (len(px), 1)))
     assert (taps & ~turned).sum() > 0.2 * taps.sum()
 
