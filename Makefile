@@ -25,12 +25,16 @@ setup: $(STAMP)
 demo: $(STAMP)
 	$(BIN)/ntp demo
 
+# one test process per core (pytest-xdist), each on one thread: torch's, BLAS's and numba's own
+# threads in two processes on 2 cores fought (the suite took longer than in one process); one
+# thread each: 14:38 against 20:16 in one process (2 cores, 2026-12-02; docs/architecture.md)
+ONE_THREAD := OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 NUMBA_NUM_THREADS=1
 test: $(STAMP)
-	$(BIN)/python -m pytest -q --durations=20
+	$(ONE_THREAD) $(BIN)/python -m pytest -q -n auto --durations=20
 
 # the fast tier: everything but SfM, Cycles, Ray and whole-pipeline runs (tests/conftest.py marks those slow)
 test-fast: $(STAMP)
-	$(BIN)/python -m pytest -q -m "not slow"
+	$(ONE_THREAD) $(BIN)/python -m pytest -q -n auto -m "not slow"
 
 # lint (ruff), format check (ruff format) and types (mypy, settings in pyproject.toml); CI runs it
 lint: $(STAMP)

@@ -108,3 +108,34 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
     for item in items:
         if _is_slow(item):
             item.add_marker(pytest.mark.slow)
+
+
+# ``make test`` runs the suite in one process per core (pytest-xdist), each test a unit of work,
+# except the modules whose tests take the COLMAP fixtures (``colmap24``, ``colmap24_registered``:
+# an SfM run and a registration, ~2 minutes): one unit, so that one process builds them. A test
+# elsewhere that takes them is still right, it builds its own. (xdist's own ``--dist loadgroup``
+# does not group under pytest 9: it renames node ids that pytest 9 no longer reads.)
+SHARED_COLMAP_MODULES = (
+    "tests/addon/test_addon.py",
+    "tests/register/test_colmap_model.py",
+    "tests/pipeline/test_stages.py",
+    "tests/register/test_sfm.py",
+)
+
+try:
+    from xdist.scheduler import LoadScopeScheduling
+except ImportError:  # the suite runs in one process without xdist
+    LoadScopeScheduling = None
+
+if LoadScopeScheduling is not None:
+
+    class _SharedFixtureScheduling(LoadScopeScheduling):
+        """Each test its own unit of work but those of ``SHARED_COLMAP_MODULES``, which are one."""
+
+        def _split_scope(self, nodeid: str) -> str:
+            module = nodeid.split("::", 1)[0]
+            return "colmap24" if module in SHARED_COLMAP_MODULES else nodeid
+
+    def pytest_xdist_make_scheduler(config, log):
+        """The suite's scheduler when run with ``-n`` (see ``SHARED_COLMAP_MODULES``)."""
+        return _SharedFixtureScheduling(config, log)
