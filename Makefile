@@ -27,7 +27,7 @@ demo: $(STAMP)
 
 # one test process per core (pytest-xdist), each on one thread: torch's, BLAS's and numba's own
 # threads in two processes on 2 cores fought (the suite took longer than in one process); one
-# thread each: 14:38 against 20:16 in one process (2 cores, 2026-12-02; docs/architecture.md)
+# thread each: 12:40 against 20:16 in one process (2 cores, 2026-12-02; docs/architecture.md)
 ONE_THREAD := OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 NUMBA_NUM_THREADS=1
 test: $(STAMP)
 	$(ONE_THREAD) $(BIN)/python -m pytest -q -n auto --durations=20

@@ -1,8 +1,7 @@
-"""Write docs/tuning.md: every tuned value of the refinement and the registration — the fields of
-their settings dataclasses (``refine.settings``: ``RefineSettings``, ``RefineTuning``;
-``register.settings``: ``RegistrationTuning``) — with its value and its provenance as declared
-there (``io.tuned``). ``python tools/tuning_table.py`` rewrites the file; ``--check`` exits 1 when
-it is out of date (``tests/test_tuning.py``).
+"""Write docs/tuning.md: every tuned value of the pipeline's stages, the refinement and the
+registration — the fields of their settings dataclasses (``SETTINGS``) — with its value and its
+provenance as declared there (``io.tuned``). ``python tools/tuning_table.py`` rewrites the file;
+``--check`` exits 1 when it is out of date (``tests/test_tuning.py``).
 """
 
 from __future__ import annotations
@@ -10,7 +9,7 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from ntp_engine.io.tuned import Kind, provenance
+from ntp_engine.io.tuned import Kind, Provenance, provenance
 from ntp_engine.pipeline.settings import PipelineTuning
 from ntp_engine.refine.settings import RefineSettings, RefineTuning
 from ntp_engine.register.settings import RegistrationTuning
@@ -52,22 +51,19 @@ def table() -> str:
     counts = dict.fromkeys(Kind, 0)
     body: list[str] = []
     for rel, name, cls, what in SETTINGS:
-        found = provenance(cls)
-        heads = list(dict.fromkeys(r.name.rpartition(".")[0] for r in found))
-        rows = sorted(found, key=lambda r: (r.name.rpartition(".")[0] != "", heads.index(r.name.rpartition(".")[0])))
-        body += [f"## `{name}` ({what}; `{rel}`)", ""]
-        section = None
-        for r in rows:
+        sections: dict[str, list[tuple[str, Provenance]]] = {}  # "" for the class's own fields
+        for r in provenance(cls):
             head, _, leaf = r.name.rpartition(".")
-            if head != section:
-                section = head
-                sub = getattr(cls(), head) if head and "." not in head else None
-                doc = (type(sub).__doc__ or "").split("\n\n")[0] if sub is not None else ""
-                if head:
-                    body += ["", f"### `{head}`" + (f": {' '.join(doc.split())}" if doc else ""), ""]
-                body += ["| value | default | kind | why | measured on |", "|---|---|---|---|---|"]
-            counts[r.kind] += 1
-            body.append(f"| `{leaf}` | `{_cell(r.value)}` | {r.kind} | {_cell(r.why)} | {_cell(r.on)} |")
+            sections.setdefault(head, []).append((leaf, r))
+        body += [f"## `{name}` ({what}; `{rel}`)", ""]
+        for head in sorted(sections, key=bool):  # the class's own fields first, then its sections in order
+            if head:
+                doc = (type(getattr(cls(), head)).__doc__ or "").split("\n\n")[0]
+                body += ["", f"### `{head}`" + (f": {' '.join(doc.split())}" if doc else ""), ""]
+            body += ["| value | default | kind | why | measured on |", "|---|---|---|---|---|"]
+            for leaf, r in sections[head]:
+                counts[r.kind] += 1
+                body.append(f"| `{leaf}` | `{_cell(r.value)}` | {r.kind} | {_cell(r.why)} | {_cell(r.on)} |")
         body.append("")
     total = sum(counts.values())
     summary = ", ".join(f"{counts[k]} {k}" for k in Kind)
