@@ -13,6 +13,7 @@ renamed. Exit code 2 and one line on stderr for bad input.
 from __future__ import annotations
 
 import argparse
+import signal
 import sys
 from pathlib import Path
 
@@ -20,6 +21,8 @@ import bpy  # noqa: F401  (before torch, which the engine imports)
 
 from ntp_engine.io.atomic import atomic_path
 from ntp_engine.io.errors import NtpInputError, error_line
+from ntp_engine.io.output_folder import check_not_inside
+from ntp_engine.io.signals import Terminated, terminate_as_interrupt
 
 from . import material
 from . import scene as bscene
@@ -78,12 +81,19 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--no-pack", action="store_true", help="link the map files instead of packing them into the .blend")
     a = p.parse_args(argv)
     try:
-        info = export(
-            a.result, a.blend, a.gltf, a.preview, a.variant, a.samples, turntable=a.turntable, pack=not a.no_pack
-        )
+        for target in (a.blend, a.gltf, a.preview):
+            if target is not None:  # the result's files are the export's input: never written over
+                check_not_inside(target, (a.result,))
+        with terminate_as_interrupt():
+            info = export(
+                a.result, a.blend, a.gltf, a.preview, a.variant, a.samples, turntable=a.turntable, pack=not a.no_pack
+            )
     except (NtpInputError, OSError) as err:
         print(f"ntp_addon.batch: error: {error_line(err)}", file=sys.stderr)
         return 2
+    except Terminated:
+        print("ntp_addon.batch: terminated — nothing half-written was left", file=sys.stderr)
+        return 128 + signal.SIGTERM
     except KeyboardInterrupt:
         print("ntp_addon.batch: interrupted — nothing half-written was left", file=sys.stderr)
         return 130

@@ -4,20 +4,30 @@ call into the engine. Bad input is one line on stderr and exit code 2."""
 from __future__ import annotations
 
 import argparse
+import signal
 import sys
 from pathlib import Path
 
 from .bench import blender, cache, fit, gallery, network, physics, refine, registration, scale, scan, sfm, stability
 from .bench import virtual_scan as virtual_scan_bench
+from .io.arguments import OneLineParser, bound_numbers, float_in, int_in
 from .io.errors import NtpInputError, error_line
 from .io.progress import add_progress_arguments, progress_from_args
-from .io.threads import set_threads
+from .io.signals import Terminated, terminate_as_interrupt
+from .io.threads import MAX_THREADS, set_threads
 from .learn import models
 from .learn.network import NetworkConfig
 from .learn.train import LR_SCHEDULES, TrainConfig, train
 from .pipeline.collection import SUMMARY, BatchOptions, reconstruct_collection
 from .pipeline.settings import TUNING as PIPELINE_TUNING
-from .pipeline.stages import DEFAULT_RESOLUTION, reconstruct, register_photos, write_registration
+from .pipeline.stages import (
+    DEFAULT_RESOLUTION,
+    MAX_RESOLUTION,
+    MIN_RESOLUTION,
+    reconstruct,
+    register_photos,
+    write_registration,
+)
 from .pipeline.task_pool import LOCAL, LocalPool, RayPool, TaskPool
 from .scanner.device_file import DEFAULT_DEVICE, list_devices, load_scanner, write_pattern
 from .scanner.scan_folder import Scan, load_scan
@@ -53,24 +63,42 @@ BENCHES = {
     "blender": blender,
     "physics": physics,
 }
+# the ranges of the command line's numbers (``io.arguments``), each with where its bounds come from
+RESOLUTION = int_in(MIN_RESOLUTION, MAX_RESOLUTION, "the largest texture GPUs and Blender take")
+THREADS = int_in(0, MAX_THREADS, "0: every core; Linux's largest CPU count")
+VIEWS = int_in(1, 100_000, "100x the paper's ~1,000 photos")
+SCALE = float_in(0.01, 2.0, "of the 2448x2048 camera")
+SEED = int_in(0, 2**32 - 1, "numpy's seeds")
+EXPOSURE = float_in(1e-3, 1e3, "times the device's auto-exposure")
+FRACTION = float_in(0.0, 1.0)
+BLUR_MARGIN = float_in(0.0, 1.0, "blur scores lie in [0, 1]")
+SAMPLES = int_in(1, 1 << 20)
+BOUNCES = int_in(0, 1024, "Cycles' own limit")
 INTERRUPTED = "interrupted — finished stages are kept, re-run to resume"
+TERMINATED = "terminated — finished stages are kept, re-run to resume"
 
 
 def main(argv: list[str] | None = None) -> int:
     """Run ``ntp`` with ``argv`` (default: the process's); returns the exit code: 2 and one line on
     stderr for bad input or a file that cannot be read or written (read-only, disk full), 130 for
-    Ctrl-C."""
-    args = _parser().parse_args(argv)
+    Ctrl-C, 143 for SIGTERM (both clean up as they go)."""
     try:
-        return args.func(args)
+        args = _parser().parse_args(argv)
+    except SystemExit as done:  # --help, or a bad option (one line on stderr: ``OneLineParser``)
+        return int(done.code or 0)
+    try:
+        with terminate_as_interrupt():
+            return args.func(args)
     except (NtpInputError, OSError) as err:
         return _fail(error_line(err), 2)
+    except Terminated:
+        return _fail(TERMINATED, 128 + signal.SIGTERM)
     except KeyboardInterrupt:
         return _fail(INTERRUPTED, 130)
 
 
 def _fail(line: str, code: int) -> int:
-    print(f"ntp: {line}" if code == 130 else f"ntp: error: {line}", file=sys.stderr)
+    print(f"ntp: {line}" if code >= 128 else f"ntp: error: {line}", file=sys.stderr)  # 128 + a signal
     return code
 
 
@@ -229,7 +257,7 @@ def _train(args: argparse.Namespace) -> int:
 
 # ------------------------------------------------------------------------------------ the parser
 def _run_options(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--threads", type=int, default=0, help="CPU threads (default 0: every core)")
+    p.add_argument("--threads", type=THREADS, default=0, help="CPU threads (default 0: every core)")
     p.add_argument(
         "--cache",
         type=Path,
@@ -240,7 +268,7 @@ def _run_options(p: argparse.ArgumentParser) -> None:
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
+    p = OneLineParser(
         prog="ntp", description="Neural trace photography: hand-held reflectance scans to relightable Blender assets."
     )
     sub = p.add_subparsers(dest="command", metavar="COMMAND", required=True)
@@ -252,17 +280,17 @@ def _parser() -> argparse.ArgumentParser:
     _add_virtual_scan(sub)
     _add_train(sub)
     _add_bench(sub)
-    return p
+    return bound_numbers(p)
 
 
 def _add_demo(sub: Subcommands) -> None:
     """``ntp demo``'s options and handler."""
     d = sub.add_parser("demo", help="virtual-scan the bundled demo, reconstruct it, print errors vs truth")
     d.add_argument("--out", type=Path, default=Path("ntp_demo_out"), help="output folder (scan/, result/)")
-    d.add_argument("--views", type=int, default=demo.DEMO_VIEWS, help="photos in the virtual scan")
-    d.add_argument("--scale", type=float, default=demo.DEMO_SCALE, help="camera resolution scale (1.0 = 2448x2048)")
-    d.add_argument("--resolution", type=int, default=demo.DEMO_RESOLUTION, help="texture maps are RESOLUTION^2")
-    d.add_argument("--seed", type=int, default=0)
+    d.add_argument("--views", type=VIEWS, default=demo.DEMO_VIEWS, help="photos in the virtual scan")
+    d.add_argument("--scale", type=SCALE, default=demo.DEMO_SCALE, help="camera resolution scale (1.0 = 2448x2048)")
+    d.add_argument("--resolution", type=RESOLUTION, default=demo.DEMO_RESOLUTION, help="texture maps are RESOLUTION^2")
+    d.add_argument("--seed", type=SEED, default=0)
     d.add_argument("--model", default=None, help="shipped model name or a model folder (default: compact)")
     d.add_argument("--known-poses", action="store_true", help="use the scan's true poses instead of SfM")
     d.add_argument("--no-blend", action="store_true", help="skip the Blender export (.blend, .glb, preview)")
@@ -282,14 +310,14 @@ def _add_reconstruct(sub: Subcommands) -> None:
     rc = sub.add_parser("reconstruct", help="a scan folder to texture maps (resumes from OUT/cache)")
     rc.add_argument("scan", type=Path, help="scan folder (scan.toml, mesh, photos/)")
     rc.add_argument("--out", type=Path, required=True, help="result folder")
-    rc.add_argument("--resolution", type=int, default=DEFAULT_RESOLUTION, help="texture maps are RESOLUTION^2")
+    rc.add_argument("--resolution", type=RESOLUTION, default=DEFAULT_RESOLUTION, help="texture maps are RESOLUTION^2")
     rc.add_argument("--model", default=None, help="shipped model name or a model folder (default: compact)")
     rc.add_argument("--poses", type=Path, default=None, help="poses JSON (camera-from-world per photo); skips SfM")
     rc.add_argument("--device", type=Path, default=None, help="device TOML instead of the one scan.toml names")
     rc.add_argument("--colmap", type=Path, default=None, help=COLMAP_HELP)
     rc.add_argument(
         "--blur-margin",
-        type=float,
+        type=BLUR_MARGIN,
         default=PIPELINE_TUNING.select.blur_margin,
         help="drop photos whose blur score exceeds the scan's median by this much",
     )
@@ -306,11 +334,11 @@ def _add_batch(sub: Subcommands) -> None:
     ba = sub.add_parser("batch", help="reconstruct a collection of scans into OUT/<scan name> (resumable)")
     ba.add_argument("scans", type=Path, nargs="+", metavar="SCAN", help="scan folders")
     ba.add_argument("--out", type=Path, required=True, help="collection folder (one result per scan, batch.json)")
-    ba.add_argument("--resolution", type=int, default=DEFAULT_RESOLUTION, help="texture maps are RESOLUTION^2")
+    ba.add_argument("--resolution", type=RESOLUTION, default=DEFAULT_RESOLUTION, help="texture maps are RESOLUTION^2")
     ba.add_argument("--model", default=None, help="shipped model name or a model folder (default: compact)")
     ba.add_argument("--refine", action="store_true", help=REFINE_HELP)
     ba.add_argument(
-        "--threads", type=int, default=0, help="CPU threads per scan (default 0: every core; 1 per Ray task)"
+        "--threads", type=THREADS, default=0, help="CPU threads per scan (default 0: every core; 1 per Ray task)"
     )
     ba.add_argument("--ray", nargs="?", const=LOCAL, default=None, metavar="ADDRESS", help=BATCH_RAY_HELP)
     add_progress_arguments(ba)
@@ -324,7 +352,7 @@ def _add_register(sub: Subcommands) -> None:
     rg.add_argument("--out", type=Path, required=True, help="result folder (its cache is shared with reconstruct)")
     rg.add_argument("--device", type=Path, default=None, help="device TOML instead of the one scan.toml names")
     rg.add_argument("--colmap", type=Path, default=None, help=COLMAP_HELP)
-    rg.add_argument("--blur-margin", type=float, default=PIPELINE_TUNING.select.blur_margin)
+    rg.add_argument("--blur-margin", type=BLUR_MARGIN, default=PIPELINE_TUNING.select.blur_margin)
     rg.add_argument("--force-registration", action="store_true", help=FORCE_HELP)
     _run_options(rg)
     add_progress_arguments(rg)
@@ -347,25 +375,25 @@ def _add_virtual_scan(sub: Subcommands) -> None:
     vs.add_argument("--mesh", type=Path, default=None, help="a mesh with UVs (OBJ/PLY, metres) ...")
     vs.add_argument("--maps", type=Path, default=None, help="... and a folder with its five maps")
     vs.add_argument("--device", type=Path, default=None, help="device TOML (default: the paper's LED array)")
-    vs.add_argument("--views", type=int, default=120)
-    vs.add_argument("--scale", type=float, default=0.25, help="camera resolution scale (1.0 = 2448x2048)")
-    vs.add_argument("--seed", type=int, default=0)
-    vs.add_argument("--exposure", type=float, default=1.5, help="x the device's auto-exposure")
-    vs.add_argument("--blur-fraction", type=float, default=0.0, help="fraction of photos with motion blur")
+    vs.add_argument("--views", type=VIEWS, default=120)
+    vs.add_argument("--scale", type=SCALE, default=0.25, help="camera resolution scale (1.0 = 2448x2048)")
+    vs.add_argument("--seed", type=SEED, default=0)
+    vs.add_argument("--exposure", type=EXPOSURE, default=1.5, help="x the device's auto-exposure")
+    vs.add_argument("--blur-fraction", type=FRACTION, default=0.0, help="fraction of photos with motion blur")
     vs.add_argument(
         "--renderer", choices=["engine", "cycles"], default="engine", help="cycles: Blender Cycles through bpy"
     )
-    vs.add_argument("--samples", type=int, default=CyclesConfig.samples, help="Cycles samples per pixel")
-    vs.add_argument("--bounces", type=int, default=CyclesConfig.bounces, help="Cycles light bounces")
+    vs.add_argument("--samples", type=SAMPLES, default=CyclesConfig.samples, help="Cycles samples per pixel")
+    vs.add_argument("--bounces", type=BOUNCES, default=CyclesConfig.bounces, help="Cycles light bounces")
     vs.add_argument(
         "--max-samples",
-        type=int,
+        type=SAMPLES,
         default=None,
         help=f"Cycles samples per pixel where it sees noise (default {CyclesConfig.max_samples}, at least --samples)",
     )
     vs.add_argument(
         "--noise-threshold",
-        type=float,
+        type=float_in(0.0, 1.0, "a pixel's relative noise"),
         default=CyclesConfig.noise_threshold,
         help="Cycles' adaptive-sampling threshold: above it a pixel keeps sampling up to --max-samples",
     )
@@ -405,7 +433,7 @@ def _add_train(sub: Subcommands) -> None:
     )
     tr.add_argument(
         "--sweep-fraction",
-        type=float,
+        type=FRACTION,
         default=0.5,
         help="fraction of training traces seen from a correlated hand-held sweep (else i.i.d. views)",
     )

@@ -20,6 +20,7 @@ import math
 import numba
 import numpy as np
 
+from ..io.jit import compiled
 from ..physics.brdf import ALPHA_MAX, ALPHA_MIN, RHO_S_MAX
 
 # the bounds the loop clamps to, passed as an argument: a module constant compiled into a cached loop
@@ -38,7 +39,7 @@ _MIN_GAIN = 1e-3
 _MIN_NZ = 0.05  # a lobe whose normal tilts further from the lumitexel's z is not taken
 
 
-@numba.njit(inline="always", cache=True)
+@compiled(inline="always")
 def _g1(vx, vy, vz, ax, ay):  # pragma: no cover - compiled
     """brdf.smith_g1 for one unit vector in the lobe's frame."""
     if vz <= 0.0:
@@ -46,7 +47,7 @@ def _g1(vx, vy, vz, ax, ay):  # pragma: no cover - compiled
     return 2.0 * vz / (vz + math.sqrt(max((ax * vx) ** 2 + (ay * vy) ** 2 + vz * vz, 1e-20)))
 
 
-@numba.njit(cache=True, fastmath=_FAST)
+@compiled(fastmath=_FAST)
 def _phi(idx, wi, r2, fres, lobe, out):  # pragma: no cover - compiled
     """Phi = F G1(wi) G1(wo) / (4 cos_o r^2) toward the lights ``idx`` under ``lobe`` (n 0:3, t 3:6,
     ax 6, ay 7), into ``out``; 0 below the lobe's horizon."""
@@ -67,7 +68,7 @@ def _phi(idx, wi, r2, fres, lobe, out):  # pragma: no cover - compiled
         out[j] = fres[li] * _g1(ix, iy, iz, ax, ay) * g_o / (c_o * r2[li])
 
 
-@numba.njit(cache=True)
+@compiled()
 def _eigh3(A, evals, evecs):  # pragma: no cover - compiled
     """Eigenvalues (ascending) and unit eigenvectors (columns) of the symmetric 3x3 ``A`` (destroyed)
     by cyclic Jacobi rotations; False if ``A`` is not finite."""
@@ -111,7 +112,7 @@ def _eigh3(A, evals, evecs):  # pragma: no cover - compiled
     return True
 
 
-@numba.njit(cache=True)
+@compiled()
 def _solve6(H, b, x):  # pragma: no cover - compiled
     """x = H^-1 b for the 6x6 ``H`` (destroyed; ``b`` too) by Gaussian elimination with partial
     pivoting; False where a pivot vanishes or the result is not finite."""
@@ -142,7 +143,7 @@ def _solve6(H, b, x):  # pragma: no cover - compiled
     return True
 
 
-@numba.njit(cache=True)
+@compiled()
 def _lobe_from_a(a, lobe, A, evals, evecs, bounds):  # pragma: no cover - compiled
     """GGX reading of A's 6 entries (a00, a11, a22, a01, a02, a12) into ``lobe`` (n, t, ax, ay,
     rho_s; alphas clamped to ``bounds``' first two); False where A is not positive definite."""
@@ -163,7 +164,7 @@ def _lobe_from_a(a, lobe, A, evals, evecs, bounds):  # pragma: no cover - compil
     return True
 
 
-@numba.njit(cache=True)
+@compiled()
 def _a_from_lobe(lobe, a):  # pragma: no cover - compiled
     """A = sqrt(pi ax ay / rho_s) (n n^T + t t^T / ax^2 + b b^T / ay^2) as its 6 entries."""
     nx, ny, nz, tx, ty, tz = lobe[0], lobe[1], lobe[2], lobe[3], lobe[4], lobe[5]
@@ -178,7 +179,7 @@ def _a_from_lobe(lobe, a):  # pragma: no cover - compiled
     a[5] = s * (ny * nz + ty * tz * ix + by * bz * iy)
 
 
-@numba.njit(cache=True)
+@compiled()
 def _kth_smallest(a, k):  # pragma: no cover - compiled
     """The ``k``-th smallest (0-based) of ``a`` (reordered in place): quickselect, Hoare's scheme
     with the median of three as pivot (np.partition took 6.6 s to compile, this 0.2 s)."""
@@ -215,7 +216,7 @@ _SAMPLE = 64  # values sampled to bracket the k-th smallest (``_select``)
 _BRACKET = 8  # sample ranks on either side of the k-th's expected rank (~2 sigma at 64 samples)
 
 
-@numba.njit(cache=True)
+@compiled()
 def _kth_smallest_bracketed(values, k, scratch):  # pragma: no cover - compiled
     """The ``k``-th smallest (0-based) of ``values`` (not changed; no NaN): two bounds from a
     strided sample, one pass counting the values below the lower and gathering those between into
@@ -245,7 +246,7 @@ def _kth_smallest_bracketed(values, k, scratch):  # pragma: no cover - compiled
     return _kth_smallest(scratch[:L], k)
 
 
-@numba.njit(cache=True)
+@compiled()
 def _select(values, k, idx, scratch):  # pragma: no cover - compiled
     """The ``k`` smallest of ``values`` (no NaN; ties at the k-th by index) into ``idx``, in index
     order; ``scratch`` is as long as ``values``."""
@@ -262,7 +263,7 @@ def _select(values, k, idx, scratch):  # pragma: no cover - compiled
             j += 1
 
 
-@numba.njit(cache=True, fastmath=_FAST)
+@compiled(fastmath=_FAST)
 def _residuals(idx, a, feats, phi, log_mk, r, g):  # pragma: no cover - compiled
     """log1p(Phi / (f.a)^2) - log1p(m) over the lights ``idx`` into ``r``, d r / d (f.a) into
     ``g``; the summed squares, inf where it is not finite."""
@@ -281,7 +282,7 @@ def _residuals(idx, a, feats, phi, log_mk, r, g):  # pragma: no cover - compiled
     return cost if math.isfinite(cost) else math.inf
 
 
-@numba.njit(cache=True, fastmath=_FAST)
+@compiled(fastmath=_FAST)
 def _normal_equations(idx, feats, w, y, H, b):  # pragma: no cover - compiled
     """H, b (filled) of min_a sum_j w_j (f_j . a - y_j)^2 over the lights ``idx`` (w_j = 0 skipped)."""
     H[:] = 0.0
@@ -300,7 +301,7 @@ def _normal_equations(idx, feats, w, y, H, b):  # pragma: no cover - compiled
             H[p, q] = H[q, p]
 
 
-@numba.njit(cache=True, fastmath=_FAST)
+@compiled(fastmath=_FAST)
 def _weighted_ls(idx, feats, y, w, a):  # pragma: no cover - compiled
     """a = argmin sum_j w_j (f_j . a - y_j)^2 (lightly regularised as the normal equations' scale
     asks); False where the system is singular."""
@@ -314,7 +315,7 @@ def _weighted_ls(idx, feats, y, w, a):  # pragma: no cover - compiled
     return _solve6(H, b, a)
 
 
-@numba.njit(parallel=True, cache=True)
+@compiled(parallel=True)
 def fit_lobes(specular, wi, r2, fres, feats, iterations, k, gn_steps, bounds, out):  # pragma: no cover
     """Per texel of ``specular (N, L)``: the K lights, ``iterations`` IRLS solves and up to
     ``gn_steps`` LM steps (not for a texel with a value that is not finite), alphas and rho_s
@@ -324,7 +325,7 @@ def fit_lobes(specular, wi, r2, fres, feats, iterations, k, gn_steps, bounds, ou
         _fit_texel(specular[i], wi, r2, fres, feats, iterations, k, gn_steps, bounds, out[i])
 
 
-@numba.njit(cache=True, fastmath=_FAST)
+@compiled(fastmath=_FAST)
 def _fit_texel(specular, wi, r2, fres, feats, iterations, k, gn_steps, bounds, out):  # pragma: no cover
     """``fit_lobes`` for one texel: ``specular (L,)`` in, ``out (12,)`` filled."""
     L = specular.shape[0]
@@ -395,7 +396,7 @@ def _fit_texel(specular, wi, r2, fres, feats, iterations, k, gn_steps, bounds, o
     out[9] = 1.0 if ok else 0.0
 
 
-@numba.njit(cache=True, fastmath=_FAST)
+@compiled(fastmath=_FAST)
 def _levenberg_marquardt(
     m_i, idx, wi, r2, fres, feats, steps, bounds, lobe, trial, log_mk, phi, r, g
 ):  # pragma: no cover - compiled

@@ -33,8 +33,11 @@ def atomic_path(target: str | Path) -> Iterator[Path]:
     """Yield a temporary path in the target's folder (same suffix); rename it onto ``target`` on
     success, delete it on failure. A reader never sees a half-written file."""
     target = Path(target)
-    target.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f"{TEMP_PREFIX}{target.stem}.", suffix=target.suffix, dir=target.parent)
+    try:
+        target.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f"{TEMP_PREFIX}{target.stem}.", suffix=target.suffix, dir=target.parent)
+    except OSError as err:  # the user knows the target, not our temporary
+        raise OSError(err.errno, err.strerror, str(target)) from None
     os.close(fd)
     os.chmod(tmp, umask_mode(0o666))  # mkstemp makes 0600; a finished file gets the usual mode
     tmp_path = Path(tmp)
@@ -54,3 +57,16 @@ def write_text_atomic(target: str | Path, text: str) -> None:
     """Write ``text`` (UTF-8) to ``target`` atomically."""
     with atomic_path(target) as tmp:
         tmp.write_text(text, encoding="utf-8")
+
+
+def reserve_disk(path: Path) -> None:
+    """Allocate the disk blocks of the whole (sparse) file ``path`` now. A memory-mapped file's
+    holes are filled when a page is first written; on a full disk that write is a SIGBUS that kills
+    the process without a word. Reserved here, a full disk is an ``OSError`` naming ``path``."""
+    if not hasattr(os, "posix_fallocate"):  # macOS, Windows: no reservation, as before
+        return
+    with open(path, "r+b") as fh:
+        try:
+            os.posix_fallocate(fh.fileno(), 0, os.fstat(fh.fileno()).st_size)
+        except OSError as err:
+            raise OSError(err.errno, err.strerror, str(path)) from None

@@ -10,6 +10,7 @@ import contextlib
 import os
 import sys
 from collections.abc import Iterator
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -17,6 +18,11 @@ import OpenImageIO as oiio
 
 from .atomic import atomic_path
 from .errors import NtpInputError
+from .input_file import regular_file
+
+# values (width x height x channels) ntp decodes from one file: a 16384^2 RGBA map (the largest
+# texture GPUs take), 50x a 2448x2048 RGBA photo; a header declaring more is refused unread
+MAX_PIXELS = 1 << 30
 
 
 def _write(path: Path, pixels: np.ndarray, fmt) -> None:
@@ -65,16 +71,37 @@ def _quiet_stderr() -> Iterator[None]:
         os.close(devnull)
 
 
-def read_image(path: str | Path) -> np.ndarray:
-    """Read any image OpenImageIO knows as float32 ``(H, W, C)``; 8-bit files come back in [0, 1].
-    Strict: a file the decoder reports any problem with raises ``NtpInputError`` (a truncated JPEG
-    would otherwise decode, its missing rows grey)."""
+@dataclass(frozen=True)
+class Decoded:
+    """An image as decoded: float32 ``(H, W, C)`` pixels (integer formats scaled to [0, 1]), the
+    file's own pixel format (``"uint8"``, ``"uint16"``, ``"half"``, ``"float"``, ...) and the alpha
+    channel's index (-1: none). Alpha is *not* multiplied in: the colour channels are the file's."""
+
+    pixels: np.ndarray
+    format: str
+    alpha_channel: int
+
+
+def decode(path: str | Path, size: tuple[int, int] | None = None, max_pixels: int = MAX_PIXELS) -> Decoded:
+    """Decode any image OpenImageIO knows. Only a regular file is opened (``io.input_file``); its
+    header is checked before any pixel is decoded: ``size`` (width, height) where given, at most
+    ``max_pixels`` values otherwise. Strict: a file the decoder reports any problem with raises
+    ``NtpInputError`` (a truncated JPEG would otherwise decode, its missing rows grey)."""
     path = Path(path)
+    regular_file(path)
+    config = oiio.ImageSpec()
+    config.attribute("oiio:UnassociatedAlpha", 1)  # PNG stores colour unmultiplied: keep it so
     with _quiet_stderr():
-        inp = oiio.ImageInput.open(str(path))
+        inp = oiio.ImageInput.open(str(path), config)
         if inp is None:
             raise NtpInputError(path, f"cannot read image ({oiio.geterror().strip() or 'unknown format'})")
         try:
+            spec = inp.spec()
+            w, h, c = spec.width, spec.height, spec.nchannels
+            if size is not None and (w, h) != size:
+                raise NtpInputError(path, f"{w}x{h} image, expected {size[0]}x{size[1]}")
+            if w * h * c > max_pixels:
+                raise NtpInputError(path, f"declares {w}x{h}x{c} values, more than the {max_pixels:.3g} ntp reads")
             pixels = inp.read_image(oiio.FLOAT)
             problem = inp.geterror().strip().splitlines() if pixels is None or inp.has_error else None
         finally:
@@ -82,4 +109,9 @@ def read_image(path: str | Path) -> np.ndarray:
     if problem is not None:
         raise NtpInputError(path, f"truncated or corrupt image ({problem[0] if problem else 'decode failed'})")
     pixels = np.asarray(pixels, dtype=np.float32)
-    return pixels if pixels.ndim == 3 else pixels[..., None]
+    return Decoded(pixels if pixels.ndim == 3 else pixels[..., None], str(spec.format), spec.alpha_channel)
+
+
+def read_image(path: str | Path, size: tuple[int, int] | None = None) -> np.ndarray:
+    """``decode(path, size).pixels``: float32 ``(H, W, C)``; 8-bit files come back in [0, 1]."""
+    return decode(path, size).pixels

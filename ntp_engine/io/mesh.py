@@ -13,6 +13,7 @@ import numpy as np
 
 from .atomic import atomic_path
 from .errors import NtpInputError
+from .input_file import MAX_BYTES, regular_file
 
 
 @dataclass
@@ -60,8 +61,7 @@ def load_mesh(path: str | Path) -> Mesh:
     import trimesh
 
     path = Path(path)
-    if not path.is_file():
-        raise NtpInputError(path, "mesh file not found")
+    regular_file(path, MAX_BYTES["mesh"], "mesh file not found")
     try:
         m = trimesh.load(path, force="mesh", process=False)
     except Exception as err:  # noqa: BLE001 - trimesh raises many types for bad files
@@ -70,13 +70,21 @@ def load_mesh(path: str | Path) -> Mesh:
         raise NtpInputError(path, "no triangles in mesh")
     vertices = np.asarray(m.vertices, dtype=np.float64)
     faces = np.asarray(m.faces, dtype=np.int64)
-    if not np.isfinite(vertices).all():
-        raise NtpInputError(path, "mesh has non-finite vertex coordinates")
+    _check_finite(path, vertices, "vertex position (v)")
     uv = None
     vis = getattr(m, "visual", None)
     if vis is not None and getattr(vis, "uv", None) is not None and len(vis.uv) == len(vertices):
         uv = np.asarray(vis.uv, dtype=np.float64)
+        _check_finite(path, uv, "texture coordinate (vt)")
     return Mesh(vertices, faces, uv, smooth_normals(vertices, faces))
+
+
+def _check_finite(path: Path, values: np.ndarray, what: str) -> None:
+    """``NtpInputError`` quoting the first row of ``values`` with a NaN or infinity."""
+    bad = np.flatnonzero(~np.isfinite(values).all(1))
+    if len(bad):
+        row = " ".join(f"{x:g}" for x in values[bad[0]])
+        raise NtpInputError(path, f"a {what} is not finite ({row}; at {len(bad)} of {len(values)} vertices)")
 
 
 def save_obj(path: str | Path, mesh: Mesh) -> None:

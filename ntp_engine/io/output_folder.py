@@ -16,13 +16,15 @@ from a staging folder into place and writes the report last.
 from __future__ import annotations
 
 import contextlib
+import errno
 import json
 import os
 import shutil
+import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
-from .atomic import TEMP_PREFIX, write_text_atomic
+from .atomic import TEMP_PREFIX, umask_mode, write_text_atomic
 from .errors import NtpInputError
 
 try:
@@ -32,6 +34,8 @@ except ImportError:  # Windows: no advisory locks (documented above)
 
 MARKER = ".ntp"
 REPORT = "report.json"
+# file systems without hard links answer os.link with one of these
+_NO_HARD_LINKS = (errno.EPERM, errno.EOPNOTSUPP, errno.ENOSYS, errno.EMLINK, errno.EXDEV)
 # cache: a stage cache kept apart (--cache); collection: ntp batch's folder of results
 KINDS = ("result", "scan", "demo", "gallery", "cache", "collection")
 
@@ -85,7 +89,7 @@ def claim(out: str | Path, kind: str, inputs: tuple[Path, ...] = ()) -> Iterator
     try:
         out.mkdir(parents=True, exist_ok=True)
         if not marker.is_file():
-            write_text_atomic(marker, json.dumps({"ntp": kind}) + "\n")
+            _create_marker(marker, kind)
         lock = open(marker, "rb")  # noqa: SIM115 - held for the whole run
     except OSError as err:
         raise NtpInputError(out, f"cannot write here ({err.strerror})") from None
@@ -99,6 +103,30 @@ def claim(out: str | Path, kind: str, inputs: tuple[Path, ...] = ()) -> Iterator
         yield out
     finally:
         lock.close()  # releases the lock
+
+
+def _create_marker(marker: Path, kind: str) -> None:
+    """Write ``marker`` complete, and only if it does not exist: written under a temporary name and
+    *linked* into place, which fails where another run made it first. (A rename would replace that
+    run's marker after it locked it, and both runs would hold a lock, each on its own file.) Where
+    the file system has no hard links (FAT, some network mounts) it is created exclusively instead."""
+    text = json.dumps({"ntp": kind}) + "\n"
+    fd, tmp = tempfile.mkstemp(prefix=f"{TEMP_PREFIX}{MARKER}.", dir=marker.parent)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as fh:
+            fh.write(text)
+        os.chmod(tmp, umask_mode(0o666))
+        try:
+            os.link(tmp, marker)
+        except FileExistsError:
+            pass  # another run's: the lock decides who writes
+        except OSError as err:
+            if err.errno not in _NO_HARD_LINKS:
+                raise
+            with contextlib.suppress(FileExistsError), open(marker, "x", encoding="utf-8") as fh:
+                fh.write(text)
+    finally:
+        os.unlink(tmp)
 
 
 def remove_temporaries(folder: Path) -> None:

@@ -105,8 +105,11 @@ class StageCounter:
             "elapsed_s": round(elapsed, 2),
             "eta_s": eta,
         }
-        with open(path, "a", encoding="utf-8") as fh:
-            fh.write(json.dumps(line) + "\n")
+        try:
+            with open(path, "a", encoding="utf-8") as fh:
+                fh.write(json.dumps(line) + "\n")
+        except OSError as err:  # the progress file's own problem (e.g. a full disk): name it, not the stage
+            raise OSError(err.errno, err.strerror, str(path)) from None
 
 
 def read_progress(path: Path, offset: int = 0) -> tuple[list[dict], int]:

@@ -27,11 +27,13 @@ import importlib.util
 import json
 import os
 import shutil
+import stat
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 from .atomic import temp_dir, umask_mode
+from .input_file import what_it_is
 from .progress import warn
 
 HASH_THREADS = 4  # hashlib releases the GIL on large buffers: files hash in parallel
@@ -47,9 +49,13 @@ def digest(obj) -> str:
 
 
 def file_digest(path: Path) -> str:
-    """SHA-256 of a file's bytes (20 hex digits); ``"unreadable: <reason>"`` if it cannot be read,
-    so an unreadable input still gets a key (and its stage reports it)."""
+    """SHA-256 of a file's bytes (20 hex digits); ``"unreadable: <reason>"`` if it cannot be read
+    or is not a regular file (a FIFO or ``/dev/zero`` is never opened), so an unreadable input
+    still gets a key (and its stage reports it)."""
     try:
+        st = os.stat(path)
+        if not stat.S_ISREG(st.st_mode):
+            return f"unreadable: {what_it_is(st.st_mode)}"
         with open(path, "rb") as fh:
             return hashlib.file_digest(fh, "sha256").hexdigest()[:20]
     except OSError as err:
@@ -140,6 +146,16 @@ def code_version(modules: Sequence[str], alone: Sequence[str] = ()) -> str:
     return digest([[m, _module_code(m)[0]] for m in sorted(seen | set(alone))])
 
 
+def _files(folder: Path) -> list[str]:
+    """Every file (and link) under ``folder``, as sorted POSIX paths relative to it (links not followed)."""
+    found = []
+    for root, dirs, names in os.walk(folder):
+        rel = Path(root).relative_to(folder)
+        found += [(rel / n).as_posix() for n in names]
+        found += [(rel / d).as_posix() for d in dirs if Path(root, d).is_symlink()]
+    return sorted(found)
+
+
 class StageCache:
     """Stage results under ``folder/<stage>/`` with the key they were computed from (``get``).
     ``recomputed`` lists the stages whose entry was damaged and computed again."""
@@ -167,12 +183,14 @@ class StageCache:
                     where = final / name.relative_to(tmp) if name is not None and name != tmp else final
                     raise OSError(err.errno, err.strerror, str(where)) from err
                 raise
-            files = {f.relative_to(tmp).as_posix(): file_digest(f) for f in sorted(tmp.rglob("*")) if f.is_file()}
+            files = {name: file_digest(tmp / name) for name in _files(tmp)}
             stamp = {"digest": h, "key": key, "files": files}
             (tmp / "key.json").write_text(json.dumps(stamp, indent=1, default=_plain))
             os.chmod(tmp, umask_mode(0o777))  # mkdtemp makes 0700
-            if final.exists():
-                shutil.rmtree(final)  # the stage's previous result (the cache is ntp's own)
+            if final.is_symlink():
+                final.unlink()  # not ntp's: the link goes, what it points to stays
+            elif final.exists():
+                shutil.rmtree(final)  # the stage's previous result (the cache is ntp's own; rmtree follows no link)
             os.replace(tmp, final)
         finally:
             if tmp.exists():
@@ -182,13 +200,16 @@ class StageCache:
     def _intact(self, final: Path, h: str) -> bool:
         """Whether ``final`` holds the result for digest ``h`` with every file as written."""
         stamp = final / "key.json"
-        if not stamp.is_file():
+        if final.is_symlink() or not stamp.is_file():
             return False
         try:
             meta = json.loads(stamp.read_text(encoding="utf-8"))
             if meta.get("digest") != h:
                 return False  # another key: recomputed without comment
-            damaged = [f for f, sha in meta["files"].items() if file_digest(final / f) != sha]
+            listed = dict(meta["files"])
+            # every file the stage wrote is listed: a list emptied or cut short is damage too
+            unlisted = sorted(set(_files(final)) - set(listed) - {"key.json"})
+            damaged = unlisted + [f for f, sha in listed.items() if file_digest(final / f) != sha]
         except (OSError, ValueError, KeyError, AttributeError, TypeError):
             damaged = ["key.json"]
         if damaged:

@@ -11,12 +11,14 @@ from .errors import NtpInputError
 _threads = 0
 _TORCH_DEFAULT = torch.get_num_threads()  # torch's own choice (every physical core), for 0
 
+MAX_THREADS = 8192  # Linux's largest CPU count (CONFIG_NR_CPUS on x86-64)
+
 
 def set_threads(n: int) -> None:
     """Use ``n`` CPU threads from now on (0: every core). ``NtpInputError`` for a negative ``n``."""
     global _threads
-    if n < 0:
-        raise NtpInputError(None, f"--threads {n}: need 0 (every core) or more")
+    if not 0 <= n <= MAX_THREADS:
+        raise NtpInputError(None, f"--threads {n}: need 0 (every core) to {MAX_THREADS}")
     _threads = n
     torch.set_num_threads(n or _TORCH_DEFAULT)
 

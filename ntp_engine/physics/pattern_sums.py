@@ -25,6 +25,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ..io.jit import compiled
 from ..io.thread_pools import numba_threads_as_torch
 from ..scanner.scanner import Scanner
 from .brdf import F0_DIELECTRIC
@@ -129,7 +130,7 @@ def emitter_arrays(scanner: Scanner) -> EmitterArrays:
     )
 
 
-@numba.njit(inline="always", cache=True)
+@compiled(inline="always")
 def _psi_of_cosine(c, exponent, tab_a, tab_v):  # pragma: no cover - compiled
     """``Scanner.psi`` for one cosine ``c`` already clamped to [0, 1] (``EmitterArrays``' Psi):
     0 behind the emitter (c = 0) for every kind, also a power's 0^0 and a table reaching 90 deg."""
@@ -151,7 +152,7 @@ def _psi_of_cosine(c, exponent, tab_a, tab_v):  # pragma: no cover - compiled
 # as structure-of-arrays, and the two reductions that do not vectorise in one pass — the lobe's
 # maximum and Psi from a table or a power — done over per-entry buffers after it. 2-3x the speed
 # of the branchy loop it replaced (docs/performance.md, "Emitter sums").
-@numba.njit(inline="always", fastmath=True, cache=True)
+@compiled(inline="always", fastmath=True)
 def _lobe_above(ix, iy, iz, ox, oy, oz, ax2, ay2, iax2, iay2, scale, f0):  # pragma: no cover - compiled
     """brdf.ggx_specular for unit local wi, wo with wo_z > 0, 0 where wi_z <= 0; ``scale`` is
     1 / (pi ax ay (wo_z + |(ax ox, ay oy, oz)|)), the wo side of the G1 product."""
@@ -165,7 +166,7 @@ def _lobe_above(ix, iy, iz, ox, oy, oz, ax2, ay2, iax2, iay2, scale, f0):  # pra
     return up * hq * hq * scale * f / (max(iz, 0.0) + li)
 
 
-@numba.njit(parallel=True, fastmath=True, cache=True)
+@compiled(parallel=True, fastmath=True)
 def _pattern_sums_loop(
     x, frame, alpha_x, alpha_y, mask, pts, normals, drive, exponent, tab_a, tab_v, grid, f0, vis, peaks, out
 ):  # pragma: no cover

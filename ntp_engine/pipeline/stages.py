@@ -66,6 +66,7 @@ from .task_pool import LocalPool, RayPool, TaskPool
 
 DEFAULT_RESOLUTION = 1024  # texture maps are DEFAULT_RESOLUTION^2 unless asked otherwise
 MIN_RESOLUTION = 8
+MAX_RESOLUTION = 16384  # the largest texture GPUs, glTF viewers and Blender's viewport take
 REFINE = RefineSettings()
 # the code behind each stage (``io.stage_cache.code_version``: these modules and every engine module
 # they import; this module's own code runs every stage, so a change to it recomputes them all)
@@ -111,11 +112,15 @@ def register_photos(
 @contextlib.contextmanager
 def _stage_cache(out: Path, cache: Path | None, scan: Scan) -> Iterator[StageCache]:
     """The run's stage cache: ``out/cache``, or ``cache`` claimed as an ntp cache folder (one run
-    at a time, never the user's files, never inside the scan)."""
-    if cache is None or Path(cache).resolve() == (out / "cache").resolve():
-        yield StageCache(out / "cache")
+    at a time, never the user's files, never inside the scan). ntp deletes inside its cache, so an
+    ``out/cache`` that is a link is claimed as the folder it points to, like ``--cache`` (a link
+    to a user's folder or into the scan is refused, not followed)."""
+    default = out / "cache"
+    target = default if cache is None else Path(cache)
+    if target.resolve() == default.resolve() and not default.is_symlink():
+        yield StageCache(default)
         return
-    with claim(cache, "cache", inputs=scan.input_folders) as folder:
+    with claim(target.resolve(), "cache", inputs=scan.input_folders) as folder:
         yield StageCache(folder)
 
 
@@ -286,8 +291,8 @@ def reconstruct(
     not confirm (unless ``force_registration``), is refused, the old result kept. Stages are cached
     under ``cache`` (default ``out/cache``; elsewhere, e.g. a fast local disk, claimed as an ntp
     cache folder); a re-run resumes from the last stage whose inputs did not change."""
-    if resolution < MIN_RESOLUTION:
-        raise NtpInputError(None, f"--resolution {resolution}: need at least {MIN_RESOLUTION}")
+    if not MIN_RESOLUTION <= resolution <= MAX_RESOLUTION:
+        raise NtpInputError(None, f"--resolution {resolution}: need {MIN_RESOLUTION} to {MAX_RESOLUTION}")
     check_mesh_size(load_mesh(scan.mesh_path), scan.scanner, scan.mesh_path)
     pool: TaskPool = RayPool(ray, configured_threads()) if ray else LocalPool()
     with claim(out, "result", inputs=scan.input_folders), _stage_cache(Path(out), cache, scan) as stages:

@@ -32,6 +32,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ..io.atomic import reserve_disk
 from ..io.maps import bilinear_corners, bilinear_pixels
 from ..io.progress import QUIET, Progress
 from ..io.raycast import RayCaster
@@ -364,7 +365,9 @@ def _column(path: Path | None, name: str, n_entries: int) -> np.ndarray:
     dtype, tail = _COLUMNS[name]
     if path is None:
         return np.empty((n_entries, *tail), dtype)
-    return np.lib.format.open_memmap(path, "w+", dtype, (n_entries, *tail))
+    column = np.lib.format.open_memmap(path, "w+", dtype, (n_entries, *tail))
+    reserve_disk(path)
+    return column
 
 
 def _by_texel(

@@ -25,6 +25,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ..io.jit import compiled
 from ..io.thread_pools import numba_threads_as_torch
 from .pixel_bases import loop_array
 
@@ -82,7 +83,7 @@ def _loop_inputs(
 
 # no fastmath in this module's loops: a solve gone non-finite must give a NaN cost (the LM rejects
 # the step), which fastmath's no-NaN assumption does not promise
-@numba.njit(parallel=True, cache=True)
+@compiled(parallel=True)
 def _cost_loop(diffuse, spec, p, y, inv_sigma, mask, censored, robust, out):  # pragma: no cover
     """Fills ``out (N,)`` (see ``data_cost``)."""
     N, V = y.shape[0], y.shape[1]
@@ -101,7 +102,7 @@ def _cost_loop(diffuse, spec, p, y, inv_sigma, mask, censored, robust, out):  # 
         out[n] = total
 
 
-@numba.njit(parallel=True, cache=True)
+@compiled(parallel=True)
 def _normal_loop(diffuse, spec, ds, p, y, inv_sigma, mask, censored, robust, H, g):  # pragma: no cover
     """Fills ``H (N, 11, 11)`` and ``g (N, 11)`` (see ``normal_equations``)."""
     N, V = y.shape[0], y.shape[1]

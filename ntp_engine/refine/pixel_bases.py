@@ -41,6 +41,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ..io.jit import compiled
 from ..io.thread_pools import numba_threads_as_torch
 from ..physics.brdf import F0_DIELECTRIC
 from ..physics.pattern_sums import emitter_arrays
@@ -271,7 +272,7 @@ def selected_emitters(
     return out
 
 
-@numba.njit(parallel=True, fastmath=True, cache=True)
+@compiled(parallel=True, fastmath=True)
 def _diffuse_loop(rows, normal, wi, falloff, drive, todo, consts, out, margin):  # pragma: no cover
     """Fills ``out (N, V, 3, 3)`` and ``margin (N, V)`` where ``todo (N, V)`` (see
     ``diffuse_basis_and_margin``), texel n from row ``rows[n]`` of ``wi`` and ``falloff``; ``drive
@@ -312,7 +313,7 @@ def _diffuse_loop(rows, normal, wi, falloff, drive, todo, consts, out, margin): 
             margin[n, v] = low
 
 
-@numba.njit(parallel=True, fastmath=True, cache=True)
+@compiled(parallel=True, fastmath=True)
 def _specular_loop(rows, frame, emitters, wo, alpha, widening, consts, derivatives, spec, ds):  # pragma: no cover
     """Fills ``spec (N, V, 3)`` and, with ``derivatives``, ``ds (N, V, 5, 3)`` (see the module);
     ``consts``: ``_constants``' (the arithmetic in the arrays' dtype)."""
@@ -421,7 +422,7 @@ def _specular_loop(rows, frame, emitters, wo, alpha, widening, consts, derivativ
                 ds[n, v, 4, i] *= cy * seen
 
 
-@numba.njit(parallel=True, fastmath=True, cache=True)
+@compiled(parallel=True, fastmath=True)
 def _lobe_loop(rows, frame, wi, wo, ff, alpha, consts, out):  # pragma: no cover - compiled
     """Fills ``out (N, V, M)`` (see ``lobe_weights``), texel n from row ``rows[n]`` of the per-entry
     arrays; ``consts``: ``_constants``' (the arithmetic in the arrays' dtype)."""
@@ -458,7 +459,7 @@ def _lobe_loop(rows, frame, wi, wo, ff, alpha, consts, out):  # pragma: no cover
                 out[n, v, m] = izp * ff[r, v, m] * fresnel * seen * d * d / (izp + lam_i)
 
 
-@numba.njit(parallel=True, cache=True)
+@compiled(parallel=True)
 def _select_loop(rows, top, members, wi, ff, drive, wi_c, ff_c, drive_c, out):  # pragma: no cover
     """Fills the packed ``out (N, V, 6, M)`` (see ``selected_emitters``), texel n from row ``rows[n]``
     of the per-sample arrays."""
@@ -488,7 +489,7 @@ def _select_loop(rows, top, members, wi, ff, drive, wi_c, ff_c, drive_c, out):  
                 j += 1
 
 
-@numba.njit(parallel=True, fastmath=True, cache=True)
+@compiled(parallel=True, fastmath=True)
 def _directions_loop(x, frame, live, pts, weights, normals, wo, wi, falloff, cos_l):  # pragma: no cover
     """Fills ``wo, wi`` (see ``emitter_directions``), ``falloff`` without Psi (w_q / r^2, 0 for
     padding entries) and the emitter-side cosine ``cos_l`` clamped to [0, 1]; a padding sample (no

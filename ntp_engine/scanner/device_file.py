@@ -15,13 +15,18 @@ import tomli_w
 from ..io.assets import DEVICES_DIR
 from ..io.atomic import write_text_atomic
 from ..io.errors import NtpInputError
-from ..io.toml_file import read_toml
+from ..io.toml_file import read_toml, unknown_key
 from .pattern import checked_pattern, read_pattern_file, write_pattern_file
 from .scanner import Scanner
 
 DEFAULT_DEVICE = DEVICES_DIR / "ntp_led_32x16.toml"  # the paper's 32x16 LED array
 EMITTER_KINDS = ("point", "linear", "area")
 RESPONSES = ("linear", "gamma", "srgb")
+# bounds of the file's counts, far beyond any real device, so a typo cannot allocate without limit:
+MAX_SIDE = 65536  # camera pixels per side (the paper's camera: 2448x2048)
+MAX_EMITTERS = 65536  # 128x the paper's 512 LEDs
+MAX_QUADRATURE = 4096  # samples per emitter (quadrature columns x rows; the shipped devices use <= 16)
+MAX_COUNT = 1 << 31  # any other count
 
 
 class DeviceFileError(NtpInputError):
@@ -143,7 +148,7 @@ class _Reader:
             raise self.fail(key, f"must be > 0, got {value!r}")
         return float(value)
 
-    def integer(self, data: dict, key: str, default: int | None = None) -> int:
+    def integer(self, data: dict, key: str, default: int | None = None, maximum: int = MAX_COUNT) -> int:
         value = _dig(data, key)
         if value is None:
             if default is None:
@@ -151,7 +156,18 @@ class _Reader:
             return default
         if isinstance(value, bool) or not isinstance(value, int) or value <= 0:
             raise self.fail(key, f"expected a positive integer, got {value!r}")
+        if value > maximum:
+            raise self.fail(key, f"{value} is more than {maximum}")
         return value
+
+    def counts(self, data: dict, key: str, maximum: int) -> tuple[int, int]:
+        """Two positive integers (e.g. ``[columns, rows]``) whose product is at most ``maximum``."""
+        arr = self.array(data, key, (2,))
+        if (arr < 1).any() or (arr != np.round(arr)).any():
+            raise self.fail(key, "expected two positive integers")
+        if arr[0] * arr[1] > maximum:
+            raise self.fail(key, f"{arr[0]:.0f} x {arr[1]:.0f} is more than {maximum}")
+        return int(arr[0]), int(arr[1])
 
     def choice(self, data: dict, key: str, options: tuple[str, ...], default: str | None = None) -> str:
         value = _dig(data, key)
@@ -249,12 +265,15 @@ def _check_known_keys(data: dict, r: _Reader) -> None:
         if isinstance(table, dict):
             for key in table:
                 if key not in known:
-                    raise r.fail(f"{prefix}.{key}" if prefix else key, "unknown key")
+                    raise r.fail(f"{prefix}.{key}" if prefix else key, unknown_key(key, known))
 
 
 def _parse_camera(data: dict, r: _Reader) -> dict[str, Any]:
     r.table(data, "camera")  # must exist; its keys are read by dotted name below
-    width, height = r.integer(data, "camera.width"), r.integer(data, "camera.height")
+    width, height = (
+        r.integer(data, "camera.width", maximum=MAX_SIDE),
+        r.integer(data, "camera.height", maximum=MAX_SIDE),
+    )
     fx = r.number(data, "camera.fx", positive=True)
     fy = r.number(data, "camera.fy", default=fx, positive=True)
     cx, cy = r.number(data, "camera.cx", (width - 1) / 2), r.number(data, "camera.cy", (height - 1) / 2)
@@ -275,10 +294,7 @@ def _parse_camera(data: dict, r: _Reader) -> dict[str, Any]:
 
 def _emitter_grid(data: dict, r: _Reader) -> tuple[np.ndarray, np.ndarray, np.ndarray, tuple[int, int]]:
     """Positions, normals, axes of a regular grid (row-major: index = row * columns + column)."""
-    count = r.array(data, "emitters.count", (2,))
-    if (count < 1).any() or (count != np.round(count)).any():
-        raise r.fail("emitters.count", "expected two positive integers [columns, rows]")
-    cols, rows = int(count[0]), int(count[1])
+    cols, rows = r.counts(data, "emitters.count", MAX_EMITTERS)
     pitch = r.array(data, "emitters.pitch", (2,))
     center = r.array(data, "emitters.center", (3,))
     u = r.unit(data, "emitters.axis", (3,))
@@ -297,16 +313,15 @@ def _emitter_list(data: dict, r: _Reader) -> tuple[np.ndarray, np.ndarray, np.nd
     """Positions, normals, axes listed one per emitter (and an optional grid shape)."""
     positions = r.array(data, "emitters.positions", (None, 3))
     L = len(positions)
-    if L == 0:
-        raise r.fail("emitters.positions", "no emitters")
+    if not 0 < L <= MAX_EMITTERS:
+        raise r.fail("emitters.positions", f"{L} emitters: need 1 to {MAX_EMITTERS}")
     normals = r.unit(data, "emitters.normals", (L, 3))
     axes = r.unit(data, "emitters.axes", (L, 3))
     grid_shape = None
     if _dig(data, "emitters.grid_shape") is not None:
-        gsa = r.array(data, "emitters.grid_shape", (2,))
-        if int(gsa[0]) * int(gsa[1]) != L:
+        grid_shape = r.counts(data, "emitters.grid_shape", MAX_EMITTERS)
+        if grid_shape[0] * grid_shape[1] != L:
             raise r.fail("emitters.grid_shape", f"columns x rows must equal the {L} emitters")
-        grid_shape = (int(gsa[0]), int(gsa[1]))
     return positions, normals, axes, grid_shape
 
 
@@ -324,16 +339,16 @@ def _parse_emitters(data: dict, r: _Reader) -> dict[str, Any]:
         raise r.fail("emitters.size", "must be >= 0")
     if kind != "point" and size[0] <= 0 or kind == "area" and size[1] <= 0:
         raise r.fail("emitters.size", f"a {kind} emitter needs a positive size")
-    quad = r.array(data, "emitters.quadrature", (2,), default=np.ones(2))
-    if (quad < 1).any() or (quad != np.round(quad)).any():
-        raise r.fail("emitters.quadrature", "expected two positive integers")
+    quad = (1, 1)
+    if _dig(data, "emitters.quadrature") is not None:
+        quad = r.counts(data, "emitters.quadrature", MAX_QUADRATURE)
     return {
         "emitter_kind": kind,
         "emitter_positions": positions,
         "emitter_normals": normals,
         "emitter_axes": axes,
         "emitter_size": size,
-        "quadrature": (int(quad[0]), int(quad[1])),
+        "quadrature": quad,
         "grid_shape": grid_shape,
         "color_matrix": r.array(data, "emitters.color_matrix", (3, 3), default=np.eye(3)),
         **_parse_angular(data, r),

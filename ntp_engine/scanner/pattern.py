@@ -14,6 +14,7 @@ import numpy as np
 
 from ..io.atomic import atomic_path
 from ..io.errors import NtpInputError
+from ..io.input_file import MAX_BYTES, regular_file
 from .scanner import Scanner
 
 NAMED_PATTERNS = ("full_on", "point", "binary")
@@ -23,6 +24,7 @@ QUANTUM = 1.0 / 255.0  # one step of the LED driver's 8-bit PWM
 def read_pattern_file(path: Path, emitters: int) -> np.ndarray:
     """An ``(emitters, 3)`` pattern from a CSV or NPY file; a one-line ``NtpInputError`` naming
     the file when it is unreadable, has the wrong shape or values outside [0, 1]."""
+    regular_file(path, MAX_BYTES["pattern"])
     try:
         arr = np.load(path) if path.suffix == ".npy" else np.loadtxt(path, delimiter=",", ndmin=2)
     except (OSError, ValueError) as err:

@@ -24,13 +24,18 @@ import numpy as np
 
 from ..io.atomic import write_text_atomic
 from ..io.errors import NtpInputError
-from ..io.images import read_image
+from ..io.images import decode
+from ..io.input_file import MAX_BYTES, regular_file
 from ..io.mesh import Mesh
-from ..io.toml_file import read_toml
+from ..io.progress import warn
+from ..io.toml_file import check_keys, read_toml
 from .device_file import load_scanner
 from .scanner import Scanner
 
+SCAN_KEYS = ("mesh", "photos", "device", "poses", "colmap", "support_plane", "support_light")  # scan.toml's keys
 PHOTO_SUFFIXES = (".png", ".jpg", ".jpeg")
+# pixel formats a photo may hold: the camera's 8-bit codes, or them in a 16-bit file
+PHOTO_FORMATS = ("uint8", "uint16")
 # a plausible object is this many times the valid volume's largest edge across (1.5 mm to 3 m for
 # the paper's 15 cm volume); outside it the mesh is almost surely in another unit than metres
 MESH_SIZE_RANGE = (0.01, 20.0)
@@ -79,6 +84,7 @@ def _path(folder: Path, table: dict, key: str, toml: Path) -> Path | None:
 
 def load_poses(path: Path) -> dict[str, np.ndarray]:
     """``{"photo name": 4x4 camera-from-world}``; each must be a finite rigid transform."""
+    regular_file(path, MAX_BYTES["poses"])
     try:
         data = json.loads(path.read_text(encoding="utf-8"))
     except (OSError, ValueError) as err:  # unreadable, not UTF-8, not JSON
@@ -111,6 +117,7 @@ def load_scan(
     folder = Path(folder)
     toml = folder / "scan.toml"
     table = read_toml(toml, "no scan.toml in the scan folder")
+    check_keys(table, SCAN_KEYS, toml)
     mesh = _required_path(folder, table, "mesh", toml)
     photos = _required_path(folder, table, "photos", toml)
     if not photos.is_dir():
@@ -122,9 +129,7 @@ def load_scan(
         raise NtpInputError(model, "give either a poses file or a COLMAP model, not both")
     if model and not model.is_dir():
         raise NtpInputError(model, "a COLMAP model is a folder (cameras, images, points3D)")
-    paths = sorted(p for p in photos.iterdir() if p.suffix.lower() in PHOTO_SUFFIXES)
-    if not paths:
-        raise NtpInputError(photos, "no PNG/JPEG photos")
+    paths = _photo_paths(photos)
     support = table.get("support_plane", True)
     if not isinstance(support, bool):
         raise NtpInputError(toml, f"key 'support_plane': expected true or false, got {support!r}")
@@ -135,6 +140,21 @@ def load_scan(
         raise NtpInputError(toml, "key 'support_light': true needs a support (support_plane = false)")
     poses = load_poses(pose_path) if pose_path else None
     return Scan(folder, mesh, photos, scanner, paths, poses, model, support_plane=support, support_light=light)
+
+
+def _photo_paths(photos: Path) -> list[Path]:
+    """The photos folder's PNG/JPEG files, sorted by name; any other (not hidden) entry is named on
+    stderr as skipped, so a photo in another format is not lost without a word. Entries that are
+    not regular files stay in the list: photo selection names them as unreadable."""
+    paths = []
+    for p in sorted(photos.iterdir()):
+        if p.suffix.lower() in PHOTO_SUFFIXES:
+            paths.append(p)
+        elif not p.name.startswith("."):
+            warn(f"{p}: not a PNG/JPEG photo — skipped")
+    if not paths:
+        raise NtpInputError(photos, "no PNG/JPEG photos")
+    return paths
 
 
 def check_mesh_size(mesh: Mesh, scanner: Scanner, path: Path) -> None:
@@ -163,13 +183,24 @@ def _length(metres: float) -> str:
 
 def read_photo(path: Path, scanner: Scanner) -> np.ndarray:
     """8-bit codes ``(H, W, 3)`` float; ``NtpInputError`` naming the photo if it is unreadable,
-    truncated or corrupt, or not the scanner camera's size."""
-    img = read_image(path)
-    if img.shape[:2] != (scanner.height, scanner.width) or img.shape[2] < 3:
+    truncated or corrupt, not the scanner camera's size (checked before decoding), not RGB, not of
+    integer pixels (the camera's codes are 8-bit; a 16-bit file is read as its 8-bit codes), or
+    has pixels that are not opaque (the camera writes no alpha; a photo composited or cut out by
+    another program no longer holds what the camera measured)."""
+    img = decode(path, size=(scanner.width, scanner.height))
+    channels = img.pixels.shape[2] - (img.alpha_channel >= 0)
+    if channels < 3:
+        kind = "grayscale" if channels == 1 else f"{channels}-channel"
+        raise NtpInputError(path, f"a {kind} photo; the camera takes RGB")
+    if img.format not in PHOTO_FORMATS:
         raise NtpInputError(
-            path, f"{img.shape[1]}x{img.shape[0]} photo, the camera takes {scanner.width}x{scanner.height} RGB"
+            path, f"holds {img.format} pixels (an HDR/EXR image under this name?); the camera's photos are 8-bit"
         )
-    return np.round(img[..., :3] * 255.0)
+    if img.alpha_channel >= 0:
+        clear = int((img.pixels[..., img.alpha_channel] < 1.0).sum())
+        if clear:
+            raise NtpInputError(path, f"{clear} pixels are not opaque (alpha < 1); the camera's photos have no alpha")
+    return np.round(img.pixels[..., :3] * 255.0)
 
 
 def write_scan_toml(

@@ -23,7 +23,7 @@ def test_written_patterns_are_quantised_and_agree_with_the_original(tmp_path):
 
 
 def test_bad_pattern_files_name_the_file(tmp_path):
-    with pytest.raises(NtpInputError, match="none.csv: cannot read"):
+    with pytest.raises(NtpInputError, match="none.csv: does not exist"):
         read_pattern_file(tmp_path / "none.csv", 4)
     np.savetxt(tmp_path / "short.csv", np.ones((3, 3)), delimiter=",")
     with pytest.raises(NtpInputError, match=r"short.csv: expected 4x3"):
