@@ -51,7 +51,8 @@ def colmap24_registered(scan24, colmap24, tmp_path_factory):
     out = tmp_path_factory.mktemp("colmap24_registered") / "rec"
     with pytest.MonkeyPatch.context() as patch:
         patch.setattr("ntp_engine.pipeline.stages.structure_from_motion", no_sfm)
-        assert cli.main(["register", str(scan24), "--out", str(out), "--colmap", str(colmap24[0]), "--quiet"]) == 0
+        argv = ["register", str(scan24), "--out", str(out), "--colmap", str(colmap24[0]), "--quiet"]
+        assert cli.main([*argv, "--progress", str(out.parent / "progress.jsonl")]) == 0
     return out
 
 

@@ -26,6 +26,7 @@ from ntp_engine.io.images import read_image, write_png
 from ntp_engine.io.mesh import Mesh, load_mesh, save_obj
 from ntp_engine.io.output_folder import claim, is_complete
 from ntp_engine.learn import models
+from ntp_engine.scanner.device_file import DEFAULT_DEVICE
 
 RES = "16"
 
@@ -177,6 +178,24 @@ def _user_folder(scan: Path, tmp: Path) -> Path:
     return tmp / "mine"
 
 
+def _users_atlas(scan: Path, tmp: Path) -> Path:
+    (tmp / "mine" / "atlas").mkdir(parents=True)
+    (tmp / "mine" / "atlas" / "notes.txt").write_text("my notes")
+    return tmp / "mine"
+
+
+def _cache_link(target: Callable[[Path, Path], Path]) -> Callable[[Path, Path, Path], list[str]]:
+    """The result's cache replaced by a link to ``target(scan, tmp)``: ntp deletes inside its cache,
+    so it must never follow the link into a folder that is not an ntp cache."""
+
+    def setup(scan, out, tmp):
+        shutil.rmtree(out / "cache")
+        (out / "cache").symlink_to(target(scan, tmp), target_is_directory=True)
+        return reconstruct_argv(scan, out)
+
+    return setup
+
+
 CASES = {
     "no_scan_toml": Case(_write("scan.toml", None), "no scan.toml", "scan.toml"),
     "scan_toml_not_toml": Case(_toml(b'mesh = "mesh.obj\n'), "not valid TOML", "scan.toml"),
@@ -219,7 +238,7 @@ CASES = {
         lambda s, o, t: reconstruct_argv(s, o, "--model", str(t / "nomodel")), "not a model folder", "nomodel"
     ),
     "model_weights_damaged": Case(_damaged_model, "cannot read the weights", "model.pt"),
-    "resolution_too_small": Case(lambda s, o, t: reconstruct_argv(s, o)[:5] + ["4"], "need at least 8", "--resolution"),
+    "resolution_too_small": Case(lambda s, o, t: reconstruct_argv(s, o)[:5] + ["4"], "need 8 to 16384", "--resolution"),
     "out_is_a_file": Case(_out(_a_file), "is a file, not a folder", "result.txt"),
     "out_is_users_folder": Case(_out(_user_folder), "not empty and not an ntp result folder", "mine"),
     "out_is_the_scan": Case(_out(lambda s, t: s), "is the input folder", "scan"),
@@ -236,7 +255,68 @@ CASES = {
     "cache_inside_the_scan": Case(
         lambda s, o, t: reconstruct_argv(s, o, "--cache", str(s / "cache")), "inside the input folder", "cache"
     ),
-    "threads_negative": Case(lambda s, o, t: reconstruct_argv(s, o, "--threads", "-1"), "need 0", "--threads"),
+    "threads_negative": Case(lambda s, o, t: reconstruct_argv(s, o, "--threads", "-1"), "need 0 to", "--threads"),
+    # what a hostile user found (#70): numbers without bounds, links, typos, devices as files
+    "resolution_too_large": Case(
+        lambda s, o, t: reconstruct_argv(s, o)[:5] + ["100000"] + reconstruct_argv(s, o)[6:],
+        "need 8 to 16384",
+        "--resolution",
+    ),
+    "resolution_overflows": Case(
+        lambda s, o, t: reconstruct_argv(s, o)[:5] + ["99999999999999999999"] + reconstruct_argv(s, o)[6:],
+        "need 8 to 16384",
+        "--resolution",
+    ),
+    "threads_too_many": Case(
+        lambda s, o, t: reconstruct_argv(s, o, "--threads", "99999999999"), "need 0 to", "--threads"
+    ),
+    "blur_margin_nan": Case(
+        lambda s, o, t: reconstruct_argv(s, o, "--blur-margin", "nan"), "not a finite number", "--blur-margin"
+    ),
+    "scan_toml_typo": Case(
+        _toml(b'mesh = "mesh.obj"\nphotos = "photos"\ndevice = "device.toml"\npose = "poses.json"\n'),
+        "key 'pose': unknown key (did you mean 'poses'?)",
+        "scan.toml",
+    ),
+    "mesh_uv_nan": Case(
+        _mesh(
+            lambda m: Mesh(m.vertices, m.faces, np.where(np.arange(len(m.uv))[:, None] == 3, np.nan, m.uv), m.normals)
+        ),
+        "texture coordinate (vt) is not finite",
+        "mesh.obj",
+    ),
+    "device_is_dev_zero": Case(
+        lambda s, o, t: reconstruct_argv(s, o, "--device", "/dev/zero"),
+        "is a character device, not a file",
+        "/dev/zero",
+    ),
+    "device_fifo": Case(
+        lambda s, o, t: (os.mkfifo(t / "device.toml"), reconstruct_argv(s, o, "--device", str(t / "device.toml")))[1],
+        "is a FIFO (named pipe), not a file",
+        "device.toml",
+    ),
+    "device_grid_count_huge": Case(
+        _device_file(DEFAULT_DEVICE.read_bytes().replace(b"count = [32, 16]", b"count = [1e300, 1]")),
+        "key 'emitters.count'",
+        "broken.toml",
+    ),
+    "device_grid_count_too_many": Case(
+        _device_file(DEFAULT_DEVICE.read_bytes().replace(b"count = [32, 16]", b"count = [200000, 200000]")),
+        "is more than 65536",
+        "broken.toml",
+    ),
+    "poses_is_a_fifo": Case(
+        lambda s, o, t: (os.mkfifo(t / "p.json"), reconstruct_argv(s, o)[:-3] + ["--poses", str(t / "p.json")])[1],
+        "is a FIFO (named pipe), not a file",
+        "p.json",
+    ),
+    "cache_link_to_users_folder": Case(_cache_link(_users_atlas), "not an ntp cache folder", "mine"),
+    "cache_link_into_the_scan": Case(_cache_link(lambda s, t: s), "is the input folder", "scan"),
+    "progress_on_a_full_device": Case(
+        lambda s, o, t: reconstruct_argv(s, o, "--progress", "/dev/full", "--resolution", "24"),
+        "No space left on device",
+        "/dev/full",
+    ),
 }
 
 
@@ -259,7 +339,11 @@ def test_refused_in_one_line_inputs_and_result_kept(name, copies, tmp_path, caps
 def _state(tmp: Path, out: Path) -> dict:
     """Checksums of everything in ``tmp`` but ``out``'s cache (finished stages are kept by design)."""
     return {
-        p.name: checksums(p, skip=("cache",) if p == out else ()) if p.is_dir() else p.read_bytes()
+        p.name: checksums(p, skip=("cache",) if p == out else ())
+        if p.is_dir()
+        else p.read_bytes()
+        if p.is_file()
+        else p.lstat().st_mode  # a FIFO or a link to a device: never read
         for p in tmp.iterdir()
     }
 
@@ -323,13 +407,22 @@ def _run_ok(argv: list[str], capsys) -> tuple[list[str], dict]:
     return lines, json.loads(Path(argv[argv.index("--out") + 1], "report.json").read_text())
 
 
-@pytest.mark.parametrize("damage", ["truncated_npy", "truncated_key", "edited_npz"])
+@pytest.mark.parametrize("damage", ["truncated_npy", "truncated_key", "edited_npz", "emptied_file_list"])
 def test_a_damaged_cache_entry_is_recomputed(damage, good, copies, capsys):
     scan, out = copies
-    target = {"truncated_npy": "traces/entries.npy", "truncated_key": "fit/key.json", "edited_npz": "fit/fit.npz"}
+    target = {
+        "truncated_npy": "traces/entries.npy",
+        "truncated_key": "fit/key.json",
+        "edited_npz": "fit/fit.npz",
+        "emptied_file_list": "fit/key.json",
+    }
     f = out / "cache" / target[damage]
     data = f.read_bytes()
-    f.write_bytes(data[: len(data) // 2] if damage != "edited_npz" else data[:-5] + b"xxxxx")
+    if damage == "emptied_file_list":  # a key that vouches for nothing must not vouch for a garbage fit.npz
+        f.write_text(json.dumps({**json.loads(data), "files": {}}))
+        (f.parent / "fit.npz").write_bytes(b"garbage")
+    else:
+        f.write_bytes(data[: len(data) // 2] if damage != "edited_npz" else data[:-5] + b"xxxxx")
     lines, rep = _run_ok(reconstruct_argv(scan, out), capsys)
     assert len(lines) == 1 and "cache entry damaged" in lines[0] and f.parent.name in lines[0]
     assert rep["recomputed_damaged_stages"] == [f.parent.name]
@@ -388,6 +481,97 @@ def test_a_truncated_photo_is_named_and_left_out(copies, capsys):
     assert rep["photos"]["unreadable"] == [bad.name] and rep["photos"]["kept"] == 23
 
 
+def _oiio_write(path: Path, pixels: np.ndarray, fmt: str) -> None:
+    """Write ``pixels`` (H, W, C) to ``path`` as OpenImageIO's ``fmt`` in the format the bytes say
+    (``.exr`` bytes under a ``.png`` name are written to a temporary ``.exr`` first)."""
+    import OpenImageIO as oiio
+
+    real = path.with_suffix(".exr") if fmt == "float" else path
+    out = oiio.ImageOutput.create(str(real))
+    out.open(str(real), oiio.ImageSpec(pixels.shape[1], pixels.shape[0], pixels.shape[2], oiio.TypeDesc(fmt)))
+    out.write_image(np.ascontiguousarray(pixels))
+    out.close()
+    if real != path:
+        os.replace(real, path)
+
+
+def _rgba(p: Path) -> str:  # alpha 128: OpenImageIO premultiplied it on read, photos came in at half brightness
+    img = np.round(read_image(p) * 255).astype(np.uint8)
+    _oiio_write(p, np.concatenate([img, np.full((*img.shape[:2], 1), 128, np.uint8)], -1), "uint8")
+    return p.name
+
+
+def _float(p: Path) -> str:  # values > 1 became codes up to 1020 and wrapped modulo 256
+    _oiio_write(p, read_image(p) * 4.0, "float")
+    return p.name
+
+
+def _grey(p: Path) -> str:  # was called a size mismatch
+    _oiio_write(p, np.round(read_image(p)[..., :1] * 255).astype(np.uint8), "uint8")
+    return p.name
+
+
+def _huge(p: Path) -> str:  # a 1 MB PNG declaring 20000x20000 was decoded before its size was checked
+    import struct
+    import zlib
+
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+
+    rows = zlib.compress(bytes(20000 * (1 + 20000 * 3)), 9)
+    header = struct.pack(">IIBBBBB", 20000, 20000, 8, 2, 0, 0, 0)
+    p.write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header) + chunk(b"IDAT", rows) + chunk(b"IEND", b""))
+    return p.name
+
+
+def _fifo(p: Path) -> str:  # open() blocked, and the first Ctrl-C was ignored
+    os.mkfifo(p.with_name("fifo.png"))
+    return "fifo.png"
+
+
+def _dev_zero(p: Path) -> str:  # hashed forever
+    p.with_name("zero.png").symlink_to("/dev/zero")
+    return "zero.png"
+
+
+UNTRUSTED_PHOTOS = {
+    "rgba_half_transparent": (_rgba, "pixels are not opaque (alpha < 1)"),
+    "float_pixels_under_png": (_float, "holds float pixels"),
+    "grayscale": (_grey, "a grayscale photo; the camera takes RGB"),
+    "declares_20000x20000": (_huge, "20000x20000 image, expected 612x512"),
+    "fifo": (_fifo, "is a FIFO (named pipe), not a file"),
+    "link_to_dev_zero": (_dev_zero, "is a character device, not a file"),
+}
+
+
+@pytest.mark.parametrize("name", list(UNTRUSTED_PHOTOS))
+def test_a_photo_ntp_cannot_trust_is_named_and_left_out(name, copies, capsys):
+    scan, out = copies
+    make, message = UNTRUSTED_PHOTOS[name]
+    bad = make(sorted((scan / "photos").iterdir())[3])
+    lines, rep = _run_ok(reconstruct_argv(scan, out), capsys)
+    assert len(lines) == 1 and bad in lines[0] and message in lines[0], lines
+    assert rep["photos"]["unreadable"] == [bad] and rep["photos"]["kept"] == 23 + (bad != "0003.png")
+
+
+def test_photos_in_16_bits_are_read_as_their_8_bit_codes(good, copies, capsys):
+    scan, out = copies
+    for p in sorted((scan / "photos").iterdir()):  # a converter's 16-bit copy: code * 257
+        _oiio_write(p, np.round(read_image(p) * 255).astype(np.uint16) * 257, "uint16")
+    lines, rep = _run_ok(reconstruct_argv(scan, out), capsys)
+    assert lines == [] and rep["photos"]["kept"] == 24
+    assert outputs(out) == outputs(good[1])  # the same codes: the same result, byte for byte
+
+
+def test_a_file_in_another_format_among_the_photos_is_named(copies, capsys):
+    scan, out = copies
+    _oiio_write(scan / "photos" / "extra.exr", np.zeros((4, 4, 3), np.float32), "float")
+    (scan / "photos" / ".DS_Store").write_bytes(b"\0")  # hidden files are no one's photos
+    lines, rep = _run_ok(reconstruct_argv(scan, out), capsys)
+    assert lines == [f"ntp: warning: {scan / 'photos' / 'extra.exr'}: not a PNG/JPEG photo — skipped"]
+    assert rep["photos"]["kept"] == 24
+
+
 def _write_jpeg(path: Path, img: np.ndarray) -> None:
     import OpenImageIO as oiio
 
@@ -417,7 +601,7 @@ def _wait_for_stage(progress: Path, stage: str, proc: subprocess.Popen, timeout:
         raise AssertionError(f"stage {stage} never started")
 
 
-@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGKILL])
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM, signal.SIGKILL])
 def test_interrupted_runs_resume_to_the_same_result(sig, good, copies, tmp_path):
     scan, out = copies
     progress = tmp_path / "progress.jsonl"
@@ -433,9 +617,10 @@ def test_interrupted_runs_resume_to_the_same_result(sig, good, copies, tmp_path)
         _, err = proc.communicate(timeout=120)
         if proc.returncode != 0:
             break
-    if sig == signal.SIGINT:
-        assert proc.returncode == 130
-        assert err.strip() == "ntp: interrupted — finished stages are kept, re-run to resume"
+    if sig in (signal.SIGINT, signal.SIGTERM):  # kill, a scheduler's time limit: as Ctrl-C
+        word = "interrupted" if sig == signal.SIGINT else "terminated"
+        assert proc.returncode == 128 + sig
+        assert err.strip() == f"ntp: {word} — finished stages are kept, re-run to resume"
         assert not [p for p in out.rglob(".ntp-tmp.*")]  # an interrupt cleans up after itself
     else:
         assert proc.returncode == -signal.SIGKILL
@@ -464,3 +649,26 @@ def test_a_full_disk_is_one_line_and_the_result_survives(copies):
     assert proc.returncode == 2 and len(lines) == 1, err
     assert "File too large" in lines[0] and str(out / "cache") in lines[0]
     assert outputs(out) == before and is_complete(out) and not [p for p in out.rglob(".ntp-tmp.*")]
+
+
+@pytest.fixture
+def small_disk(tmp_path):
+    """A 3 MB file system (tmpfs): where the suite may mount one (root with CAP_SYS_ADMIN)."""
+    disk = tmp_path / "disk"
+    disk.mkdir()
+    if subprocess.run(["mount", "-t", "tmpfs", "-o", "size=3m", "tmpfs", str(disk)], capture_output=True).returncode:
+        pytest.skip("cannot mount a small file system here (needs root with CAP_SYS_ADMIN)")
+    yield disk
+    subprocess.run(["umount", str(disk)], check=True)
+
+
+def test_a_disk_filling_up_under_the_memory_mapped_trace_table_is_one_line(scan24, small_disk):
+    """The trace table is memory-mapped; a page first written on a full disk was a SIGBUS (exit 135,
+    no word, temporaries left). Its blocks are reserved when it is made: ENOSPC, one line."""
+    out = small_disk / "out"
+    proc = _ntp(*reconstruct_argv(scan24, out, "--resolution", "64"))  # a table over the 3 MB
+    _, err = proc.communicate(timeout=300)
+    lines = err.strip().splitlines()
+    assert proc.returncode == 2 and len(lines) == 1, err
+    assert "No space left on device" in lines[0] and str(out / "cache" / "traces") in lines[0]
+    assert not [p for p in out.rglob(".ntp-tmp.*")] and not is_complete(out)

@@ -6,6 +6,7 @@ Convention: metres; UV origin at the bottom-left of the texture (Blender/OpenGL)
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -63,18 +64,26 @@ def load_mesh(path: str | Path) -> Mesh:
     path = Path(path)
     regular_file(path, MAX_BYTES["mesh"], "mesh file not found")
     try:
-        m = trimesh.load(path, force="mesh", process=False)
+        with warnings.catch_warnings():  # numpy's parse warnings: the checks below say what is wrong, once
+            warnings.simplefilter("ignore")
+            m = trimesh.load(path, force="mesh", process=False)
+        vertices = np.asarray(m.vertices, dtype=np.float64)
+        faces = np.asarray(m.faces, dtype=np.int64)
     except Exception as err:  # noqa: BLE001 - trimesh raises many types for bad files
         raise NtpInputError(path, f"cannot read mesh ({type(err).__name__}: {err})") from None
-    if not isinstance(m, trimesh.Trimesh) or len(m.faces) == 0:
+    if not isinstance(m, trimesh.Trimesh) or faces.ndim != 2 or len(faces) == 0:
         raise NtpInputError(path, "no triangles in mesh")
-    vertices = np.asarray(m.vertices, dtype=np.float64)
-    faces = np.asarray(m.faces, dtype=np.int64)
+    if vertices.ndim != 2 or vertices.shape[1] != 3 or faces.shape[1] != 3:
+        raise NtpInputError(path, f"not a triangle mesh (vertices {vertices.shape}, faces {faces.shape})")
+    if faces.min() < 0 or faces.max() >= len(vertices):
+        raise NtpInputError(path, f"a face names a vertex the mesh does not have (of {len(vertices)})")
     _check_finite(path, vertices, "vertex position (v)")
     uv = None
     vis = getattr(m, "visual", None)
     if vis is not None and getattr(vis, "uv", None) is not None and len(vis.uv) == len(vertices):
         uv = np.asarray(vis.uv, dtype=np.float64)
+        if uv.ndim != 2 or uv.shape[1] != 2:
+            raise NtpInputError(path, f"texture coordinates (vt) are not pairs (shape {uv.shape})")
         _check_finite(path, uv, "texture coordinate (vt)")
     return Mesh(vertices, faces, uv, smooth_normals(vertices, faces))
 

@@ -216,7 +216,7 @@ def _register_stage(
         else:
             reg = structure_from_motion(scan.photos_dir, sel.kept, scan.scanner, d / "sfm", progress=progress)
         names = sorted(reg.poses)
-        placed = register_to_mesh(scan, reg)
+        placed = register_to_mesh(scan, reg, progress)
         icp, check, photos, judged, mesh = placed.icp, placed.check, placed.photos, placed.judged, placed.mesh
         al = check.alignment
         why = refusal(check)

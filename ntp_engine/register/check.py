@@ -16,6 +16,7 @@ import numpy as np
 
 from ..io.errors import NtpInputError
 from ..io.mesh import Mesh, load_mesh
+from ..io.progress import QUIET, Progress, StageCounter
 from ..scanner.scan_folder import Scan, read_photo
 from .align import Alignment, align_to_mesh, azimuth_apart, mesh_symmetry, turned_distance
 from .photo_stack import PhotoStack
@@ -114,10 +115,25 @@ def check_registration(
     names: list[str],
     mesh: Mesh,
     support_z: float | None,
+    progress: Progress = QUIET,
 ) -> PhotoCheck:
     """``alignment`` refined by the photos ``photos`` (of ``names``; similarity only: SfM's relative
     poses are kept), its rivals found by sweeping the azimuth over the whole circle and refined the
-    same way, the best chosen and judged (see ``PhotoCheck``)."""
+    same way, the best chosen and judged (see ``PhotoCheck``). Minutes on a large scan: ``progress``
+    counts its steps (the first refinement, the sweep, each rival's, the final one, the sharpness)."""
+    with progress.counter("registration check", 4 + TUNING.check.rivals, unit="step") as steps:
+        return _check(alignment, camera_from_sfm, photos, names, mesh, support_z, steps)
+
+
+def _check(
+    alignment: Alignment,
+    camera_from_sfm: dict[str, np.ndarray],
+    photos: PhotoStack,
+    names: list[str],
+    mesh: Mesh,
+    support_z: float | None,
+    steps: StageCounter,
+) -> PhotoCheck:
     # candidates are compared on half the photos and fewer points (the chosen one is refined on all)
     pick = [names.index(n) for n in spread(names, TUNING.check.sweep_photos)]
     judge = PhotometricRegistration(
@@ -139,6 +155,7 @@ def check_registration(
         return corrected(al, g), fit
 
     trials = [coarse(alignment)]
+    steps.update()
     # a point cloud with few points on the object can land at any azimuth: the photos vote on all
     scout = PhotometricRegistration(
         mesh,
@@ -150,9 +167,13 @@ def check_registration(
     turns, costs = scout.azimuth_profile(
         placed(trials[0][0])[pick], TUNING.photometric.blur_levels_px[0], TUNING.check.sweep_step_deg
     )
-    for turn in rival_turns(turns, costs):
+    steps.update()
+    rivals = rival_turns(turns, costs)
+    steps.update(TUNING.check.rivals - len(rivals))  # rivals not found: no work to wait for
+    for turn in rivals:
         turned = Correction(np.array([0.0, 0.0, np.radians(turn)]), np.zeros(3), 0.0, judge.pivot)
         trials.append(coarse(corrected(trials[0][0], turned)))
+        steps.update()
     chosen = int(np.argmin([fit.cost for _, fit in trials]))
     best = trials[chosen][0]
     yaw = [float(np.degrees(np.arctan2(a.rotation[1, 0], a.rotation[0, 0]))) for a, _ in trials]
@@ -171,8 +192,10 @@ def check_registration(
         free_height=free_height,
     )
     g, fit = finisher.refine(placed(best), levels=TUNING.photometric.blur_levels_px[1:])
+    steps.update()
     best = corrected(best, g)
     sharpness = finisher.sharpness(placed(best), TUNING.photometric.sharpness_sigma_px)
+    steps.update()
     apart = turned_distance(mesh, judge.centre, np.array(change))
     candidates = [
         {"azimuth_change_deg": c, "coarse_cost": f.cost, "mesh_turned_mm": 1e3 * d}
@@ -212,7 +235,7 @@ class MeshRegistration:
     seconds_photometric: float
 
 
-def register_to_mesh(scan: Scan, reg: SfmResult) -> MeshRegistration:
+def register_to_mesh(scan: Scan, reg: SfmResult, progress: Progress = QUIET) -> MeshRegistration:
     """The similarity from ``reg``'s frame to the mesh: aligned by the point cloud, then refined and
     judged by (at most ``TUNING.check.max_photos`` of) the photos; ``NtpInputError`` when nothing can be aligned."""
     names = sorted(reg.poses)
@@ -232,5 +255,5 @@ def register_to_mesh(scan: Scan, reg: SfmResult) -> MeshRegistration:
     judged = spread(names)  # the photos judge (and refine) the alignment
     photos = PhotoStack([read_photo(scan.photos_dir / n, scan.scanner) for n in judged], scan.scanner)
     support_z = float(mesh.vertices[:, 2].min()) if scan.support_plane else None
-    check = check_registration(icp, reg.poses, photos, judged, mesh, support_z)
+    check = check_registration(icp, reg.poses, photos, judged, mesh, support_z, progress)
     return MeshRegistration(icp, check, photos, judged, mesh, t1 - t0, time.perf_counter() - t1)

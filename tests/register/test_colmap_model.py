@@ -10,7 +10,9 @@ import pytest
 
 from ntp_engine import cli
 from ntp_engine.io.errors import NtpInputError
+from ntp_engine.io.progress import read_progress
 from ntp_engine.register.colmap_model import model_files, read_colmap_model
+from ntp_engine.register.settings import TUNING
 from ntp_engine.scanner.scan_folder import load_poses
 from ntp_engine.sim.evaluate import pose_error
 
@@ -38,6 +40,9 @@ def test_register_and_reconstruct_with_a_colmap_model_skip_sfm(
     reg = json.loads((out / "registration.json").read_text())["registration"]
     assert reg["source"] == f"COLMAP model {folder}" and reg["registered"] >= 20 and "alignment" in reg
     assert reg["photometric"]["photos"] >= 20 and reg["confidence"]["accepted"]  # the photos judged the alignment
+    # the check takes minutes on a large scan: it reports its steps (the fixture's --progress file)
+    check = [r for r in read_progress(out.parent / "progress.jsonl")[0] if r["stage"] == "registration check"]
+    assert check[0]["done"] == 0 and check[-1]["done"] == check[-1]["total"] == 4 + TUNING.check.rivals
     err = pose_error(load_poses(out / "poses.json"), load_poses(scan24 / "ground_truth" / "poses.json"))
     # SfM's model, refined by the photos as in tests/pipeline/test_stages.py (measured 0.45 mm, 0.057 deg)
     assert err["centre_median_m"] < 1.6e-3 and err["rotation_median_deg"] < 0.45, err
