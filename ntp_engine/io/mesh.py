@@ -67,11 +67,15 @@ def load_mesh(path: str | Path) -> Mesh:
         with warnings.catch_warnings():  # numpy's parse warnings: the checks below say what is wrong, once
             warnings.simplefilter("ignore")
             m = trimesh.load(path, force="mesh", process=False)
+        if not isinstance(m, trimesh.Trimesh):
+            raise NtpInputError(path, "no triangles in mesh")
         vertices = np.asarray(m.vertices, dtype=np.float64)
         faces = np.asarray(m.faces, dtype=np.int64)
+    except NtpInputError:
+        raise
     except Exception as err:  # noqa: BLE001 - trimesh raises many types for bad files
         raise NtpInputError(path, f"cannot read mesh ({type(err).__name__}: {err})") from None
-    if not isinstance(m, trimesh.Trimesh) or faces.ndim != 2 or len(faces) == 0:
+    if faces.ndim != 2 or len(faces) == 0:
         raise NtpInputError(path, "no triangles in mesh")
     if vertices.ndim != 2 or vertices.shape[1] != 3 or faces.shape[1] != 3:
         raise NtpInputError(path, f"not a triangle mesh (vertices {vertices.shape}, faces {faces.shape})")

@@ -213,6 +213,7 @@ class StageCache:
         except (OSError, ValueError, KeyError, AttributeError, TypeError):
             damaged = ["key.json"]
         if damaged:
-            warn(f"{final / damaged[0]}: cache entry damaged (not as it was written) — recomputing the {final.name} stage")
+            where = final / damaged[0]
+            warn(f"{where}: cache entry damaged (not as it was written) — recomputing the {final.name} stage")
             self.recomputed.append(final.name)
         return not damaged
