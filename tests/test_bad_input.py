@@ -672,3 +672,24 @@ def test_a_disk_filling_up_under_the_memory_mapped_trace_table_is_one_line(scan2
     assert proc.returncode == 2 and len(lines) == 1, err
     assert "No space left on device" in lines[0] and str(out / "cache" / "traces") in lines[0]
     assert not [p for p in out.rglob(".ntp-tmp.*")] and not is_complete(out)
+
+
+def test_a_scan_far_from_the_world_origin_gives_the_same_maps(good, copies, capsys):
+    """A mesh and poses moved together by (1000, 1000, 0) m: float32 positions had steps of 0.06 mm
+    there (coverage 88%, normals off by up to 0.67 rad, exit 0). Work is in the scan's local frame."""
+    scan, out = copies
+    shift = np.array([1000.0, 1000.0, 0.0])
+    mesh = load_mesh(scan / "mesh.obj")
+    save_obj(scan / "mesh.obj", Mesh(mesh.vertices + shift, mesh.faces, mesh.uv, mesh.normals), digits=12)
+    back = np.eye(4)
+    back[:3, 3] = -shift
+    poses = json.loads((scan / "ground_truth" / "poses.json").read_text())
+    far = {n: (np.array(m) @ back).tolist() for n, m in poses.items()}
+    (scan / "ground_truth" / "poses.json").write_text(json.dumps(far))
+    lines, rep = _run_ok(reconstruct_argv(scan, out), capsys)
+    assert lines == [] and rep["texels"]["coverage"] == 1.0
+    for name in ("normal", "diffuse_albedo", "specular_albedo", "roughness"):
+        near, got = read_image(good[1] / f"{name}.exr"), read_image(out / f"{name}.exr")
+        np.testing.assert_allclose(got, near, atol=2e-3, err_msg=name)
+    near, got = load_mesh(good[1] / "mesh.obj"), load_mesh(out / "mesh.obj")  # the result is in the world's frame
+    np.testing.assert_allclose(got.vertices, near.vertices + shift, atol=1e-6)

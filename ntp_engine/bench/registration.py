@@ -29,6 +29,7 @@ from ..register.check import register_to_mesh
 from ..register.colmap_model import model_files, read_colmap_model
 from ..register.refusal import named_rival, refusal, refusal_kind
 from ..register.sfm import SfmResult, structure_from_motion
+from ..scanner.local_frame import pose_to_world
 from ..scanner.scan_folder import load_poses, load_scan
 from ..sim.evaluate import pose_error
 from ..sim.gallery import GALLERY, build_asset
@@ -95,14 +96,15 @@ def run(
                         row["diagnosis"] = "refused: " + str(failure).split(": ", 1)[-1][:80]
                         rows.append(row)
                         continue
-                    icp = pose_error({n: al.camera_from_mesh(reg.poses[n]) for n in names}, truth)
-                    err = pose_error({n: check.alignment.camera_from_mesh(reg.poses[n]) for n in names}, truth)
+
+                    def world(a, reg=reg, names=names, placed=placed):  # the check's frame is the scan's local one
+                        return {n: pose_to_world(a.camera_from_mesh(reg.poses[n]), placed.origin) for n in names}
+
+                    icp = pose_error(world(al), truth)
+                    err = pose_error(world(check.alignment), truth)
                     why = refusal(check)
                     # where the truth is among the candidates the photos compared (coarse refinement)
-                    near = [
-                        pose_error({n: a.camera_from_mesh(reg.poses[n]) for n in names}, truth)["rotation_median_deg"]
-                        for a in check.trials
-                    ]
+                    near = [pose_error(world(a), truth)["rotation_median_deg"] for a in check.trials]
                     rival = named_rival(check.candidates)
                     row.update(
                         registered=len(names),

@@ -100,10 +100,11 @@ def _check_finite(path: Path, values: np.ndarray, what: str) -> None:
         raise NtpInputError(path, f"a {what} is not finite ({row}; at {len(bad)} of {len(values)} vertices)")
 
 
-def save_obj(path: str | Path, mesh: Mesh) -> None:
-    """Write positions, UVs (if any) and normals; faces as v/vt/vn (atomic)."""
+def save_obj(path: str | Path, mesh: Mesh, digits: int = 7) -> None:
+    """Write positions (``digits`` significant digits), UVs (if any) and normals; faces as v/vt/vn
+    (atomic)."""
     lines = ["# ntp mesh (metres)"]
-    lines += [f"v {x:.7g} {y:.7g} {z:.7g}" for x, y, z in mesh.vertices]
+    lines += [f"v {x:.{digits}g} {y:.{digits}g} {z:.{digits}g}" for x, y, z in mesh.vertices]
     if mesh.uv is not None:
         lines += [f"vt {u:.7g} {v:.7g}" for u, v in mesh.uv]
     lines += [f"vn {x:.6g} {y:.6g} {z:.6g}" for x, y, z in mesh.normals]

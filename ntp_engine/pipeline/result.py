@@ -22,6 +22,7 @@ from ..io.mesh import Mesh, save_obj
 from ..io.texels import Texels
 from ..physics.brdf import ALPHA_MAX, F0_DIELECTRIC, RHO_S_MAX
 from ..refine.materials import BasisMaterials
+from ..scanner.local_frame import moved, position_digits
 
 PREVIEW_GAMMA = 2.2
 UNCERTAINTY_FILE = "uncertainty.exr"  # with the refinement: per-parameter 1-sigma (material.json says how)
@@ -51,7 +52,9 @@ def basis_materials_doc(materials: BasisMaterials, width_varies: np.ndarray | No
     }
 
 
-def write_result(out: Path, mesh: Mesh, texels: Texels, fitted: TexelFit, lengths: np.ndarray) -> None:
+def write_result(
+    out: Path, mesh: Mesh, texels: Texels, fitted: TexelFit, lengths: np.ndarray, origin: np.ndarray | None = None
+) -> None:
     """Maps (EXR), confidence, previews, mesh, material.json into ``out`` (each file atomically;
     ``reconstruct`` passes a staging folder and publishes it, ``output_folder.publish``).
     Texels without a trace keep the geometric frame and get their values from the nearest observed
@@ -110,7 +113,8 @@ def write_result(out: Path, mesh: Mesh, texels: Texels, fitted: TexelFit, length
     write_png(previews / "normal.png", 0.5 * (maps.normal + 1))
     write_png(previews / "tangent.png", 0.5 * (maps.tangent + 1))
     write_png(previews / "roughness.png", np.concatenate([maps.roughness / ALPHA_MAX, np.zeros((H, W, 1))], -1))
-    save_obj(out / "mesh.obj", mesh)
+    origin = np.zeros(3) if origin is None else origin  # ``mesh`` is in the scan's local frame: back to the world's
+    save_obj(out / "mesh.obj", moved(mesh, origin), position_digits(origin))
     write_text_atomic(
         out / "material.json",
         json.dumps(

@@ -55,6 +55,7 @@ from ..register.settings import TUNING as REGISTRATION_TUNING
 from ..register.sfm import structure_from_motion
 from ..scanner import camera
 from ..scanner.device_file import scanner_to_dict
+from ..scanner.local_frame import local_origin, moved, pose_to_local, pose_to_world
 from ..scanner.scan_folder import Scan, check_mesh_size, read_photo
 from . import traces as trace_assembly
 from .fit_traces import fit_blocks
@@ -229,6 +230,7 @@ def _register_stage(
             json.dumps(
                 {
                     "source": f"COLMAP model {scan.colmap}" if scan.colmap else "structure from motion",
+                    "local_origin": placed.origin.tolist(),  # the frame of poses.json here (scanner.local_frame)
                     "registered": len(names),
                     "unregistered": reg.unregistered,
                     "sfm_points": len(reg.points),
@@ -267,7 +269,8 @@ def _register_stage(
         },
     }
     folder, h_pose = cache.get("register", key, compute)
-    poses = {n: np.array(m) for n, m in json.loads((folder / "poses.json").read_text()).items()}
+    origin = np.array(json.loads((folder / "registration.json").read_text()).get("local_origin", [0.0, 0.0, 0.0]))
+    poses = {n: pose_to_world(np.array(m), origin) for n, m in json.loads((folder / "poses.json").read_text()).items()}
     return poses, json.loads((folder / "registration.json").read_text()), h_pose
 
 
@@ -293,11 +296,22 @@ def reconstruct(
     cache folder); a re-run resumes from the last stage whose inputs did not change."""
     if not MIN_RESOLUTION <= resolution <= MAX_RESOLUTION:
         raise NtpInputError(None, f"--resolution {resolution}: need {MIN_RESOLUTION} to {MAX_RESOLUTION}")
-    check_mesh_size(load_mesh(scan.mesh_path), scan.scanner, scan.mesh_path)
+    scan_mesh = load_mesh(scan.mesh_path)
+    check_mesh_size(scan_mesh, scan.scanner, scan.mesh_path)
     pool: TaskPool = RayPool(ray, configured_threads()) if ray else LocalPool()
     with claim(out, "result", inputs=scan.input_folders), _stage_cache(Path(out), cache, scan) as stages:
         return _reconstruct(
-            scan, Path(out), stages, resolution, model, blur_margin, progress, force_registration, refine, pool
+            scan,
+            Path(out),
+            stages,
+            resolution,
+            model,
+            blur_margin,
+            progress,
+            force_registration,
+            refine,
+            pool,
+            local_origin(scan_mesh),
         )
 
 
@@ -312,14 +326,18 @@ def _reconstruct(
     force_registration: bool,
     refine: bool,
     pool: TaskPool,
+    origin: np.ndarray,
 ) -> Report:
+    """The stages after the registration work in the scan's local frame (``scanner.local_frame``:
+    float32 positions stay precise however far the mesh is from the world's origin)."""
     t_all = time.perf_counter()
-    poses, report, h_pose = _registration(scan, out, cache, blur_margin, progress, force_registration)
+    world_poses, report, h_pose = _registration(scan, out, cache, blur_margin, progress, force_registration)
+    poses = {n: pose_to_local(m, origin) for n, m in world_poses.items()}
     report.scan = str(scan.folder)
     net, meta = models.load(model, scan.scanner)  # before any work: the model must fit the scanner
 
     t0 = time.perf_counter()
-    mesh, h_atlas = _atlas_stage(scan, cache, resolution)
+    mesh, h_atlas = _atlas_stage(scan, cache, resolution, origin)
     texels = rasterize(mesh, (resolution, resolution), curvature=refine)
     report.timed("atlas", t0)
 
@@ -387,7 +405,7 @@ def _reconstruct(
     t0 = time.perf_counter()
     staging = temp_dir(out, "result")  # every output here first, then moved into place
     try:
-        write_result(staging, mesh, texels, fitted, lengths)
+        write_result(staging, mesh, texels, fitted, lengths, origin)
         report.timed("maps", t0)
         observed = lengths > 0
         coverage = float(observed.mean()) if len(texels) else 0.0
@@ -450,11 +468,12 @@ def _check_measured(scan: Scan, stats: TraceCounts, lengths: np.ndarray, posed: 
         )
 
 
-def _atlas_stage(scan: Scan, cache: StageCache, resolution: int) -> tuple[Mesh, str]:
-    """The mesh with the UVs the maps use: its own, else an xatlas atlas for ``resolution``."""
+def _atlas_stage(scan: Scan, cache: StageCache, resolution: int, origin: np.ndarray) -> tuple[Mesh, str]:
+    """The mesh with the UVs the maps use: its own, else an xatlas atlas for ``resolution``; in the
+    scan's local frame (``origin``, a function of the mesh: the key's mesh content holds it)."""
 
     def compute(d: Path) -> None:
-        mesh = load_mesh(scan.mesh_path)
+        mesh = moved(load_mesh(scan.mesh_path), -origin)
         save_obj(d / "mesh.obj", mesh if mesh.uv is not None else uv_atlas(mesh, resolution))
 
     key = {

@@ -17,6 +17,7 @@ import numpy as np
 from ..io.errors import NtpInputError
 from ..io.mesh import Mesh, load_mesh
 from ..io.progress import QUIET, Progress, StageCounter
+from ..scanner.local_frame import local_origin, moved
 from ..scanner.scan_folder import Scan, read_photo
 from .align import Alignment, align_to_mesh, azimuth_apart, mesh_symmetry, turned_distance
 from .photo_stack import PhotoStack
@@ -230,7 +231,8 @@ class MeshRegistration:
     check: PhotoCheck
     photos: PhotoStack
     judged: list[str]
-    mesh: Mesh
+    mesh: Mesh  # in the scan's local frame (``scanner.local_frame``), as the poses the alignment gives
+    origin: np.ndarray
     seconds_align: float
     seconds_photometric: float
 
@@ -239,7 +241,9 @@ def register_to_mesh(scan: Scan, reg: SfmResult, progress: Progress = QUIET) -> 
     """The similarity from ``reg``'s frame to the mesh: aligned by the point cloud, then refined and
     judged by (at most ``TUNING.check.max_photos`` of) the photos; ``NtpInputError`` when nothing can be aligned."""
     names = sorted(reg.poses)
-    mesh = load_mesh(scan.mesh_path)
+    world = load_mesh(scan.mesh_path)
+    origin = local_origin(world)
+    mesh = moved(world, -origin)  # the photometric check's positions are float32: near the origin
     t0 = time.perf_counter()
     try:
         icp = align_to_mesh(
@@ -256,4 +260,4 @@ def register_to_mesh(scan: Scan, reg: SfmResult, progress: Progress = QUIET) -> 
     photos = PhotoStack([read_photo(scan.photos_dir / n, scan.scanner) for n in judged], scan.scanner)
     support_z = float(mesh.vertices[:, 2].min()) if scan.support_plane else None
     check = check_registration(icp, reg.poses, photos, judged, mesh, support_z, progress)
-    return MeshRegistration(icp, check, photos, judged, mesh, t1 - t0, time.perf_counter() - t1)
+    return MeshRegistration(icp, check, photos, judged, mesh, origin, t1 - t0, time.perf_counter() - t1)
