@@ -166,7 +166,7 @@ class _Reader:
         if (arr < 1).any() or (arr != np.round(arr)).any():
             raise self.fail(key, "expected two positive integers")
         if arr[0] * arr[1] > maximum:
-            raise self.fail(key, f"{arr[0]:.0f} x {arr[1]:.0f} is more than {maximum}")
+            raise self.fail(key, f"{arr[0]:g} x {arr[1]:g} is more than {maximum}")
         return int(arr[0]), int(arr[1])
 
     def choice(self, data: dict, key: str, options: tuple[str, ...], default: str | None = None) -> str:

@@ -352,17 +352,23 @@ def test_batch_writes_blend_glb_preview_that_reopen(demo_result, tmp_path):
     for f in ("a.blend", "a.glb", "a.png"):  # modes follow the umask (temporary files are 0600)
         assert (out / f).stat().st_mode & 0o777 == 0o666 & ~umask, f
     (tmp_path / "a_file").write_text("x")
-    for target, named, what in (
-        (tmp_path / "a_file" / "x.glb", tmp_path / "a_file", "File exists"),  # its folder is a file
-        (demo_result, demo_result, "Is a directory"),
+    own_map = (demo_result / "diffuse_albedo.exr").read_bytes()
+    for option, target, named, what in (
+        ("--gltf", tmp_path / "a_file" / "x.glb", tmp_path / "a_file", "File exists"),  # its folder is a file
+        ("--gltf", demo_result, demo_result, "is the input folder"),
+        # the result's own files are the export's input: it replaced a map and the result still looked complete
+        ("--blend", demo_result / "diffuse_albedo.exr", demo_result / "diffuse_albedo.exr", "inside the input folder"),
+        ("--blend", Path("/proc/x.blend"), Path("/proc/x.blend"), "No such file"),  # the target named, not a temporary
     ):
         bad = subprocess.run(
-            [sys.executable, "-m", "ntp_addon.batch", str(demo_result), "--gltf", str(target)],
+            [sys.executable, "-m", "ntp_addon.batch", str(demo_result), option, str(target)],
             capture_output=True,
             text=True,
         )
         lines = bad.stderr.strip().splitlines()
         assert bad.returncode == 2 and len(lines) == 1 and what in lines[0] and str(named) in lines[0], bad.stderr
+        assert ".ntp-tmp" not in lines[0]
+    assert (demo_result / "diffuse_albedo.exr").read_bytes() == own_map
     incomplete = tmp_path / "incomplete"
     shutil.copytree(demo_result, incomplete)
     (incomplete / "report.json").unlink()

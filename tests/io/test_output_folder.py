@@ -1,8 +1,11 @@
 """The folders ntp writes: claimed only when absent, empty or ntp's own; never inside an input; one
 run at a time; leftovers of killed runs removed; a result complete only with its report."""
 
+import errno
 import json
+import multiprocessing
 import os
+import time
 
 import pytest
 
@@ -122,3 +125,40 @@ def _umask() -> int:
     m = os.umask(0)
     os.umask(m)
     return m
+
+
+def _claim_at_once(folder: str, start, held) -> None:
+    start.wait()
+    try:
+        with claim(folder, "result"):
+            held.put(1)
+            time.sleep(0.1)  # hold it while the other one tries
+    except NtpInputError:
+        held.put(0)
+
+
+def test_two_runs_claiming_a_fresh_folder_at_once_never_both_hold_it(tmp_path):
+    """The marker was written by rename: a second run replaced the marker the first had locked and
+    locked its own file (both held "the" lock 42 times in 100). Linked into place, it is one file."""
+    ctx = multiprocessing.get_context("fork")
+    both = 0
+    for i in range(40):
+        start, held = ctx.Barrier(2), ctx.Queue()
+        runs = [ctx.Process(target=_claim_at_once, args=(str(tmp_path / str(i)), start, held)) for _ in range(2)]
+        for r in runs:
+            r.start()
+        for r in runs:
+            r.join()
+        both += held.get() + held.get() == 2
+        assert json.loads((tmp_path / str(i) / MARKER).read_text()) == {"ntp": "result"}
+    assert both == 0
+
+
+def test_the_marker_is_made_without_hard_links_too(tmp_path, monkeypatch):
+    def no_links(src, dst):
+        raise OSError(errno.EPERM, "Operation not permitted")
+
+    monkeypatch.setattr(output_folder.os, "link", no_links)
+    with claim(tmp_path / "fat", "result"):
+        assert json.loads((tmp_path / "fat" / MARKER).read_text()) == {"ntp": "result"}
+    assert sorted(p.name for p in (tmp_path / "fat").iterdir()) == [MARKER]  # no temporary left
