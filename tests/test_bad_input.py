@@ -312,6 +312,11 @@ CASES = {
     ),
     "cache_link_to_users_folder": Case(_cache_link(_users_atlas), "not an ntp cache folder", "mine"),
     "cache_link_into_the_scan": Case(_cache_link(lambda s, t: s), "is the input folder", "scan"),
+    "virtual_scan_exposure_nan": Case(  # it wrote black photos, with numpy's warnings
+        lambda s, o, t: ["virtual-scan", "--out", str(t / "vs"), "--exposure", "nan", "--views", "2", "--quiet"],
+        "not a finite number",
+        "--exposure",
+    ),
     "progress_on_a_full_device": Case(
         lambda s, o, t: reconstruct_argv(s, o, "--progress", "/dev/full", "--resolution", "24"),
         "No space left on device",
