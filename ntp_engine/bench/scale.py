@@ -35,6 +35,7 @@ STAGES = ("select", "atlas", "traces", "fit", "maps")
 # progress counter -> the stage it runs in, and the stage that follows it when it closes
 _RUNNING = {
     "blur check": "select",
+    "atlas": "atlas",
     "visibility": "traces",
     "traces": "traces",
     "trace table": "traces",
@@ -42,6 +43,7 @@ _RUNNING = {
 }
 _AFTER = {
     "blur check": "atlas",
+    "atlas": "traces",
     "visibility": "traces",
     "traces": "traces",
     "trace table": "fit",

@@ -337,7 +337,7 @@ def _reconstruct(
     net, meta = models.load(model, scan.scanner)  # before any work: the model must fit the scanner
 
     t0 = time.perf_counter()
-    mesh, h_atlas = _atlas_stage(scan, cache, resolution, origin)
+    mesh, h_atlas = _atlas_stage(scan, cache, resolution, origin, progress)
     texels = rasterize(mesh, (resolution, resolution), curvature=refine)
     report.timed("atlas", t0)
 
@@ -468,13 +468,18 @@ def _check_measured(scan: Scan, stats: TraceCounts, lengths: np.ndarray, posed: 
         )
 
 
-def _atlas_stage(scan: Scan, cache: StageCache, resolution: int, origin: np.ndarray) -> tuple[Mesh, str]:
-    """The mesh with the UVs the maps use: its own, else an xatlas atlas for ``resolution``; in the
-    scan's local frame (``origin``, a function of the mesh: the key's mesh content holds it)."""
+def _atlas_stage(
+    scan: Scan, cache: StageCache, resolution: int, origin: np.ndarray, progress: Progress
+) -> tuple[Mesh, str]:
+    """The mesh with the UVs the maps use: its own, else an xatlas atlas for ``resolution`` (minutes
+    for a large mesh: shown as a one-step stage); in the scan's local frame (``origin``, a function
+    of the mesh: the key's mesh content holds it)."""
 
     def compute(d: Path) -> None:
-        mesh = moved(load_mesh(scan.mesh_path), -origin)
-        save_obj(d / "mesh.obj", mesh if mesh.uv is not None else uv_atlas(mesh, resolution))
+        with progress.counter("atlas", 1, "mesh") as bar:
+            mesh = moved(load_mesh(scan.mesh_path), -origin)
+            save_obj(d / "mesh.obj", mesh if mesh.uv is not None else uv_atlas(mesh, resolution))
+            bar.update()
 
     key = {
         "mesh": content_key([scan.mesh_path]),

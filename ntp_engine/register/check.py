@@ -246,13 +246,15 @@ def register_to_mesh(scan: Scan, reg: SfmResult, progress: Progress = QUIET) -> 
     mesh = moved(world, -origin)  # the photometric check's positions are float32: near the origin
     t0 = time.perf_counter()
     try:
-        icp = align_to_mesh(
-            reg.points,
-            [reg.poses[n] for n in names],
-            mesh,
-            float(np.linalg.norm(scan.scanner.valid_center)),
-            support_plane=scan.support_plane,
-        )
+        with progress.counter("alignment to the mesh", 1, "step") as bar:
+            icp = align_to_mesh(
+                reg.points,
+                [reg.poses[n] for n in names],
+                mesh,
+                float(np.linalg.norm(scan.scanner.valid_center)),
+                support_plane=scan.support_plane,
+            )
+            bar.update()
     except ValueError as err:
         raise NtpInputError(scan.mesh_path, f"cannot align the SfM points to this mesh: {err}") from None
     t1 = time.perf_counter()

@@ -27,6 +27,8 @@ def test_the_running_stage_is_read_from_the_progress_lines(tmp_path):
     for args, now in [
         (("blur check", 3, 10), "select"),
         (("blur check", 10, 10), "atlas"),
+        (("atlas", 0, 1), "atlas"),
+        (("atlas", 1, 1), "traces"),
         (("visibility", 1, 10), "traces"),
         (("traces", 10, 10), "traces"),
         (("trace table", 4, 16), "traces"),
