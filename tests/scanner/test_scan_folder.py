@@ -87,7 +87,7 @@ def test_read_photo_names_a_wrong_size(scan24, tmp_path):
     photo = scan.photo_paths[0]
     assert read_photo(photo, scan.scanner).shape == (scan.scanner.height, scan.scanner.width, 3)
     write_png(tmp_path / "small.png", read_image(photo)[::2, ::2])
-    with pytest.raises(NtpInputError, match=r"small.png: \d+x\d+ photo, the camera takes"):
+    with pytest.raises(NtpInputError, match=r"small.png: \d+x\d+ image, expected \d+x\d+"):
         read_photo(tmp_path / "small.png", scan.scanner)
 
 
