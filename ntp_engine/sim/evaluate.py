@@ -239,6 +239,7 @@ def material_errors(
         sel = member & observed
         row: dict = {
             "material": mat["name"],
+            "kind": mat.get("kind"),  # Material.kind (older assets' tables lack it)
             "texels": int(member.sum()),
             "seen": float((member & seen).sum() / max(member.sum(), 1)),
             "coverage": float((sel & seen).sum() / max((member & seen).sum(), 1)),

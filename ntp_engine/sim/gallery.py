@@ -29,6 +29,7 @@ from ..io.maps import SVBRDFMaps
 from ..io.mesh import Mesh, save_obj
 from ..io.texels import Texels
 from .demo_asset import demo_maps
+from .generated import generated_asset, generated_object, is_generated, object_names
 from .materials import LIBRARY, Material, label_image, paint, save_labels
 from .shapes import SHAPES
 
@@ -122,17 +123,30 @@ GALLERY: dict[str, GalleryObject] = {
 }
 
 
+# the objects constants are chosen on, and the ones that judge them (docs/accuracy.md)
+SETS = {"tune": (*GALLERY, *object_names("tune")), "validate": tuple(object_names("validate"))}
+
+
+def object_set(name: str) -> str:
+    """``"tune"`` or ``"validate"``: the set an object belongs to."""
+    return "validate" if name in SETS["validate"] else "tune"
+
+
 def object_materials(name: str) -> list[Material]:
-    """The materials of a gallery object in label order."""
+    """The materials of a gallery (or generated) object in label order."""
     if name == "dome":
         return list(DEMO_MATERIALS)
+    if is_generated(name):
+        return list(generated_object(name).materials)
     return [LIBRARY[m] for m in GALLERY[name].materials]
 
 
 def object_asset(name: str, resolution: int = MAP_RESOLUTION) -> tuple[Mesh, SVBRDFMaps, np.ndarray]:
-    """Mesh, ground-truth maps and label image of a gallery object."""
+    """Mesh, ground-truth maps and label image of a gallery object or a generated one (``sim.generated``)."""
+    if is_generated(name):
+        return generated_asset(name, resolution)[:3]
     if name not in GALLERY:
-        raise KeyError(f"unknown gallery object {name!r} (have {', '.join(GALLERY)})")
+        raise KeyError(f"unknown gallery object {name!r} (have {', '.join(GALLERY)} and generated <family>-<seed>)")
     mesh = SHAPES[name]()
     if name == "dome":
         return mesh, demo_maps(resolution), label_image(mesh, _dome, resolution)[2]

@@ -35,6 +35,7 @@ from ..io.mesh import Mesh
 from ..io.texels import Texels, rasterize
 
 LABELS_FILE, MATERIALS_FILE = "labels.png", "materials.json"
+KINDS = ("matte", "near_matte", "plastic", "lacquer", "dark_metal", "aniso_metal")  # ``Material.kind``
 DIRECTION = np.array([1.0, 0.3, 0.0]) / math.hypot(1.0, 0.3)
 
 
@@ -59,6 +60,21 @@ class Material:
     def anisotropy(self) -> float:
         """Ratio of the larger to the smaller alpha (1 = isotropic)."""
         return max(self.alpha) / min(self.alpha)
+
+    @property
+    def kind(self) -> str:
+        """Its class by its parameters (``KINDS``), so materials of any object compare: matte (no
+        lobe); anisotropic (alpha ratio >= 3); dark metal (rho_d <= 0.06 with a lobe); near-matte
+        (rho_s <= 0.5, alpha >= 0.25); lacquer (alpha <= 0.06); else plastic."""
+        if self.matte:
+            return "matte"
+        if self.anisotropy >= 3.0:
+            return "aniso_metal"
+        if max(self.rho_d) <= 0.06:
+            return "dark_metal"
+        if max(self.rho_s) <= 0.5 and min(self.alpha) >= 0.25:
+            return "near_matte"
+        return "lacquer" if max(self.alpha) <= 0.06 else "plastic"
 
 
 LIBRARY: dict[str, Material] = {
@@ -183,7 +199,10 @@ def paint(mesh: Mesh, materials: list[Material], labeller: Painter, resolution: 
 def save_labels(folder: Path, labels: np.ndarray, materials: list[Material]) -> None:
     """``labels.png`` and ``materials.json`` (the label table) into ``folder``."""
     write_png(folder / LABELS_FILE, labels.astype(np.float64) / 255.0)
-    table = [{"label": k, **asdict(m), "matte": m.matte, "anisotropy": m.anisotropy} for k, m in enumerate(materials)]
+    table = [
+        {"label": k, **asdict(m), "matte": m.matte, "anisotropy": m.anisotropy, "kind": m.kind}
+        for k, m in enumerate(materials)
+    ]
     write_text_atomic(folder / MATERIALS_FILE, json.dumps({"materials": table}, indent=1))
 
 

@@ -47,3 +47,13 @@ def test_build_asset_is_deterministic(tmp_path):
 def test_unknown_object():
     with pytest.raises(KeyError, match="unknown gallery object 'teapot'"):
         object_asset("teapot")
+
+
+def test_the_sets_hold_the_gallery_and_generated_objects():
+    from ntp_engine.sim.gallery import SETS, object_set
+
+    assert set(GALLERY) < set(SETS["tune"]) and not set(SETS["tune"]) & set(SETS["validate"])
+    assert len(SETS["validate"]) >= 10 and all(object_set(n) == "validate" for n in SETS["validate"])
+    assert object_set("vase") == "tune"
+    _, maps, labels = object_asset(SETS["validate"][0], 32)  # a generated object is an asset like any other
+    assert maps.shape == (32, 32) and labels.max() < len(object_materials(SETS["validate"][0]))

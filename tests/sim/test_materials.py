@@ -72,3 +72,12 @@ def test_labels_round_trip_and_bad_label_files(tmp_path):
     (tmp_path / "materials.json").unlink()
     with pytest.raises(NtpInputError, match="materials.json"):
         load_labels(tmp_path)
+
+
+def test_kind_classifies_by_the_parameters():
+    from ntp_engine.sim.materials import LIBRARY, Material
+
+    assert LIBRARY["matte_white"].kind == "matte" and LIBRARY["metal_brushed_dark"].kind == "aniso_metal"
+    assert LIBRARY["metal_rough"].kind == "dark_metal" and LIBRARY["lacquer_mirror"].kind == "lacquer"
+    assert Material("p", (0.5, 0.2, 0.1), (1.0, 1.0, 1.0), (0.1, 0.1)).kind == "plastic"
+    assert Material("n", (0.5, 0.5, 0.5), (0.3, 0.3, 0.3), (0.4, 0.4)).kind == "near_matte"
