@@ -45,7 +45,8 @@ from ..sim.evaluate import (
     relit_budget,
     relit_ssim,
 )
-from ..sim.gallery import GALLERY, build_asset
+from ..sim.gallery import GALLERY, SETS, build_asset, object_set
+from ..sim.generated import FAMILIES, is_generated
 from ..sim.virtual_scan import ScanConfig, scan_folder_is_current, virtual_scan
 from . import print_table
 
@@ -138,11 +139,12 @@ def run(
     progress: Progress = QUIET,
 ) -> dict:
     """The gallery benchmark into ``out`` (module docstring); returns the record (also JSON)."""
-    unknown = [o for o in settings.objects if o not in GALLERY]
+    unknown = [o for o in settings.objects if o not in GALLERY and not is_generated(o)]
     if unknown or not set(settings.scanners) <= set(SCANNERS) or not set(settings.poses) <= set(POSES):
         raise NtpInputError(
             None,
-            f"objects from {', '.join(GALLERY)}; scanners from {', '.join(SCANNERS)}; poses from {', '.join(POSES)}",
+            f"objects from {', '.join(GALLERY)} or generated ones (<family>-<seed>: {', '.join(FAMILIES)}); "
+            f"scanners from {', '.join(SCANNERS)}; poses from {', '.join(POSES)}",
         )
     out = Path(out)
     with claim(out, "gallery"):
@@ -161,6 +163,7 @@ def run(
                     runs.append(
                         {
                             "object": name,
+                            "set": object_set(name),
                             "scanner": scanner,
                             "poses": poses,
                             "seconds_scan": t_scan,
@@ -236,6 +239,41 @@ def _material_rows(record: dict) -> tuple[tuple, list[tuple]]:
     return header, rows
 
 
+SET_METRICS = ("normal_deg", "tangent_deg", "log_alpha", "rho_d_rmse", "log_rho_s", "spurious_lobe")
+
+
+def _mean(values: list[float]) -> float | None:
+    finite = [v for v in values if v is not None and math.isfinite(v)]
+    return float(np.mean(finite)) if finite else None
+
+
+def _set_rows(record: dict) -> tuple[tuple, list[tuple]]:
+    """Per scanner x poses x material kind (``Material.kind``): each metric's mean over the tuning
+    set's materials of that kind / the validation set's, and the gap (validate - tune)."""
+    header = (
+        "scanner",
+        "poses",
+        "kind",
+        "materials tune / validate",
+        *(f"{m} tune / validate (gap)" for m in SET_METRICS),
+    )
+    cells: dict[tuple, dict[str, list[dict]]] = {}
+    for r in record["runs"]:
+        for m in r.get("materials", []):
+            key = (r["scanner"], r["poses"], m.get("kind") or "?")
+            cells.setdefault(key, {"tune": [], "validate": []})[r.get("set", "tune")].append(m)
+    rows = []
+    for (scanner, poses, kind), by_set in sorted(cells.items()):
+        tune, validate = by_set["tune"], by_set["validate"]
+        cols = []
+        for metric in SET_METRICS:
+            a, b = _mean([m[metric] for m in tune]), _mean([m[metric] for m in validate])
+            gap = f" ({b - a:+.3g})" if a is not None and b is not None else ""
+            cols.append(f"{_f(a)} / {_f(b)}{gap}")
+        rows.append((scanner, poses, kind, f"{len(tune)} / {len(validate)}", *cols))
+    return header, rows
+
+
 def _budget_rows(record: dict) -> tuple[tuple, list[tuple]]:
     header = ("object", "scanner", "poses", "relit SSIM / ceiling", "material", *(f"+{g}" for g in BUDGET_GROUPS))
     rows = []
@@ -266,6 +304,11 @@ def markdown(record: dict) -> str:
         "",
         *table(*_material_rows(record)),
         "",
+        "Tuning set vs validation set, per material kind (mean over the materials of that kind; the gap is "
+        "validate - tune: a constant chosen on tune that does not transfer shows here):",
+        "",
+        *table(*_set_rows(record)),
+        "",
     ]
     budget = _budget_rows(record)
     if budget[1]:
@@ -283,6 +326,9 @@ def _print(record: dict) -> None:
     print_table(rows, header)
     print()
     header, rows = _material_rows(record)
+    print_table(rows, header)
+    print()
+    header, rows = _set_rows(record)
     print_table(rows, header)
     header, rows = _budget_rows(record)
     if rows:
@@ -321,6 +367,13 @@ def figure(record: dict, path: Path) -> None:
     plt.close(fig)
 
 
+def set_objects(which: str, quick: bool = False) -> tuple[str, ...]:
+    """The objects of ``which`` set (``tune``, ``validate`` or ``both``, tune first); ``quick``:
+    each set's first two."""
+    chosen = [SETS[s] for s in (("tune", "validate") if which == "both" else (which,))]
+    return tuple(n for names in chosen for n in (names[:2] if quick else names))
+
+
 def settings_for(quick: bool, **overrides) -> GallerySettings:
     """The default or quick settings with the given fields replaced (None leaves a field)."""
     base = QUICK if quick else DEFAULT
@@ -334,7 +387,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     """``ntp bench gallery``'s options."""
     parser.add_argument("--out", type=Path, default=Path("ntp_gallery"), help="folder for assets, scans, results")
     parser.add_argument("--quick", action="store_true", help="2 objects, true poses, 16 views, 64^2 maps (<= 5 min)")
-    parser.add_argument("--objects", nargs="+", choices=list(GALLERY), default=None)
+    which = parser.add_mutually_exclusive_group()
+    which.add_argument(
+        "--objects",
+        nargs="+",
+        default=None,
+        help=f"objects: {', '.join(GALLERY)} or generated ones, <family>-<seed> ({', '.join(FAMILIES)})",
+    )
+    which.add_argument(
+        "--set",
+        choices=("tune", "validate", "both"),
+        default=None,
+        help="the tuning set (the five + generated), the validation set (generated, never tuned on) or both, "
+        "reported side by side (with --quick: the set's first two objects)",
+    )
     parser.add_argument("--scanners", nargs="+", choices=list(SCANNERS), default=None)
     parser.add_argument("--poses", nargs="+", choices=list(POSES), default=None)
     parser.add_argument("--views", type=int, default=None)
@@ -365,9 +431,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def command(args: argparse.Namespace) -> int:
     """``ntp bench gallery``: the benchmark with the command line's options; the exit code."""
+    objects = set_objects(args.set, args.quick) if args.set else tuple(args.objects) if args.objects else None
     settings = settings_for(
         args.quick,
-        objects=tuple(args.objects) if args.objects else None,
+        objects=objects,
         scanners=tuple(args.scanners) if args.scanners else None,
         poses=tuple(args.poses) if args.poses else None,
         views=args.views,

@@ -50,3 +50,31 @@ def test_bad_settings_are_refused(tmp_path):
     with pytest.raises(NtpInputError, match="objects from"):
         gallery.run(tmp_path, gallery.settings_for(True, objects=("teapot",)))
     assert gallery.settings_for(True, views=7).views == 7 and gallery.settings_for(False).views == 40
+
+
+def test_the_sets_choose_the_objects():
+    from ntp_engine.sim.gallery import SETS
+
+    assert gallery.set_objects("tune") == SETS["tune"] and gallery.set_objects("validate") == SETS["validate"]
+    assert gallery.set_objects("both", quick=True) == (*SETS["tune"][:2], *SETS["validate"][:2])
+
+
+def test_tune_and_validate_are_reported_side_by_side_per_material_kind():
+    def run(obj, which, materials):
+        return {"object": obj, "set": which, "scanner": "engine", "poses": "true", "materials": materials}
+
+    def mat(kind, normal):
+        return {"kind": kind, **{m: normal for m in gallery.SET_METRICS}}
+
+    record = {
+        "runs": [
+            run("vase", "tune", [mat("lacquer", 1.0), mat("matte", 0.5)]),
+            run("box", "tune", [mat("lacquer", 3.0)]),
+            run("star-1001", "validate", [mat("lacquer", 4.0), mat("plastic", float("nan"))]),
+        ]
+    }
+    header, rows = gallery._set_rows(record)
+    by_kind = {r[2]: r for r in rows}
+    assert header[3] == "materials tune / validate" and set(by_kind) == {"lacquer", "matte", "plastic"}
+    assert by_kind["lacquer"][3] == "2 / 1" and by_kind["lacquer"][4] == "2 / 4 (+2)"  # means 2 and 4, gap +2
+    assert by_kind["matte"][4] == "0.5 / -" and by_kind["plastic"][4] == "- / -"
