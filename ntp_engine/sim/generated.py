@@ -231,24 +231,30 @@ MESHES = {
 }
 
 
+def _material(name: str, rho_d, rho_s, alpha, **kind) -> Material:
+    """A ``Material`` of plain Python floats (what a JSON table of it holds)."""
+    d, s, a = (tuple(float(x) for x in v) for v in (rho_d, rho_s, alpha))
+    return Material(name, (d[0], d[1], d[2]), (s[0], s[1], s[2]), (a[0], a[1]), **kind)
+
+
 def random_material(rng: np.random.Generator, kind: str, name: str, plain: bool) -> Material:
     """A material of class ``kind`` (``materials.KINDS``) drawn over its range (module docstring);
     its ``Material.kind`` is ``kind``."""
     hue = rng.dirichlet([4.0, 4.0, 4.0]) * 3  # a colour around grey
     texture = "none" if plain else str(rng.choice(["blocks", "noise", "print"]))
     if kind == "matte":
-        return Material(
+        return _material(
             name, tuple(np.clip(rng.uniform(0.15, 0.9) * hue, 0.02, 0.95)), (0.0, 0.0, 0.0), (0.3, 0.3), texture=texture
         )
     if kind == "near_matte":
         rs = rng.uniform(0.1, 0.5)
         a = _log_uniform(rng, 0.3, 0.5)
-        return Material(
+        return _material(
             name, tuple(np.clip(rng.uniform(0.2, 0.8) * hue, 0.02, 0.95)), (rs, rs, rs), (a, a), texture=texture
         )
     if kind == "plastic":
         rs, a = rng.uniform(0.6, 1.5), _log_uniform(rng, 0.07, 0.3)
-        return Material(
+        return _material(
             name,
             tuple(np.clip(rng.uniform(0.1, 0.7) * hue, 0.02, 0.95)),
             (rs, rs, rs),
@@ -258,19 +264,19 @@ def random_material(rng: np.random.Generator, kind: str, name: str, plain: bool)
         )
     if kind == "lacquer":
         rs, a = rng.uniform(1.0, 3.0), _log_uniform(rng, 0.01, 0.05)
-        return Material(
+        return _material(
             name, tuple(np.clip(rng.uniform(0.08, 0.5) * hue, 0.02, 0.95)), (rs, rs, rs), (a, a), texture=texture
         )
     tint = rng.uniform(3.0, 10.0) * rng.dirichlet([6.0, 6.0, 6.0]) * 3
     rho_d = tuple(np.full(3, rng.uniform(0.01, 0.05)))
     if kind == "dark_metal":
         a = _log_uniform(rng, 0.05, 0.5)
-        return Material(name, rho_d, tuple(tint), (a, a))
+        return _material(name, rho_d, tuple(tint), (a, a))
     if kind == "aniso_metal":
         ax = _log_uniform(rng, 0.1, 0.5)
         ratio = _log_uniform(rng, 4.0, 80.0)
         tangents = str(rng.choice(["circular", "direction", "noisy"]))
-        return Material(name, rho_d, tuple(tint), (ax, max(ax / ratio, ALPHA_RANGE[0])), tangents=tangents)
+        return _material(name, rho_d, tuple(tint), (ax, max(ax / ratio, ALPHA_RANGE[0])), tangents=tangents)
     raise ValueError(f"unknown material class {kind!r}")
 
 

@@ -57,3 +57,10 @@ def test_the_sets_hold_the_gallery_and_generated_objects():
     assert object_set("vase") == "tune"
     _, maps, labels = object_asset(SETS["validate"][0], 32)  # a generated object is an asset like any other
     assert maps.shape == (32, 32) and labels.max() < len(object_materials(SETS["validate"][0]))
+
+
+def test_a_generated_objects_asset_folder_is_written_like_the_gallerys(tmp_path):
+    folder = build_asset("star-1001", tmp_path / "a", 32)
+    _, table = load_labels(folder / "ground_truth")
+    assert [m["name"] for m in table] == [m.name for m in object_materials("star-1001")]
+    assert [m["kind"] for m in table] == [m.name.rpartition("_")[0] for m in object_materials("star-1001")]
