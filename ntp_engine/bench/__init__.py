@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -36,3 +37,14 @@ def dump_json(path: str | Path | None, data: dict) -> None:
     if path:
         write_text_atomic(path, json.dumps(data, indent=2))
         print(f"wrote {path}")
+
+
+def number(x: float | None, digits: int = 3) -> str:
+    """``x`` to ``digits`` significant digits for a table; ``-`` for None or NaN."""
+    return "-" if x is None or (isinstance(x, float) and math.isnan(x)) else f"{x:.{digits}g}"
+
+
+def finite_mean(values: list) -> float | None:
+    """The mean of the finite values (None and NaN left out); None when there are none."""
+    finite = [v for v in values if v is not None and math.isfinite(v)]
+    return float(sum(finite) / len(finite)) if finite else None

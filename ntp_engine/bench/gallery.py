@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import time
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
@@ -48,7 +47,7 @@ from ..sim.evaluate import (
 from ..sim.gallery import GALLERY, SETS, build_asset, object_set
 from ..sim.generated import FAMILIES, is_generated
 from ..sim.virtual_scan import ScanConfig, scan_folder_is_current, virtual_scan
-from . import print_table
+from . import finite_mean, number, print_table
 
 SCANNERS = ("engine", "cycles")
 POSES = ("true", "sfm")
@@ -192,10 +191,6 @@ def _suffix(settings: GallerySettings) -> str:
     return model + ("-refined" if settings.refine else "")
 
 
-def _f(x: float | None, digits: int = 3) -> str:
-    return "-" if x is None or (isinstance(x, float) and math.isnan(x)) else f"{x:.{digits}g}"
-
-
 def _run_rows(record: dict) -> tuple[tuple, list[tuple]]:
     header = (
         "object",
@@ -219,7 +214,7 @@ def _run_rows(record: dict) -> tuple[tuple, list[tuple]]:
                 r["poses"],
                 r.get("registered", "-") if "failed" not in r else "FAILED",
                 pose,
-                _f(r.get("relit_ssim")),
+                number(r.get("relit_ssim")),
                 f"{r['seconds_scan']:.0f}",
                 f"{r['seconds_reconstruct']:.0f}",
                 " / ".join(
@@ -235,16 +230,11 @@ def _material_rows(record: dict) -> tuple[tuple, list[tuple]]:
     rows = []
     for r in record["runs"]:
         for m in r.get("materials", []):
-            rows.append((r["object"], m["material"], r["scanner"], r["poses"], *(_f(m[k]) for k in METRICS)))
+            rows.append((r["object"], m["material"], r["scanner"], r["poses"], *(number(m[k]) for k in METRICS)))
     return header, rows
 
 
 SET_METRICS = ("normal_deg", "tangent_deg", "log_alpha", "rho_d_rmse", "log_rho_s", "spurious_lobe")
-
-
-def _mean(values: list[float]) -> float | None:
-    finite = [v for v in values if v is not None and math.isfinite(v)]
-    return float(np.mean(finite)) if finite else None
 
 
 def _set_rows(record: dict) -> tuple[tuple, list[tuple]]:
@@ -267,9 +257,9 @@ def _set_rows(record: dict) -> tuple[tuple, list[tuple]]:
         tune, validate = by_set["tune"], by_set["validate"]
         cols = []
         for metric in SET_METRICS:
-            a, b = _mean([m[metric] for m in tune]), _mean([m[metric] for m in validate])
+            a, b = finite_mean([m[metric] for m in tune]), finite_mean([m[metric] for m in validate])
             gap = f" ({b - a:+.3g})" if a is not None and b is not None else ""
-            cols.append(f"{_f(a)} / {_f(b)}{gap}")
+            cols.append(f"{number(a)} / {number(b)}{gap}")
         rows.append((scanner, poses, kind, f"{len(tune)} / {len(validate)}", *cols))
     return header, rows
 
@@ -374,6 +364,38 @@ def set_objects(which: str, quick: bool = False) -> tuple[str, ...]:
     return tuple(n for names in chosen for n in (names[:2] if quick else names))
 
 
+def add_object_arguments(parser: argparse.ArgumentParser) -> None:
+    """``--objects NAME ...`` or ``--set tune|validate|both`` (the gallery's benches share them)."""
+    which = parser.add_mutually_exclusive_group()
+    which.add_argument(
+        "--objects",
+        nargs="+",
+        default=None,
+        help=f"objects: {', '.join(GALLERY)} or generated ones, <family>-<seed> ({', '.join(FAMILIES)})",
+    )
+    which.add_argument(
+        "--set",
+        choices=("tune", "validate", "both"),
+        default=None,
+        help="the tuning set (the five + generated), the validation set (generated, never tuned on) or both, "
+        "reported side by side (with --quick: each set's first two objects)",
+    )
+
+
+def chosen_objects(args: argparse.Namespace, quick: bool = False) -> tuple[str, ...] | None:
+    """The objects ``add_object_arguments``' options name (None: the bench's default), checked."""
+    if args.set:
+        return set_objects(args.set, quick)
+    if args.objects:
+        unknown = [o for o in args.objects if o not in GALLERY and not is_generated(o)]
+        if unknown:
+            raise NtpInputError(
+                None, f"--objects {unknown[0]}: not a gallery object ({', '.join(GALLERY)}) nor <family>-<seed>"
+            )
+        return tuple(args.objects)
+    return None
+
+
 def settings_for(quick: bool, **overrides) -> GallerySettings:
     """The default or quick settings with the given fields replaced (None leaves a field)."""
     base = QUICK if quick else DEFAULT
@@ -387,20 +409,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     """``ntp bench gallery``'s options."""
     parser.add_argument("--out", type=Path, default=Path("ntp_gallery"), help="folder for assets, scans, results")
     parser.add_argument("--quick", action="store_true", help="2 objects, true poses, 16 views, 64^2 maps (<= 5 min)")
-    which = parser.add_mutually_exclusive_group()
-    which.add_argument(
-        "--objects",
-        nargs="+",
-        default=None,
-        help=f"objects: {', '.join(GALLERY)} or generated ones, <family>-<seed> ({', '.join(FAMILIES)})",
-    )
-    which.add_argument(
-        "--set",
-        choices=("tune", "validate", "both"),
-        default=None,
-        help="the tuning set (the five + generated), the validation set (generated, never tuned on) or both, "
-        "reported side by side (with --quick: the set's first two objects)",
-    )
+    add_object_arguments(parser)
     parser.add_argument("--scanners", nargs="+", choices=list(SCANNERS), default=None)
     parser.add_argument("--poses", nargs="+", choices=list(POSES), default=None)
     parser.add_argument("--views", type=int, default=None)
@@ -431,7 +440,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def command(args: argparse.Namespace) -> int:
     """``ntp bench gallery``: the benchmark with the command line's options; the exit code."""
-    objects = set_objects(args.set, args.quick) if args.set else tuple(args.objects) if args.objects else None
+    objects = chosen_objects(args, args.quick)
     settings = settings_for(
         args.quick,
         objects=objects,

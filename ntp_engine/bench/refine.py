@@ -42,8 +42,9 @@ from ..refine.settings import RefineSettings, SensorNoise
 from ..scanner.scan_folder import load_scan
 from ..scanner.scanner import Scanner
 from ..sim.evaluate import parameter_errors, truth_at_texels
-from ..sim.gallery import GALLERY, build_asset
+from ..sim.gallery import GALLERY, build_asset, object_set
 from ..sim.materials import load_labels
+from . import finite_mean, number
 from . import gallery as bench_gallery
 
 # (label, settings): the ladder of budgets; "priors off" drops the weak normal and alpha priors
@@ -170,8 +171,10 @@ def run(out: Path, bench: RefineBench | None = None, json_path: Path | None = No
                         rows.append(
                             {
                                 "object": name,
+                                "set": object_set(name),
                                 "scanner": scanner,
                                 "material": mat["name"],
+                                "kind": mat.get("kind"),
                                 "variant": label_v,
                                 "texels": n_k,
                                 **parameter_errors(rec, truth, mat["matte"]),
@@ -313,6 +316,7 @@ def markdown(record: dict) -> str:
         lines.append(
             f"| {r['object']} | {r['scanner']} | {r['material']} | {r['variant']} | " + " | ".join(vals) + " |"
         )
+    lines += ["", *_set_lines(record["rows"], metrics)]
     lines += ["", "| object | scanner | noise scale | variant | texels | texels/s |", "|---|---|---|---|---|---|"]
     for s in record["speed"]:
         lines.append(
@@ -337,6 +341,29 @@ def markdown(record: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
+def _set_lines(rows: list[dict], metrics: tuple[str, ...]) -> list[str]:
+    """Per variant x material kind: each metric's mean on the tuning set / the validation set (gap)."""
+    groups: dict[tuple, dict[str, list[dict]]] = {}
+    for r in rows:
+        groups.setdefault((r["variant"], r.get("kind") or "?"), {"tune": [], "validate": []})[
+            r.get("set", "tune")
+        ].append(r)
+    lines = [
+        "| variant | kind | materials tune / validate | " + " | ".join(metrics) + " |",
+        "|" + "---|" * (3 + len(metrics)),
+    ]
+    for (variant, kind), by_set in sorted(groups.items()):
+        cols = []
+        for m in metrics:
+            a, b = (finite_mean([r.get(m) for r in by_set[s]]) for s in ("tune", "validate"))
+            gap = f" ({b - a:+.3g})" if a is not None and b is not None else ""
+            cols.append(f"{number(a)} / {number(b)}{gap}")
+        lines.append(
+            f"| {variant} | {kind} | {len(by_set['tune'])} / {len(by_set['validate'])} | " + " | ".join(cols) + " |"
+        )
+    return lines
+
+
 def _scans(record: dict) -> list[dict]:
     seen, out = set(), []
     for s in record["speed"]:
@@ -357,7 +384,7 @@ HELP = "refinement error against time per material, and a scipy baseline"
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """``ntp bench refine``'s options."""
     parser.add_argument("--out", type=Path, default=Path("ntp_gallery"), help="the gallery's folder (scans shared)")
-    parser.add_argument("--objects", nargs="+", choices=list(GALLERY), default=None)
+    bench_gallery.add_object_arguments(parser)
     parser.add_argument("--scanners", nargs="+", choices=list(bench_gallery.SCANNERS), default=None)
     parser.add_argument("--per-material", type=int, default=None, help="sampled texels per material and scan")
     parser.add_argument("--baseline-texels", type=int, default=None, help="texels per scan for the scipy baseline")
@@ -368,7 +395,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def command(args: argparse.Namespace) -> int:
     """``ntp bench refine``: the benchmark with the command line's options; the exit code."""
     bench = bench_for(
-        objects=tuple(args.objects) if args.objects else None,
+        objects=bench_gallery.chosen_objects(args),
         scanners=tuple(args.scanners) if args.scanners else None,
         per_material=args.per_material,
         baseline_texels=args.baseline_texels,

@@ -32,7 +32,7 @@ from ..register.sfm import SfmResult, structure_from_motion
 from ..scanner.local_frame import pose_to_world
 from ..scanner.scan_folder import load_poses, load_scan
 from ..sim.evaluate import pose_error
-from ..sim.gallery import GALLERY, build_asset
+from ..sim.gallery import build_asset, object_set
 from . import gallery as gallery_bench
 from .gallery import DEFAULT, GallerySettings, scan_object
 
@@ -80,7 +80,7 @@ def run(
                 scan = load_scan(scan_dir)
                 truth = load_poses(scan_dir / "ground_truth" / "poses.json")
                 for seed in seeds:
-                    row: dict = {"object": name, "scanner": scanner, "seed": seed}
+                    row: dict = {"object": name, "set": object_set(name), "scanner": scanner, "seed": seed}
                     (out / "sfm").mkdir(exist_ok=True)
                     try:
                         reg, row["seconds_sfm"] = _sfm(
@@ -179,6 +179,7 @@ def _diagnosis(row: dict) -> str:
 def _table(rows: list[dict]) -> str:
     header = (
         "object",
+        "set",
         "scanner",
         "seed",
         "registered",
@@ -197,13 +198,25 @@ def _table(rows: list[dict]) -> str:
     cells = []
     for r in rows:
         if "failed" in r:
-            cells.append((r["object"], r["scanner"], r["seed"], "FAILED", *[""] * 9, "refused", r["diagnosis"]))
+            cells.append(
+                (
+                    r["object"],
+                    r.get("set", "tune"),
+                    r["scanner"],
+                    r["seed"],
+                    "FAILED",
+                    *[""] * 9,
+                    "refused",
+                    r["diagnosis"],
+                )
+            )
             continue
         margin = "-" if r["azimuth_margin"] is None else f"{r['azimuth_margin']:.3g}"
         photo_margin = "-" if r["photometric_margin"] is None else f"{r['photometric_margin']:.3g}"
         cells.append(
             (
                 r["object"],
+                r.get("set", "tune"),
                 r["scanner"],
                 r["seed"],
                 r["registered"],
@@ -222,19 +235,26 @@ def _table(rows: list[dict]) -> str:
         )
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     lines += ["| " + " | ".join(str(c) for c in row) + " |" for row in cells]
+    lines += ["", _summary(rows, "")]
+    sets = sorted({r.get("set", "tune") for r in rows})
+    if len(sets) > 1:  # the tuning set's outcome and the validation set's, side by side
+        lines += [_summary([r for r in rows if r.get("set", "tune") == s], f"{s}: ") for s in sets]
+    return "\n".join(lines) + "\n"
+
+
+def _summary(rows: list[dict], prefix: str) -> str:
+    """The outcome of ``rows`` in one line: right/wrong x accepted/refused, and failures."""
     done = [r for r in rows if "failed" not in r]
     wrong_accepted = sum(1 for r in done if r["accepted"] and not r["right"])
     right_refused = sum(1 for r in done if r["right"] and not r["accepted"])
     right_accepted = sum(1 for r in done if r["right"] and r["accepted"])
     wrong_refused = sum(1 for r in done if not r["right"] and not r["accepted"])
-    lines += [
-        "",
-        f"{len(rows)} registrations: right and accepted {right_accepted}, wrong and refused {wrong_refused}, "
+    return (
+        f"{prefix}{len(rows)} registrations: right and accepted {right_accepted}, wrong and refused {wrong_refused}, "
         f"SfM or point-cloud alignment refused {len(rows) - len(done)}; "
         f"**wrong accepted: {wrong_accepted}; right refused: {right_refused}** "
-        f"(right: <= {RIGHT_MM:g} mm and {RIGHT_DEG:g} deg, camera centre and rotation medians)",
-    ]
-    return "\n".join(lines) + "\n"
+        f"(right: <= {RIGHT_MM:g} mm and {RIGHT_DEG:g} deg, camera centre and rotation medians)\n"
+    )
 
 
 HELP = "SfM + alignment alone on the gallery: pose error per object x seed"
@@ -244,7 +264,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     """``ntp bench registration``'s options."""
     parser.add_argument("--out", type=Path, default=Path("ntp_gallery"), help="the gallery's folder (scans shared)")
     parser.add_argument("--quick", action="store_true", help="the quick gallery's objects and sizes")
-    parser.add_argument("--objects", nargs="+", choices=list(GALLERY), default=None)
+    gallery_bench.add_object_arguments(parser)
     parser.add_argument("--scanners", nargs="+", choices=list(gallery_bench.SCANNERS), default=None)
     parser.add_argument("--seeds", nargs="+", type=int, default=list(SEEDS))
     parser.add_argument("--views", type=int, default=None)
@@ -258,7 +278,7 @@ def command(args: argparse.Namespace) -> int:
     """``ntp bench registration``: the benchmark with the command line's options; the exit code."""
     settings = gallery_bench.settings_for(
         args.quick,
-        objects=tuple(args.objects) if args.objects else None,
+        objects=gallery_bench.chosen_objects(args, args.quick),
         scanners=tuple(args.scanners) if args.scanners else None,
         poses=None,
         views=args.views,

@@ -78,3 +78,19 @@ def test_tune_and_validate_are_reported_side_by_side_per_material_kind():
     assert header[3] == "materials tune / validate" and set(by_kind) == {"lacquer", "matte", "plastic"}
     assert by_kind["lacquer"][3] == "2 / 1" and by_kind["lacquer"][4] == "2 / 4 (+2)"  # means 2 and 4, gap +2
     assert by_kind["matte"][4] == "0.5 / -" and by_kind["plastic"][4] == "- / -"
+
+
+def test_objects_are_named_or_a_set_is_chosen_never_both():
+    import argparse
+
+    p = argparse.ArgumentParser()
+    gallery.add_object_arguments(p)
+    assert gallery.chosen_objects(p.parse_args(["--objects", "vase", "star-1001"])) == ("vase", "star-1001")
+    assert (
+        gallery.chosen_objects(p.parse_args(["--set", "validate"]), quick=True) == gallery.set_objects("validate")[:2]
+    )
+    assert gallery.chosen_objects(p.parse_args([])) is None
+    with pytest.raises(NtpInputError, match="--objects teapot: not a gallery object"):
+        gallery.chosen_objects(p.parse_args(["--objects", "teapot"]))
+    with pytest.raises(SystemExit):
+        p.parse_args(["--objects", "vase", "--set", "tune"])

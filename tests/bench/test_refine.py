@@ -25,3 +25,15 @@ def test_tiny_refine_bench(tmp_path):
     md = (tmp_path / "refine.md").read_text()
     assert md.count("| box | engine |") >= len(materials) * len(variants)
     assert json.loads((tmp_path / "refine.json").read_text())["bench"]["per_material"] == 6
+
+
+def test_tune_and_validate_side_by_side_per_variant_and_kind():
+    rows = [
+        {"variant": "refined", "kind": "lacquer", "set": "tune", "normal_deg": 1.0},
+        {"variant": "refined", "kind": "lacquer", "set": "tune", "normal_deg": 2.0},
+        {"variant": "refined", "kind": "lacquer", "set": "validate", "normal_deg": 4.5},
+        {"variant": "refined", "kind": "matte", "set": "validate", "normal_deg": float("nan")},
+    ]
+    lines = bench_refine._set_lines(rows, ("normal_deg",))
+    assert lines[2] == "| refined | lacquer | 2 / 1 | 1.5 / 4.5 (+3) |"
+    assert lines[3] == "| refined | matte | 0 / 1 | - / - |"

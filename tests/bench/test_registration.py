@@ -37,3 +37,13 @@ def test_diagnosis_names_wrong_acceptances_and_where_the_truth_was():
     assert "truth at the symmetric turn" in registration._diagnosis(sym)
     assert "elsewhere" in registration._diagnosis({**sym, "rotation_deg": 60.0})
     assert "truth near the chosen (2.6 deg)" in registration._diagnosis({**sym, "rotation_deg": 2.6})
+
+
+def test_the_outcome_is_summed_per_set_when_both_ran():
+    def row(obj, which, right, accepted):
+        return {"object": obj, "set": which, "right": right, "accepted": accepted}
+
+    rows = [row("vase", "tune", True, True), row("star-1001", "validate", True, False)]
+    assert "right refused: 1" in registration._summary(rows, "")
+    assert registration._summary(rows[:1], "tune: ").startswith("tune: 1 registrations: right and accepted 1")
+    assert "**wrong accepted: 0; right refused: 1**" in registration._summary(rows[1:], "validate: ")
