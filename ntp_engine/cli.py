@@ -209,11 +209,26 @@ def _virtual_scan(args: argparse.Namespace) -> int:
             noise_threshold=args.noise_threshold,
         )
         info = cycles_scan(
-            args.out, args.asset, args.mesh, args.maps, args.device, cfg, cycles, progress_from_args(args)
+            args.out,
+            args.asset,
+            args.mesh,
+            args.maps,
+            args.device,
+            cfg,
+            cycles,
+            progress_from_args(args),
+            given_mesh=args.given_mesh,
         )
     else:
         info = virtual_scan(
-            args.out, args.asset, args.mesh, args.maps, args.device, cfg, progress=progress_from_args(args)
+            args.out,
+            args.asset,
+            args.mesh,
+            args.maps,
+            args.device,
+            cfg,
+            progress=progress_from_args(args),
+            given_mesh=args.given_mesh,
         )
     print(f"wrote {args.out}: {args.views} photos ({args.renderer}), {info['seconds_per_photo']:.2f} s per photo")
     return 0
@@ -374,6 +389,13 @@ def _add_virtual_scan(sub: Subcommands) -> None:
     vs.add_argument("--asset", default=None, help="asset folder (mesh.obj + ground_truth/); default: the demo")
     vs.add_argument("--mesh", type=Path, default=None, help="a mesh with UVs (OBJ/PLY, metres) ...")
     vs.add_argument("--maps", type=Path, default=None, help="... and a folder with its five maps")
+    vs.add_argument(
+        "--given-mesh",
+        type=Path,
+        default=None,
+        help="the mesh the scan folder hands ntp (e.g. a scanner's, same UV layout); the photos are of the "
+        "asset's mesh, kept as ground_truth/mesh.obj",
+    )
     vs.add_argument("--device", type=Path, default=None, help="device TOML (default: the paper's LED array)")
     vs.add_argument("--views", type=VIEWS, default=120)
     vs.add_argument("--scale", type=SCALE, default=0.25, help="camera resolution scale (1.0 = 2448x2048)")

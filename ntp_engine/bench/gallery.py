@@ -44,9 +44,9 @@ from ..sim.evaluate import (
     relit_budget,
     relit_ssim,
 )
-from ..sim.gallery import GALLERY, SETS, build_asset, object_set
+from ..sim.gallery import GALLERY, SCANNER_MESH, SETS, build_asset, object_set
 from ..sim.generated import FAMILIES, is_generated
-from ..sim.virtual_scan import ScanConfig, scan_folder_is_current, virtual_scan
+from ..sim.virtual_scan import ScanConfig, scan_folder_is_current, true_mesh_path, virtual_scan
 from . import finite_mean, number, print_table
 
 SCANNERS = ("engine", "cycles")
@@ -73,6 +73,9 @@ class GallerySettings:
     refine: bool = False  # the analysis-by-synthesis refinement after the network's fit
     model: str | None = None  # the trace network (a shipped name or a model folder; None: the default)
     budget: bool = False  # where the relit SSIM is lost, per material x group of maps (sim.evaluate.relit_budget)
+    # the mesh ntp is given: a shape scanner's (coarser, smoothed, noisy: sim.scanner_mesh; the paper's
+    # Fig. 11) or the photographed one; errors are measured against the truth either way
+    mesh: str = "scanner"
 
 
 DEFAULT = GallerySettings()
@@ -81,12 +84,22 @@ QUICK = GallerySettings(
 )
 
 
+MESHES = ("scanner", "true")
+
+
+def scan_folder(out: Path, settings: GallerySettings, name: str, scanner: str) -> Path:
+    """Where the scan of ``name`` by ``scanner`` lives under the bench's folder ``out`` (a scan
+    handing ntp the photographed mesh beside the one handing it a scanner's)."""
+    return out / "scans" / (f"{name}-{scanner}" + ("-truemesh" if settings.mesh == "true" else ""))
+
+
 def scan_object(settings: GallerySettings, name: str, scanner: str, out: Path, asset: Path, progress: Progress) -> dict:
     """The scan of one object by one scanner (kept when its settings and asset are unchanged)."""
     cfg = ScanConfig(views=settings.views, scale=settings.scale, seed=settings.seed)
     cycles = CyclesConfig(samples=settings.samples, bounces=settings.bounces, max_samples=settings.max_samples)
     key = digest(
         {
+            "mesh": settings.mesh,
             "scanner": scanner,
             "config": asdict(cfg),
             "cycles": {**asdict(cycles), "render_version": RENDER_VERSION} if scanner == "cycles" else None,
@@ -96,10 +109,11 @@ def scan_object(settings: GallerySettings, name: str, scanner: str, out: Path, a
     stamp = out / "ground_truth" / "bench_key.json"
     if stamp.is_file() and json.loads(stamp.read_text()).get("key") == key and scan_folder_is_current(out):
         return json.loads((out / "ground_truth" / "capture.json").read_text())
+    given = asset / SCANNER_MESH if settings.mesh == "scanner" else None
     if scanner == "cycles":
-        capture = cycles_scan(out, str(asset), cfg=cfg, cycles=cycles, progress=progress)
+        capture = cycles_scan(out, str(asset), cfg=cfg, cycles=cycles, progress=progress, given_mesh=given)
     else:
-        capture = virtual_scan(out, str(asset), cfg=cfg, progress=progress)
+        capture = virtual_scan(out, str(asset), cfg=cfg, progress=progress, given_mesh=given)
     write_text_atomic(stamp, json.dumps({"key": key}))
     return capture
 
@@ -122,7 +136,7 @@ def _evaluate(settings: GallerySettings, scan_dir: Path, poses: str, out: Path, 
         run["pose_error"] = pose_error(used, load_poses(gt / "poses.json"))
         run["registered"] = f"{len(used)}/{settings.views}"
     relit = relit_budget if settings.budget else relit_ssim  # the budget's as-is score is relit_ssim's
-    scores = relit(out, scan_dir / "mesh.obj", gt, lights=settings.relit_lights, scale=settings.relit_scale)
+    scores = relit(out, true_mesh_path(scan_dir), gt, lights=settings.relit_lights, scale=settings.relit_scale)
     run["relit_ssim"] = scores["relit_ssim"]
     if settings.budget:
         run["relit_budget"] = scores
@@ -139,11 +153,16 @@ def run(
 ) -> dict:
     """The gallery benchmark into ``out`` (module docstring); returns the record (also JSON)."""
     unknown = [o for o in settings.objects if o not in GALLERY and not is_generated(o)]
-    if unknown or not set(settings.scanners) <= set(SCANNERS) or not set(settings.poses) <= set(POSES):
+    if (
+        unknown
+        or not set(settings.scanners) <= set(SCANNERS)
+        or not set(settings.poses) <= set(POSES)
+        or settings.mesh not in MESHES
+    ):
         raise NtpInputError(
             None,
             f"objects from {', '.join(GALLERY)} or generated ones (<family>-<seed>: {', '.join(FAMILIES)}); "
-            f"scanners from {', '.join(SCANNERS)}; poses from {', '.join(POSES)}",
+            f"scanners from {', '.join(SCANNERS)}; poses from {', '.join(POSES)}; mesh from {', '.join(MESHES)}",
         )
     out = Path(out)
     with claim(out, "gallery"):
@@ -152,7 +171,7 @@ def run(
         for name in settings.objects:
             asset = build_asset(name, out / "assets" / name)
             for scanner in settings.scanners:
-                scan_dir = out / "scans" / f"{name}-{scanner}"
+                scan_dir = scan_folder(out, settings, name, scanner)
                 t0 = time.perf_counter()
                 capture = scan_object(settings, name, scanner, scan_dir, asset, progress)
                 t_scan = time.perf_counter() - t0
@@ -434,6 +453,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="where each run's relit SSIM is lost: the SSIM gained by one material's maps of a kind from the truth",
     )
+    parser.add_argument(
+        "--mesh",
+        choices=MESHES,
+        default=None,
+        help="the mesh ntp is given: a shape scanner's (default: coarser, smoothed, 0.3 mm noise) or the true one",
+    )
     parser.add_argument("--json", type=Path, default=None)
     add_progress_arguments(parser)
 
@@ -454,6 +479,7 @@ def command(args: argparse.Namespace) -> int:
         max_samples=args.max_samples if args.samples is None else at_least_samples(args.max_samples, args.samples),
         refine=args.refine or None,
         model=args.model,
+        mesh=args.mesh,
         budget=args.budget or None,
     )
     run(args.out, settings, json_path=args.json, progress=progress_from_args(args))

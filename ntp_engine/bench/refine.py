@@ -104,7 +104,7 @@ def run(out: Path, bench: RefineBench | None = None, json_path: Path | None = No
         for name in bench.objects:
             asset = build_asset(name, out / "assets" / name)
             for scanner in bench.scanners:
-                scan_dir = out / "scans" / f"{name}-{scanner}"
+                scan_dir = bench_gallery.scan_folder(out, settings, name, scanner)
                 bench_gallery.scan_object(settings, name, scanner, scan_dir, asset, progress)
                 result = out / "results" / f"{name}-{scanner}-true"
                 scan = load_scan(scan_dir, scan_dir / "ground_truth" / "poses.json")

@@ -34,7 +34,7 @@ from ..scanner.scan_folder import load_poses, load_scan
 from ..sim.evaluate import pose_error
 from ..sim.gallery import build_asset, object_set
 from . import gallery as gallery_bench
-from .gallery import DEFAULT, GallerySettings, scan_object
+from .gallery import DEFAULT, GallerySettings, scan_folder, scan_object
 
 SEEDS = (0, 1, 2)
 RIGHT_MM, RIGHT_DEG = 1.0, 0.3  # the goal: a registration this close is right
@@ -75,7 +75,7 @@ def run(
         for name in settings.objects:
             asset = build_asset(name, out / "assets" / name)
             for scanner in settings.scanners:
-                scan_dir = out / "scans" / f"{name}-{scanner}"
+                scan_dir = scan_folder(out, settings, name, scanner)
                 scan_object(settings, name, scanner, scan_dir, asset, progress)
                 scan = load_scan(scan_dir)
                 truth = load_poses(scan_dir / "ground_truth" / "poses.json")

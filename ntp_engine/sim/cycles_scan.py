@@ -53,7 +53,15 @@ from ..physics.measurement import measurement_rgb
 from ..scanner import camera
 from ..scanner.device_file import load_scanner, save_scanner
 from ..scanner.scanner import Scanner
-from .virtual_scan import ScanConfig, load_asset, plan_capture, remove_old_photos, sensor, write_scan
+from .virtual_scan import (
+    ScanConfig,
+    load_asset,
+    load_given_mesh,
+    plan_capture,
+    remove_old_photos,
+    sensor,
+    write_scan,
+)
 
 RENDER_DIR = "cycles"
 POINT_LED_SIZE = 0.002  # m: side of the square area light standing in for a point LED
@@ -184,15 +192,17 @@ def cycles_scan(
     cfg: ScanConfig | None = None,
     cycles: CyclesConfig | None = None,
     progress: Progress = QUIET,
+    given_mesh: Path | None = None,
 ) -> dict:
     """Capture the asset into the scan folder ``out`` with Cycles (module docstring); returns the
-    capture record (also ``ground_truth/capture.json``)."""
+    capture record (also ``ground_truth/capture.json``); ``given_mesh`` as ``virtual_scan``'s."""
     cfg, cycles = cfg or ScanConfig(), cycles or CyclesConfig()
     if cycles.samples < 1 or cycles.bounces < 0:
         raise NtpInputError(None, "need --samples >= 1 and --bounces >= 0")
     if cycles.max_samples < cycles.samples or not cycles.noise_threshold > 0:
         raise NtpInputError(None, "need --max-samples >= --samples and --noise-threshold > 0")
     mesh, maps, src_mesh, maps_dir = load_asset(asset, mesh_path, maps_dir)
+    given = load_given_mesh(given_mesh, mesh)
     scanner = load_scanner(device_path)
     lights = emitter_lights(scanner)
     plan = plan_capture(mesh, scanner, cfg)
@@ -200,7 +210,8 @@ def cycles_scan(
     if np.any(np.asarray(cam.distortion) != 0):
         raise NtpInputError(device_path or DEVICES_DIR, "the Cycles scanner models a pinhole camera (distortion 0)")
 
-    with claim(out, "scan", inputs=(src_mesh.parent, maps_dir)):
+    inputs = (src_mesh.parent, maps_dir) + ((given_mesh.parent,) if given_mesh is not None else ())
+    with claim(out, "scan", inputs=inputs):
         remove_old_photos(out, plan.names)
         folder = out / "ground_truth" / RENDER_DIR
         key = {
@@ -253,7 +264,7 @@ def cycles_scan(
             write_png(out / "photos" / name, img.astype(np.float64) / 255.0)
         extra = {"cycles": asdict(cycles), "calibration_gain": gain.tolist()}
         capture = plan.record("cycles", src_mesh, scanner, seconds, **extra)
-        write_scan(out, mesh, maps, cam, plan.named_poses, capture, maps_dir)
+        write_scan(out, mesh, maps, cam, plan.named_poses, capture, maps_dir, given)
     return capture
 
 

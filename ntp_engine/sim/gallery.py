@@ -31,6 +31,7 @@ from ..io.texels import Texels
 from .demo_asset import demo_maps
 from .generated import generated_asset, generated_object, is_generated, object_names
 from .materials import LIBRARY, Material, label_image, paint, save_labels
+from .scanner_mesh import scanner_mesh
 from .shapes import SHAPES
 
 MAP_RESOLUTION = 256
@@ -154,12 +155,26 @@ def object_asset(name: str, resolution: int = MAP_RESOLUTION) -> tuple[Mesh, SVB
     return mesh, maps, labels
 
 
+SCANNER_MESH = "scanner_mesh.obj"  # in an asset folder: the mesh a shape scanner would deliver
+
+
+def object_scanner_mesh(name: str, mesh: Mesh) -> Mesh:
+    """The mesh a shape scanner would deliver for object ``name`` (true mesh ``mesh``): a generated
+    object's on a coarser grid of its surface, a gallery object's on its own triangulation; both
+    smoothed and noisy (``sim.scanner_mesh``), seeded by the name."""
+    if is_generated(name):
+        return generated_object(name).scanner_mesh()
+    return scanner_mesh(mesh, int.from_bytes(name.encode()[:4].ljust(4, b"\0"), "little"))
+
+
 def build_asset(name: str, folder: Path, resolution: int = MAP_RESOLUTION) -> Path:
-    """Write the asset folder of a gallery object (``mesh.obj`` + ``ground_truth/``); returns it."""
+    """Write the asset folder of a gallery object (``mesh.obj``, ``scanner_mesh.obj``,
+    ``ground_truth/``); returns it."""
     mesh, maps, labels = object_asset(name, resolution)
     gt = folder / "ground_truth"
     gt.mkdir(parents=True, exist_ok=True)
     save_obj(folder / "mesh.obj", mesh)
+    save_obj(folder / SCANNER_MESH, object_scanner_mesh(name, mesh))
     maps.save(gt)
     save_labels(gt, labels, object_materials(name))
     return folder

@@ -30,6 +30,7 @@ plain objects (15%).
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -38,7 +39,8 @@ from ..io.maps import SVBRDFMaps
 from ..io.mesh import Mesh
 from ..io.texels import Texels
 from .materials import KINDS, Material, paint, value_noise
-from .shapes import grid_mesh
+from .scanner_mesh import NOISE_M, scanner_mesh
+from .shapes import SurfaceFn, grid_mesh
 
 FAMILIES = ("revolution", "star", "extrusion", "torus", "relief")
 # the two sets: seeds of the tuning set's generated objects and of the validation set (never used
@@ -46,6 +48,8 @@ FAMILIES = ("revolution", "star", "extrusion", "torus", "relief")
 TUNE_SEEDS = tuple(range(5))
 VALIDATE_SEEDS = tuple(range(1000, 1012))
 ALPHA_RANGE = (0.006, 0.5)  # the paper's roughness range (log-uniform in its training data)
+COARSE = 0.6  # the scanner's mesh: the surface on a grid of this fraction of the true one's, each way
+Grid = tuple[SurfaceFn, int, int]  # a parametric surface and its grid (n_u, n_v)
 
 
 @dataclass(frozen=True)
@@ -57,6 +61,12 @@ class GeneratedObject:
     materials: tuple[Material, ...]
     sites: np.ndarray  # (K, 3) one per region; region k has material k % len(materials)
     plain: bool  # albedo without texture: SfM has little to hold on to
+    coarse: Mesh  # the same surface on a coarser grid, placed as ``mesh`` (the scanner's triangulation)
+    seed: int
+
+    def scanner_mesh(self, noise_m: float = NOISE_M) -> Mesh:
+        """The mesh a shape scanner would deliver (``sim.scanner_mesh``): coarser, smoothed, noisy."""
+        return scanner_mesh(self.mesh, self.seed, noise_m, coarse=self.coarse)
 
 
 def family_of(seed: int) -> str:
@@ -81,15 +91,22 @@ def _log_uniform(rng: np.random.Generator, lo: float, hi: float) -> float:
     return float(np.exp(rng.uniform(np.log(lo), np.log(hi))))
 
 
-def _yawed_on_ground(mesh: Mesh, yaw: float) -> Mesh:
+def _placement(mesh: Mesh, yaw: float) -> Callable[[Mesh], Mesh]:
+    """The move that turns ``mesh`` by ``yaw`` about z and stands it on z = 0, centred in x, y — as a
+    function, so a mesh of the same surface is placed exactly alike."""
     c, s = math.cos(yaw), math.sin(yaw)
-    v = mesh.vertices @ np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]).T
+    turn = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    v = mesh.vertices @ turn.T
     lo, hi = v.min(0), v.max(0)
-    v = v - np.array([(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, lo[2]])
-    return Mesh(v, mesh.faces, mesh.uv, mesh.normals @ np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]).T)
+    shift = np.array([(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, lo[2]])
+
+    def place(m: Mesh) -> Mesh:
+        return Mesh(m.vertices @ turn.T - shift, m.faces, m.uv, m.normals @ turn.T)
+
+    return place
 
 
-def revolution_mesh(rng: np.random.Generator) -> Mesh:
+def revolution_mesh(rng: np.random.Generator) -> Grid:
     """A random profile revolved about z: 4-6 radii (1.2-5 cm) over a height of 6-13 cm, closed at the top."""
     height = rng.uniform(0.06, 0.13)
     k = int(rng.integers(4, 7))
@@ -104,10 +121,10 @@ def revolution_mesh(rng: np.random.Generator) -> Mesh:
         r = np.interp(z, z_k, r_k) * (1 + ellipticity * np.cos(lobes * phi))
         return np.stack([r * np.cos(phi), r * np.sin(phi), z], -1)
 
-    return grid_mesh(surface, 128, 64)
+    return surface, 128, 64
 
 
-def star_mesh(rng: np.random.Generator) -> Mesh:
+def star_mesh(rng: np.random.Generator) -> Grid:
     """A star-shaped body of radius 3-5 cm times (1 + random harmonics + bumps - dents)."""
     radius = rng.uniform(0.03, 0.05)
     terms = [
@@ -131,10 +148,10 @@ def star_mesh(rng: np.random.Generator) -> Mesh:
         d = np.stack([np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi), -np.cos(theta)], -1)
         return (radius * np.clip(k, 0.4, None))[..., None] * d * squash
 
-    return grid_mesh(surface, 128, 64)
+    return surface, 128, 64
 
 
-def extrusion_mesh(rng: np.random.Generator) -> Mesh:
+def extrusion_mesh(rng: np.random.Generator) -> Grid:
     """A 3-8-sided polygon (radius 3-6 cm at each corner) extruded 3-9 cm high and capped; the top
     edge bevelled by 0.5-3 mm (u along the outline, v up the wall, over the bevel, across the cap)."""
     sides = int(rng.integers(3, 9))
@@ -161,10 +178,10 @@ def extrusion_mesh(rng: np.random.Generator) -> Mesh:
         z = (height - bevel) * wall + bevel * np.sin(arc)
         return np.concatenate([xy, z[..., None]], -1)
 
-    return grid_mesh(surface, 32 * sides, 80)
+    return surface, 32 * sides, 80
 
 
-def torus_mesh(rng: np.random.Generator) -> Mesh:
+def torus_mesh(rng: np.random.Generator) -> Grid:
     """A ring or a (p, q) torus knot (ring 2.5-4 cm, tube 5-10 mm, thinner where a knot's strands come close)."""
     p, q = [(1, 0), (2, 3), (3, 2), (2, 5)][int(rng.integers(0, 4))]
     ring, wind = rng.uniform(0.025, 0.04), rng.uniform(0.01, 0.015)
@@ -192,7 +209,7 @@ def torus_mesh(rng: np.random.Generator) -> Mesh:
         bi = np.cross(t, nrm)
         return c + tube * (np.cos(a)[..., None] * nrm + np.sin(a)[..., None] * bi)
 
-    return grid_mesh(surface, 384 * max(p, 1), 24)
+    return surface, 384 * max(p, 1), 24
 
 
 def _closest_strands(points: np.ndarray, tube: float) -> float:
@@ -205,7 +222,7 @@ def _closest_strands(points: np.ndarray, tube: float) -> float:
     return float(apart[along > 4 * tube].min())
 
 
-def relief_mesh(rng: np.random.Generator) -> Mesh:
+def relief_mesh(rng: np.random.Generator) -> Grid:
     """An ellipsoidal cap (4-6 cm radius, 3-6 cm high) with fine relief: value noise of 2-6 mm
     cells, 0.2-0.8 mm deep, along the normal."""
     a, b, h = rng.uniform(0.04, 0.06), rng.uniform(0.04, 0.06), rng.uniform(0.03, 0.06)
@@ -219,7 +236,7 @@ def relief_mesh(rng: np.random.Generator) -> Mesh:
         bump = value_noise(p.reshape(-1, 3), cell, salt).reshape(p.shape[:-1]) - 0.5
         return p + (depth * bump * np.sin(theta) ** 0.5)[..., None] * n  # the rim stays on the ground
 
-    return grid_mesh(surface, 256, 96)
+    return surface, 256, 96
 
 
 MESHES = {
@@ -295,13 +312,17 @@ def generated_object(name: str) -> GeneratedObject:
         raise KeyError(f"{name!r} is not a generated object (<family>-<seed>, family {', '.join(FAMILIES)})")
     seed = int(name.rpartition("-")[2])
     rng = np.random.default_rng([71, seed])  # 71: this generator's own stream
-    mesh = _yawed_on_ground(MESHES[family_of(seed)](rng), rng.uniform(0, 2 * math.pi))
+    surface, n_u, n_v = MESHES[family_of(seed)](rng)
+    true = grid_mesh(surface, n_u, n_v)
+    place = _placement(true, rng.uniform(0, 2 * math.pi))
+    mesh = place(true)
+    coarse = place(grid_mesh(surface, max(round(COARSE * n_u), 8), max(round(COARSE * n_v), 4)))
     plain = bool(rng.random() < 0.15)
     count = int(rng.integers(2, 5))
     kinds = rng.choice(KINDS, count, replace=False)
     materials = tuple(random_material(rng, str(k), f"{k}_{i}", plain) for i, k in enumerate(kinds))
     sites = _surface_points(mesh, int(rng.integers(count, 2 * count + 1)), rng)
-    return GeneratedObject(name, mesh, materials, sites, plain)
+    return GeneratedObject(name, mesh, materials, sites, plain, coarse, seed)
 
 
 def voronoi_labels(sites: np.ndarray, materials: int, tex: Texels) -> np.ndarray:

@@ -129,6 +129,21 @@ def sensor(lin: np.ndarray, cam: Scanner, cfg: ScanConfig, rng: np.random.Genera
     return np.clip(np.round(code), 0, 255).astype(np.uint8)
 
 
+def load_given_mesh(path: Path | None, rendered: Mesh) -> Mesh | None:
+    """The mesh ntp is to be given instead of the rendered one (a scanner's, ``sim.scanner_mesh``):
+    read, and checked to share the rendered mesh's UV layout (the maps are compared texel by texel)."""
+    if path is None:
+        return None
+    given = load_mesh(path)
+    if given.uv is None or rendered.uv is None:
+        raise NtpInputError(path, "the given mesh needs UVs in the rendered mesh's layout")
+    extent = float((rendered.vertices.max(0) - rendered.vertices.min(0)).max())
+    offset = float(np.abs(given.vertices.mean(0) - rendered.vertices.mean(0)).max())
+    if offset > 0.05 * extent:
+        raise NtpInputError(path, f"the given mesh is {offset * 1e3:.1f} mm from the rendered one: not the same object")
+    return given
+
+
 def load_asset(asset: str | None, mesh_path: Path | None, maps_dir: Path | None) -> tuple[Mesh, SVBRDFMaps, Path, Path]:
     """The mesh and maps of an asset folder (``mesh.obj`` + ``ground_truth/``; default the demo), or
     of ``mesh_path`` with ``maps_dir``; and the mesh's path and the maps' folder."""
@@ -154,15 +169,19 @@ def virtual_scan(
     device_path: Path | None = None,
     cfg: ScanConfig | None = None,
     progress: Progress = QUIET,
+    given_mesh: Path | None = None,
 ) -> dict:
     """Capture the asset into the scan folder ``out`` (see the module docstring); returns the
-    capture record (also ``ground_truth/capture.json``)."""
+    capture record (also ``ground_truth/capture.json``). ``given_mesh``: the mesh the scan folder
+    hands ntp (e.g. a scanner's) — the photos are of the asset's; the truth keeps that one."""
     cfg = cfg or ScanConfig()
     mesh, maps, src_mesh, maps_dir = load_asset(asset, mesh_path, maps_dir)
+    given = load_given_mesh(given_mesh, mesh)
     scanner = load_scanner(device_path)
     plan = plan_capture(mesh, scanner, cfg)
     scene = Scene(mesh, maps, scanner, cfg.clusters, cfg.exposure)
-    with claim(out, "scan", inputs=(src_mesh.parent, maps_dir)):
+    inputs = (src_mesh.parent, maps_dir) + ((given_mesh.parent,) if given_mesh is not None else ())
+    with claim(out, "scan", inputs=inputs):
         remove_old_photos(out, plan.names)
         t0 = time.perf_counter()
         renders = linear_renders(scene, plan.poses, plan.cam, cfg.chunk)
@@ -171,7 +190,7 @@ def virtual_scan(
             img = sensor(next(renders), plan.cam, cfg, plan.rng, blur=i in plan.blurred)
             write_png(out / "photos" / plan.names[i], img.astype(np.float64) / 255.0)
         capture = plan.record("engine", src_mesh, scanner, time.perf_counter() - t0)
-        write_scan(out, mesh, maps, plan.cam, plan.named_poses, capture, maps_dir)
+        write_scan(out, mesh, maps, plan.cam, plan.named_poses, capture, maps_dir, given)
     return capture
 
 
@@ -258,13 +277,19 @@ def write_scan(
     poses: dict[str, np.ndarray],
     capture: dict,
     labels_from: Path,
+    given: Mesh | None = None,
 ) -> None:
-    """Everything of a scan folder but its photos (``out/photos/`` holds them already): the mesh,
+    """Everything of a scan folder but its photos (``out/photos/`` holds them already): the mesh
+    (``given`` where there is one, the photographed ``mesh`` then in ``ground_truth/mesh.obj``),
     the device file at the photos' resolution, ``ground_truth/`` (maps, material labels when
     ``labels_from`` has them, poses, ``capture.json``) and ``scan.toml``."""
     gt = out / "ground_truth"
     gt.mkdir(parents=True, exist_ok=True)
-    save_obj(out / "mesh.obj", mesh)
+    save_obj(out / "mesh.obj", mesh if given is None else given)
+    if given is not None:
+        save_obj(gt / "mesh.obj", mesh)
+    else:
+        (gt / "mesh.obj").unlink(missing_ok=True)  # a re-scan without one: the truth is the scan's mesh
     save_scanner(cam, out / "device.toml")
     maps.save(gt)
     for f in (LABELS_FILE, MATERIALS_FILE):
@@ -280,3 +305,10 @@ def write_scan(
         ),
         support_light=holds_support_light(capture),
     )
+
+
+def true_mesh_path(scan: Path) -> Path:
+    """The photographed mesh of a virtual scan: ``ground_truth/mesh.obj`` where the scan hands ntp
+    another (``given_mesh``), else the scan's ``mesh.obj``."""
+    truth = scan / "ground_truth" / "mesh.obj"
+    return truth if truth.is_file() else scan / "mesh.obj"

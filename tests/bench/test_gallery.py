@@ -94,3 +94,14 @@ def test_objects_are_named_or_a_set_is_chosen_never_both():
         gallery.chosen_objects(p.parse_args(["--objects", "teapot"]))
     with pytest.raises(SystemExit):
         p.parse_args(["--objects", "vase", "--set", "tune"])
+
+
+def test_the_mesh_ntp_is_given_is_a_setting_with_its_own_scans(tmp_path):
+    from pathlib import Path
+
+    assert gallery.DEFAULT.mesh == "scanner"  # a shape scanner's mesh, as a user has (the paper's Fig. 11)
+    scanner = gallery.scan_folder(Path("g"), gallery.DEFAULT, "vase", "engine")
+    truth = gallery.scan_folder(Path("g"), replace(gallery.DEFAULT, mesh="true"), "vase", "engine")
+    assert scanner == Path("g/scans/vase-engine") and truth == Path("g/scans/vase-engine-truemesh")
+    with pytest.raises(NtpInputError, match="mesh from scanner, true"):
+        gallery.run(tmp_path, replace(TINY, mesh="perfect"))
