@@ -76,6 +76,14 @@ class GallerySettings:
     # the mesh ntp is given: a shape scanner's (coarser, smoothed, noisy: sim.scanner_mesh; the paper's
     # Fig. 11) or the photographed one; errors are measured against the truth either way
     mesh: str = "scanner"
+    # more photo counts to scan each object at (accuracy against photo count: a method that uses its
+    # data gets better with more of it); ``views`` is always scanned
+    density: tuple[int, ...] = ()
+
+    @property
+    def photo_counts(self) -> tuple[int, ...]:
+        """``views`` and the ``density`` counts, ascending, each once."""
+        return tuple(sorted({self.views, *self.density}))
 
 
 DEFAULT = GallerySettings()
@@ -87,10 +95,12 @@ QUICK = GallerySettings(
 MESHES = ("scanner", "true")
 
 
-def scan_folder(out: Path, settings: GallerySettings, name: str, scanner: str) -> Path:
+def scan_folder(out: Path, settings: GallerySettings, name: str, scanner: str, views: int | None = None) -> Path:
     """Where the scan of ``name`` by ``scanner`` lives under the bench's folder ``out`` (a scan
-    handing ntp the photographed mesh beside the one handing it a scanner's)."""
-    return out / "scans" / (f"{name}-{scanner}" + ("-truemesh" if settings.mesh == "true" else ""))
+    handing ntp the photographed mesh beside the one handing it a scanner's; one at another photo
+    count, ``views``, beside the settings' own)."""
+    count = "" if views is None or views == settings.views else f"-v{views}"
+    return out / "scans" / (f"{name}-{scanner}{count}" + ("-truemesh" if settings.mesh == "true" else ""))
 
 
 def scan_object(settings: GallerySettings, name: str, scanner: str, out: Path, asset: Path, progress: Progress) -> dict:
@@ -158,11 +168,13 @@ def run(
         or not set(settings.scanners) <= set(SCANNERS)
         or not set(settings.poses) <= set(POSES)
         or settings.mesh not in MESHES
+        or not all(3 <= n <= 100_000 for n in settings.photo_counts)
     ):
         raise NtpInputError(
             None,
             f"objects from {', '.join(GALLERY)} or generated ones (<family>-<seed>: {', '.join(FAMILIES)}); "
-            f"scanners from {', '.join(SCANNERS)}; poses from {', '.join(POSES)}; mesh from {', '.join(MESHES)}",
+            f"scanners from {', '.join(SCANNERS)}; poses from {', '.join(POSES)}; mesh from {', '.join(MESHES)}; "
+            "3 to 100000 photos",
         )
     out = Path(out)
     with claim(out, "gallery"):
@@ -170,18 +182,21 @@ def run(
         runs = []
         for name in settings.objects:
             asset = build_asset(name, out / "assets" / name)
-            for scanner in settings.scanners:
-                scan_dir = scan_folder(out, settings, name, scanner)
+            for scanner, count in ((sc, n) for sc in settings.scanners for n in settings.photo_counts):
+                at = replace(settings, views=count)
+                scan_dir = scan_folder(out, settings, name, scanner, count)
                 t0 = time.perf_counter()
-                capture = scan_object(settings, name, scanner, scan_dir, asset, progress)
+                capture = scan_object(at, name, scanner, scan_dir, asset, progress)
                 t_scan = time.perf_counter() - t0
                 for poses in settings.poses:
-                    result_dir = out / "results" / f"{name}-{scanner}-{poses}{_suffix(settings)}"
-                    result = _evaluate(settings, scan_dir, poses, result_dir, progress)
+                    views = "" if count == settings.views else f"-v{count}"
+                    result_dir = out / "results" / f"{name}-{scanner}-{poses}{views}{_suffix(settings)}"
+                    result = _evaluate(at, scan_dir, poses, result_dir, progress)
                     runs.append(
                         {
                             "object": name,
                             "set": object_set(name),
+                            "views": count,
                             "scanner": scanner,
                             "poses": poses,
                             "seconds_scan": t_scan,
@@ -196,6 +211,8 @@ def run(
     write_text_atomic(out / f"{stem}.json", json.dumps(record, indent=1, default=float))
     write_text_atomic(out / f"{stem}.md", tables)
     figure(record, out / f"{stem}.png")
+    if len(settings.photo_counts) > 1:
+        density_figure(record, out / f"{stem}-density.png")
     if json_path:
         write_text_atomic(json_path, json.dumps(record, indent=1, default=float))
     _print(record)
@@ -215,6 +232,7 @@ def _run_rows(record: dict) -> tuple[tuple, list[tuple]]:
         "object",
         "scanner",
         "poses",
+        "views",
         "registered",
         "pose err mm / deg",
         "relit SSIM",
@@ -231,6 +249,7 @@ def _run_rows(record: dict) -> tuple[tuple, list[tuple]]:
                 r["object"],
                 r["scanner"],
                 r["poses"],
+                r.get("views", record["settings"]["views"]),
                 r.get("registered", "-") if "failed" not in r else "FAILED",
                 pose,
                 number(r.get("relit_ssim")),
@@ -245,11 +264,12 @@ def _run_rows(record: dict) -> tuple[tuple, list[tuple]]:
 
 
 def _material_rows(record: dict) -> tuple[tuple, list[tuple]]:
-    header = ("object", "material", "scanner", "poses", *METRICS)
+    header = ("object", "material", "scanner", "poses", "views", *METRICS)
     rows = []
     for r in record["runs"]:
+        views = r.get("views", record["settings"]["views"])
         for m in r.get("materials", []):
-            rows.append((r["object"], m["material"], r["scanner"], r["poses"], *(number(m[k]) for k in METRICS)))
+            rows.append((r["object"], m["material"], r["scanner"], r["poses"], views, *(number(m[k]) for k in METRICS)))
     return header, rows
 
 
@@ -268,6 +288,8 @@ def _set_rows(record: dict) -> tuple[tuple, list[tuple]]:
     )
     cells: dict[tuple, dict[str, list[dict]]] = {}
     for r in record["runs"]:
+        if r.get("views", record["settings"]["views"]) != record["settings"]["views"]:
+            continue  # at the settings' photo count; the others are in the density table
         for m in r.get("materials", []):
             key = (r["scanner"], r["poses"], m.get("kind") or "?")
             cells.setdefault(key, {"tune": [], "validate": []})[r.get("set", "tune")].append(m)
@@ -281,6 +303,67 @@ def _set_rows(record: dict) -> tuple[tuple, list[tuple]]:
             cols.append(f"{number(a)} / {number(b)}{gap}")
         rows.append((scanner, poses, kind, f"{len(tune)} / {len(validate)}", *cols))
     return header, rows
+
+
+def _density(record: dict) -> dict[tuple, dict[int, dict[str, float | None]]]:
+    """Each metric's mean per (scanner, poses, set, kind) and photo count."""
+    groups: dict[tuple, dict[int, list[dict]]] = {}
+    for r in record["runs"]:
+        for m in r.get("materials", []):
+            key = (r["scanner"], r["poses"], r.get("set", "tune"), m.get("kind") or "?")
+            groups.setdefault(key, {}).setdefault(r.get("views", record["settings"]["views"]), []).append(m)
+    return {
+        key: {n: {k: finite_mean([m[k] for m in ms]) for k in SET_METRICS} for n, ms in sorted(by_n.items())}
+        for key, by_n in sorted(groups.items())
+    }
+
+
+def _density_rows(record: dict) -> tuple[tuple, list[tuple]]:
+    """Accuracy against photo count: per scanner x poses x set x kind, each metric's mean at each count."""
+    counts = sorted({r.get("views", record["settings"]["views"]) for r in record["runs"]})
+    header = (
+        "scanner",
+        "poses",
+        "set",
+        "kind",
+        *(f"{m} at {' / '.join(map(str, counts))} photos" for m in SET_METRICS),
+    )
+    rows = []
+    for (scanner, poses, which, kind), by_n in _density(record).items():
+        cols = [" / ".join(number(by_n.get(n, {}).get(m)) for n in counts) for m in SET_METRICS]
+        rows.append((scanner, poses, which, kind, *cols))
+    return header, rows
+
+
+def density_figure(record: dict, path: Path) -> None:
+    """Each metric against photo count (log), a line per material kind, solid on tune, dashed on validate."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    data = _density(record)
+    kinds = sorted({key[3] for key in data})
+    fig, axes = plt.subplots(1, len(SET_METRICS), figsize=(3.2 * len(SET_METRICS), 3.2))
+    for ax, metric in zip(axes, SET_METRICS):
+        for (scanner, poses, which, kind), by_n in data.items():
+            n = [c for c, v in by_n.items() if v[metric] is not None]
+            if n:
+                style = "-" if which == "tune" else "--"
+                label = f"{kind} ({which}, {scanner}, {poses})"
+                ax.plot(n, [by_n[c][metric] for c in n], style, marker="o", color=f"C{kinds.index(kind)}", label=label)
+        ax.set_xscale("log")
+        counts = sorted({c for by_n in data.values() for c in by_n})
+        ax.set_xticks(counts, [str(c) for c in counts])
+        ax.minorticks_off()
+        ax.set_xlabel("photos")
+        ax.set_title(metric.replace("_", " "), fontsize=9)
+        ax.grid(alpha=0.3)
+    axes[0].legend(fontsize=6)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
 
 
 def _budget_rows(record: dict) -> tuple[tuple, list[tuple]]:
@@ -319,6 +402,14 @@ def markdown(record: dict) -> str:
         *table(*_set_rows(record)),
         "",
     ]
+    if len({r.get("views", s["views"]) for r in record["runs"]}) > 1:
+        lines += [
+            "Accuracy against photo count (mean over the materials of each kind; a method that uses its data "
+            "gets better with more of it):",
+            "",
+            *table(*_density_rows(record)),
+            "",
+        ]
     budget = _budget_rows(record)
     if budget[1]:
         lines += [
@@ -339,6 +430,9 @@ def _print(record: dict) -> None:
     print()
     header, rows = _set_rows(record)
     print_table(rows, header)
+    if len({r.get("views", record["settings"]["views"]) for r in record["runs"]}) > 1:
+        print()
+        print_table(*reversed(_density_rows(record)))
     header, rows = _budget_rows(record)
     if rows:
         print()
@@ -454,6 +548,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="where each run's relit SSIM is lost: the SSIM gained by one material's maps of a kind from the truth",
     )
     parser.add_argument(
+        "--density",
+        nargs="+",
+        type=int,
+        default=None,
+        metavar="N",
+        help="also scan each object with N photos (e.g. 120 360 1000): accuracy against photo count, "
+        "a table and OUT/gallery-density.png",
+    )
+    parser.add_argument(
         "--mesh",
         choices=MESHES,
         default=None,
@@ -480,6 +583,7 @@ def command(args: argparse.Namespace) -> int:
         refine=args.refine or None,
         model=args.model,
         mesh=args.mesh,
+        density=tuple(args.density) if args.density else None,
         budget=args.budget or None,
     )
     run(args.out, settings, json_path=args.json, progress=progress_from_args(args))

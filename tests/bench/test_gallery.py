@@ -105,3 +105,31 @@ def test_the_mesh_ntp_is_given_is_a_setting_with_its_own_scans(tmp_path):
     assert scanner == Path("g/scans/vase-engine") and truth == Path("g/scans/vase-engine-truemesh")
     with pytest.raises(NtpInputError, match="mesh from scanner, true"):
         gallery.run(tmp_path, replace(TINY, mesh="perfect"))
+
+
+def test_accuracy_against_photo_count_per_set_and_kind(tmp_path):
+    from pathlib import Path
+
+    assert replace(gallery.DEFAULT, density=(360, 120, 40)).photo_counts == (40, 120, 360)
+    assert gallery.scan_folder(Path("g"), gallery.DEFAULT, "vase", "engine", 360) == Path("g/scans/vase-engine-v360")
+    assert gallery.scan_folder(Path("g"), gallery.DEFAULT, "vase", "engine", 40) == Path("g/scans/vase-engine")
+
+    def run(views, which, normal):
+        m = {"kind": "lacquer", **{k: normal for k in gallery.SET_METRICS}}
+        return {"object": "o", "set": which, "views": views, "scanner": "engine", "poses": "true", "materials": [m]}
+
+    record = {
+        "settings": {"views": 40},
+        "runs": [run(40, "tune", 2.0), run(120, "tune", 1.0), run(40, "validate", 3.0)],
+    }
+    header, rows = gallery._density_rows(record)
+    assert header[4] == "normal_deg at 40 / 120 photos"
+    assert rows == [
+        ("engine", "true", "tune", "lacquer", *["2 / 1"] * len(gallery.SET_METRICS)),
+        ("engine", "true", "validate", "lacquer", *["3 / -"] * len(gallery.SET_METRICS)),
+    ]
+    assert gallery._set_rows(record)[1][0][3] == "1 / 1"  # the set table is at the settings' count only
+    gallery.density_figure(record, tmp_path / "d.png")
+    assert (tmp_path / "d.png").stat().st_size > 5_000
+    with pytest.raises(NtpInputError, match="3 to 100000 photos"):
+        gallery.run(tmp_path / "x", replace(TINY, density=(2,)))
