@@ -253,7 +253,7 @@ def _summary(rows: list[dict], prefix: str) -> str:
         f"{prefix}{len(rows)} registrations: right and accepted {right_accepted}, wrong and refused {wrong_refused}, "
         f"SfM or point-cloud alignment refused {len(rows) - len(done)}; "
         f"**wrong accepted: {wrong_accepted}; right refused: {right_refused}** "
-        f"(right: <= {RIGHT_MM:g} mm and {RIGHT_DEG:g} deg, camera centre and rotation medians)\n"
+        f"(right: <= {RIGHT_MM:g} mm and {RIGHT_DEG:g} deg, camera centre and rotation medians)"
     )
 
 

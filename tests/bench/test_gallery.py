@@ -67,11 +67,12 @@ def test_tune_and_validate_are_reported_side_by_side_per_material_kind():
         return {"kind": kind, **{m: normal for m in gallery.SET_METRICS}}
 
     record = {
+        "settings": {"views": 40},
         "runs": [
             run("vase", "tune", [mat("lacquer", 1.0), mat("matte", 0.5)]),
             run("box", "tune", [mat("lacquer", 3.0)]),
             run("star-1001", "validate", [mat("lacquer", 4.0), mat("plastic", float("nan"))]),
-        ]
+        ],
     }
     header, rows = gallery._set_rows(record)
     by_kind = {r[2]: r for r in rows}

@@ -83,23 +83,32 @@ def test_a_rescan_with_fewer_photos_leaves_no_stale_ones(tmp_path):
 
 
 def test_a_given_mesh_is_what_the_scan_hands_ntp_and_the_photographed_one_the_truth(tmp_path):
+    from ntp_engine.io.errors import NtpInputError
     from ntp_engine.io.mesh import load_mesh
     from ntp_engine.sim.scanner_mesh import scanner_mesh
-    from ntp_engine.sim.virtual_scan import true_mesh_path
+    from ntp_engine.sim.virtual_scan import ScanConfig, true_mesh_path, virtual_scan
 
     demo = load_mesh("assets/demo/mesh.obj")
     given = tmp_path / "given" / "scanner.obj"
     given.parent.mkdir()
     save_obj(given, scanner_mesh(demo, seed=1))
-    r = _scan(tmp_path / "s", "--given-mesh", str(given))
-    assert r.returncode == 0, r.stderr
-    s = tmp_path / "s"
+    cfg, s = ScanConfig(views=2, scale=0.04), tmp_path / "s"
+    virtual_scan(s, cfg=cfg, given_mesh=given)  # in-process: the CLI's option is one argument on to this
     np.testing.assert_allclose(load_mesh(s / "mesh.obj").vertices, load_mesh(given).vertices, atol=1e-9)
     assert true_mesh_path(s) == s / "ground_truth" / "mesh.obj"
     np.testing.assert_allclose(load_mesh(true_mesh_path(s)).vertices, demo.vertices, atol=1e-6)
-    r = _scan(s)  # scanned again without one: the scan's mesh is the truth again
-    assert r.returncode == 0 and true_mesh_path(s) == s / "mesh.obj" and not (s / "ground_truth" / "mesh.obj").exists()
+    virtual_scan(s, cfg=cfg)  # scanned again without one: the scan's mesh is the truth again
+    assert true_mesh_path(s) == s / "mesh.obj" and not (s / "ground_truth" / "mesh.obj").exists()
     far = tmp_path / "given" / "far.obj"
     save_obj(far, Mesh(demo.vertices + [0.5, 0, 0], demo.faces, demo.uv, demo.normals))
-    r = _scan(tmp_path / "f", "--given-mesh", str(far))
-    assert r.returncode == 2 and "far.obj" in r.stderr and "not the same object" in r.stderr
+    with pytest.raises(NtpInputError, match="far.obj: the given mesh is 500.0 mm from the rendered one"):
+        virtual_scan(tmp_path / "f", cfg=cfg, given_mesh=far)
+
+
+def test_the_command_line_hands_the_given_mesh_on():
+    from pathlib import Path
+
+    from ntp_engine import cli
+
+    args = cli._parser().parse_args(["virtual-scan", "--out", "x", "--given-mesh", "m.obj"])
+    assert args.given_mesh == Path("m.obj") and args.func is cli._virtual_scan
