@@ -4,6 +4,7 @@ call into the engine. Bad input is one line on stderr and exit code 2."""
 from __future__ import annotations
 
 import argparse
+import functools
 import signal
 import sys
 from pathlib import Path
@@ -201,6 +202,7 @@ def _virtual_scan(args: argparse.Namespace) -> int:
     cfg = ScanConfig(
         views=args.views, scale=args.scale, seed=args.seed, exposure=args.exposure, blur_fraction=args.blur_fraction
     )
+    scan = virtual_scan
     if args.renderer == "cycles":
         cycles = CyclesConfig(
             samples=args.samples,
@@ -208,28 +210,17 @@ def _virtual_scan(args: argparse.Namespace) -> int:
             max_samples=at_least_samples(args.max_samples, args.samples),
             noise_threshold=args.noise_threshold,
         )
-        info = cycles_scan(
-            args.out,
-            args.asset,
-            args.mesh,
-            args.maps,
-            args.device,
-            cfg,
-            cycles,
-            progress_from_args(args),
-            given_mesh=args.given_mesh,
-        )
-    else:
-        info = virtual_scan(
-            args.out,
-            args.asset,
-            args.mesh,
-            args.maps,
-            args.device,
-            cfg,
-            progress=progress_from_args(args),
-            given_mesh=args.given_mesh,
-        )
+        scan = functools.partial(cycles_scan, cycles=cycles)
+    info = scan(
+        args.out,
+        args.asset,
+        args.mesh,
+        args.maps,
+        args.device,
+        cfg,
+        progress=progress_from_args(args),
+        given_mesh=args.given_mesh,
+    )
     print(f"wrote {args.out}: {args.views} photos ({args.renderer}), {info['seconds_per_photo']:.2f} s per photo")
     return 0
 

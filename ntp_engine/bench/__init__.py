@@ -48,3 +48,11 @@ def finite_mean(values: list) -> float | None:
     """The mean of the finite values (None and NaN left out); None when there are none."""
     finite = [v for v in values if v is not None and math.isfinite(v)]
     return float(sum(finite) / len(finite)) if finite else None
+
+
+def tune_validate(tune: list, validate: list) -> str:
+    """A table cell: the finite mean on the tuning set / on the validation set, and the gap
+    (validate - tune) where both exist: ``2 / 4.5 (+2.5)``."""
+    a, b = finite_mean(tune), finite_mean(validate)
+    gap = f" ({b - a:+.3g})" if a is not None and b is not None else ""
+    return f"{number(a)} / {number(b)}{gap}"

@@ -47,7 +47,7 @@ from ..sim.evaluate import (
 from ..sim.gallery import GALLERY, SCANNER_MESH, SETS, build_asset, object_set
 from ..sim.generated import FAMILIES, is_generated
 from ..sim.virtual_scan import ScanConfig, scan_folder_is_current, true_mesh_path, virtual_scan
-from . import finite_mean, number, print_table
+from . import finite_mean, number, print_table, tune_validate
 
 SCANNERS = ("engine", "cycles")
 POSES = ("true", "sfm")
@@ -296,11 +296,7 @@ def _set_rows(record: dict) -> tuple[tuple, list[tuple]]:
     rows = []
     for (scanner, poses, kind), by_set in sorted(cells.items()):
         tune, validate = by_set["tune"], by_set["validate"]
-        cols = []
-        for metric in SET_METRICS:
-            a, b = finite_mean([m[metric] for m in tune]), finite_mean([m[metric] for m in validate])
-            gap = f" ({b - a:+.3g})" if a is not None and b is not None else ""
-            cols.append(f"{number(a)} / {number(b)}{gap}")
+        cols = [tune_validate([m[k] for m in tune], [m[k] for m in validate]) for k in SET_METRICS]
         rows.append((scanner, poses, kind, f"{len(tune)} / {len(validate)}", *cols))
     return header, rows
 

@@ -44,8 +44,8 @@ from ..scanner.scanner import Scanner
 from ..sim.evaluate import parameter_errors, truth_at_texels
 from ..sim.gallery import GALLERY, build_asset, object_set
 from ..sim.materials import load_labels
-from . import finite_mean, number
 from . import gallery as bench_gallery
+from . import tune_validate
 
 # (label, settings): the ladder of budgets; "priors off" drops the weak normal and alpha priors
 VARIANTS: tuple[tuple[str, RefineSettings], ...] = (
@@ -353,11 +353,7 @@ def _set_lines(rows: list[dict], metrics: tuple[str, ...]) -> list[str]:
         "|" + "---|" * (3 + len(metrics)),
     ]
     for (variant, kind), by_set in sorted(groups.items()):
-        cols = []
-        for m in metrics:
-            a, b = (finite_mean([r.get(m) for r in by_set[s]]) for s in ("tune", "validate"))
-            gap = f" ({b - a:+.3g})" if a is not None and b is not None else ""
-            cols.append(f"{number(a)} / {number(b)}{gap}")
+        cols = [tune_validate(*([r.get(m) for r in by_set[s]] for s in ("tune", "validate"))) for m in metrics]
         lines.append(
             f"| {variant} | {kind} | {len(by_set['tune'])} / {len(by_set['validate'])} | " + " | ".join(cols) + " |"
         )

@@ -43,13 +43,18 @@ class Mesh:
         return float(0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1).sum())
 
 
+def welded(vertices: np.ndarray) -> np.ndarray:
+    """Each vertex's index ``(V,)`` among the vertices merged by position (to 1 nm): the copies a
+    UV seam splits share one."""
+    return np.unique(np.round(vertices, 9), axis=0, return_inverse=True)[1].reshape(-1)
+
+
 def smooth_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Area-weighted vertex normals; vertices split at UV seams are merged by position first, so
-    a seam does not show in the shading."""
+    """Area-weighted vertex normals; vertices split at UV seams are merged by position first
+    (``welded``), so a seam does not show in the shading."""
     tri = vertices[faces]
     fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # length = 2 * area
-    _, key = np.unique(np.round(vertices, 9), axis=0, return_inverse=True)
-    key = key.reshape(-1)
+    key = welded(vertices)
     acc = np.zeros((key.max() + 1, 3))
     for k in range(3):
         np.add.at(acc, key[faces[:, k]], fn)

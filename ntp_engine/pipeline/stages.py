@@ -269,9 +269,10 @@ def _register_stage(
         },
     }
     folder, h_pose = cache.get("register", key, compute)
-    origin = np.array(json.loads((folder / "registration.json").read_text()).get("local_origin", [0.0, 0.0, 0.0]))
+    info = json.loads((folder / "registration.json").read_text())
+    origin = np.array(info.get("local_origin", [0.0, 0.0, 0.0]))  # the frame of the cached poses
     poses = {n: pose_to_world(np.array(m), origin) for n, m in json.loads((folder / "poses.json").read_text()).items()}
-    return poses, json.loads((folder / "registration.json").read_text()), h_pose
+    return poses, info, h_pose
 
 
 def reconstruct(

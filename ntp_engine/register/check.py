@@ -16,7 +16,7 @@ import numpy as np
 
 from ..io.errors import NtpInputError
 from ..io.mesh import Mesh, load_mesh
-from ..io.progress import QUIET, Progress, StageCounter
+from ..io.progress import QUIET, Progress
 from ..scanner.local_frame import local_origin, moved
 from ..scanner.scan_folder import Scan, read_photo
 from .align import Alignment, align_to_mesh, azimuth_apart, mesh_symmetry, turned_distance
@@ -123,103 +123,91 @@ def check_registration(
     same way, the best chosen and judged (see ``PhotoCheck``). Minutes on a large scan: ``progress``
     counts its steps (the first refinement, the sweep, each rival's, the final one, the sharpness)."""
     with progress.counter("registration check", 4 + TUNING.check.rivals, unit="step") as steps:
-        return _check(alignment, camera_from_sfm, photos, names, mesh, support_z, steps)
-
-
-def _check(
-    alignment: Alignment,
-    camera_from_sfm: dict[str, np.ndarray],
-    photos: PhotoStack,
-    names: list[str],
-    mesh: Mesh,
-    support_z: float | None,
-    steps: StageCounter,
-) -> PhotoCheck:
-    # candidates are compared on half the photos and fewer points (the chosen one is refined on all)
-    pick = [names.index(n) for n in spread(names, TUNING.check.sweep_photos)]
-    judge = PhotometricRegistration(
-        mesh,
-        photos.subset(pick),
-        support_z,
-        points=TUNING.photometric.candidate_points,
-        edge_stride=edge_stride(photos),
-    )
-    sfm = np.stack([camera_from_sfm[n] for n in names])
-
-    def placed(al: Alignment) -> np.ndarray:
-        return np.stack([al.camera_from_mesh(m) for m in sfm])
-
-    def coarse(al: Alignment) -> tuple[Alignment, PhotometricFit]:
-        g, fit = judge.refine(
-            placed(al)[pick], levels=TUNING.photometric.blur_levels_px[:1], max_rounds=TUNING.check.candidate_rounds
+        # candidates are compared on half the photos and fewer points (the chosen one is refined on all)
+        pick = [names.index(n) for n in spread(names, TUNING.check.sweep_photos)]
+        judge = PhotometricRegistration(
+            mesh,
+            photos.subset(pick),
+            support_z,
+            points=TUNING.photometric.candidate_points,
+            edge_stride=edge_stride(photos),
         )
-        return corrected(al, g), fit
+        sfm = np.stack([camera_from_sfm[n] for n in names])
 
-    trials = [coarse(alignment)]
-    steps.update()
-    # a point cloud with few points on the object can land at any azimuth: the photos vote on all
-    scout = PhotometricRegistration(
-        mesh,
-        photos.subset(pick),
-        support_z,
-        points=TUNING.check.sweep_points,
-        edge_stride=TUNING.check.sweep_edge_stride,
-    )
-    turns, costs = scout.azimuth_profile(
-        placed(trials[0][0])[pick], TUNING.photometric.blur_levels_px[0], TUNING.check.sweep_step_deg
-    )
-    steps.update()
-    rivals = rival_turns(turns, costs)
-    steps.update(TUNING.check.rivals - len(rivals))  # rivals not found: no work to wait for
-    for turn in rivals:
-        turned = Correction(np.array([0.0, 0.0, np.radians(turn)]), np.zeros(3), 0.0, judge.pivot)
-        trials.append(coarse(corrected(trials[0][0], turned)))
+        def placed(al: Alignment) -> np.ndarray:
+            return np.stack([al.camera_from_mesh(m) for m in sfm])
+
+        def coarse(al: Alignment) -> tuple[Alignment, PhotometricFit]:
+            g, fit = judge.refine(
+                placed(al)[pick], levels=TUNING.photometric.blur_levels_px[:1], max_rounds=TUNING.check.candidate_rounds
+            )
+            return corrected(al, g), fit
+
+        trials = [coarse(alignment)]
         steps.update()
-    chosen = int(np.argmin([fit.cost for _, fit in trials]))
-    best = trials[chosen][0]
-    yaw = [float(np.degrees(np.arctan2(a.rotation[1, 0], a.rotation[0, 0]))) for a, _ in trials]
-    change = [(y - yaw[chosen] + 180.0) % 360.0 - 180.0 for y in yaw]
-    # candidates the refinement brought into the chosen one's azimuth are the same answer, not rivals
-    others = [fit.cost for c, (_, fit) in zip(change, trials, strict=True) if abs(c) > TUNING.align.ambiguous_deg]
-    margin = (min(others) - trials[chosen][1].cost) / trials[chosen][1].cost if others else float("inf")
-    pixel_m = object_distance(placed(best), judge.centre) / photos.scanner.fx
-    free_height = support_z is not None and frees_height(pixel_m)
-    finisher = PhotometricRegistration(
-        mesh,
-        photos,
-        support_z,
-        points=TUNING.photometric.fine_points,
-        edge_stride=edge_stride(photos),
-        free_height=free_height,
-    )
-    g, fit = finisher.refine(placed(best), levels=TUNING.photometric.blur_levels_px[1:])
-    steps.update()
-    best = corrected(best, g)
-    sharpness = finisher.sharpness(placed(best), TUNING.photometric.sharpness_sigma_px)
-    steps.update()
-    apart = turned_distance(mesh, judge.centre, np.array(change))
-    candidates = [
-        {"azimuth_change_deg": c, "coarse_cost": f.cost, "mesh_turned_mm": 1e3 * d}
-        for c, (_, f), d in zip(change, trials, apart, strict=True)
-    ]
-    profile = [(float(t), float(c)) for t, c in zip(turns, costs, strict=True)]
-    turn, turned_m = mesh_symmetry(mesh, judge.centre)
-    final = placed(best)
-    distance = object_distance(final, judge.centre)
-    return PhotoCheck(
-        best,
-        fit,
-        sharpness,
-        float(margin),
-        candidates,
-        chosen,
-        profile,
-        [a for a, _ in trials],
-        (turn, 1e3 * turned_m),
-        1e3 * TUNING.check.symmetry_px * distance / photos.scanner.fx,
-        free_height,
-        1e3 * pixel_m,
-    )
+        # a point cloud with few points on the object can land at any azimuth: the photos vote on all
+        scout = PhotometricRegistration(
+            mesh,
+            photos.subset(pick),
+            support_z,
+            points=TUNING.check.sweep_points,
+            edge_stride=TUNING.check.sweep_edge_stride,
+        )
+        turns, costs = scout.azimuth_profile(
+            placed(trials[0][0])[pick], TUNING.photometric.blur_levels_px[0], TUNING.check.sweep_step_deg
+        )
+        steps.update()
+        rivals = rival_turns(turns, costs)
+        steps.update(TUNING.check.rivals - len(rivals))  # rivals not found: no work to wait for
+        for turn in rivals:
+            turned = Correction(np.array([0.0, 0.0, np.radians(turn)]), np.zeros(3), 0.0, judge.pivot)
+            trials.append(coarse(corrected(trials[0][0], turned)))
+            steps.update()
+        chosen = int(np.argmin([fit.cost for _, fit in trials]))
+        best = trials[chosen][0]
+        yaw = [float(np.degrees(np.arctan2(a.rotation[1, 0], a.rotation[0, 0]))) for a, _ in trials]
+        change = [(y - yaw[chosen] + 180.0) % 360.0 - 180.0 for y in yaw]
+        # candidates the refinement brought into the chosen one's azimuth are the same answer, not rivals
+        others = [fit.cost for c, (_, fit) in zip(change, trials, strict=True) if abs(c) > TUNING.align.ambiguous_deg]
+        margin = (min(others) - trials[chosen][1].cost) / trials[chosen][1].cost if others else float("inf")
+        pixel_m = object_distance(placed(best), judge.centre) / photos.scanner.fx
+        free_height = support_z is not None and frees_height(pixel_m)
+        finisher = PhotometricRegistration(
+            mesh,
+            photos,
+            support_z,
+            points=TUNING.photometric.fine_points,
+            edge_stride=edge_stride(photos),
+            free_height=free_height,
+        )
+        g, fit = finisher.refine(placed(best), levels=TUNING.photometric.blur_levels_px[1:])
+        steps.update()
+        best = corrected(best, g)
+        sharpness = finisher.sharpness(placed(best), TUNING.photometric.sharpness_sigma_px)
+        steps.update()
+        apart = turned_distance(mesh, judge.centre, np.array(change))
+        candidates = [
+            {"azimuth_change_deg": c, "coarse_cost": f.cost, "mesh_turned_mm": 1e3 * d}
+            for c, (_, f), d in zip(change, trials, apart, strict=True)
+        ]
+        profile = [(float(t), float(c)) for t, c in zip(turns, costs, strict=True)]
+        turn, turned_m = mesh_symmetry(mesh, judge.centre)
+        final = placed(best)
+        distance = object_distance(final, judge.centre)
+        return PhotoCheck(
+            best,
+            fit,
+            sharpness,
+            float(margin),
+            candidates,
+            chosen,
+            profile,
+            [a for a, _ in trials],
+            (turn, 1e3 * turned_m),
+            1e3 * TUNING.check.symmetry_px * distance / photos.scanner.fx,
+            free_height,
+            1e3 * pixel_m,
+        )
 
 
 @dataclass

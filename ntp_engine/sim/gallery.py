@@ -158,23 +158,23 @@ def object_asset(name: str, resolution: int = MAP_RESOLUTION) -> tuple[Mesh, SVB
 SCANNER_MESH = "scanner_mesh.obj"  # in an asset folder: the mesh a shape scanner would deliver
 
 
-def object_scanner_mesh(name: str, mesh: Mesh) -> Mesh:
-    """The mesh a shape scanner would deliver for object ``name`` (true mesh ``mesh``): a generated
-    object's on a coarser grid of its surface, a gallery object's on its own triangulation; both
-    smoothed and noisy (``sim.scanner_mesh``), seeded by the name."""
-    if is_generated(name):
-        return generated_object(name).scanner_mesh()
-    return scanner_mesh(mesh, int.from_bytes(name.encode()[:4].ljust(4, b"\0"), "little"))
-
-
 def build_asset(name: str, folder: Path, resolution: int = MAP_RESOLUTION) -> Path:
-    """Write the asset folder of a gallery object (``mesh.obj``, ``scanner_mesh.obj``,
+    """Write the asset folder of a gallery or generated object (``mesh.obj``, ``scanner_mesh.obj``:
+    the mesh a shape scanner would deliver (``sim.scanner_mesh``; a generated object's on a coarser
+    grid of its surface, a gallery object's on its own triangulation, seeded by the name),
     ``ground_truth/``); returns it."""
-    mesh, maps, labels = object_asset(name, resolution)
+    if is_generated(name):
+        obj = generated_object(name)  # made once: its mesh, maps, materials and the scanner's mesh
+        mesh, maps, labels, materials = obj.asset(resolution)
+        given = obj.scanner_mesh()
+    else:
+        mesh, maps, labels = object_asset(name, resolution)
+        materials = object_materials(name)
+        given = scanner_mesh(mesh, int.from_bytes(name.encode()[:4].ljust(4, b"\0"), "little"))
     gt = folder / "ground_truth"
     gt.mkdir(parents=True, exist_ok=True)
     save_obj(folder / "mesh.obj", mesh)
-    save_obj(folder / SCANNER_MESH, object_scanner_mesh(name, mesh))
+    save_obj(folder / SCANNER_MESH, given)
     maps.save(gt)
-    save_labels(gt, labels, object_materials(name))
+    save_labels(gt, labels, materials)
     return folder

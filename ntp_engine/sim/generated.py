@@ -64,6 +64,16 @@ class GeneratedObject:
     coarse: Mesh  # the same surface on a coarser grid, placed as ``mesh`` (the scanner's triangulation)
     seed: int
 
+    def asset(self, resolution: int) -> tuple[Mesh, SVBRDFMaps, np.ndarray, list[Material]]:
+        """Mesh, ground-truth maps ``resolution``^2, label image and materials."""
+        maps, labels = paint(
+            self.mesh,
+            list(self.materials),
+            lambda tex: voronoi_labels(self.sites, len(self.materials), tex),
+            resolution,
+        )
+        return self.mesh, maps, labels, list(self.materials)
+
     def scanner_mesh(self, noise_m: float = NOISE_M) -> Mesh:
         """The mesh a shape scanner would deliver (``sim.scanner_mesh``): coarser, smoothed, noisy."""
         return scanner_mesh(self.mesh, self.seed, noise_m, coarse=self.coarse)
@@ -332,9 +342,5 @@ def voronoi_labels(sites: np.ndarray, materials: int, tex: Texels) -> np.ndarray
 
 
 def generated_asset(name: str, resolution: int) -> tuple[Mesh, SVBRDFMaps, np.ndarray, list[Material]]:
-    """Mesh, ground-truth maps ``resolution``^2, label image and materials of a generated object."""
-    obj = generated_object(name)
-    maps, labels = paint(
-        obj.mesh, list(obj.materials), lambda tex: voronoi_labels(obj.sites, len(obj.materials), tex), resolution
-    )
-    return obj.mesh, maps, labels, list(obj.materials)
+    """``GeneratedObject.asset`` of the generated object ``name``."""
+    return generated_object(name).asset(resolution)

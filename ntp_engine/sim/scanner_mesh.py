@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..io.mesh import Mesh, smooth_normals
+from ..io.mesh import Mesh, smooth_normals, welded
 from .materials import value_noise
 
 NOISE_M = 3e-4  # the default noise: between 0.1 and 0.5 mm
@@ -28,16 +28,10 @@ _LAMBDA, _MU = 0.5, -0.53  # Taubin's pass band (mu < -lambda: no shrinking)
 NOISE_CELL_M = 3e-3  # the smooth part's cell: a scanner's errors are correlated over millimetres
 
 
-def _welded(vertices: np.ndarray) -> np.ndarray:
-    """Each vertex's index among the vertices welded by position ``(V,)``."""
-    _, key = np.unique(np.round(vertices, 9), axis=0, return_inverse=True)
-    return key.reshape(-1)
-
-
 def taubin(mesh: Mesh, iterations: int) -> np.ndarray:
     """Vertex positions ``(V, 3)`` after ``iterations`` Taubin passes (each a lambda and a mu step
     towards the neighbours' mean) over the mesh welded by position; open rims stay put."""
-    key = _welded(mesh.vertices)
+    key = welded(mesh.vertices)
     n = int(key.max()) + 1
     pos = np.zeros((n, 3))
     pos[key] = mesh.vertices
@@ -68,7 +62,7 @@ def scanner_mesh(
     base = coarse if coarse is not None else mesh
     smooth = Mesh(taubin(base, iterations), base.faces, base.uv, base.normals)
     normals = smooth_normals(smooth.vertices, smooth.faces)
-    key = _welded(smooth.vertices)  # one displacement per welded vertex: seams stay closed
+    key = welded(smooth.vertices)  # one displacement per welded vertex: seams stay closed
     first = np.unique(key, return_index=True)[1]
     p = smooth.vertices[first]
     rng = np.random.default_rng([11, seed])
