@@ -50,6 +50,9 @@ from ..sim.virtual_scan import ScanConfig, scan_folder_is_current, true_mesh_pat
 from . import finite_mean, number, print_table, tune_validate
 
 SCANNERS = ("engine", "cycles")
+# a set's default scanner: the engine's. Cycles costs ~4 min an object at 40 photos (the gallery's
+# Cycles half: 20 min for 5 objects), ~50 min more for the validation set's 12: ``--scanners`` adds it
+SET_SCANNERS = ("engine",)
 POSES = ("true", "sfm")
 METRICS = ("seen", "coverage", *PARAMETER_METRICS)
 
@@ -505,6 +508,25 @@ def chosen_objects(args: argparse.Namespace, quick: bool = False) -> tuple[str, 
     return None
 
 
+def add_scanner_arguments(parser: argparse.ArgumentParser) -> None:
+    """``--scanners engine|cycles ...`` (the gallery's benches share it)."""
+    parser.add_argument(
+        "--scanners",
+        nargs="+",
+        choices=list(SCANNERS),
+        default=None,
+        help="default: both; with --set the engine's alone (Cycles adds ~4 min an object)",
+    )
+
+
+def chosen_scanners(args: argparse.Namespace) -> tuple[str, ...] | None:
+    """The scanners ``--scanners`` names; with ``--set`` and none named, ``SET_SCANNERS``; else None
+    (the bench's default)."""
+    if args.scanners:
+        return tuple(args.scanners)
+    return SET_SCANNERS if args.set else None
+
+
 def settings_for(quick: bool, **overrides) -> GallerySettings:
     """The default or quick settings with the given fields replaced (None leaves a field)."""
     base = QUICK if quick else DEFAULT
@@ -519,7 +541,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, default=Path("ntp_gallery"), help="folder for assets, scans, results")
     parser.add_argument("--quick", action="store_true", help="2 objects, true poses, 16 views, 64^2 maps (<= 5 min)")
     add_object_arguments(parser)
-    parser.add_argument("--scanners", nargs="+", choices=list(SCANNERS), default=None)
+    add_scanner_arguments(parser)
     parser.add_argument("--poses", nargs="+", choices=list(POSES), default=None)
     parser.add_argument("--views", type=int, default=None)
     parser.add_argument("--scale", type=float, default=None)
@@ -562,13 +584,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_progress_arguments(parser)
 
 
-def command(args: argparse.Namespace) -> int:
-    """``ntp bench gallery``: the benchmark with the command line's options; the exit code."""
+def settings_from_args(args: argparse.Namespace) -> GallerySettings:
+    """The settings ``ntp bench gallery``'s options ask for."""
     objects = chosen_objects(args, args.quick)
-    settings = settings_for(
+    return settings_for(
         args.quick,
         objects=objects,
-        scanners=tuple(args.scanners) if args.scanners else None,
+        scanners=chosen_scanners(args),
         poses=tuple(args.poses) if args.poses else None,
         views=args.views,
         scale=args.scale,
@@ -582,5 +604,9 @@ def command(args: argparse.Namespace) -> int:
         density=tuple(args.density) if args.density else None,
         budget=args.budget or None,
     )
-    run(args.out, settings, json_path=args.json, progress=progress_from_args(args))
+
+
+def command(args: argparse.Namespace) -> int:
+    """``ntp bench gallery``: the benchmark with the command line's options; the exit code."""
+    run(args.out, settings_from_args(args), json_path=args.json, progress=progress_from_args(args))
     return 0

@@ -381,7 +381,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     """``ntp bench refine``'s options."""
     parser.add_argument("--out", type=Path, default=Path("ntp_gallery"), help="the gallery's folder (scans shared)")
     bench_gallery.add_object_arguments(parser)
-    parser.add_argument("--scanners", nargs="+", choices=list(bench_gallery.SCANNERS), default=None)
+    bench_gallery.add_scanner_arguments(parser)
     parser.add_argument("--per-material", type=int, default=None, help="sampled texels per material and scan")
     parser.add_argument("--baseline-texels", type=int, default=None, help="texels per scan for the scipy baseline")
     parser.add_argument("--json", type=Path, default=None)
@@ -392,7 +392,7 @@ def command(args: argparse.Namespace) -> int:
     """``ntp bench refine``: the benchmark with the command line's options; the exit code."""
     bench = bench_for(
         objects=bench_gallery.chosen_objects(args),
-        scanners=tuple(args.scanners) if args.scanners else None,
+        scanners=bench_gallery.chosen_scanners(args),
         per_material=args.per_material,
         baseline_texels=args.baseline_texels,
     )

@@ -265,7 +265,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, default=Path("ntp_gallery"), help="the gallery's folder (scans shared)")
     parser.add_argument("--quick", action="store_true", help="the quick gallery's objects and sizes")
     gallery_bench.add_object_arguments(parser)
-    parser.add_argument("--scanners", nargs="+", choices=list(gallery_bench.SCANNERS), default=None)
+    gallery_bench.add_scanner_arguments(parser)
     parser.add_argument("--seeds", nargs="+", type=int, default=list(SEEDS))
     parser.add_argument("--views", type=int, default=None)
     parser.add_argument("--scale", type=float, default=None)
@@ -279,7 +279,7 @@ def command(args: argparse.Namespace) -> int:
     settings = gallery_bench.settings_for(
         args.quick,
         objects=gallery_bench.chosen_objects(args, args.quick),
-        scanners=tuple(args.scanners) if args.scanners else None,
+        scanners=gallery_bench.chosen_scanners(args),
         poses=None,
         views=args.views,
         scale=args.scale,

@@ -8,6 +8,7 @@ import pytest
 
 from ntp_engine.bench import gallery
 from ntp_engine.io.errors import NtpInputError
+from ntp_engine.sim.gallery import SETS
 
 TINY = gallery.GallerySettings(
     objects=("box",), scanners=("engine",), views=5, scale=0.05, resolution=16, relit_lights=1, relit_scale=0.05
@@ -45,6 +46,20 @@ def test_tiny_gallery_writes_tables_json_and_figure(tmp_path):
     assert "| +diffuse | +normal | +lobe | +tangent | +everything |" in md
     assert md.count("| box | engine | true |") == 1 + 5  # the run's row and its 5 budget rows
 
+    # both sets and a second photo count: the tune / validate table and accuracy against photo count
+    other = SETS["validate"][0]
+    both = gallery.run(tmp_path, replace(TINY, objects=("box", other), poses=("true",), density=(7,)))
+    assert [(x["object"], x["set"], x["views"]) for x in both["runs"]] == [
+        ("box", "tune", 5),
+        ("box", "tune", 7),
+        (other, "validate", 5),
+        (other, "validate", 7),
+    ]
+    assert capture.stat().st_mtime_ns == stamp  # the box's 5 photos kept; 7 beside them
+    md = (tmp_path / "gallery.md").read_text()
+    assert "materials tune / validate" in md and "at 5 / 7 photos" in md
+    assert (tmp_path / "gallery-density.png").stat().st_size > 5_000
+
 
 def test_bad_settings_are_refused(tmp_path):
     with pytest.raises(NtpInputError, match="objects from"):
@@ -53,8 +68,6 @@ def test_bad_settings_are_refused(tmp_path):
 
 
 def test_the_sets_choose_the_objects():
-    from ntp_engine.sim.gallery import SETS
-
     assert gallery.set_objects("tune") == SETS["tune"] and gallery.set_objects("validate") == SETS["validate"]
     assert gallery.set_objects("both", quick=True) == (*SETS["tune"][:2], *SETS["validate"][:2])
 
@@ -79,6 +92,17 @@ def test_tune_and_validate_are_reported_side_by_side_per_material_kind():
     assert header[3] == "materials tune / validate" and set(by_kind) == {"lacquer", "matte", "plastic"}
     assert by_kind["lacquer"][3] == "2 / 1" and by_kind["lacquer"][4] == "2 / 4 (+2)"  # means 2 and 4, gap +2
     assert by_kind["matte"][4] == "0.5 / -" and by_kind["plastic"][4] == "- / -"
+
+
+def test_a_set_is_scanned_by_the_engine_unless_cycles_is_asked_for():
+    import argparse
+
+    p = argparse.ArgumentParser()
+    gallery.add_arguments(p)
+    assert gallery.settings_from_args(p.parse_args([])).scanners == ("engine", "cycles")
+    assert gallery.settings_from_args(p.parse_args(["--set", "validate"])).scanners == ("engine",)
+    both = gallery.settings_from_args(p.parse_args(["--set", "both", "--scanners", "engine", "cycles"]))
+    assert both.scanners == ("engine", "cycles") and len(both.objects) == len(SETS["tune"] + SETS["validate"])
 
 
 def test_objects_are_named_or_a_set_is_chosen_never_both():
