@@ -216,6 +216,8 @@ def run(
     figure(record, out / f"{stem}.png")
     if len(settings.photo_counts) > 1:
         density_figure(record, out / f"{stem}-density.png")
+    if {r["set"] for r in runs} == {"tune", "validate"}:
+        sets_figure(record, out / f"{stem}-sets.png")
     if json_path:
         write_text_atomic(json_path, json.dumps(record, indent=1, default=float))
     _print(record)
@@ -289,19 +291,68 @@ def _set_rows(record: dict) -> tuple[tuple, list[tuple]]:
         "materials tune / validate",
         *(f"{m} tune / validate (gap)" for m in SET_METRICS),
     )
-    cells: dict[tuple, dict[str, list[dict]]] = {}
-    for r in record["runs"]:
-        if r.get("views", record["settings"]["views"]) != record["settings"]["views"]:
-            continue  # at the settings' photo count; the others are in the density table
-        for m in r.get("materials", []):
-            key = (r["scanner"], r["poses"], m.get("kind") or "?")
-            cells.setdefault(key, {"tune": [], "validate": []})[r.get("set", "tune")].append(m)
+    cells = _set_cells(record)
     rows = []
     for (scanner, poses, kind), by_set in sorted(cells.items()):
         tune, validate = by_set["tune"], by_set["validate"]
         cols = [tune_validate([m[k] for m in tune], [m[k] for m in validate]) for k in SET_METRICS]
         rows.append((scanner, poses, kind, f"{len(tune)} / {len(validate)}", *cols))
     return header, rows
+
+
+def _at_settings_count(record: dict) -> list[dict]:
+    """The runs at the settings' photo count (the others are the density table's)."""
+    views = record["settings"]["views"]
+    return [r for r in record["runs"] if r.get("views", views) == views]
+
+
+def _set_cells(record: dict) -> dict[tuple, dict[str, list[dict]]]:
+    """The materials at the settings' photo count per (scanner, poses, kind) and set."""
+    cells: dict[tuple, dict[str, list[dict]]] = {}
+    for r in _at_settings_count(record):
+        for m in r.get("materials", []):
+            key = (r["scanner"], r["poses"], m.get("kind") or "?")
+            cells.setdefault(key, {"tune": [], "validate": []})[r.get("set", "tune")].append(m)
+    return cells
+
+
+def sets_figure(record: dict, path: Path) -> None:
+    """Tune against validate: each metric's mean per material kind, a bar per set (hatched:
+    validate), one group per scanner x poses, one panel per metric; the dots are the materials."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    cells = _set_cells(record)
+    groups = sorted(cells)
+    fig, axes = plt.subplots(len(SET_METRICS), 1, figsize=(max(8.0, 0.7 * len(groups)), 2.2 * len(SET_METRICS)))
+    x = np.arange(len(groups))
+    panels = list(np.atleast_1d(axes))
+    for ax, metric in zip(panels, SET_METRICS):
+        for j, which in enumerate(("tune", "validate")):
+            at = x + (j - 0.5) * 0.4
+            values = [[m[metric] for m in cells[g][which] if finite_mean([m[metric]]) is not None] for g in groups]
+            means = [finite_mean(v) for v in values]
+            ax.bar(
+                at,
+                [np.nan if v is None else v for v in means],
+                0.4,
+                color=f"C{j}",
+                alpha=0.6,
+                hatch="//" if which == "validate" else None,
+                label=which,
+            )
+            for xi, v in zip(at, values):
+                ax.plot([xi] * len(v), v, ".", color="k", markersize=3)
+        ax.set_ylabel(metric.replace("_", " "), fontsize=8)
+        ax.grid(axis="y", alpha=0.3)
+        ax.set_xticks(x, [] if ax is not panels[-1] else [f"{g[2]}\n{g[0]}, {g[1]}" for g in groups], fontsize=7)
+    panels[0].legend(fontsize=7)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
 
 
 def _density(record: dict) -> dict[tuple, dict[int, dict[str, float | None]]]:
@@ -445,8 +496,9 @@ def figure(record: dict, path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    cells = sorted({(r["object"], m["material"]) for r in record["runs"] for m in r.get("materials", [])})
-    combos = sorted({(r["scanner"], r["poses"]) for r in record["runs"]})
+    runs = _at_settings_count(record)
+    cells = sorted({(r["object"], m["material"]) for r in runs for m in r.get("materials", [])})
+    combos = sorted({(r["scanner"], r["poses"]) for r in runs})
     panels = ("coverage", "normal_deg", "tangent_deg", "log_alpha", "rho_d_rmse", "log_rho_s", "spurious_lobe")
     fig, axes = plt.subplots(len(panels), 1, figsize=(max(8.0, 0.55 * len(cells)), 2.3 * len(panels)), sharex=True)
     width = 0.8 / max(len(combos), 1)
@@ -454,7 +506,7 @@ def figure(record: dict, path: Path) -> None:
     for ax, metric in zip(axes, panels):
         for j, combo in enumerate(combos):
             values = np.full(len(cells), np.nan)
-            for r in record["runs"]:
+            for r in runs:
                 if (r["scanner"], r["poses"]) == combo:
                     for m in r.get("materials", []):
                         values[cells.index((r["object"], m["material"]))] = m[metric]

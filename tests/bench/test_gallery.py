@@ -59,6 +59,7 @@ def test_tiny_gallery_writes_tables_json_and_figure(tmp_path):
     md = (tmp_path / "gallery.md").read_text()
     assert "materials tune / validate" in md and "at 5 / 7 photos" in md
     assert (tmp_path / "gallery-density.png").stat().st_size > 5_000
+    assert (tmp_path / "gallery-sets.png").stat().st_size > 5_000
 
 
 def test_bad_settings_are_refused(tmp_path):
