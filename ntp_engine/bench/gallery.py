@@ -54,6 +54,10 @@ SCANNERS = ("engine", "cycles")
 # Cycles half: 20 min for 5 objects), ~50 min more for the validation set's 12: ``--scanners`` adds it
 SET_SCANNERS = ("engine",)
 POSES = ("true", "sfm")
+# ... and its default poses: the true ones. A registration's photometric check costs 3-8 min an object
+# at 40 photos (2026-12-02, docs/accuracy.md), 1-1.5 h for a set: ``ntp bench registration --set``
+# measures registration, ``--poses true sfm`` adds it here
+SET_POSES = ("true",)
 METRICS = ("seen", "coverage", *PARAMETER_METRICS)
 
 
@@ -594,7 +598,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--quick", action="store_true", help="2 objects, true poses, 16 views, 64^2 maps (<= 5 min)")
     add_object_arguments(parser)
     add_scanner_arguments(parser)
-    parser.add_argument("--poses", nargs="+", choices=list(POSES), default=None)
+    parser.add_argument(
+        "--poses", nargs="+", choices=list(POSES), default=None, help="default: both; with --set the true ones"
+    )
     parser.add_argument("--views", type=int, default=None)
     parser.add_argument("--scale", type=float, default=None)
     parser.add_argument("--resolution", type=int, default=None)
@@ -643,7 +649,7 @@ def settings_from_args(args: argparse.Namespace) -> GallerySettings:
         args.quick,
         objects=objects,
         scanners=chosen_scanners(args),
-        poses=tuple(args.poses) if args.poses else None,
+        poses=tuple(args.poses) if args.poses else (SET_POSES if args.set else None),
         views=args.views,
         scale=args.scale,
         resolution=args.resolution,

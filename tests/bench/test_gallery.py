@@ -95,13 +95,14 @@ def test_tune_and_validate_are_reported_side_by_side_per_material_kind():
     assert by_kind["matte"][4] == "0.5 / -" and by_kind["plastic"][4] == "- / -"
 
 
-def test_a_set_is_scanned_by_the_engine_unless_cycles_is_asked_for():
+def test_a_set_is_scanned_by_the_engine_with_true_poses_unless_asked_otherwise():
     import argparse
 
     p = argparse.ArgumentParser()
     gallery.add_arguments(p)
     assert gallery.settings_from_args(p.parse_args([])).scanners == ("engine", "cycles")
-    assert gallery.settings_from_args(p.parse_args(["--set", "validate"])).scanners == ("engine",)
+    validate = gallery.settings_from_args(p.parse_args(["--set", "validate"]))
+    assert validate.scanners == ("engine",) and validate.poses == ("true",)
     both = gallery.settings_from_args(p.parse_args(["--set", "both", "--scanners", "engine", "cycles"]))
     assert both.scanners == ("engine", "cycles") and len(both.objects) == len(SETS["tune"] + SETS["validate"])
 

@@ -16,6 +16,7 @@ from ntp_engine.sim.evaluate import (
     compare_images,
     material_border,
     material_errors,
+    parameter_errors,
     pose_error,
     relit_budget,
     relit_ssim,
@@ -268,3 +269,21 @@ def test_the_relit_budget_swaps_tangents_without_opposing_the_results_signs(tmp_
     assert b["relit_ssim"] == pytest.approx(1.0)
     for row in b["materials"]:
         assert abs(row["tangent"]) < 1e-6, row
+
+
+def test_specular_error_is_over_texels_with_a_lobe():
+    # texels pooled over materials (the refine bench's baseline): a matte one has no lobe to compare
+    n = np.array([[0.0, 0.0, 1.0]] * 3)
+    maps = {
+        "normal": n,
+        "tangent": np.array([[1.0, 0.0, 0.0]] * 3),
+        "roughness": np.array([[0.1, 0.1]] * 3),
+        "diffuse_albedo": np.full((3, 3), 0.5),
+    }
+    true = {**maps, "specular_albedo": np.array([[1.0] * 3, [2.0] * 3, [0.0] * 3])}
+    rec = {**maps, "specular_albedo": np.array([[1.0] * 3, [2.0] * 3, [0.5] * 3])}
+    with np.errstate(all="raise"):
+        errors = parameter_errors(rec, true, matte=False)
+    assert errors["log_rho_s"] == 0.0 and errors["log_alpha"] == 0.0 and errors["normal_deg"] == 0.0
+    only_matte = {key: v[2:] for key, v in true.items()}
+    assert np.isnan(parameter_errors({key: v[2:] for key, v in rec.items()}, only_matte, matte=False)["log_rho_s"])
