@@ -196,8 +196,7 @@ def run(
                 capture = scan_object(at, name, scanner, scan_dir, asset, progress)
                 t_scan = time.perf_counter() - t0
                 for poses in settings.poses:
-                    views = "" if count == settings.views else f"-v{count}"
-                    result_dir = out / "results" / f"{name}-{scanner}-{poses}{views}{_suffix(settings)}"
+                    result_dir = result_folder(out, settings, name, scanner, poses, count)
                     result = _evaluate(at, scan_dir, poses, result_dir, progress)
                     runs.append(
                         {
@@ -234,6 +233,15 @@ def _suffix(settings: GallerySettings) -> str:
     scans): ``-model-<folder name>``, then ``-refined``."""
     model = f"-model-{Path(settings.model).name}" if settings.model else ""
     return model + ("-refined" if settings.refine else "")
+
+
+def result_folder(out: Path, settings: GallerySettings, name: str, scanner: str, poses: str, views: int) -> Path:
+    """Where the reconstruction of one scan lives under the bench's folder ``out``: beside the
+    default's with another photo count (``-vN``), the true mesh (``-truemesh``), another network
+    or the refinement (``_suffix``)."""
+    count = "" if views == settings.views else f"-v{views}"
+    mesh = "-truemesh" if settings.mesh == "true" else ""
+    return out / "results" / f"{name}-{scanner}-{poses}{count}{mesh}{_suffix(settings)}"
 
 
 def _run_rows(record: dict) -> tuple[tuple, list[tuple]]:
@@ -632,14 +640,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="also scan each object with N photos (e.g. 120 360 1000): accuracy against photo count, "
         "a table and OUT/gallery-density.png",
     )
+    add_mesh_argument(parser)
+    parser.add_argument("--json", type=Path, default=None)
+    add_progress_arguments(parser)
+
+
+def add_mesh_argument(parser: argparse.ArgumentParser) -> None:
+    """``--mesh scanner|true`` (the gallery's benches share it)."""
     parser.add_argument(
         "--mesh",
         choices=MESHES,
         default=None,
         help="the mesh ntp is given: a shape scanner's (default: coarser, smoothed, 0.3 mm noise) or the true one",
     )
-    parser.add_argument("--json", type=Path, default=None)
-    add_progress_arguments(parser)
 
 
 def settings_from_args(args: argparse.Namespace) -> GallerySettings:

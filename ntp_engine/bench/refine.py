@@ -106,7 +106,7 @@ def run(out: Path, bench: RefineBench | None = None, json_path: Path | None = No
             for scanner in bench.scanners:
                 scan_dir = bench_gallery.scan_folder(out, settings, name, scanner)
                 bench_gallery.scan_object(settings, name, scanner, scan_dir, asset, progress)
-                result = out / "results" / f"{name}-{scanner}-true"
+                result = bench_gallery.result_folder(out, settings, name, scanner, "true", settings.views)
                 scan = load_scan(scan_dir, scan_dir / "ground_truth" / "poses.json")
                 reconstruct(scan, result, resolution=settings.resolution, progress=progress)
                 traces, fit = cached_fit(result)
@@ -382,6 +382,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, default=Path("ntp_gallery"), help="the gallery's folder (scans shared)")
     bench_gallery.add_object_arguments(parser)
     bench_gallery.add_scanner_arguments(parser)
+    bench_gallery.add_mesh_argument(parser)
     parser.add_argument("--per-material", type=int, default=None, help="sampled texels per material and scan")
     parser.add_argument("--baseline-texels", type=int, default=None, help="texels per scan for the scipy baseline")
     parser.add_argument("--json", type=Path, default=None)
@@ -395,6 +396,7 @@ def command(args: argparse.Namespace) -> int:
         scanners=bench_gallery.chosen_scanners(args),
         per_material=args.per_material,
         baseline_texels=args.baseline_texels,
+        gallery=replace(bench_gallery.DEFAULT, mesh=args.mesh) if args.mesh else None,
     )
     run(args.out, bench, json_path=args.json, progress=progress_from_args(args))
     return 0

@@ -266,6 +266,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--quick", action="store_true", help="the quick gallery's objects and sizes")
     gallery_bench.add_object_arguments(parser)
     gallery_bench.add_scanner_arguments(parser)
+    gallery_bench.add_mesh_argument(parser)
     parser.add_argument("--seeds", nargs="+", type=int, default=list(SEEDS))
     parser.add_argument("--views", type=int, default=None)
     parser.add_argument("--scale", type=float, default=None)
@@ -285,6 +286,7 @@ def command(args: argparse.Namespace) -> int:
         scale=args.scale,
         resolution=None,
         samples=args.samples,
+        mesh=args.mesh,
     )
     run(args.out, settings, tuple(args.seeds), json_path=args.json, progress=progress_from_args(args))
     return 0

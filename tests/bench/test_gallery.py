@@ -130,6 +130,22 @@ def test_the_mesh_ntp_is_given_is_a_setting_with_its_own_scans(tmp_path):
     scanner = gallery.scan_folder(Path("g"), gallery.DEFAULT, "vase", "engine")
     truth = gallery.scan_folder(Path("g"), replace(gallery.DEFAULT, mesh="true"), "vase", "engine")
     assert scanner == Path("g/scans/vase-engine") and truth == Path("g/scans/vase-engine-truemesh")
+    # ... and its own results, whichever bench reconstructs them
+    true_mesh = replace(gallery.DEFAULT, mesh="true", refine=True)
+    assert gallery.result_folder(Path("g"), true_mesh, "vase", "engine", "sfm", 120) == Path(
+        "g/results/vase-engine-sfm-v120-truemesh-refined"
+    )
+    assert gallery.result_folder(Path("g"), gallery.DEFAULT, "vase", "engine", "true", 40) == Path(
+        "g/results/vase-engine-true"
+    )
+    import argparse
+
+    from ntp_engine.bench import refine, registration
+
+    for bench in (gallery, registration, refine):
+        p = argparse.ArgumentParser()
+        bench.add_arguments(p)
+        assert p.parse_args(["--mesh", "true"]).mesh == "true" and p.parse_args([]).mesh is None
     with pytest.raises(NtpInputError, match="mesh from scanner, true"):
         gallery.run(tmp_path, replace(TINY, mesh="perfect"))
 
