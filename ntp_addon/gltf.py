@@ -22,7 +22,9 @@ from . import scene as bscene
 
 def export_glb(obj: bpy.types.Object, mat: bpy.types.Material, path: Path) -> None:
     """``obj`` alone, wearing ``mat`` for the export (its first slot restored after), as a .glb with
-    tangents (KHR_materials_anisotropy needs them), written atomically."""
+    tangents (KHR_materials_anisotropy needs them), written atomically. Only the active scene is
+    exported: the object is linked into the relight scene too, and every scene holding it would
+    be a glTF scene with its own node (an import would give two objects on top of each other)."""
     chosen = obj.data.materials[0]
     obj.data.materials[0] = mat
     try:
@@ -34,6 +36,7 @@ def export_glb(obj: bpy.types.Object, mat: bpy.types.Material, path: Path) -> No
                 filepath=str(tmp),
                 export_format="GLB",
                 use_selection=True,
+                use_active_scene=True,
                 export_tangents=True,
                 export_cameras=False,
                 export_lights=False,

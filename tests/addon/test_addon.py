@@ -320,6 +320,7 @@ def test_batch_writes_blend_glb_preview_that_reopen(demo_result, tmp_path):
     n = struct.unpack("<I", blob[12:16])[0]
     gltf = json.loads(blob[20 : 20 + n])
     assert "KHR_materials_anisotropy" in gltf["extensionsUsed"]
+    assert len(gltf["scenes"]) == 1 and len(gltf["nodes"]) == 1  # the mesh once, not once per Blender scene
     mat = gltf["materials"][0]
     assert mat["name"].startswith(material.PRINCIPLED)
     assert "anisotropyTexture" in mat["extensions"]["KHR_materials_anisotropy"] and "normalTexture" in mat
