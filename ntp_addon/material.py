@@ -157,9 +157,27 @@ class _Tree:
         self.nt.links.new(a.outputs[out], b.inputs[inp])
 
 
+RESULT_KEY, VARIANT_KEY = "ntp_result", "ntp_variant"  # custom properties: whose material this is
+
+
+def result_material(folder: Path, variant: str, name: str) -> bpy.types.Material:
+    """The ``variant`` material of the result at ``folder``: the one an earlier build made for the
+    same folder (found by its resolved path, so a rebuild replaces it in place), else a new one
+    called ``name`` — Blender's ``.001`` suffix where another result's holds that name (two results
+    in folders of the same name stay two materials)."""
+    key = str(Path(folder).resolve())
+    for mat in bpy.data.materials:
+        if mat.get(RESULT_KEY) == key and mat.get(VARIANT_KEY) == variant:
+            return mat
+    mat = bpy.data.materials.new(name)
+    mat[RESULT_KEY], mat[VARIANT_KEY] = key, variant
+    return mat
+
+
 def _principled(ri: ResultInputs, name: str) -> bpy.types.Material:
     p = ri.principled
-    mat = bpy.data.materials.get(name) or bpy.data.materials.new(name)
+    mat = result_material(ri.folder, "principled", name)
+    name = mat.name  # its images are named after it: unique as it is
     T = _Tree(mat)
     out = T.node("ShaderNodeOutputMaterial", 2, 0)
     bsdf = T.node("ShaderNodeBsdfPrincipled", 0, 0)
@@ -233,7 +251,8 @@ def _principled(ri: ResultInputs, name: str) -> bpy.types.Material:
 
 
 def _accurate(ri: ResultInputs, name: str, exact_fresnel: bool = False) -> bpy.types.Material:
-    mat = bpy.data.materials.get(name) or bpy.data.materials.new(name)
+    mat = result_material(ri.folder, "accurate", name)
+    name = mat.name
     T = _Tree(mat)
     out = T.node("ShaderNodeOutputMaterial", 3, 0)
     add = T.node("ShaderNodeAddShader", 2, 0)
@@ -317,10 +336,11 @@ def build_materials(
 ) -> tuple[bpy.types.Material, bpy.types.Material]:
     """Both materials for a result folder (``read_result``); ``obj`` (if given) gets ``variant`` in
     its first slot. The other material is kept with a fake user so a saved .blend holds both.
-    Names derive from the result folder's (``asset_name``); building again replaces both materials
-    and their images in place (no ``.001`` copies, no orphans). ``exact_fresnel``: the accurate variant
-    with the engine's Fresnel on w_i.h (OSL: the scene must ``schlick_lobe.use_osl``; the Cycles
-    scanner's photos; module docstring)."""
+    Names derive from the result folder's (``asset_name``), the materials are keyed by its path
+    (``result_material``): building again replaces both materials and their images in place (no
+    ``.001`` copies, no orphans), and another result in a folder of the same name gets its own.
+    ``exact_fresnel``: the accurate variant with the engine's Fresnel on w_i.h (OSL: the scene must
+    ``schlick_lobe.use_osl``; the Cycles scanner's photos; module docstring)."""
     if variant not in ("principled", "accurate"):
         raise ValueError(f"variant must be 'principled' or 'accurate', not {variant!r}")
     ri = read_result(result, require_report)  # may raise: nothing created yet
@@ -329,7 +349,6 @@ def build_materials(
     accurate = _accurate(ri, f"{ACCURATE} ({stem})", exact_fresnel)
     for m in (principled, accurate):
         m.use_fake_user = True
-        m["ntp_result"] = str(Path(result).resolve())
     if obj is not None:
         chosen = principled if variant == "principled" else accurate
         if obj.data.materials:

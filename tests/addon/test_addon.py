@@ -275,6 +275,18 @@ def test_rebuilding_replaces_in_place_and_two_scans_do_not_collide(demo_result, 
     assert all("vase_scan" in i.name or demo_result.name in i.name for i in bpy.data.images)
     assert len(bpy.data.images) == 2 * len(before[0])
 
+    # a third result in a folder of the same name as the first (two scans' "result" folders): its own
+    # materials and images; the first object keeps its maps, and rebuilding either finds its own
+    twin = tmp_path / "elsewhere" / demo_result.name
+    shutil.copytree(demo_result, twin)
+    accurate_images = {n.image.name for n in a.node_tree.nodes if getattr(n, "image", None)}
+    obj3 = material.import_result_mesh(twin)
+    p3, a3 = material.build_materials(twin, obj3)
+    assert {p3.name, a3.name}.isdisjoint({p.name, a.name}) and obj.data.materials[0] == a
+    assert {n.image.name for n in a.node_tree.nodes if getattr(n, "image", None)} == accurate_images
+    assert material.build_materials(demo_result)[1] == a and material.build_materials(twin)[1] == a3
+    assert len(bpy.data.images) == 3 * len(before[0])
+
 
 def test_derived_inputs_reproduce_the_alphas(demo_result):
     from ntp_engine.io.maps import SVBRDFMaps
