@@ -76,6 +76,25 @@ def read_result(folder: str | Path, require_report: bool = True) -> ResultInputs
     return ResultInputs(folder, maps, derive.principled_inputs(maps, mesh), derive.glossy_inputs(maps))
 
 
+UV_TOLERANCE = 1e-4  # a tenth of a texel at 1024^2: float32 in Blender, 6 decimals in the OBJ
+
+
+def carries_result_uvs(obj: bpy.types.Object, folder: str | Path) -> bool:
+    """Whether ``obj``'s mesh holds the UV layout the result's maps are laid out on: the result's
+    ``mesh.obj`` triangles in the same order with the same (u, v) at their corners, within
+    ``UV_TOLERANCE`` (Blender's OBJ import keeps face and corner order). Another mesh — one without
+    UVs, the scan's raw mesh, the default cube — would sample the maps at the wrong places."""
+    if obj.type != "MESH" or obj.data.uv_layers.active is None:
+        return False
+    me, layer = obj.data, obj.data.uv_layers.active
+    result = load_mesh(Path(folder) / "mesh.obj")
+    if result.uv is None or len(me.polygons) != len(result.faces) or len(me.loops) != result.faces.size:
+        return False
+    corners = np.empty(2 * len(me.loops), np.float32)
+    layer.data.foreach_get("uv", corners)
+    return bool(np.abs(corners.reshape(-1, 3, 2) - result.uv[result.faces]).max() <= UV_TOLERANCE)
+
+
 def asset_name(result: str | Path) -> str:
     """The name an asset's datablocks derive from: its result folder's name."""
     return Path(result).resolve().name

@@ -55,8 +55,9 @@ def result_folder(context) -> Path:
 
 
 def _target_object(context):
+    """The selected active mesh (an active object left unselected is no choice), else None."""
     obj = context.active_object
-    return obj if obj is not None and obj.type == "MESH" else None
+    return obj if obj is not None and obj.type == "MESH" and obj.select_get() else None
 
 
 def _needs_scan(cls, context) -> bool:
@@ -371,9 +372,16 @@ class NTP_OT_reconstruct(_EngineProcess, bpy.types.Operator):
 
 def _build_materials(op, context, folder: Path, obj=None) -> set[str]:
     """Both materials of result ``folder`` on ``obj`` (``None``: the result's mesh, imported), the
-    mesh made active; a bad folder is one report and creates nothing (checked before anything is)."""
+    mesh made active; a bad folder, or an ``obj`` without the result's UVs, is one report and
+    creates nothing (checked before anything is)."""
     try:
         material.read_result(folder)
+        if obj is not None and not material.carries_result_uvs(obj, folder):
+            raise NtpInputError(
+                None,
+                f"the active mesh '{obj.name}' does not carry the result's UVs (its maps are laid out on "
+                f"{folder / 'mesh.obj'}): select that mesh, or deselect everything to import it",
+            )
         obj = obj or material.import_result_mesh(folder)
         p, a = material.build_materials(folder, obj, _settings(context).variant)
     except (NtpInputError, OSError) as err:

@@ -162,6 +162,21 @@ def test_bad_result_folder_is_reported_and_builds_nothing(addon, demo_result, tm
     with pytest.raises(RuntimeError, match="scan.toml"):
         bpy.ops.ntp.import_mesh()
 
+    # a selected mesh without the result's UVs (the default cube, a raw scan) is refused, not painted
+    addon.result_folder = str(demo_result)
+    bpy.ops.mesh.primitive_cube_add()
+    cube = bpy.context.active_object
+    n_mat, n_img = len(bpy.data.materials), len(bpy.data.images)
+    with pytest.raises(RuntimeError, match="'Cube' does not carry the result's UVs"):
+        bpy.ops.ntp.build_material()
+    assert len(bpy.data.materials) == n_mat and len(bpy.data.images) == n_img and not cube.data.materials
+    cube.data.uv_layers.remove(cube.data.uv_layers[0])
+    assert not material.carries_result_uvs(cube, demo_result)
+    cube.select_set(False)  # active but not selected: no choice made, the result's mesh is imported
+    assert bpy.ops.ntp.build_material() == {"FINISHED"} and not cube.data.materials
+    built = bpy.context.view_layer.objects.active
+    assert built != cube and material.carries_result_uvs(built, demo_result)
+
 
 def test_operators_poll_and_children_stop_with_the_file(addon, posed_scan, tmp_path):
     from types import SimpleNamespace
