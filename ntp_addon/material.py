@@ -110,7 +110,9 @@ def _fresh_image(name: str) -> None:
 def _file_image(path: Path, colorspace: str, name: str) -> bpy.types.Image:
     """A map file of the result as image ``name`` (a rebuild reloads it under the same name)."""
     _fresh_image(name)
-    img = bpy.data.images.load(str(path), check_existing=False)
+    # absolute: Blender reads a relative path against the working directory but stores it against
+    # the .blend's folder when saving, so a relative result folder gave paths that do not resolve
+    img = bpy.data.images.load(str(path.resolve()), check_existing=False)
     img.name = name
     img.colorspace_settings.name = colorspace
     return img

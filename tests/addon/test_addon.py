@@ -375,6 +375,15 @@ def test_batch_writes_blend_glb_preview_that_reopen(demo_result, tmp_path):
         text=True,
     )
     assert bad.returncode == 2 and "missing" in bad.stderr and "Traceback" not in bad.stderr
+    # linked, not packed, from a relative result path in another working directory: every path resolves
+    cwd = tmp_path / "w"
+    cwd.mkdir()
+    rel = os.path.relpath(demo_result, cwd)
+    linked = [sys.executable, "-m", "ntp_addon.batch", rel, "--blend", "y/linked.blend", "--no-pack"]
+    assert subprocess.run(linked, cwd=cwd, capture_output=True).returncode == 0
+    bpy.ops.wm.open_mainfile(filepath=str(cwd / "y" / "linked.blend"))
+    stored = [i.filepath for i in bpy.data.images if i.source == "FILE" and i.packed_file is None]
+    assert len(stored) >= 4 and all(Path(bpy.path.abspath(f)).is_file() for f in stored), stored
     umask = os.umask(0)
     os.umask(umask)
     for f in ("a.blend", "a.glb", "a.png"):  # modes follow the umask (temporary files are 0600)
