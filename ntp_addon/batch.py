@@ -59,6 +59,7 @@ def export(
             bscene.render_still(rig["scene"], tmp)
         written["preview"] = str(preview)
     if blend is not None:
+        bscene.open_on(rig["scene"])  # the file opens on a scene that renders: Cycles, camera, lights
         with atomic_path(blend) as tmp:
             try:
                 bpy.ops.wm.save_as_mainfile(filepath=str(tmp), copy=True, compress=True)

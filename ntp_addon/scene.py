@@ -109,6 +109,13 @@ def render_still(scene: bpy.types.Scene, path: Path, file_format: str = "PNG") -
     bpy.ops.render.render(write_still=True, scene=scene.name)
 
 
+def open_on(scene: bpy.types.Scene) -> None:
+    """Make ``scene`` the one every window shows, so a .blend saved now opens on it (F12 renders
+    it). Background mode has the startup file's window too; with no window this does nothing."""
+    for window in bpy.context.window_manager.windows:
+        window.scene = scene
+
+
 def relight_rig(
     obj: bpy.types.Object, width: int = 640, height: int = 512, samples: int = 64, turntable_frames: int = 0
 ) -> dict:

@@ -361,6 +361,9 @@ def test_batch_writes_blend_glb_preview_that_reopen(demo_result, tmp_path):
         issues = json.loads(v.stdout)
         assert issues["numErrors"] == 0 and issues["numWarnings"] == 0, issues["messages"][:5]
     bpy.ops.wm.open_mainfile(filepath=str(out / "a.blend"))
+    opened = bpy.context.scene  # F12 renders it: the relight rig, in Cycles, with its camera and lights
+    assert opened.name.startswith(bscene.RELIGHT_PREFIX) and opened.render.engine == "CYCLES"
+    assert opened.camera is not None and any(o.type == "LIGHT" for o in opened.objects)
     names = {m.name.split(" (")[0] for m in bpy.data.materials}
     assert {material.PRINCIPLED, material.ACCURATE} <= names
     assert bpy.data.objects[demo_result.name].data.materials[0].name.startswith(material.ACCURATE)
