@@ -21,6 +21,9 @@ from ntp_engine.io.colour import srgb_encode
 from ntp_engine.io.maps import SVBRDFMaps, fill_missing
 from ntp_engine.io.mesh import Mesh
 from ntp_engine.io.texels import rasterize
+from ntp_engine.io.viewers import CYCLES_PRINCIPLED_MAX_ANISOTROPY
+
+_PRINCIPLED_SPAN = 1 - 1 / CYCLES_PRINCIPLED_MAX_ANISOTROPY  # Cycles' 0.9: Anisotropic 1 gives 10:1
 
 
 def uv_frames(mesh: Mesh, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
@@ -48,7 +51,7 @@ def principled_inputs(maps: SVBRDFMaps, mesh: Mesh) -> dict[str, np.ndarray]:
     strength x scale / 2 (F0 = 0.04 x 2 x level x tint = 0.04 rho_s)."""
     ax, ay = maps.roughness[..., 0], maps.roughness[..., 1]
     hi, lo = np.maximum(ax, ay), np.minimum(ax, ay)
-    strength = np.clip((1 - lo / hi) / 0.9, 0.0, 1.0)
+    strength = np.clip((1 - lo / hi) / _PRINCIPLED_SPAN, 0.0, 1.0)
     n_geo, t_uv = uv_frames(mesh, maps.normal.shape[:2])
     n = _unit(maps.normal)
     t = _unit(maps.tangent - (maps.tangent * n).sum(-1, keepdims=True) * n)
@@ -83,7 +86,7 @@ def glossy_inputs(maps: SVBRDFMaps) -> dict[str, np.ndarray]:
 
 def principled_alphas(roughness: np.ndarray, anisotropic: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(larger, smaller) alpha Cycles' Principled BSDF makes of Roughness and Anisotropic."""
-    s = np.sqrt(1 - 0.9 * np.clip(anisotropic, 0, 1))
+    s = np.sqrt(1 - _PRINCIPLED_SPAN * np.clip(anisotropic, 0, 1))
     return roughness**2 / s, roughness**2 * s
 
 

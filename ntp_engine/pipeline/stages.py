@@ -41,6 +41,7 @@ from ..io.raycast import RayCaster
 from ..io.stage_cache import StageCache, code_version, content_digest, content_key, digest
 from ..io.texels import Texels, rasterize, uv_atlas
 from ..io.threads import configured_threads
+from ..io.viewers import beyond_principled
 from ..learn import models
 from ..learn.ragged import RaggedTraces
 from ..physics.emitter_blocks import SHADOW_SPLITS
@@ -411,7 +412,8 @@ def _reconstruct(
         observed = lengths > 0
         coverage = float(observed.mean()) if len(texels) else 0.0
         flagged = int((fitted.flags != 0).sum())
-        report.texels = TexelCounts(len(texels), int(observed.sum()), coverage, flagged, resolution)
+        beyond = float(beyond_principled(fitted.alpha[observed]).mean()) if observed.any() else 0.0
+        report.texels = TexelCounts(len(texels), int(observed.sum()), coverage, flagged, resolution, beyond)
         report.model = {"name": str(model_folder), **meta.get("summary", {})}
         report.cached_stages = cache.hits
         report.recomputed_damaged_stages = cache.recomputed

@@ -7,7 +7,9 @@ import pytest
 from scans import make_virtual_scan
 
 from ntp_engine.fit.texel_fit import TexelFit
+from ntp_engine.io.images import read_image
 from ntp_engine.io.maps import SVBRDFMaps, texel_uv
+from ntp_engine.io.viewers import beyond_principled
 from ntp_engine.pipeline.stages import reconstruct
 from ntp_engine.scanner.scan_folder import load_scan
 
@@ -32,6 +34,11 @@ def test_maps_from_given_poses(small_scan, tmp_path):
     assert np.median(ang) < 5.0  # frames are right (a frame mistake gives tens of degrees)
     assert np.sqrt(((rec.diffuse_albedo.reshape(-1, 3) - g["diffuse_albedo"]) ** 2).mean()) < 0.15
     assert ((rec.roughness >= 0.006) & (rec.roughness <= 0.5)).all()
+    # the share of observed texels beyond Cycles' Principled 10:1, as the maps hold them
+    seen = read_image(tmp_path / "rec" / "confidence.exr")[..., 1] > 0
+    share = beyond_principled(rec.roughness[seen]).mean()
+    assert rep.texels.beyond_cycles_principled == pytest.approx(share, abs=1e-9)
+    assert json.loads((tmp_path / "rec" / "report.json").read_text())["texels"]["beyond_cycles_principled"] == share
     assert json.loads((tmp_path / "rec" / "material.json").read_text())["maps"]["normal"] == "normal.exr"
     assert (tmp_path / "rec" / "previews" / "normal.png").is_file()
 

@@ -1,0 +1,10 @@
+import numpy as np
+
+from ntp_engine.io.viewers import CYCLES_PRINCIPLED_MAX_ANISOTROPY, beyond_principled
+
+
+def test_beyond_principled_is_past_cycles_ten_to_one():
+    s2 = 1 - 0.9  # Cycles' Principled at Anisotropic = 1: alpha_x / alpha_y = 1 / s^2
+    assert np.isclose(1 / s2, CYCLES_PRINCIPLED_MAX_ANISOTROPY)
+    alpha = np.array([[0.5, 0.006], [0.006, 0.5], [0.3, 0.031], [0.2, 0.2], [0.01, 0.0999]])
+    assert beyond_principled(alpha).tolist() == [True, True, False, False, False]
