@@ -21,13 +21,29 @@ from . import scene as bscene
 
 
 def export_glb(obj: bpy.types.Object, mat: bpy.types.Material, path: Path) -> None:
-    """``obj`` alone, wearing ``mat`` for the export (its first slot restored after), as a .glb with
-    tangents (KHR_materials_anisotropy needs them), written atomically. Only the active scene is
-    exported: the object is linked into the relight scene too, and every scene holding it would
-    be a glTF scene with its own node (an import would give two objects on top of each other)."""
+    """``obj`` alone, wearing the Principled material ``mat`` for the export (its first slot
+    restored after), as a .glb with tangents (KHR_materials_anisotropy needs them), written
+    atomically. Roughness and anisotropy strength are written as glTF defines them
+    (``derive.khronos_inputs``: alpha_b = r^2, alpha_t = mix(alpha_b, 1, strength^2)), not as
+    Cycles reads its own inputs: for the export, ``mat``'s two images hold the glTF values, then
+    their own again. Only the active scene is exported: the object is linked into the relight
+    scene too, and every scene holding it would be a glTF scene with its own node."""
+    ri = material.read_result(mat[material.RESULT_KEY], require_report=False)
+    nodes = {n.label: n for n in mat.node_tree.nodes}
+    swaps = [
+        (nodes[material.ROUGHNESS_LABEL].image, ri.principled["gltf_roughness"]),
+        (nodes[material.ANISOTROPY_LABEL].image, ri.principled["gltf_anisotropy"]),
+    ]
+    own = []
+    for img, _ in swaps:
+        pixels = np.empty(len(img.pixels), np.float32)
+        img.pixels.foreach_get(pixels)
+        own.append(pixels)
     chosen = obj.data.materials[0]
     obj.data.materials[0] = mat
     try:
+        for img, data in swaps:
+            material.set_pixels(img, data)
         bpy.ops.object.select_all(action="DESELECT")
         obj.select_set(True)
         bpy.context.view_layer.objects.active = obj
@@ -43,6 +59,9 @@ def export_glb(obj: bpy.types.Object, mat: bpy.types.Material, path: Path) -> No
             )
     finally:
         obj.data.materials[0] = chosen
+        for (img, _), pixels in zip(swaps, own):
+            img.pixels.foreach_set(pixels)
+            img.pack()  # the .blend keeps Cycles' values, packed as before
 
 
 def import_glb(path: Path) -> bpy.types.Object:

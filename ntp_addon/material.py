@@ -118,16 +118,22 @@ def _file_image(path: Path, colorspace: str, name: str) -> bpy.types.Image:
     return img
 
 
-def packed_image(name: str, data: np.ndarray) -> bpy.types.Image:
-    """A float image held in the .blend (packed), ``data (H, W, C)`` row 0 = top."""
-    _fresh_image(name)
+def set_pixels(img: bpy.types.Image, data: np.ndarray) -> None:
+    """``img``'s pixels from ``data (H, W, C)``, row 0 = top (one channel: grey; alpha 1)."""
     h, w, c = data.shape
     rgba = np.ones((h, w, 4), np.float32)
     rgba[..., :c] = data
     if c == 1:
         rgba[..., 1:3] = data
-    img = bpy.data.images.new(name, w, h, alpha=False, float_buffer=True, is_data=True)
     img.pixels.foreach_set(rgba[::-1].reshape(-1))  # Blender rows start at the bottom
+
+
+def packed_image(name: str, data: np.ndarray) -> bpy.types.Image:
+    """A float image held in the .blend (packed), ``data (H, W, C)`` row 0 = top."""
+    _fresh_image(name)
+    h, w, _ = data.shape
+    img = bpy.data.images.new(name, w, h, alpha=False, float_buffer=True, is_data=True)
+    set_pixels(img, data)
     img.file_format = "OPEN_EXR"
     img.pack()
     img.colorspace_settings.name = DATA
@@ -179,6 +185,8 @@ class _Tree:
 
 
 RESULT_KEY, VARIANT_KEY = "ntp_result", "ntp_variant"  # custom properties: whose material this is
+# the Principled material's two image nodes whose values glTF defines otherwise than Cycles (gltf.export_glb)
+ROUGHNESS_LABEL, ANISOTROPY_LABEL = "roughness (ax ay)^1/4", "anisotropy (dir RG, strength B)"
 
 
 def result_material(folder: Path, variant: str, name: str) -> bpy.types.Material:
@@ -230,13 +238,13 @@ def _principled(ri: ResultInputs, name: str) -> bpy.types.Material:
         "Specular Tint",
     )
     T.link(
-        T.image(packed_image(f"{name} roughness", p["roughness"]), -3, 1, "roughness (ax ay)^1/4"),
+        T.image(packed_image(f"{name} roughness", p["roughness"]), -3, 1, ROUGHNESS_LABEL),
         "Color",
         bsdf,
         "Roughness",
     )
     # anisotropy: the glTF importer's arrangement, so the exporter recognises it
-    tex = T.image(packed_image(f"{name} anisotropy", p["anisotropy"]), -7, -1, "anisotropy (dir RG, strength B)")
+    tex = T.image(packed_image(f"{name} anisotropy", p["anisotropy"]), -7, -1, ANISOTROPY_LABEL)
     mad = T.node("ShaderNodeVectorMath", -6, -1, operation="MULTIPLY_ADD")
     mad.inputs[1].default_value, mad.inputs[2].default_value = (2, 2, 1), (-1, -1, 0)
     sep = T.node("ShaderNodeSeparateXYZ", -5, -1)

@@ -8,3 +8,14 @@ def test_beyond_principled_is_past_cycles_ten_to_one():
     assert np.isclose(1 / s2, CYCLES_PRINCIPLED_MAX_ANISOTROPY)
     alpha = np.array([[0.5, 0.006], [0.006, 0.5], [0.3, 0.031], [0.2, 0.2], [0.01, 0.0999]])
     assert beyond_principled(alpha).tolist() == [True, True, False, False, False]
+
+
+def test_khronos_inputs_give_back_the_alphas_a_conforming_viewer_draws():
+    from ntp_engine.io.viewers import khronos_alphas, khronos_inputs
+
+    hi = np.array([0.48, 0.3, 0.2, 0.006, 1.0])
+    lo = np.array([0.006, 0.025, 0.2, 0.006, 0.01])  # 1:80, the dome's gold, isotropic twice, at alpha 1
+    t, b = khronos_alphas(*khronos_inputs(hi, lo))
+    assert np.allclose(t, hi) and np.allclose(b, lo)
+    r, s = khronos_inputs(np.array([0.2]), np.array([0.2]))
+    assert r == np.sqrt(0.2) and s == 0.0  # isotropic: no strength
