@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import NtpInputError
-from .images import read_image
+from .images import Decoded, decode
 from .viewers import khronos_alphas
 
 GLB_MAGIC, JSON_CHUNK, BIN_CHUNK = b"glTF", 0x4E4F534A, 0x004E4942
@@ -42,6 +42,11 @@ def read_glb(path: str | Path) -> tuple[dict, bytes]:
 
 def texture_pixels(gltf: dict, binary: bytes, texture: int) -> np.ndarray:
     """The pixels of texture index ``texture``'s image (stored in the binary chunk)."""
+    return texture_image(gltf, binary, texture).pixels
+
+
+def texture_image(gltf: dict, binary: bytes, texture: int) -> Decoded:
+    """Texture index ``texture``'s image as decoded (pixels and the file's own pixel format)."""
     image = gltf["images"][gltf["textures"][texture]["source"]]
     view = gltf["bufferViews"][image["bufferView"]]
     data = binary[view.get("byteOffset", 0) : view.get("byteOffset", 0) + view["byteLength"]]
@@ -49,7 +54,7 @@ def texture_pixels(gltf: dict, binary: bytes, texture: int) -> np.ndarray:
     with tempfile.NamedTemporaryFile(suffix=suffix) as f:
         f.write(data)
         f.flush()
-        return read_image(f.name)
+        return decode(f.name)
 
 
 def anisotropic_alphas(path: str | Path, material: int = 0) -> tuple[np.ndarray, np.ndarray]:

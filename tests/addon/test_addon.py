@@ -356,7 +356,7 @@ def test_batch_writes_blend_glb_preview_that_reopen(demo_result, tmp_path):
     assert {i["mimeType"] for i in gltf["images"]} == {"image/png"}
     # roughness and anisotropy as KHR_materials_anisotropy defines them: a conforming viewer's alphas
     # are ntp's (before: 3.33x the larger and 3.46x the smaller on the gold's texels)
-    from ntp_engine.io.glb import anisotropic_alphas
+    from ntp_engine.io.glb import anisotropic_alphas, read_glb, texture_image
     from ntp_engine.io.maps import SVBRDFMaps
 
     alpha_t, alpha_b = anisotropic_alphas(out / "a.glb")
@@ -366,6 +366,8 @@ def test_batch_writes_blend_glb_preview_that_reopen(demo_result, tmp_path):
     assert aniso.mean() > 0.3
     assert np.median(alpha_t[aniso] / hi[aniso]) == pytest.approx(1, abs=0.03)
     assert np.median(alpha_b[aniso] / lo[aniso]) == pytest.approx(1, abs=0.03)
+    doc, binary = read_glb(out / "a.glb")  # normal and anisotropy maps 16-bit (no banding); roughness 8
+    assert texture_image(doc, binary, mat["normalTexture"]["index"]).format == "uint16"
     if shutil.which("node"):  # the Khronos validator (make setup installs it where npm exists)
         validate = ["node", str(REPO / "tools" / "gltf_validate.js"), str(out / "a.glb")]
         v = subprocess.run(validate, capture_output=True, text=True)
