@@ -1,8 +1,10 @@
-"""glTF binary export of a result's Principled material, and the round trip that checks it: the
-``.glb`` re-imported with Blender's own glTF importer and rendered in Cycles beside the material
-it came from, under the same camera and point light (``compare``'s novel views). SSIM and mean
-colour on the object's pixels say whether glTF carries what the .blend shows (colour spaces,
-specular strength, anisotropy, normals).
+"""glTF binary export of a result's Principled material (roughness and anisotropy as
+``KHR_materials_anisotropy`` defines them), and the round trip: the ``.glb`` re-imported with
+Blender's own glTF importer and rendered in Cycles beside the material it came from, under the
+same camera and point light (``compare``'s novel views). SSIM and mean colour on the object's
+pixels say whether glTF carries colour spaces, specular strength and normals as the .blend shows
+them; on anisotropic texels they also show that Blender's importer reads the extension as its own
+inputs (docs/blender.md) — what other viewers draw is checked on the file (``io/glb.py``).
 """
 
 from __future__ import annotations
@@ -24,7 +26,7 @@ def export_glb(obj: bpy.types.Object, mat: bpy.types.Material, path: Path) -> No
     """``obj`` alone, wearing the Principled material ``mat`` for the export (its first slot
     restored after), as a .glb with tangents (KHR_materials_anisotropy needs them), written
     atomically. Roughness and anisotropy strength are written as glTF defines them
-    (``derive.khronos_inputs``: alpha_b = r^2, alpha_t = mix(alpha_b, 1, strength^2)), not as
+    (``ntp_engine.io.viewers.khronos_inputs``: alpha_b = r^2, alpha_t = mix(alpha_b, 1, strength^2)), not as
     Cycles reads its own inputs: for the export, ``mat``'s two images hold the glTF values, then
     their own again. Only the active scene is exported: the object is linked into the relight
     scene too, and every scene holding it would be a glTF scene with its own node."""
