@@ -50,8 +50,9 @@ from ..sim.virtual_scan import ScanConfig, scan_folder_is_current, true_mesh_pat
 from . import finite_mean, number, print_table, tune_validate
 
 SCANNERS = ("engine", "cycles")
-# a set's default scanner: the engine's. Cycles costs ~4 min an object at 40 photos (the gallery's
-# Cycles half: 20 min for 5 objects), ~50 min more for the validation set's 12: ``--scanners`` adds it
+# a set's default scanner: the engine's. Cycles costs 4-6 min an object at 40 photos (the gallery's
+# Cycles half: 20 min for 5 objects; dome and two validation objects: 17 min), over an hour more for
+# the validation set's 12: ``--scanners`` adds it
 SET_SCANNERS = ("engine",)
 POSES = ("true", "sfm")
 # ... and its default poses: the true ones. A registration's photometric check costs 3-8 min an object
@@ -579,7 +580,7 @@ def add_scanner_arguments(parser: argparse.ArgumentParser) -> None:
         nargs="+",
         choices=list(SCANNERS),
         default=None,
-        help="default: both; with --set the engine's alone (Cycles adds ~4 min an object)",
+        help="default: both; with --set the engine's alone (Cycles adds 4-6 min an object)",
     )
 
 
