@@ -21,7 +21,7 @@ from ntp_engine.io.colour import srgb_encode
 from ntp_engine.io.maps import SVBRDFMaps, fill_missing
 from ntp_engine.io.mesh import Mesh
 from ntp_engine.io.texels import rasterize
-from ntp_engine.io.viewers import CYCLES_PRINCIPLED_MAX_ANISOTROPY, khronos_inputs
+from ntp_engine.io.viewers import CYCLES_PRINCIPLED_MAX_ANISOTROPY
 
 _PRINCIPLED_SPAN = 1 - 1 / CYCLES_PRINCIPLED_MAX_ANISOTROPY  # Cycles' 0.9: Anisotropic 1 gives 10:1
 
@@ -47,10 +47,7 @@ def principled_inputs(maps: SVBRDFMaps, mesh: Mesh) -> dict[str, np.ndarray]:
     encoded 0.5 v + 0.5; B = Blender's Anisotropic), KHR_materials_specular's ``specular_strength``
     (H, W, 1, in [0, 1]: max_c rho_s / ``specular_scale``, the scalar that becomes the material's
     factor) and ``specular_tint_srgb`` (H, W, 3, sRGB-encoded rho_s / max_c rho_s),
-    ``normal_tangent_space`` (H, W, 3, encoded 0.5 v + 0.5); and what the ``.glb`` carries in place
-    of Cycles' roughness and Anisotropic, per the Khronos definitions (``khronos_inputs``):
-    ``gltf_roughness`` (H, W, 1) and ``gltf_anisotropy`` (H, W, 3: the same direction, the glTF
-    strength in B). Blender's Specular IOR Level is
+    ``normal_tangent_space`` (H, W, 3, encoded 0.5 v + 0.5). Blender's Specular IOR Level is
     strength x scale / 2 (F0 = 0.04 x 2 x level x tint = 0.04 rho_s)."""
     ax, ay = maps.roughness[..., 0], maps.roughness[..., 1]
     hi, lo = np.maximum(ax, ay), np.minimum(ax, ay)
@@ -68,12 +65,9 @@ def principled_inputs(maps: SVBRDFMaps, mesh: Mesh) -> dict[str, np.ndarray]:
     tg = _unit(t_uv - (t_uv * n_geo).sum(-1, keepdims=True) * n_geo)
     bg = np.cross(n_geo, tg)
     n_ts = np.stack([(n * tg).sum(-1), (n * bg).sum(-1), (n * n_geo).sum(-1)], -1)
-    gltf_roughness, gltf_strength = khronos_inputs(hi, lo)
     return {
         "roughness": ((ax * ay) ** 0.25)[..., None],
         "anisotropy": aniso,
-        "gltf_roughness": gltf_roughness[..., None],
-        "gltf_anisotropy": np.concatenate([aniso[..., :2], gltf_strength[..., None]], -1),
         "base_color_srgb": srgb_encode(np.clip(maps.diffuse_albedo, 0, 1)),
         "specular_strength": s / scale,
         "specular_scale": np.array(scale),

@@ -16,6 +16,9 @@ import bpy
 import numpy as np
 
 from ntp_engine.io.atomic import atomic_path
+from ntp_engine.io.images import read_image
+from ntp_engine.io.maps import MAP_FILES
+from ntp_engine.io.viewers import khronos_inputs
 from ntp_engine.sim.evaluate import compare_images
 
 from . import compare, material
@@ -30,17 +33,19 @@ def export_glb(obj: bpy.types.Object, mat: bpy.types.Material, path: Path) -> No
     Cycles reads its own inputs: for the export, ``mat``'s two images hold the glTF values, then
     their own again. Only the active scene is exported: the object is linked into the relight
     scene too, and every scene holding it would be a glTF scene with its own node."""
-    ri = material.read_result(mat[material.RESULT_KEY], require_report=False)
     nodes = {n.label: n for n in mat.node_tree.nodes}
-    swaps = [
-        (nodes[material.ROUGHNESS_LABEL].image, ri.principled["gltf_roughness"]),
-        (nodes[material.ANISOTROPY_LABEL].image, ri.principled["gltf_anisotropy"]),
-    ]
+    images = (nodes[material.ROUGHNESS_LABEL].image, nodes[material.ANISOTROPY_LABEL].image)
     own = []
-    for img, _ in swaps:
+    for img in images:
         pixels = np.empty(len(img.pixels), np.float32)
         img.pixels.foreach_get(pixels)
         own.append(pixels)
+    # the glTF values from the result's alphas; the anisotropy's direction (RG) is the image's own
+    alpha = read_image(Path(mat[material.RESULT_KEY]) / MAP_FILES["roughness"])[..., :2]
+    roughness, strength = khronos_inputs(alpha.max(-1), alpha.min(-1))
+    w, h = images[1].size
+    direction = own[1].reshape(h, w, 4)[::-1, :, :2]  # Blender rows start at the bottom
+    swaps = zip(images, (roughness[..., None], np.concatenate([direction, strength[..., None]], -1)))
     chosen = obj.data.materials[0]
     obj.data.materials[0] = mat
     try:
@@ -61,7 +66,7 @@ def export_glb(obj: bpy.types.Object, mat: bpy.types.Material, path: Path) -> No
             )
     finally:
         obj.data.materials[0] = chosen
-        for (img, _), pixels in zip(swaps, own):
+        for img, pixels in zip(images, own):
             img.pixels.foreach_set(pixels)
             img.pack()  # the .blend keeps Cycles' values, packed as before
 

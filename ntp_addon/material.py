@@ -33,7 +33,7 @@ import numpy as np
 
 from ntp_engine.io.errors import NtpInputError
 from ntp_engine.io.maps import MAP_FILES, SVBRDFMaps
-from ntp_engine.io.mesh import load_mesh
+from ntp_engine.io.mesh import Mesh, load_mesh
 from ntp_engine.io.output_folder import REPORT, is_complete
 from ntp_engine.physics.brdf import F0_DIELECTRIC
 
@@ -51,6 +51,7 @@ class ResultInputs:
 
     folder: Path
     maps: SVBRDFMaps
+    mesh: Mesh  # the result's mesh.obj: the UV layout the maps are laid out on
     principled: dict[str, np.ndarray]
     glossy: dict[str, np.ndarray]
 
@@ -73,21 +74,20 @@ def read_result(folder: str | Path, require_report: bool = True) -> ResultInputs
     mesh = load_mesh(folder / "mesh.obj")
     if mesh.uv is None:
         raise NtpInputError(folder / "mesh.obj", "mesh has no UVs (the maps need them)")
-    return ResultInputs(folder, maps, derive.principled_inputs(maps, mesh), derive.glossy_inputs(maps))
+    return ResultInputs(folder, maps, mesh, derive.principled_inputs(maps, mesh), derive.glossy_inputs(maps))
 
 
 UV_TOLERANCE = 1e-4  # a tenth of a texel at 1024^2: float32 in Blender, 6 decimals in the OBJ
 
 
-def carries_result_uvs(obj: bpy.types.Object, folder: str | Path) -> bool:
+def carries_result_uvs(obj: bpy.types.Object, result: Mesh) -> bool:
     """Whether ``obj``'s mesh holds the UV layout the result's maps are laid out on: the result's
-    ``mesh.obj`` triangles in the same order with the same (u, v) at their corners, within
-    ``UV_TOLERANCE`` (Blender's OBJ import keeps face and corner order). Another mesh — one without
-    UVs, the scan's raw mesh, the default cube — would sample the maps at the wrong places."""
+    mesh (``ResultInputs.mesh``) triangles in the same order with the same (u, v) at their corners,
+    within ``UV_TOLERANCE`` (Blender's OBJ import keeps face and corner order). Another mesh — one
+    without UVs, the scan's raw mesh, the default cube — would sample the maps at the wrong places."""
     if obj.type != "MESH" or obj.data.uv_layers.active is None:
         return False
     me, layer = obj.data, obj.data.uv_layers.active
-    result = load_mesh(Path(folder) / "mesh.obj")
     if result.uv is None or len(me.polygons) != len(result.faces) or len(me.loops) != result.faces.size:
         return False
     corners = np.empty(2 * len(me.loops), np.float32)

@@ -375,8 +375,8 @@ def _build_materials(op, context, folder: Path, obj=None) -> set[str]:
     mesh made active; a bad folder, or an ``obj`` without the result's UVs, is one report and
     creates nothing (checked before anything is)."""
     try:
-        material.read_result(folder)
-        if obj is not None and not material.carries_result_uvs(obj, folder):
+        ri = material.read_result(folder)
+        if obj is not None and not material.carries_result_uvs(obj, ri.mesh):
             raise NtpInputError(
                 None,
                 f"the active mesh '{obj.name}' does not carry the result's UVs (its maps are laid out on "

@@ -55,7 +55,7 @@ SCANNERS = ("engine", "cycles")
 # the validation set's 12: ``--scanners`` adds it
 SET_SCANNERS = ("engine",)
 POSES = ("true", "sfm")
-# ... and its default poses: the true ones. A registration's photometric check costs 3-8 min an object
+# ... and its default poses: the true ones. A registration's photometric check costs 5-8 min an object
 # at 40 photos (2026-12-02, docs/accuracy.md), 1-1.5 h for a set: ``ntp bench registration --set``
 # measures registration, ``--poses true sfm`` adds it here
 SET_POSES = ("true",)
@@ -107,8 +107,7 @@ def scan_folder(out: Path, settings: GallerySettings, name: str, scanner: str, v
     """Where the scan of ``name`` by ``scanner`` lives under the bench's folder ``out`` (a scan
     handing ntp the photographed mesh beside the one handing it a scanner's; one at another photo
     count, ``views``, beside the settings' own)."""
-    count = "" if views is None or views == settings.views else f"-v{views}"
-    return out / "scans" / (f"{name}-{scanner}{count}" + ("-truemesh" if settings.mesh == "true" else ""))
+    return out / "scans" / f"{name}-{scanner}{_count_and_mesh(settings, views)}"
 
 
 def scan_object(settings: GallerySettings, name: str, scanner: str, out: Path, asset: Path, progress: Progress) -> dict:
@@ -240,9 +239,14 @@ def result_folder(out: Path, settings: GallerySettings, name: str, scanner: str,
     """Where the reconstruction of one scan lives under the bench's folder ``out``: beside the
     default's with another photo count (``-vN``), the true mesh (``-truemesh``), another network
     or the refinement (``_suffix``)."""
-    count = "" if views == settings.views else f"-v{views}"
-    mesh = "-truemesh" if settings.mesh == "true" else ""
-    return out / "results" / f"{name}-{scanner}-{poses}{count}{mesh}{_suffix(settings)}"
+    return out / "results" / f"{name}-{scanner}-{poses}{_count_and_mesh(settings, views)}{_suffix(settings)}"
+
+
+def _count_and_mesh(settings: GallerySettings, views: int | None) -> str:
+    """A scan's or result's name beside the default's: ``-vN`` at another photo count,
+    ``-truemesh`` when ntp is given the photographed mesh."""
+    count = "" if views is None or views == settings.views else f"-v{views}"
+    return count + ("-truemesh" if settings.mesh == "true" else "")
 
 
 def _run_rows(record: dict) -> tuple[tuple, list[tuple]]:

@@ -171,11 +171,11 @@ def test_bad_result_folder_is_reported_and_builds_nothing(addon, demo_result, tm
         bpy.ops.ntp.build_material()
     assert len(bpy.data.materials) == n_mat and len(bpy.data.images) == n_img and not cube.data.materials
     cube.data.uv_layers.remove(cube.data.uv_layers[0])
-    assert not material.carries_result_uvs(cube, demo_result)
+    assert not material.carries_result_uvs(cube, material.read_result(demo_result).mesh)
     cube.select_set(False)  # active but not selected: no choice made, the result's mesh is imported
     assert bpy.ops.ntp.build_material() == {"FINISHED"} and not cube.data.materials
     built = bpy.context.view_layer.objects.active
-    assert built != cube and material.carries_result_uvs(built, demo_result)
+    assert built != cube and material.carries_result_uvs(built, material.read_result(demo_result).mesh)
 
 
 def test_operators_poll_and_children_stop_with_the_file(addon, posed_scan, tmp_path):
