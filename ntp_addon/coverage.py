@@ -2,7 +2,8 @@
 active object, red where the photos measured too little (scan more there), green where they
 measured well, with a legend in the NTP panel.
 
-``LAYERS`` is the bpy-free description (file, channel, display range, legend); the rest is glue:
+``LAYERS`` is the bpy-free description (``ntp_engine.pipeline.coverage_layers``, which the result page
+shares); this module is the glue:
 an emission material "NTP coverage" that maps the channel through a red-yellow-green ramp, swapped
 onto the object's material slots while shown and swapped back (the user's materials, exactly) when
 turned off.
@@ -10,91 +11,16 @@ turned off.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from pathlib import Path
 
 import bpy
 
 from ntp_engine.io.errors import NtpInputError
+from ntp_engine.pipeline.coverage_layers import LAYERS, RAMP
 from ntp_engine.pipeline.result import UNCERTAINTY_FILE
 
 MATERIAL = "NTP coverage"
 RESTORE = "ntp_coverage_restore"  # object property: the slots' material names before the overlay
-RAMP = ((0.0, (0.85, 0.05, 0.03, 1.0)), (0.5, (0.95, 0.8, 0.05, 1.0)), (1.0, (0.05, 0.7, 0.1, 1.0)))  # bad → good
-
-
-@dataclass(frozen=True)
-class Layer:
-    """One overlay: ``file``'s ``channel`` (0-3 = RGBA) shown from ``bad`` (red) to ``good``
-    (green), clamped; ``legend`` names both ends; ``hint`` says what to do about red."""
-
-    label: str
-    file: str
-    channel: int
-    bad: float
-    good: float
-    legend: tuple[str, str]
-    hint: str
-
-
-LAYERS: dict[str, Layer] = {
-    "highlight": Layer(
-        "Highlight seen",
-        "confidence.exr",
-        0,
-        0.0,
-        1.0,
-        ("no lobe fitted", "lobe fitted"),
-        "red: no photo caught its highlight — sweep the light across it at other angles",
-    ),
-    "photos": Layer(
-        "Photos per point",
-        "confidence.exr",
-        1,
-        0.0,
-        16.0,
-        ("0 photos", "16+ photos"),
-        "red: few photos saw it — scan that side again",
-    ),
-    "normal": Layer(
-        "Normal uncertainty",
-        UNCERTAINTY_FILE,
-        0,
-        10.0,
-        0.0,
-        ("10°+", "0°"),
-        "1-sigma of the normal given its photos (refined results)",
-    ),
-    "tangent": Layer(
-        "Tangent uncertainty",
-        UNCERTAINTY_FILE,
-        1,
-        30.0,
-        0.0,
-        ("30°+", "0°"),
-        "1-sigma of the anisotropy direction (refined results; red on isotropic points is expected)",
-    ),
-    "roughness": Layer(
-        "Roughness uncertainty",
-        UNCERTAINTY_FILE,
-        2,
-        1.0,
-        0.0,
-        ("×2.7+", "exact"),
-        "1-sigma of log roughness (refined results)",
-    ),
-    "specular": Layer(
-        "Specular uncertainty",
-        UNCERTAINTY_FILE,
-        3,
-        1.0,
-        0.0,
-        ("×2.7+", "exact"),
-        "1-sigma of log specular albedo (refined results)",
-    ),
-}
-
-
 ITEMS = [("off", "Off", "The object's own materials")] + [(k, v.label, v.hint) for k, v in LAYERS.items()]
 
 

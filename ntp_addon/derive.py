@@ -21,7 +21,7 @@ from ntp_engine.io.colour import srgb_encode
 from ntp_engine.io.maps import SVBRDFMaps, fill_missing
 from ntp_engine.io.mesh import Mesh
 from ntp_engine.io.texels import rasterize
-from ntp_engine.io.viewers import CYCLES_PRINCIPLED_MAX_ANISOTROPY
+from ntp_engine.io.viewers import CYCLES_PRINCIPLED_MAX_ANISOTROPY, base_colour_for_fresnel_mix
 
 _PRINCIPLED_SPAN = 1 - 1 / CYCLES_PRINCIPLED_MAX_ANISOTROPY  # Cycles' 0.9: Anisotropic 1 gives 10:1
 
@@ -42,7 +42,8 @@ def _unit(v: np.ndarray) -> np.ndarray:
 
 def principled_inputs(maps: SVBRDFMaps, mesh: Mesh) -> dict[str, np.ndarray]:
     """Principled BSDF inputs per texel, laid out as glTF reads them: ``base_color_srgb`` (H, W, 3,
-    sRGB-encoded rho_d), ``roughness`` (H, W, 1), ``anisotropy`` (H, W, 3) in the
+    sRGB-encoded rho_d / (1 - 0.04 rho_s): glTF's fresnel_mix dims the diffuse by the specular's
+    F, ``base_colour_for_fresnel_mix``), ``roughness`` (H, W, 1), ``anisotropy`` (H, W, 3) in the
     KHR_materials_anisotropy layout (RG = direction of the larger alpha in the UV tangent frame,
     encoded 0.5 v + 0.5; B = Blender's Anisotropic), KHR_materials_specular's ``specular_strength``
     (H, W, 1, in [0, 1]: max_c rho_s / ``specular_scale``, the scalar that becomes the material's
@@ -68,7 +69,7 @@ def principled_inputs(maps: SVBRDFMaps, mesh: Mesh) -> dict[str, np.ndarray]:
     return {
         "roughness": ((ax * ay) ** 0.25)[..., None],
         "anisotropy": aniso,
-        "base_color_srgb": srgb_encode(np.clip(maps.diffuse_albedo, 0, 1)),
+        "base_color_srgb": srgb_encode(base_colour_for_fresnel_mix(maps.diffuse_albedo, maps.specular_albedo)[0]),
         "specular_strength": s / scale,
         "specular_scale": np.array(scale),
         "specular_tint_srgb": srgb_encode(np.clip(maps.specular_albedo / s, 0, 1)),

@@ -7,9 +7,24 @@ import argparse
 import functools
 import signal
 import sys
+import webbrowser
 from pathlib import Path
 
-from .bench import blender, cache, fit, gallery, network, physics, refine, registration, scale, scan, sfm, stability
+from .bench import (
+    blender,
+    browser,
+    cache,
+    fit,
+    gallery,
+    network,
+    physics,
+    refine,
+    registration,
+    scale,
+    scan,
+    sfm,
+    stability,
+)
 from .bench import virtual_scan as virtual_scan_bench
 from .io.arguments import OneLineParser, bound_numbers, float_in, int_in
 from .io.errors import NtpInputError, error_line
@@ -20,6 +35,7 @@ from .learn import models
 from .learn.network import NetworkConfig
 from .learn.train import LR_SCHEDULES, TrainConfig, train
 from .pipeline.collection import SUMMARY, BatchOptions, reconstruct_collection
+from .pipeline.result_page import write_page
 from .pipeline.settings import TUNING as PIPELINE_TUNING
 from .pipeline.stages import (
     DEFAULT_RESOLUTION,
@@ -62,6 +78,7 @@ BENCHES = {
     "scan": scan,
     "scale": scale,
     "blender": blender,
+    "browser": browser,
     "physics": physics,
 }
 # the ranges of the command line's numbers (``io.arguments``), each with where its bounds come from
@@ -198,6 +215,14 @@ def _device(args: argparse.Namespace) -> int:
     return 0
 
 
+def _view(args: argparse.Namespace) -> int:
+    page = write_page(args.result, args.glb)
+    print(page)
+    if not args.no_open:
+        webbrowser.open(page.resolve().as_uri())
+    return 0
+
+
 def _virtual_scan(args: argparse.Namespace) -> int:
     cfg = ScanConfig(
         views=args.views, scale=args.scale, seed=args.seed, exposure=args.exposure, blur_fraction=args.blur_fraction
@@ -283,6 +308,7 @@ def _parser() -> argparse.ArgumentParser:
     _add_batch(sub)
     _add_register(sub)
     _add_device(sub)
+    _add_view(sub)
     _add_virtual_scan(sub)
     _add_train(sub)
     _add_bench(sub)
@@ -349,6 +375,17 @@ def _add_batch(sub: Subcommands) -> None:
     ba.add_argument("--ray", nargs="?", const=LOCAL, default=None, metavar="ADDRESS", help=BATCH_RAY_HELP)
     add_progress_arguments(ba)
     ba.set_defaults(func=_batch)
+
+
+def _add_view(sub: Subcommands) -> None:
+    """``ntp view``'s options and handler."""
+    v = sub.add_parser("view", help="write RESULT/index.html (the asset in 3D, maps, coverage, numbers) and open it")
+    v.add_argument("result", type=Path, help="result folder")
+    v.add_argument(
+        "--glb", type=Path, default=None, help="the asset; python -m ntp_addon.batch RESULT --gltf A.glb makes one"
+    )
+    v.add_argument("--no-open", action="store_true", help="write the page only (headless machines, scripts)")
+    v.set_defaults(func=_view)
 
 
 def _add_register(sub: Subcommands) -> None:

@@ -9,6 +9,10 @@ from __future__ import annotations
 
 import numpy as np
 
+# glTF's dielectric F0 at its default IOR 1.5, ((1.5 - 1) / (1.5 + 1))^2; KHR_materials_specular
+# scales it per channel (ntp's export makes it 0.04 rho_s)
+GLTF_DIELECTRIC_F0 = 0.04
+
 # Cycles' Principled BSDF (4.x/5.x, svm_closure.h): alpha_x = r^2 / s, alpha_y = r^2 s with
 # s = sqrt(1 - 0.9 Anisotropic), Anisotropic in [0, 1] — at most 1 / (1 - 0.9) = 10:1
 CYCLES_PRINCIPLED_MAX_ANISOTROPY = 10.0
@@ -36,3 +40,14 @@ def khronos_alphas(roughness: np.ndarray, strength: np.ndarray) -> tuple[np.ndar
     alpha_t = mix(alpha, 1, strength^2) along the anisotropy direction, alpha_b = alpha."""
     alpha = roughness**2
     return alpha + (1.0 - alpha) * strength**2, alpha
+
+
+def base_colour_for_fresnel_mix(rho_d: np.ndarray, rho_s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """glTF base colour ``(..., 3)`` in [0, 1] whose diffuse equals ntp's ``rho_d`` under glTF's
+    ``fresnel_mix``, and which texels ``(...)`` it clips at 1: the viewer draws the diffuse times
+    (1 - F), F = F0 + (F90 - F0)(1 - v.h)^5 >= F0 = 0.04 rho_s, where ntp's diffuse is rho_d / pi
+    whole — so base = rho_d / (1 - 0.04 rho_s), exact where v.h ~ 1 (a light beside the camera;
+    the (1 - v.h)^5 term is < 0.3% of F90 while the light is within 90 deg of the view)."""
+    base = rho_d / np.maximum(1.0 - GLTF_DIELECTRIC_F0 * rho_s, 1e-6)
+    clipped = (base > 1.0).any(-1)
+    return np.clip(base, 0.0, 1.0), clipped
