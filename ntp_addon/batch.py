@@ -19,10 +19,12 @@ from pathlib import Path
 
 import bpy  # noqa: F401  (before torch, which the engine imports)
 
+from ntp_engine.io.arguments import int_in
 from ntp_engine.io.atomic import atomic_path
 from ntp_engine.io.errors import NtpInputError, error_line
 from ntp_engine.io.output_folder import check_not_inside
 from ntp_engine.io.signals import Terminated, terminate_as_interrupt
+from ntp_engine.pipeline.stages import MAX_RESOLUTION, MIN_RESOLUTION
 
 from . import material
 from . import scene as bscene
@@ -39,9 +41,11 @@ def export(
     size: tuple[int, int] = (640, 512),
     turntable: int = 0,
     pack: bool = True,
+    texture_size: int | None = None,
 ) -> dict:
     """Import the result, build both materials and write the requested .blend, .glb and preview
-    (each atomically); with ``pack`` the .blend holds the map files too (self-contained)."""
+    (each atomically); with ``pack`` the .blend holds the map files too (self-contained);
+    ``texture_size`` scales the .glb's textures (the .blend keeps the maps' own size)."""
     bpy.ops.wm.read_factory_settings(use_empty=True)
     ri_check = material.read_result(result)  # validate before creating anything
     del ri_check
@@ -52,7 +56,7 @@ def export(
     rig = bscene.relight_rig(obj, *size, samples=samples, turntable_frames=turntable)
     written = {}
     if gltf is not None:
-        export_glb(obj, principled, gltf)
+        export_glb(obj, principled, gltf, texture_size)
         written["gltf"] = str(gltf)
     if preview is not None:
         with atomic_path(preview) as tmp:
@@ -80,6 +84,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--samples", type=int, default=64)
     p.add_argument("--turntable", type=int, default=0, help="frames of a 360-degree turntable (0: none)")
     p.add_argument("--no-pack", action="store_true", help="link the map files instead of packing them into the .blend")
+    p.add_argument(
+        "--gltf-texture-size",
+        type=int_in(MIN_RESOLUTION, MAX_RESOLUTION, "the largest texture GPUs and Blender take"),
+        default=None,
+        help="pixels a side of the .glb's textures (default: the maps' own)",
+    )
     a = p.parse_args(argv)
     try:
         for target in (a.blend, a.gltf, a.preview):
@@ -87,7 +97,15 @@ def main(argv: list[str] | None = None) -> int:
                 check_not_inside(target, (a.result,))
         with terminate_as_interrupt():
             info = export(
-                a.result, a.blend, a.gltf, a.preview, a.variant, a.samples, turntable=a.turntable, pack=not a.no_pack
+                a.result,
+                a.blend,
+                a.gltf,
+                a.preview,
+                a.variant,
+                a.samples,
+                turntable=a.turntable,
+                pack=not a.no_pack,
+                texture_size=a.gltf_texture_size,
             )
     except (NtpInputError, OSError) as err:
         print(f"ntp_addon.batch: error: {error_line(err)}", file=sys.stderr)

@@ -25,32 +25,38 @@ from . import compare, material
 from . import scene as bscene
 
 
-def export_glb(obj: bpy.types.Object, mat: bpy.types.Material, path: Path) -> None:
+def export_glb(obj: bpy.types.Object, mat: bpy.types.Material, path: Path, texture_size: int | None = None) -> None:
     """``obj`` alone, wearing the Principled material ``mat`` for the export (its first slot
     restored after), as a .glb with tangents (KHR_materials_anisotropy needs them), written
     atomically. Roughness and anisotropy strength are written as glTF defines them
     (``ntp_engine.io.viewers.khronos_inputs``: alpha_b = r^2, alpha_t = mix(alpha_b, 1, strength^2)), not as
-    Cycles reads its own inputs: for the export, ``mat``'s two images hold the glTF values, then
-    their own again. Only the active scene is exported: the object is linked into the relight
-    scene too, and every scene holding it would be a glTF scene with its own node."""
+    Cycles reads its own inputs: for the export, ``mat``'s images hold the glTF values, then
+    their own again. ``texture_size``: every texture of the .glb scaled to that many pixels a side
+    (Blender's ``Image.scale``; the viewer normalises the normal and anisotropy directions), the
+    .blend keeping the maps' own. Only the active scene is exported: the object is linked into the
+    relight scene too, and every scene holding it would be a glTF scene with its own node."""
     nodes = {n.label: n for n in mat.node_tree.nodes}
     images = (nodes[material.ROUGHNESS_LABEL].image, nodes[material.ANISOTROPY_LABEL].image)
-    own = []
-    for img in images:
+    every = {n.image.name: n.image for n in mat.node_tree.nodes if getattr(n, "image", None) is not None}
+    own = {}
+    for img in every.values():
         pixels = np.empty(len(img.pixels), np.float32)
         img.pixels.foreach_get(pixels)
-        own.append(pixels)
+        own[img.name] = (tuple(img.size), pixels, img.packed_file is not None)
     # the glTF values from the result's alphas; the anisotropy's direction (RG) is the image's own
     alpha = read_image(Path(mat[material.RESULT_KEY]) / MAP_FILES["roughness"])[..., :2]
     roughness, strength = khronos_inputs(alpha.max(-1), alpha.min(-1))
-    w, h = images[1].size
-    direction = own[1].reshape(h, w, 4)[::-1, :, :2]  # Blender rows start at the bottom
+    (w, h), aniso, _ = own[images[1].name]
+    direction = aniso.reshape(h, w, 4)[::-1, :, :2]  # Blender rows start at the bottom
     swaps = zip(images, (roughness[..., None], np.concatenate([direction, strength[..., None]], -1)))
     chosen = obj.data.materials[0]
     obj.data.materials[0] = mat
     try:
         for img, data in swaps:
             material.set_pixels(img, data)
+        if texture_size is not None:
+            for img in every.values():
+                img.scale(texture_size, texture_size)
         bpy.ops.object.select_all(action="DESELECT")
         obj.select_set(True)
         bpy.context.view_layer.objects.active = obj
@@ -66,9 +72,15 @@ def export_glb(obj: bpy.types.Object, mat: bpy.types.Material, path: Path) -> No
             )
     finally:
         obj.data.materials[0] = chosen
-        for img, pixels in zip(images, own):
+        for img in every.values():
+            size, pixels, packed = own[img.name]
+            if img not in images and texture_size is None:
+                continue  # untouched
+            if tuple(img.size) != size:
+                img.scale(*size)
             img.pixels.foreach_set(pixels)
-            img.pack()  # the .blend keeps Cycles' values, packed as before
+            if packed:
+                img.pack()  # the .blend keeps Cycles' values at the maps' size, packed as before
 
 
 def import_glb(path: Path) -> bpy.types.Object:

@@ -25,6 +25,7 @@ from ..io.blender_process import blender_command, has_bpy
 from ..io.errors import NtpInputError
 from ..io.output_folder import claim
 from ..io.progress import QUIET, Progress
+from ..pipeline.result_page import write_page
 from ..pipeline.stages import MIN_RESOLUTION, reconstruct, register_photos
 from ..scanner.scan_folder import load_poses, load_scan
 from .evaluate import map_errors, pose_error, relit_ssim
@@ -111,6 +112,7 @@ def run(
         t0 = time.perf_counter()
         blender = _blender_export(result_dir, out) if blend else {"skipped": "--no-blend"}
         t_blend = time.perf_counter() - t0
+        page = write_page(result_dir, Path(blender["gltf"]) if "gltf" in blender else None)
         metrics = {
             "relit_ssim": errors["relit_ssim"],
             "normal_median_deg": errors["normal_median_deg"],
@@ -139,6 +141,7 @@ def run(
                 "stages": rep.stages,
             },
             "blender": blender,
+            "page": str(page),
         }
         write_text_atomic(out / "demo.json", json.dumps(summary, indent=2))
 
@@ -158,4 +161,5 @@ def run(
             print(f"  Blender: {blender['blend']}, {blender['gltf']}, {blender['preview']}")
         else:
             print(f"  Blender: {blender.get('skipped') or blender.get('error')}")
+        print(f"  result page: {page} (ntp view {result_dir} opens it)")
         return summary

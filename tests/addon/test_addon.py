@@ -434,6 +434,23 @@ def test_batch_writes_blend_glb_preview_that_reopen(demo_result, tmp_path):
     assert bad.returncode == 2 and "report.json: missing" in bad.stderr and not (out / "c.blend").exists()
 
 
+def test_the_glb_texture_size_is_chosen_at_export_and_the_blend_keeps_the_maps(demo_result, tmp_path):
+    from ntp_engine.io.glb import read_glb, texture_image
+
+    cmd = [sys.executable, "-m", "ntp_addon.batch", str(demo_result), "--gltf", str(tmp_path / "s.glb")]
+    r = subprocess.run(cmd + ["--blend", str(tmp_path / "s.blend"), "--gltf-texture-size", "64"], capture_output=True)
+    assert r.returncode == 0, r.stderr[-1000:]
+    doc, binary = read_glb(tmp_path / "s.glb")
+    sizes = {texture_image(doc, binary, k).pixels.shape[:2] for k in range(len(doc["images"]))}
+    assert sizes == {(64, 64)}  # every texture of the .glb (the maps are 256^2)
+    bpy.ops.wm.open_mainfile(filepath=str(tmp_path / "s.blend"))
+    principled = next(m for m in bpy.data.materials if m.name.startswith(material.PRINCIPLED))
+    own = {tuple(n.image.size) for n in principled.node_tree.nodes if getattr(n, "image", None)}
+    assert own == {(256, 256)}  # the .blend keeps the maps' own size
+    bad = subprocess.run(cmd + ["--gltf-texture-size", "4"], capture_output=True, text=True)
+    assert bad.returncode == 2 and "--gltf-texture-size: 4: need 8 to 16384" in bad.stderr
+
+
 def test_gltf_reimport_renders_like_the_blend(demo_result):
     """The .glb, re-imported by Blender's glTF importer, under the same camera and light as the
     material it came from: colours, specular strength and normals carried (measured: SSIM 0.9889,
