@@ -24,7 +24,9 @@ $(STAMP): requirements.txt pyproject.toml Makefile
 	if command -v npm >/dev/null; then npm install --silent --no-audit --no-fund --save-exact --prefix $(VENV)/node $(NPM_PACKAGES); fi
 	# Debian's Chromium for the browser check (tests/bench/test_browser.py), where apt exists and we may use it
 	if [ ! -x /usr/bin/chromium ] && command -v apt-get >/dev/null && [ "$$(id -u)" = 0 ]; then \
-		DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium chromium-driver >/dev/null || echo "chromium not installed: the browser check will be skipped"; fi
+		{ DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium chromium-driver >/dev/null 2>&1 || \
+		  { apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium chromium-driver >/dev/null; }; } || \
+		echo "chromium not installed: the browser check will be skipped"; fi
 	touch $(STAMP)
 
 # the result page's script with three.js bundled in (ntp_engine/pipeline/result_page.py), where npm exists

@@ -6,10 +6,11 @@ The views are the relit evaluation's novel views (``sim.evaluate``); the light i
 device's emitter made isotropic (three.js' ``PointLight`` has no angular falloff; the engine's
 device file says cosine) — so light, camera and pixel grid are the same on both sides. The relight
 rig's area lights are not used: three.js' ``RectAreaLight`` draws an isotropic lobe (its LTC tables
-know no anisotropy), so it could not show the materials ntp exists for. Compared on object pixels
-(the engine's, one pixel in from the silhouette: three.js draws no shadows and one sample per
-pixel, the engine traces exact shadows): SSIM after ``sim.evaluate.compare_images``' display
-transform, and the ratio of mean linear colours.
+know no anisotropy), so it could not show the materials ntp exists for. Neither side draws shadows
+(a .glb carries none; three.js draws them only from shadow maps a page opts into, with their own
+bias): the check is of the materials. Compared on object pixels (the engine's, one pixel in from
+the silhouette, where one sample per pixel on each side disagrees): SSIM after
+``sim.evaluate.compare_images``' display transform, and the ratio of mean linear colours.
 """
 
 from __future__ import annotations
@@ -35,6 +36,7 @@ from ..io.mesh import load_mesh
 from ..pipeline.result_page import VIEWER_BUNDLE, page_html
 from ..scanner.camera import resampled
 from ..scanner.device_file import shipped_device
+from ..scanner.scanner import Scanner
 from ..sim.evaluate import NOVEL_LIGHT_DEVICE, compare_images
 from ..sim.renderer import Scene
 from ..sim.virtual_scan import ScanConfig, trajectory
@@ -96,14 +98,14 @@ def run_page(page: Path, job: dict, out: Path, timeout: float = 600.0) -> dict:
     return result
 
 
-def isotropic_point_light():
+def isotropic_point_light() -> Scanner:
     """The point-light device with its emitter made isotropic (three.js' PointLight)."""
     return dataclasses.replace(shipped_device(NOVEL_LIGHT_DEVICE), angular_exponent=0.0)
 
 
 def view_specs(
     scene: Scene, views: int, scale: float, seed: int, without: tuple[str, ...] = ()
-) -> list[tuple[dict, object]]:
+) -> list[tuple[dict, Scanner]]:
     """(renderLinear spec, camera) for ``views`` novel views of ``scene``'s object, three.js drawing
     without the ``ABLATIONS`` named in ``without``."""
     cam = resampled(scene.scanner, scale)
@@ -113,7 +115,7 @@ def view_specs(
     for pose in poses:
         R, t = pose[:3, :3], pose[:3, 3]
         light_w = R.T @ (scene.scanner.emitter_positions[0] - t)
-        spec = {
+        spec: dict = {
             "width": cam.width,
             "height": cam.height,
             "fx": float(cam.K[0, 0]),
@@ -162,7 +164,7 @@ def browser_check(
         raise RuntimeError(f"the page failed in Chromium: {(answer['page_errors'] + answer['console_errors'])[:3]}")
     scores, sums = [], np.zeros((2, 3))
     for k, ((spec, cam), view) in enumerate(zip(specs, answer["views"], strict=True)):
-        engine, hits = scene.render_linear(np.array(spec["pose"]).reshape(4, 4), cam, exact_shadows=True)
+        engine, hits = scene.render_linear(np.array(spec["pose"]).reshape(4, 4), cam, shadows=False)
         obj = binary_erosion((hits["geom"] == 0).reshape(engine.shape[:2]))
         browser = decode_view(view)
         c = compare_images(engine, browser, obj)

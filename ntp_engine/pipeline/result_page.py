@@ -67,7 +67,7 @@ def layer_images(result: Path) -> list[tuple[str, str, tuple[str, str], str]]:
             cache[layer.file] = read_image(path)
         values = cache[layer.file]
         if atlas is None:
-            tex = rasterize(load_mesh(result / "mesh.obj"), values.shape[:2])
+            tex = rasterize(load_mesh(result / "mesh.obj"), (values.shape[0], values.shape[1]))
             atlas = np.zeros(values.shape[:2], bool)
             atlas[tex.row, tex.col] = True
         rgb = ramp_colours(values[..., layer.channel], layer)

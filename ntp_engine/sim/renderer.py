@@ -102,9 +102,12 @@ class Scene:
         chunk: int = 2048,
         exact_shadows: bool = False,
         pixel_subset: np.ndarray | None = None,
+        shadows: bool = True,
     ) -> tuple[np.ndarray, dict]:
         """Linear pixel values ``(H, W, 3)`` (exposure applied, before noise and quantisation) and
-        per-pixel hit info. ``exact_shadows`` traces one shadow ray per emitter sample."""
+        per-pixel hit info. ``exact_shadows`` traces one shadow ray per emitter sample; without
+        ``shadows`` every emitter lights every point it faces (the BRDF alone, as a viewer without
+        shadow maps draws it)."""
         R, tr = pose[:3, :3], pose[:3, 3]
         dirs_cam = camera.pixel_rays(cam).reshape(-1, 3)
         if pixel_subset is not None:
@@ -117,13 +120,13 @@ class Scene:
         back = np.nonzero(hits.geom == 1)[0]
         for s in range(0, len(obj), chunk):
             idx = obj[s : s + chunk]
-            out[idx] = self._shade_object(hits, idx, origin, dirs_w, R, tr, exact_shadows)
+            out[idx] = self._shade_object(hits, idx, origin, dirs_w, R, tr, exact_shadows, shadows)
         if len(back):
             out[back] = self._shade_backdrop(origin + hits.t[back, None] * dirs_w[back], R, tr)
         shape = (cam.height, cam.width, 3) if pixel_subset is None else (len(dirs_w), 3)
         return (self.exposure * out).reshape(shape), {"geom": hits.geom}
 
-    def _shade_object(self, hits, idx, origin, dirs_w, R, tr, exact_shadows) -> np.ndarray:
+    def _shade_object(self, hits, idx, origin, dirs_w, R, tr, exact_shadows, shadows=True) -> np.ndarray:
         faces = self.mesh.faces[hits.prim[idx]]
         u, v = hits.u[idx, None], hits.v[idx, None]
         w = 1 - u - v
@@ -137,7 +140,10 @@ class Scene:
         x_w = origin + hits.t[idx, None] * dirs_w[idx]
         m = self.maps.sample(uv)
         x_c = x_w @ R.T + tr
-        vis = self._visibility(x_w + 2e-5 * n_geo, R, tr, exact_shadows)
+        if shadows:
+            vis = self._visibility(x_w + 2e-5 * n_geo, R, tr, exact_shadows)
+        else:
+            vis = np.ones((len(idx), *self.emitter_points.shape[:2]))
 
         n_c, t_c, alpha = m["normal"] @ R.T, m["tangent"] @ R.T, m["roughness"]
         rho_d, rho_s = m["diffuse_albedo"], m["specular_albedo"]

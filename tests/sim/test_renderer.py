@@ -43,3 +43,22 @@ def test_rendered_flat_patch_matches_the_physics_core():
     got = lin[rows, cols]
     rel = np.abs(got - ref) / np.maximum(ref, 1e-3)
     assert np.median(rel) < 1e-4 and rel.max() < 2e-3  # float32 rendering vs float64 reference
+
+
+def test_without_shadows_every_emitter_lights_what_it_faces():
+    from ntp_engine.sim.gallery import object_asset
+
+    mesh, maps, _ = object_asset("knot", 32)  # self-occlusion everywhere
+    dev = load_scanner()
+    scene = Scene(mesh, maps, dev, clusters=8)
+    cam = resampled(dev, 0.05)
+    pose = trajectory(scene.center, dev, ScanConfig(views=3), np.random.default_rng(2))[1]
+    shadowed, info = scene.render_linear(pose, cam)
+    bare, _ = scene.render_linear(pose, cam, shadows=False)
+    obj = info["geom"].reshape(cam.height, cam.width) == 0
+    assert obj.sum() > 100
+    assert (bare[obj] >= shadowed[obj] - 1e-12).all()  # light only added
+    assert (bare[obj].sum(-1) > 1.01 * shadowed[obj].sum(-1)).mean() > 0.01  # the knot shadows itself
+    flat = Scene(flat_patch(), maps, dev, clusters=8)  # nothing to shadow: the same picture
+    p = trajectory(flat.center, dev, ScanConfig(views=3), np.random.default_rng(2))[1]
+    assert np.allclose(flat.render_linear(p, cam)[0], flat.render_linear(p, cam, shadows=False)[0])
