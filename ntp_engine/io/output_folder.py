@@ -34,6 +34,7 @@ except ImportError:  # Windows: no advisory locks (documented above)
 
 MARKER = ".ntp"
 REPORT = "report.json"
+PAGE = "index.html"  # the result page (pipeline.result_page): it shows one result, so a new one removes it
 # file systems without hard links answer os.link with one of these
 _NO_HARD_LINKS = (errno.EPERM, errno.EOPNOTSUPP, errno.ENOSYS, errno.EMLINK, errno.EXDEV)
 # cache: a stage cache kept apart (--cache); collection: ntp batch's folder of results
@@ -153,8 +154,10 @@ def is_complete(result: Path) -> bool:
 def publish(staging: Path, out: Path, report_json: str) -> None:
     """Move every file of ``staging`` to the same place under ``out``, then write ``report.json``
     (the completion marker) and remove ``staging``. The old report goes first, so a run killed
-    between two moves leaves a folder that says it is incomplete, never a mix that looks finished."""
+    between two moves leaves a folder that says it is incomplete, never a mix that looks finished.
+    A result page of the old result goes too (``ntp view`` writes the new one)."""
     (out / REPORT).unlink(missing_ok=True)
+    (out / PAGE).unlink(missing_ok=True)
     for src in sorted(p for p in staging.rglob("*") if p.is_file()):
         dst = out / src.relative_to(staging)
         dst.parent.mkdir(parents=True, exist_ok=True)

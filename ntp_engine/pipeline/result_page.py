@@ -24,11 +24,11 @@ from ..io.atomic import write_text_atomic
 from ..io.errors import NtpInputError
 from ..io.images import read_image
 from ..io.mesh import load_mesh
+from ..io.output_folder import PAGE as PAGE_FILE
 from ..io.output_folder import REPORT as REPORT_FILE
 from ..io.texels import rasterize
 from .coverage_layers import LAYERS, ramp_colours
 
-PAGE_FILE = "index.html"
 VIEWER_BUNDLE = Path(__file__).resolve().parent / "web" / "dist" / "viewer.js"
 MAP_PREVIEWS = (  # previews/ file, caption (result.write_result's display scales)
     ("diffuse_albedo.png", "diffuse albedo ρd (sRGB)"),

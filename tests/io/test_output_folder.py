@@ -95,6 +95,7 @@ def test_publish_writes_the_report_last(tmp_path, monkeypatch):
         (staging / name).write_text("new")
         (out / name).write_text("old")
     (out / "report.json").write_text("{}")
+    (out / "index.html").write_text("the old result's page")
     assert is_complete(out)
     moves = []
 
