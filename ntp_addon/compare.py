@@ -102,16 +102,17 @@ def run(
     samples: int = 64,
     work: Path | None = None,
     save_png: bool = False,
+    require_report: bool = True,
 ) -> dict:
-    """SSIM/PSNR of both materials' Cycles renders against the engine's, per view, and seconds per render."""
     """Render the result with both materials in Cycles and with the engine from ``views`` novel
-    views/lights; SSIM/PSNR per variant and seconds per Cycles render."""
+    views/lights; SSIM/PSNR per variant and seconds per Cycles render. ``require_report=False``
+    for a folder of maps that is not a pipeline result (true maps)."""
     import tempfile
 
     result = Path(result)
     bpy.ops.wm.read_factory_settings(use_empty=True)
     obj = material.import_result_mesh(result)
-    principled, accurate = material.build_materials(result, obj)
+    principled, accurate = material.build_materials(result, obj, require_report=require_report)
     cam = point_device(scale)
     rows = {"principled": [], "accurate": []}
     seconds = {"principled": [], "accurate": []}

@@ -475,6 +475,15 @@ def test_cycles_render_agrees_with_the_engine(demo_result):
     assert r["principled"]["ssim"] > 0.75
 
 
+def test_the_blender_bench_runs_on_the_demos_true_maps(tmp_path):
+    """``ntp bench blender`` builds its materials from the demo's true maps, which have no
+    report.json (they are not a pipeline result): it refused them once."""
+    from ntp_addon import bench as addon_bench
+
+    out = addon_bench.run(views=1, scale=0.05, samples=1, json_path=tmp_path / "b.json")
+    assert out["accurate"]["ssim"] > 0 and out["principled"]["ssim"] > 0 and (tmp_path / "b.json").is_file()
+
+
 def test_reconstruct_progress_is_read_from_the_engines_structured_channel(tmp_path):
     """The add-on reads what the engine's Progress writes (the same file a child process appends to)."""
     from ntp_addon.operators import progress_status
