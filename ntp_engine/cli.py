@@ -27,6 +27,7 @@ from .bench import (
 )
 from .bench import virtual_scan as virtual_scan_bench
 from .io.arguments import OneLineParser, bound_numbers, float_in, int_in
+from .io.blender_process import GLB_HOWTO
 from .io.errors import NtpInputError, error_line
 from .io.progress import add_progress_arguments, progress_from_args
 from .io.signals import Terminated, terminate_as_interrupt
@@ -381,9 +382,7 @@ def _add_view(sub: Subcommands) -> None:
     """``ntp view``'s options and handler."""
     v = sub.add_parser("view", help="write RESULT/index.html (the asset in 3D, maps, coverage, numbers) and open it")
     v.add_argument("result", type=Path, help="result folder")
-    v.add_argument(
-        "--glb", type=Path, default=None, help="the asset; python -m ntp_addon.batch RESULT --gltf A.glb makes one"
-    )
+    v.add_argument("--glb", type=Path, default=None, help=f"the asset; {GLB_HOWTO} makes one")
     v.add_argument("--no-open", action="store_true", help="write the page only (headless machines, scripts)")
     v.set_defaults(func=_view)
 

@@ -1,5 +1,6 @@
 """The `ntp` command line as a user runs it (a real subprocess)."""
 
+import base64
 import json
 import subprocess
 import sys
@@ -9,6 +10,7 @@ import pytest
 
 from ntp_engine.io.assets import DEVICES_DIR
 from ntp_engine.io.images import read_image
+from ntp_engine.pipeline.result_page import VIEWER_BUNDLE
 from ntp_engine.scanner.device_file import DEFAULT_DEVICE
 
 
@@ -39,6 +41,15 @@ def test_demo_runs_end_to_end_and_reports_errors(tmp_path):
     assert summary["blender"]["blend"].endswith("asset.blend") and (d / "asset.glb").is_file()  # bpy is installed
     relit = read_image(d / "relit" / "relit_0.png")
     assert relit.shape[1] > relit.shape[0] and np.isfinite(relit).all()  # truth | reconstruction
+    page = d / "result" / "index.html"  # the result page, with the .glb in it (where npm built the viewer)
+    assert summary["page"] == str(page) and page.is_file()
+    if VIEWER_BUNDLE.is_file():
+        glb = page.read_text().split('"glb": "', 1)[1].split('"', 1)[0]
+        assert base64.b64decode(glb) == (d / "asset.glb").read_bytes()
+    view = ntp("view", str(d / "result"), "--glb", str(d / "asset.glb"), "--no-open")
+    assert view.returncode == 0 and view.stdout.strip() == str(page), view.stderr
+    bad = ntp("view", str(d), "--no-open")  # the demo folder, not a result
+    assert bad.returncode == 2 and len(bad.stderr.strip().splitlines()) == 1 and "not an ntp result" in bad.stderr
     # a second run reuses the scan and every cached stage
     again = ntp(
         "demo",

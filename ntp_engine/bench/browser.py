@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 from scipy.ndimage import binary_erosion
 
+from ..io.blender_process import GLB_HOWTO
 from ..io.errors import NtpInputError
 from ..io.images import write_png
 from ..io.maps import SVBRDFMaps
@@ -183,9 +184,7 @@ def browser_check(
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """``ntp bench browser``'s options."""
     parser.add_argument("result", type=Path, help="a result folder")
-    parser.add_argument(
-        "--glb", type=Path, required=True, help="the asset (python -m ntp_addon.batch RESULT --gltf A.glb)"
-    )
+    parser.add_argument("--glb", type=Path, required=True, help=f"the asset ({GLB_HOWTO})")
     parser.add_argument("--views", type=int, default=2)
     parser.add_argument("--scale", type=float, default=0.25, help="of the point-light device's 2448x2048 image")
     parser.add_argument("--out", type=Path, default=None, help="a folder for the side-by-side PNGs")

@@ -30,3 +30,7 @@ def blender_command(script: str, *args: str) -> list[str]:
     if script not in BLENDER_SCRIPTS:
         raise ValueError(f"no Blender script {script!r} (known: {', '.join(BLENDER_SCRIPTS)})")
     return [sys.executable, "-m", BLENDER_SCRIPTS[script], *args]
+
+
+# what a user types to make a result's .glb (help texts and the result page say it)
+GLB_HOWTO = f"python -m {BLENDER_SCRIPTS['batch']} RESULT --gltf A.glb"

@@ -21,6 +21,7 @@ import numpy as np
 from PIL import Image
 
 from ..io.atomic import write_text_atomic
+from ..io.blender_process import GLB_HOWTO
 from ..io.errors import NtpInputError
 from ..io.images import read_image
 from ..io.mesh import load_mesh
@@ -143,7 +144,7 @@ def page_html(result: Path, glb: Path | None, bundle: Path = VIEWER_BUNDLE) -> s
         parts.append(f"<script>{script}</script>")
     elif glb is None:
         parts.append(
-            '<p class="note">No asset: make one with <code>python -m ntp_addon.batch RESULT --gltf A.glb</code> '
+            f'<p class="note">No asset: make one with <code>{GLB_HOWTO}</code> '
             "(needs bpy), then <code>ntp view RESULT --glb A.glb</code>.</p>"
         )
     else:
