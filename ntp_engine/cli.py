@@ -132,7 +132,8 @@ def _alignment_note(reg: dict) -> str:
     ph, conf = reg["photometric"], reg["confidence"]
     margin = "no rival azimuth" if ph["margin"] is None else f"azimuth margin {ph['margin']:.2f}"
     forced = " (FORCED: the photos did not confirm it)" if conf.get("forced") else ""
-    return f", registration confirmed by the photos: sharpness {ph['sharpness']:.2f}, {margin}{forced}"
+    symmetry = f"; the mesh is {conf['symmetry']}" if conf.get("symmetry") else ""
+    return f", registration confirmed by the photos: sharpness {ph['sharpness']:.2f}, {margin}{forced}{symmetry}"
 
 
 # ------------------------------------------------------------------------------------ handlers

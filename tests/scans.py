@@ -43,3 +43,17 @@ def uniform_maps(rd, rs, ax: float, ay: float, res: int = 4) -> SVBRDFMaps:
         return np.broadcast_to(np.asarray(val, float), (res, res, len(val))).copy()
 
     return SVBRDFMaps(full(rd), full(rs), full([0, 0, 1.0]), full([1.0, 0, 0]), full([ax, ay]))
+
+
+def hemisphere(radius: float = 0.05, n_phi: int = 96, n_theta: int = 24) -> Mesh:
+    """A hemisphere standing on z = 0 with UVs (azimuth, polar angle): the same from every azimuth."""
+    phi = np.linspace(0, 2 * np.pi, n_phi + 1)
+    theta = np.linspace(0, np.pi / 2 * 0.999, n_theta + 1)
+    P, T = np.meshgrid(phi, theta)
+    v = np.stack([radius * np.sin(T) * np.cos(P), radius * np.sin(T) * np.sin(P), radius * np.cos(T)], -1)
+    uv = np.stack([P / (2 * np.pi), T / (np.pi / 2)], -1).reshape(-1, 2)
+    idx = np.arange(v.shape[0] * v.shape[1]).reshape(v.shape[:2])
+    a, b, c, d = idx[:-1, :-1], idx[:-1, 1:], idx[1:, 1:], idx[1:, :-1]
+    f = np.concatenate([np.stack([a, c, b], -1).reshape(-1, 3), np.stack([a, d, c], -1).reshape(-1, 3)])
+    v = v.reshape(-1, 3)
+    return Mesh(v, f, uv, smooth_normals(v, f))

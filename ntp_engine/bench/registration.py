@@ -27,11 +27,11 @@ from ..io.output_folder import claim
 from ..io.progress import QUIET, Progress, add_progress_arguments, progress_from_args
 from ..register.check import register_to_mesh
 from ..register.colmap_model import model_files, read_colmap_model
-from ..register.refusal import named_rival, refusal, refusal_kind
+from ..register.refusal import named_rival, refusal, refusal_kind, symmetry_note
 from ..register.sfm import SfmResult, structure_from_motion
 from ..scanner.local_frame import pose_to_world
 from ..scanner.scan_folder import load_poses, load_scan
-from ..sim.evaluate import pose_error
+from ..sim.evaluate import pose_error_modulo
 from ..sim.gallery import build_asset, object_set
 from . import gallery as gallery_bench
 from .gallery import DEFAULT, GallerySettings, scan_folder, scan_object
@@ -100,11 +100,17 @@ def run(
                     def world(a, reg=reg, names=names, placed=placed):  # the check's frame is the scan's local one
                         return {n: pose_to_world(a.camera_from_mesh(reg.poses[n]), placed.origin) for n in names}
 
-                    icp = pose_error(world(al), truth)
-                    err = pose_error(world(check.alignment), truth)
+                    # errors modulo the mesh's symmetries: a turned placement of a symmetric mesh is the same asset
+                    mesh = placed.mesh
+                    centre = (mesh.vertices.min(0) + mesh.vertices.max(0)) / 2 + placed.origin
+                    icp = pose_error_modulo(world(al), truth, centre, check.equivalent_turns)
+                    err = pose_error_modulo(world(check.alignment), truth, centre, check.equivalent_turns)
                     why = refusal(check)
                     # where the truth is among the candidates the photos compared (coarse refinement)
-                    near = [pose_error(world(a), truth)["rotation_median_deg"] for a in check.trials]
+                    near = [
+                        pose_error_modulo(world(a), truth, centre, check.equivalent_turns)["rotation_median_deg"]
+                        for a in check.trials
+                    ]
                     rival = named_rival(check.candidates)
                     row.update(
                         registered=len(names),
@@ -127,6 +133,9 @@ def run(
                         rival_mesh_turned_mm=check.candidates[rival]["mesh_turned_mm"] if rival is not None else None,
                         symmetry_turn_deg=check.symmetry[0] if np.isfinite(check.symmetry[0]) else None,
                         symmetry_mm=check.symmetry[1] if np.isfinite(check.symmetry[1]) else None,
+                        equivalent_turns=check.equivalent_turns,
+                        symmetry=symmetry_note(check),
+                        truth_turn_deg=err["symmetry_turn_deg"],
                         kind=refusal_kind(check) or "accepted",
                         height_from_photos=check.height_from_photos,
                         pixel_mm=check.pixel_mm,
@@ -150,21 +159,13 @@ NEAR_DEG = 5.0  # a candidate this close (rotation median) to the truth holds it
 
 
 def _diagnosis(row: dict) -> str:
-    """Whether a row's verdict is right: a right registration accepted, a wrong one refused — and
-    whether the cause the refusal names holds the truth (the symmetric turn, the rival azimuth)."""
+    """Whether a row's verdict is right (modulo the mesh's symmetries): a right registration
+    accepted, a wrong one refused — and whether the rival an ambiguity names holds the truth."""
     kind = row["kind"]
     if kind == "accepted":
         return "right" if row["right"] else "WRONG ACCEPTED"
     if row["right"]:
         return f"RIGHT REFUSED ({kind})"
-    if kind == "symmetric":
-        if row["rotation_deg"] <= NEAR_DEG:
-            where = f"near the chosen ({row['rotation_deg']:.1f} deg)"
-        elif abs(row["rotation_deg"] - abs(row["symmetry_turn_deg"] or 0.0)) <= NEAR_DEG:
-            where = "at the symmetric turn"
-        else:
-            where = "elsewhere"
-        return f"wrong, refused: symmetric; truth {where}"
     if kind == "ambiguous":
         near = row["candidate_rotation_deg"]
         at = [
@@ -190,7 +191,7 @@ def _table(rows: list[dict]) -> str:
         "refined mm / deg",
         "sharpness",
         "photo margin",
-        "mesh symmetry deg / mm",
+        "mesh symmetry deg / mm (equivalent placements)",
         "right",
         "accepted",
         "diagnosis",
@@ -227,7 +228,7 @@ def _table(rows: list[dict]) -> str:
                 f"{r['centre_mm']:.2f} / {r['rotation_deg']:.2f}",
                 f"{r['sharpness']:.2f}",
                 photo_margin,
-                "-" if r["symmetry_mm"] is None else f"{r['symmetry_turn_deg']:.0f} / {r['symmetry_mm']:.2f}",
+                _symmetry_cell(r),
                 "yes" if r["right"] else "NO",
                 "yes" if r["accepted"] else "refused",
                 r["diagnosis"],
@@ -240,6 +241,15 @@ def _table(rows: list[dict]) -> str:
     if len(sets) > 1:  # the tuning set's outcome and the validation set's, side by side
         lines += [_summary([r for r in rows if r.get("set", "tune") == s], f"{s}: ") for s in sets]
     return "\n".join(lines) + "\n"
+
+
+def _symmetry_cell(r: dict) -> str:
+    """The mesh's nearest symmetry (turn deg / mm) and how many placements the photos cannot tell apart."""
+    if r.get("equivalent_turns", []) is None:
+        return "every turn"
+    near = "-" if r["symmetry_mm"] is None else f"{r['symmetry_turn_deg']:.0f} / {r['symmetry_mm']:.2f}"
+    same = len(r.get("equivalent_turns") or [])
+    return f"{near} ({same + 1} placements)" if same else near
 
 
 def _summary(rows: list[dict], prefix: str) -> str:

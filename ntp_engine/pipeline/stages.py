@@ -51,7 +51,7 @@ from ..refine.settings import RefineSettings
 from ..refine.support_light import SupportAlbedo, SupportScene, estimate_support_albedo, exposed
 from ..register.check import register_to_mesh
 from ..register.colmap_model import model_files, read_colmap_model
-from ..register.refusal import outline_picture, refusal
+from ..register.refusal import outline_picture, refusal, symmetry_note
 from ..register.settings import TUNING as REGISTRATION_TUNING
 from ..register.sfm import structure_from_motion
 from ..scanner import camera
@@ -248,6 +248,7 @@ def _register_stage(
                     "confidence": {
                         "accepted": why is None,
                         "refusal": why,
+                        "symmetry": symmetry_note(check),
                         "min_sharpness": REGISTRATION_TUNING.refusal.min_sharpness,
                         "min_margin": REGISTRATION_TUNING.refusal.min_margin,
                     },

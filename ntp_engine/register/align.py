@@ -357,26 +357,66 @@ def turned_distance(mesh: Mesh, centre: np.ndarray, turns_deg: np.ndarray, count
     return np.array(out)
 
 
-def mesh_symmetry(mesh: Mesh, centre: np.ndarray) -> tuple[float, float]:
-    """The turn about the vertical through ``centre`` (degrees, more than ``TUNING.align.ambiguous_deg`` from 0)
-    under which the mesh lies closest to itself, and that distance (metres, ``turned_distance``):
-    the lowest local minimum of the distance over the whole circle, refined. A box gives (180, ~0),
-    a body of revolution ~0 everywhere, a round but asymmetric mesh no local minimum near 0 (its
-    distance only grows from the zero turn): then (nan, inf)."""
+def symmetry_profile(mesh: Mesh, centre: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``turned_distance`` over the whole circle: turns (degrees, every
+    ``TUNING.align.symmetry_step_deg`` from -180) and distances (metres), ``(K,)`` each."""
     turns = np.arange(-180.0, 180.0, TUNING.align.symmetry_step_deg)
-    d = turned_distance(mesh, centre, turns, count=TUNING.align.symmetry_samples)
-    lowest = (d <= np.roll(d, 1)) & (d <= np.roll(d, -1)) & (np.abs(turns) > TUNING.align.ambiguous_deg)
-    if not lowest.any():
-        return float("nan"), float("inf")
-    i = int(np.argmin(np.where(lowest, d, np.inf)))
+    return turns, turned_distance(mesh, centre, turns, count=TUNING.align.symmetry_samples)
+
+
+def _refined_minimum(mesh: Mesh, centre: np.ndarray, turn: float, dist: float) -> tuple[float, float]:
+    """A grid minimum of the profile at ``turn`` (``dist`` m) refined to 0.05 deg; (deg in [-180, 180), m)."""
+    step = TUNING.align.symmetry_step_deg
     best = minimize_scalar(
         lambda a: turned_distance(mesh, centre, np.array([a]), count=TUNING.align.symmetry_samples)[0],
-        bounds=(turns[i] - TUNING.align.symmetry_step_deg, turns[i] + TUNING.align.symmetry_step_deg),
+        bounds=(turn - step, turn + step),
         method="bounded",
         options={"xatol": 0.05},
     )
-    turn, dist = (float(best.x), float(best.fun)) if best.fun < d[i] else (float(turns[i]), float(d[i]))
+    turn, dist = (float(best.x), float(best.fun)) if best.fun < dist else (turn, dist)
     return (turn + 180.0) % 360.0 - 180.0, dist
+
+
+def _local_minima(turns: np.ndarray, dist: np.ndarray) -> np.ndarray:
+    """Which samples of a circular profile are local minima more than ``TUNING.align.ambiguous_deg`` from 0."""
+    return (dist <= np.roll(dist, 1)) & (dist <= np.roll(dist, -1)) & (np.abs(turns) > TUNING.align.ambiguous_deg)
+
+
+def mesh_symmetry(
+    mesh: Mesh, centre: np.ndarray, profile: tuple[np.ndarray, np.ndarray] | None = None
+) -> tuple[float, float]:
+    """The turn about the vertical through ``centre`` (degrees, more than ``TUNING.align.ambiguous_deg`` from 0)
+    under which the mesh lies closest to itself, and that distance (metres, ``turned_distance``):
+    the lowest local minimum of the distance over the whole circle (``profile``: ``symmetry_profile``'s,
+    computed when not given), refined. A box gives (180, ~0), a body of revolution ~0 everywhere, a
+    round but asymmetric mesh no local minimum near 0 (its distance only grows from the zero turn):
+    then (nan, inf)."""
+    turns, d = profile if profile is not None else symmetry_profile(mesh, centre)
+    lowest = _local_minima(turns, d)
+    if not lowest.any():
+        return float("nan"), float("inf")
+    i = int(np.argmin(np.where(lowest, d, np.inf)))
+    return _refined_minimum(mesh, centre, float(turns[i]), float(d[i]))
+
+
+def equivalent_turns(
+    mesh: Mesh, centre: np.ndarray, tolerance_m: float, profile: tuple[np.ndarray, np.ndarray] | None = None
+) -> list[float] | None:
+    """The turns about the vertical through ``centre`` (degrees, sorted, 0 left out) that put the mesh
+    within ``tolerance_m`` of itself — placements no photo can tell from the chosen one, and that
+    give the same asset: the profile's local minima under the tolerance, refined. ``None`` when every
+    sampled turn more than ``TUNING.align.ambiguous_deg`` from 0 does (a body of revolution: every
+    azimuth is equivalent); ``[]`` for no symmetry."""
+    turns, d = profile if profile is not None else symmetry_profile(mesh, centre)
+    away = np.abs(turns) > TUNING.align.ambiguous_deg
+    if (d[away] <= tolerance_m).all():
+        return None
+    out = []
+    for i in np.nonzero(_local_minima(turns, d) & (d <= tolerance_m))[0]:
+        turn, dist = _refined_minimum(mesh, centre, float(turns[i]), float(d[i]))
+        if dist <= tolerance_m:
+            out.append(turn)
+    return sorted(out)
 
 
 def azimuth_apart(a_deg: float, b_deg: float) -> float:

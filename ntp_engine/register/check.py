@@ -19,7 +19,15 @@ from ..io.mesh import Mesh, load_mesh
 from ..io.progress import QUIET, Progress
 from ..scanner.local_frame import local_origin, moved
 from ..scanner.scan_folder import Scan, read_photo
-from .align import Alignment, align_to_mesh, azimuth_apart, mesh_symmetry, turned_distance
+from .align import (
+    Alignment,
+    align_to_mesh,
+    azimuth_apart,
+    equivalent_turns,
+    mesh_symmetry,
+    symmetry_profile,
+    turned_distance,
+)
 from .photo_stack import PhotoStack
 from .photometric import (
     Correction,
@@ -42,9 +50,12 @@ class PhotoCheck:
     (relative) when it is moved ``TUNING.photometric.sharpness_shift_px`` along each mesh axis — a right registration
     is a sharp minimum, a wrong one sits on a plateau of random matches; ``margin``: how much worse
     (relative cost) the best other azimuth fits the photos after the same refinement (inf: none);
-    ``candidates``: per candidate its azimuth change from the chosen one, coarse cost and how far
-    the mesh turned so lies from itself (mm: near 0 for a symmetry of the mesh); ``profile``: the
-    sweep's (turn from the point cloud's alignment in degrees, cost) over the whole circle."""
+    ``candidates``: per candidate its azimuth change from the chosen one, coarse cost, how far
+    the mesh turned so lies from itself (mm) and whether that is a symmetry of the mesh
+    (``equivalent``: within ``symmetry_tolerance_mm``, the same asset — not a rival); ``profile``:
+    the sweep's (turn from the point cloud's alignment in degrees, cost) over the whole circle;
+    ``equivalent_turns``: the mesh's symmetries about the vertical (``align.equivalent_turns``: None
+    for every turn, a body of revolution)."""
 
     alignment: Alignment
     fit: PhotometricFit
@@ -60,6 +71,7 @@ class PhotoCheck:
     symmetry_tolerance_mm: float = 0.0
     height_from_photos: bool = False  # on a support: the refinement moved the height (``frees_height``)
     pixel_mm: float = float("nan")  # a working-size pixel at the object's distance
+    equivalent_turns: list[float] | None = field(default_factory=list)
 
     def to_json(self) -> dict:
         """The check as JSON values (``registration.json`` -> ``photometric``)."""
@@ -74,6 +86,9 @@ class PhotoCheck:
                 "turn_deg": self.symmetry[0] if np.isfinite(self.symmetry[0]) else None,
                 "turned_mm": self.symmetry[1] if np.isfinite(self.symmetry[1]) else None,
                 "invisible_below_mm": self.symmetry_tolerance_mm,
+                # the placements no photo can tell apart, which give the same asset (None: every turn)
+                "equivalent_turns_deg": self.equivalent_turns,
+                "equivalent_placements": None if self.equivalent_turns is None else 1 + len(self.equivalent_turns),
             },
             "height_from_photos": self.height_from_photos,
             "pixel_mm": self.pixel_mm if np.isfinite(self.pixel_mm) else None,
@@ -167,10 +182,17 @@ def check_registration(
         best = trials[chosen][0]
         yaw = [float(np.degrees(np.arctan2(a.rotation[1, 0], a.rotation[0, 0]))) for a, _ in trials]
         change = [(y - yaw[chosen] + 180.0) % 360.0 - 180.0 for y in yaw]
-        # candidates the refinement brought into the chosen one's azimuth are the same answer, not rivals
-        others = [fit.cost for c, (_, fit) in zip(change, trials, strict=True) if abs(c) > TUNING.align.ambiguous_deg]
-        margin = (min(others) - trials[chosen][1].cost) / trials[chosen][1].cost if others else float("inf")
         pixel_m = object_distance(placed(best), judge.centre) / photos.scanner.fx
+        tolerance_m = TUNING.check.symmetry_px * pixel_m  # closer than this, no photo sees the difference
+        apart = turned_distance(mesh, judge.centre, np.array(change))
+        # candidates the refinement brought into the chosen one's azimuth are the same answer, and those a
+        # symmetry of the mesh relates to it the same asset: neither is a rival
+        others = [
+            fit.cost
+            for c, (_, fit), d in zip(change, trials, apart, strict=True)
+            if abs(c) > TUNING.align.ambiguous_deg and d > tolerance_m
+        ]
+        margin = (min(others) - trials[chosen][1].cost) / trials[chosen][1].cost if others else float("inf")
         free_height = support_z is not None and frees_height(pixel_m)
         finisher = PhotometricRegistration(
             mesh,
@@ -185,15 +207,18 @@ def check_registration(
         best = corrected(best, g)
         sharpness = finisher.sharpness(placed(best), TUNING.photometric.sharpness_sigma_px)
         steps.update()
-        apart = turned_distance(mesh, judge.centre, np.array(change))
         candidates = [
-            {"azimuth_change_deg": c, "coarse_cost": f.cost, "mesh_turned_mm": 1e3 * d}
+            {
+                "azimuth_change_deg": c,
+                "coarse_cost": f.cost,
+                "mesh_turned_mm": 1e3 * d,
+                "equivalent": bool(d <= tolerance_m),  # the chosen placement itself, or one a symmetry relates
+            }
             for c, (_, f), d in zip(change, trials, apart, strict=True)
         ]
         profile = [(float(t), float(c)) for t, c in zip(turns, costs, strict=True)]
-        turn, turned_m = mesh_symmetry(mesh, judge.centre)
-        final = placed(best)
-        distance = object_distance(final, judge.centre)
+        own = symmetry_profile(mesh, judge.centre)
+        turn, turned_m = mesh_symmetry(mesh, judge.centre, own)
         return PhotoCheck(
             best,
             fit,
@@ -204,9 +229,10 @@ def check_registration(
             profile,
             [a for a, _ in trials],
             (turn, 1e3 * turned_m),
-            1e3 * TUNING.check.symmetry_px * distance / photos.scanner.fx,
+            1e3 * tolerance_m,
             free_height,
             1e3 * pixel_m,
+            equivalent_turns(mesh, judge.centre, tolerance_m, own),
         )
 
 

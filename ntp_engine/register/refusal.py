@@ -1,7 +1,8 @@
-"""When a registration is refused: the photos do not confirm it (its cost is not sharp enough), a
-rival azimuth fits them nearly as well, or the mesh is symmetric so that no photo can tell two
-placements apart (``refusal``); and the picture that shows a user the mesh's outline over a few
-photos (``outline_picture``).
+"""When a registration is refused: the photos do not confirm it (its cost is not sharp enough) or a
+rival azimuth fits them nearly as well (``refusal``); what a symmetry of the mesh means for it
+(``symmetry_note``: placements a symmetry relates give the same asset, so they are accepted, said,
+never rivals); and the picture that shows a user the mesh's outline over a few photos
+(``outline_picture``).
 """
 
 from __future__ import annotations
@@ -18,18 +19,20 @@ from .settings import TUNING
 
 def named_rival(candidates: list[dict]) -> int | None:
     """The candidate an ambiguity names: the best-fitting one (coarse cost) more than
-    ``TUNING.align.ambiguous_deg`` from the chosen; None when there is none."""
-    rivals = [i for i, c in enumerate(candidates) if abs(c["azimuth_change_deg"]) > TUNING.align.ambiguous_deg]
+    ``TUNING.align.ambiguous_deg`` from the chosen and not a symmetry of the mesh (``equivalent``);
+    None when there is none."""
+    rivals = [
+        i
+        for i, c in enumerate(candidates)
+        if abs(c["azimuth_change_deg"]) > TUNING.align.ambiguous_deg and not c.get("equivalent", False)
+    ]
     return min(rivals, key=lambda i: candidates[i]["coarse_cost"]) if rivals else None
 
 
 def refusal_kind(check: PhotoCheck) -> str | None:
-    """Which test refuses a registration — ``symmetric``, ``unconfirmed`` or ``ambiguous``, in that
-    order — or None when the photos confirm it. A symmetry of the mesh comes first: every placement it
-    relates is consistent with the photos (each surface point sees one surface point in every
-    photo), so no cost of them can choose."""
-    if check.symmetry[1] <= check.symmetry_tolerance_mm:
-        return "symmetric"
+    """Which test refuses a registration — ``unconfirmed`` or ``ambiguous``, in that order — or None
+    when the photos confirm it. A symmetry of the mesh refuses nothing: the placements it relates put
+    every surface point where the photos see one (no cost can choose) and give the same asset."""
     if check.fit.points < TUNING.photometric.min_views or check.sharpness < TUNING.refusal.min_sharpness:
         return "unconfirmed"
     if check.margin < TUNING.refusal.min_margin:
@@ -37,16 +40,22 @@ def refusal_kind(check: PhotoCheck) -> str | None:
     return None
 
 
+def symmetry_note(check: PhotoCheck) -> str | None:
+    """What the mesh's symmetry about the vertical means for the registration (one line), or None
+    when it has none: e.g. "symmetric under a 180 deg turn: one of 2 equivalent placements"."""
+    turns = check.equivalent_turns
+    if turns is None:
+        return "a body of revolution: every turn about the vertical is an equivalent placement (the same asset)"
+    if not turns:
+        return None
+    named = ", ".join(f"{abs(t) if abs(abs(t) - 180.0) < 0.5 else t:.0f}" for t in turns)
+    return f"symmetric under a {named} deg turn: one of {len(turns) + 1} equivalent placements (the same asset)"
+
+
 def refusal(check: PhotoCheck) -> str | None:
     """Why the photos do not confirm a registration (one line, ``refusal_kind``'s cause), or None
     when they do."""
     kind = refusal_kind(check)
-    if kind == "symmetric":
-        turn, turned_mm = check.symmetry
-        return (
-            f"the mesh is symmetric under a turn of {turn:.0f} deg about the vertical (turned, it lies "
-            f"{turned_mm:.2f} mm from itself): no photo can tell the two placements apart"
-        )
     if kind == "unconfirmed":
         return (
             f"the photos cannot confirm where the mesh is (moved {TUNING.photometric.sharpness_shift_px:g} px it "

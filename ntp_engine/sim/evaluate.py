@@ -388,6 +388,42 @@ def pose_error(poses: dict[str, np.ndarray], truth: dict[str, np.ndarray]) -> di
     }
 
 
+def turned_about(centre: np.ndarray, turn_deg: float) -> np.ndarray:
+    """The 4x4 turn by ``turn_deg`` about the vertical (world z) through ``centre``."""
+    a = np.radians(turn_deg)
+    R = np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]])
+    S = np.eye(4)
+    S[:3, :3], S[:3, 3] = R, centre - R @ centre
+    return S
+
+
+def pose_error_modulo(
+    poses: dict[str, np.ndarray], truth: dict[str, np.ndarray], centre: np.ndarray, turns_deg: list[float] | None
+) -> dict:
+    """``pose_error`` against the truth's nearest placement under the mesh's symmetries: the turns
+    ``turns_deg`` about the vertical through ``centre`` (world), 0 included; ``None``: every turn (a
+    body of revolution; searched to 0.01 deg). A symmetric mesh under a turned placement is the same
+    asset, so the photos' poses are right if they are right for any of them (``P @ S``: the camera
+    sees the turned mesh where it saw the mesh). Adds ``symmetry_turn_deg``, the placement chosen."""
+
+    def err(turn: float) -> dict:
+        S = turned_about(centre, turn)
+        return pose_error(poses, {n: m @ S for n, m in truth.items()})
+
+    if turns_deg is None:
+        grid = np.arange(-180.0, 180.0, 1.0)
+        best = float(grid[np.argmin([err(t).get("rotation_median_deg", np.inf) for t in grid])])
+        for step in (0.1, 0.01):
+            fine = best + np.arange(-10, 11) * step
+            best = float(fine[np.argmin([err(t).get("rotation_median_deg", np.inf) for t in fine])])
+        candidates = [best]
+    else:
+        candidates = [0.0, *turns_deg]
+    scored = [(err(t), t) for t in candidates]
+    out, turn = min(scored, key=lambda e: e[0].get("rotation_median_deg", np.inf))
+    return {**out, "symmetry_turn_deg": turn} if out else {}
+
+
 def similarity_fit(poses: dict[str, np.ndarray], truth: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     """``poses`` (camera-from-world in an arbitrary frame and scale) moved by the similarity that best
     fits their camera centres to the true ones (Umeyama, least squares): what is left of their

@@ -14,9 +14,10 @@ def test_registration_runs_per_seed_and_reuses_the_kept_sfm_model(tmp_path):
     assert (tmp_path / "g" / "sfm" / "dome-engine-s0" / "cameras.bin").is_file()
     assert row["sharpness"] == row["sharpness"] and row["accepted"] in (True, False) and row["seconds_photometric"] > 0
     assert row["accepted"] == (row["refusal"] is None)
-    assert row["kind"] in ("accepted", "symmetric", "unconfirmed", "ambiguous") and row["diagnosis"]
+    assert row["kind"] in ("accepted", "unconfirmed", "ambiguous") and row["diagnosis"]
     assert len(row["candidate_rotation_deg"]) >= 1
     assert row["symmetry_mm"] is None or row["symmetry_mm"] > 0.3  # the dome has no symmetry
+    assert row["equivalent_turns"] == [] and row["symmetry"] is None and row["truth_turn_deg"] == 0.0
     table = (tmp_path / "g" / "registration.md").read_text()
     assert table.count("\n") == 5 and "wrong accepted:" in table and "right refused:" in table
     # a rerun reads the kept model back instead of running SfM again (the registration after it is
@@ -33,10 +34,16 @@ def test_diagnosis_names_wrong_acceptances_and_where_the_truth_was():
     assert registration._diagnosis({**base, "kind": "accepted", "right": True}) == "right"
     assert registration._diagnosis({**base, "kind": "unconfirmed", "right": True}) == "RIGHT REFUSED (unconfirmed)"
     assert "truth at rival (2.0 deg)" in registration._diagnosis({**base, "kind": "ambiguous"})
-    sym = {**base, "kind": "symmetric", "rotation_deg": 179.0, "symmetry_turn_deg": -180.0}
-    assert "truth at the symmetric turn" in registration._diagnosis(sym)
-    assert "elsewhere" in registration._diagnosis({**sym, "rotation_deg": 60.0})
-    assert "truth near the chosen (2.6 deg)" in registration._diagnosis({**sym, "rotation_deg": 2.6})
+    assert registration._diagnosis({**base, "kind": "ambiguous", "candidate_rotation_deg": [9.0, 8.0]}).endswith(
+        "neither"
+    )
+
+
+def test_the_symmetry_cell_counts_equivalent_placements():
+    row = {"symmetry_mm": 0.01, "symmetry_turn_deg": -180.0}
+    assert registration._symmetry_cell({**row, "equivalent_turns": [-180.0]}) == "-180 / 0.01 (2 placements)"
+    assert registration._symmetry_cell({**row, "equivalent_turns": None}) == "every turn"
+    assert registration._symmetry_cell({"symmetry_mm": None, "equivalent_turns": []}) == "-"
 
 
 def test_the_outcome_is_summed_per_set_when_both_ran():

@@ -2,18 +2,20 @@
 
 import numpy as np
 import pytest
+from scans import hemisphere
 
 from ntp_engine.register.align import (
     _AzimuthSearch,
     align_to_mesh,
     convergence_point,
+    equivalent_turns,
     mesh_symmetry,
     ransac_plane,
     surface_samples,
     trim_threshold,
 )
 from ntp_engine.sim.demo_asset import dome_mesh
-from ntp_engine.sim.shapes import blob_mesh, box_mesh
+from ntp_engine.sim.shapes import blob_mesh, box_mesh, vase_mesh
 
 
 def _random_similarity(rng):
@@ -144,3 +146,18 @@ def test_mesh_symmetry_finds_the_half_turn_of_a_box_and_none_on_an_asymmetric_me
     blob = blob_mesh()
     turn, dist = mesh_symmetry(blob, (blob.vertices.min(0) + blob.vertices.max(0)) / 2)
     assert dist > 2e-3  # the nearest it comes to itself is millimetres away
+
+
+@pytest.mark.slow  # measured over 5 s on 2 cores
+def test_equivalent_turns_are_the_meshs_symmetries_every_turn_for_a_body_of_revolution():
+    box = box_mesh(turn_deg=25.0)
+    centre = (box.vertices.min(0) + box.vertices.max(0)) / 2
+    (turn,) = equivalent_turns(box, centre, 2e-4)  # a 9 x 6.5 cm box: the half turn only
+    assert abs(abs(turn) - 180.0) < 0.2
+    blob = blob_mesh()
+    assert equivalent_turns(blob, (blob.vertices.min(0) + blob.vertices.max(0)) / 2, 2e-4) == []
+    cap = hemisphere()  # a body of revolution
+    assert equivalent_turns(cap, np.array([0.0, 0.0, 0.025]), 2e-4) is None
+    vase = vase_mesh()  # a 2% ellipse: symmetric under the half turn only, the quarter turn ~1 mm off
+    vc = (vase.vertices.min(0) + vase.vertices.max(0)) / 2
+    assert [round(abs(t)) for t in equivalent_turns(vase, vc, 2e-4)] == [180]

@@ -287,3 +287,19 @@ def test_specular_error_is_over_texels_with_a_lobe():
     assert errors["log_rho_s"] == 0.0 and errors["log_alpha"] == 0.0 and errors["normal_deg"] == 0.0
     only_matte = {key: v[2:] for key, v in true.items()}
     assert np.isnan(parameter_errors({key: v[2:] for key, v in rec.items()}, only_matte, matte=False)["log_rho_s"])
+
+
+def test_pose_error_modulo_a_symmetry_forgives_the_turn_the_mesh_cannot_show():
+    from ntp_engine.scanner.camera import look_at
+    from ntp_engine.sim.evaluate import pose_error, pose_error_modulo, turned_about
+
+    centre = np.array([0.01, -0.02, 0.03])
+    truth = {f"{k}": look_at(centre + [0.3 * np.cos(k), 0.3 * np.sin(k), 0.2], centre) for k in range(6)}
+    turned = {n: m @ turned_about(centre, 180.0) for n, m in truth.items()}  # the half-turned placement
+    assert pose_error(turned, truth)["rotation_median_deg"] > 90  # wrong, without the symmetry
+    half = pose_error_modulo(turned, truth, centre, [180.0])
+    assert half["rotation_median_deg"] < 1e-6 and half["centre_median_m"] < 1e-9 and half["symmetry_turn_deg"] == 180.0
+    assert pose_error_modulo(turned, truth, centre, [])["rotation_median_deg"] > 90  # no symmetry: no forgiveness
+    odd = {n: m @ turned_about(centre, 37.3) for n, m in truth.items()}  # a body of revolution: any turn
+    every = pose_error_modulo(odd, truth, centre, None)
+    assert every["rotation_median_deg"] < 0.02 and abs(every["symmetry_turn_deg"] - 37.3) < 0.02
