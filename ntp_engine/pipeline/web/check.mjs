@@ -3,10 +3,12 @@
 //
 //   node check.mjs PAGE.html JOB.json OUT_DIR
 //
-// JOB: {"chromium": path, "views": [renderLinear specs], "screenshots": bool}. Writes OUT_DIR/
+// JOB: {"chromium": path, "views": [renderLinear specs], "screenshots": bool, "page_screenshot":
+// bool}. Writes OUT_DIR/
 // result.json: {"console_errors": [...], "page_errors": [...], "views": [{width, height, rgba}]}
 // and, with screenshots, canvas-start.png, canvas-light.png (the light moved by its slider) and
-// canvas-turntable.png (the turntable on for 1 s). Exit 0 when the page loaded, 1 otherwise.
+// canvas-turntable.png (the turntable on for 1 s); with page_screenshot, page.png (the whole
+// page). Exit 0 when the page loaded, 1 otherwise.
 import { createRequire } from 'node:module';
 import fs from 'node:fs';
 import path from 'node:path';
@@ -38,6 +40,7 @@ try {
   await page.waitForFunction(() => window.ntpViewer !== undefined, null, { timeout: 60000 });
   await page.evaluate(() => window.ntpViewer.ready);
   for (const spec of job.views || []) out.views.push(await page.evaluate((s) => window.ntpViewer.renderLinear(s), spec));
+  if (job.page_screenshot) await page.screenshot({ path: path.join(out_dir, 'page.png'), fullPage: true });
   if (job.screenshots) {
     const canvas = page.locator('#ntp-canvas');
     const settle = () => page.evaluate(() => new Promise((r) => requestAnimationFrame(() => requestAnimationFrame(r))));
