@@ -51,8 +51,9 @@ class PhotoCheck:
     is a sharp minimum, a wrong one sits on a plateau of random matches; ``margin``: how much worse
     (relative cost) the best other azimuth fits the photos after the same refinement (inf: none);
     ``candidates``: per candidate its azimuth change from the chosen one, coarse cost, how far
-    the mesh turned so lies from itself (mm) and whether that is a symmetry of the mesh
-    (``equivalent``: within ``symmetry_tolerance_mm``, the same asset — not a rival); ``profile``:
+    the mesh turned so lies from itself (mm) and whether it is the chosen placement up to a
+    symmetry of the mesh (``equivalent``: within ``TUNING.align.ambiguous_deg`` of 0 or of one of
+    ``equivalent_turns`` — the same asset, not a rival); ``profile``:
     the sweep's (turn from the point cloud's alignment in degrees, cost) over the whole circle;
     ``equivalent_turns``: the mesh's symmetries about the vertical (``align.equivalent_turns``: None
     for every turn, a body of revolution)."""
@@ -185,13 +186,15 @@ def check_registration(
         pixel_m = object_distance(placed(best), judge.centre) / photos.scanner.fx
         tolerance_m = TUNING.check.symmetry_px * pixel_m  # closer than this, no photo sees the difference
         apart = turned_distance(mesh, judge.centre, np.array(change))
-        # candidates the refinement brought into the chosen one's azimuth are the same answer, and those a
-        # symmetry of the mesh relates to it the same asset: neither is a rival
-        others = [
-            fit.cost
-            for c, (_, fit), d in zip(change, trials, apart, strict=True)
-            if abs(c) > TUNING.align.ambiguous_deg and d > tolerance_m
+        own = symmetry_profile(mesh, judge.centre)
+        same_turns = equivalent_turns(mesh, judge.centre, tolerance_m, own)
+        # candidates the refinement brought within ambiguous_deg of the chosen one's azimuth are the same
+        # answer, and those it brought as near a symmetry of the mesh the same asset: neither is a rival
+        same = [
+            same_turns is None or any(azimuth_apart(c, t) <= TUNING.align.ambiguous_deg for t in [0.0, *same_turns])
+            for c in change
         ]
+        others = [fit.cost for (_, fit), eq in zip(trials, same, strict=True) if not eq]
         margin = (min(others) - trials[chosen][1].cost) / trials[chosen][1].cost if others else float("inf")
         free_height = support_z is not None and frees_height(pixel_m)
         finisher = PhotometricRegistration(
@@ -212,12 +215,11 @@ def check_registration(
                 "azimuth_change_deg": c,
                 "coarse_cost": f.cost,
                 "mesh_turned_mm": 1e3 * d,
-                "equivalent": bool(d <= tolerance_m),  # the chosen placement itself, or one a symmetry relates
+                "equivalent": bool(eq),  # the chosen placement itself, or one a symmetry relates
             }
-            for c, (_, f), d in zip(change, trials, apart, strict=True)
+            for c, (_, f), d, eq in zip(change, trials, apart, same, strict=True)
         ]
         profile = [(float(t), float(c)) for t, c in zip(turns, costs, strict=True)]
-        own = symmetry_profile(mesh, judge.centre)
         turn, turned_m = mesh_symmetry(mesh, judge.centre, own)
         return PhotoCheck(
             best,
@@ -232,7 +234,7 @@ def check_registration(
             1e3 * tolerance_m,
             free_height,
             1e3 * pixel_m,
-            equivalent_turns(mesh, judge.centre, tolerance_m, own),
+            same_turns,
         )
 
 
