@@ -47,6 +47,9 @@ class TexelCounts:
     # share of the observed texels more anisotropic than Cycles' Principled BSDF draws (10:1;
     # io.viewers): there the .blend's accurate material, not the Principled one, shows the measurement
     beyond_cycles_principled: float | None = None
+    # share of the observed texels whose glTF base colour rho_d / (1 - 0.04 rho_s) passes 1 and is
+    # clipped (io.viewers.base_colour_for_fresnel_mix): there a glTF viewer's diffuse is darker than measured
+    gltf_base_colour_clipped: float | None = None
 
 
 @dataclass

@@ -41,7 +41,7 @@ from ..io.raycast import RayCaster
 from ..io.stage_cache import StageCache, code_version, content_digest, content_key, digest
 from ..io.texels import Texels, rasterize, uv_atlas
 from ..io.threads import configured_threads
-from ..io.viewers import beyond_principled
+from ..io.viewers import base_colour_for_fresnel_mix, beyond_principled
 from ..learn import models
 from ..learn.ragged import RaggedTraces
 from ..physics.emitter_blocks import SHADOW_SPLITS
@@ -414,7 +414,9 @@ def _reconstruct(
         coverage = float(observed.mean()) if len(texels) else 0.0
         flagged = int((fitted.flags != 0).sum())
         beyond = float(beyond_principled(fitted.alpha[observed]).mean()) if observed.any() else 0.0
-        report.texels = TexelCounts(len(texels), int(observed.sum()), coverage, flagged, resolution, beyond)
+        _, clipped = base_colour_for_fresnel_mix(fitted.rho_d[observed], fitted.rho_s[observed])
+        clip_share = float(clipped.mean()) if observed.any() else 0.0
+        report.texels = TexelCounts(len(texels), int(observed.sum()), coverage, flagged, resolution, beyond, clip_share)
         report.model = {"name": str(model_folder), **meta.get("summary", {})}
         report.cached_stages = cache.hits
         report.recomputed_damaged_stages = cache.recomputed

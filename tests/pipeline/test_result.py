@@ -9,7 +9,7 @@ from scans import make_virtual_scan
 from ntp_engine.fit.texel_fit import TexelFit
 from ntp_engine.io.images import read_image
 from ntp_engine.io.maps import SVBRDFMaps, texel_uv
-from ntp_engine.io.viewers import beyond_principled
+from ntp_engine.io.viewers import base_colour_for_fresnel_mix, beyond_principled
 from ntp_engine.pipeline.stages import reconstruct
 from ntp_engine.scanner.scan_folder import load_scan
 
@@ -38,6 +38,9 @@ def test_maps_from_given_poses(small_scan, tmp_path):
     seen = read_image(tmp_path / "rec" / "confidence.exr")[..., 1] > 0
     share = beyond_principled(rec.roughness[seen]).mean()
     assert rep.texels.beyond_cycles_principled == pytest.approx(share, abs=1e-9)
+    # the share whose glTF base colour is clipped, as the maps hold them (rho_d / (1 - 0.04 rho_s) > 1)
+    clipped = base_colour_for_fresnel_mix(rec.diffuse_albedo[seen], rec.specular_albedo[seen])[1].mean()
+    assert rep.texels.gltf_base_colour_clipped == pytest.approx(clipped, abs=1e-9)
     assert json.loads((tmp_path / "rec" / "report.json").read_text())["texels"]["beyond_cycles_principled"] == share
     assert json.loads((tmp_path / "rec" / "material.json").read_text())["maps"]["normal"] == "normal.exr"
     assert (tmp_path / "rec" / "previews" / "normal.png").is_file()
