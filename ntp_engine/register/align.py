@@ -406,7 +406,7 @@ def equivalent_turns(
     within ``tolerance_m`` of itself — placements no photo can tell from the chosen one, and that
     give the same asset: the profile's local minima under the tolerance, refined. ``None`` when every
     sampled turn more than ``TUNING.align.ambiguous_deg`` from 0 does (a body of revolution: every
-    azimuth is equivalent); ``[]`` for no symmetry."""
+    azimuth is equivalent); ``[]`` for no symmetry — or turns that form no group (``is_turn_group``)."""
     turns, d = profile if profile is not None else symmetry_profile(mesh, centre)
     away = np.abs(turns) > TUNING.align.ambiguous_deg
     if (d[away] <= tolerance_m).all():
@@ -416,7 +416,18 @@ def equivalent_turns(
         turn, dist = _refined_minimum(mesh, centre, float(turns[i]), float(d[i]))
         if dist <= tolerance_m:
             out.append(turn)
-    return sorted(out)
+    return sorted(out) if is_turn_group(out) else []
+
+
+def is_turn_group(turns_deg: list[float]) -> bool:
+    """Whether ``turns_deg`` with 0 is closed under composition — as the symmetries of a shape are
+    (a half turn, the quarter turns of a square): t1 + t2 is in the set again, to two grid steps
+    (``TUNING.align.symmetry_step_deg``: the turns are refined from that grid). A mesh that is *nearly*
+    a body of revolution (a wavy profile) lies within the tolerance of itself under scattered turns
+    that form no group: those are no symmetry, and the photos must tell its placements apart."""
+    found = [0.0, *turns_deg]
+    close = 2 * TUNING.align.symmetry_step_deg
+    return all(min(azimuth_apart(a + b, c) for c in found) <= close for a in found for b in found)
 
 
 def azimuth_apart(a_deg: float, b_deg: float) -> float:

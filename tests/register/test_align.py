@@ -9,6 +9,7 @@ from ntp_engine.register.align import (
     align_to_mesh,
     convergence_point,
     equivalent_turns,
+    is_turn_group,
     mesh_symmetry,
     ransac_plane,
     surface_samples,
@@ -161,3 +162,12 @@ def test_equivalent_turns_are_the_meshs_symmetries_every_turn_for_a_body_of_revo
     vase = vase_mesh()  # a 2% ellipse: symmetric under the half turn only, the quarter turn ~1 mm off
     vc = (vase.vertices.min(0) + vase.vertices.max(0)) / 2
     assert [round(abs(t)) for t in equivalent_turns(vase, vc, 2e-4)] == [180]
+
+
+def test_symmetries_form_a_group_scattered_near_misses_do_not():
+    assert is_turn_group([]) and is_turn_group([-180.0]) and is_turn_group([-90.0, 90.0, -180.0])
+    assert is_turn_group([120.3, -119.8])  # a three-fold symmetry, refined to a fraction of a degree
+    # a nearly-revolved wavy profile (revolution-1000 of the validation set): its turned mesh lay
+    # within a quarter pixel of itself at these turns, and at no others
+    assert not is_turn_group([-100.0, -98.0, -96.0, -94.0, -65.0, 47.0, 57.0, 94.0, 97.0, 99.0])
+    assert not is_turn_group([90.0])  # a quarter turn without its inverse and the half turn
