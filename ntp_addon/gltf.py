@@ -37,9 +37,13 @@ def export_glb(obj: bpy.types.Object, mat: bpy.types.Material, path: Path, textu
     relight scene too, and every scene holding it would be a glTF scene with its own node."""
     nodes = {n.label: n for n in mat.node_tree.nodes}
     images = (nodes[material.ROUGHNESS_LABEL].image, nodes[material.ANISOTROPY_LABEL].image)
-    every = {n.image.name: n.image for n in mat.node_tree.nodes if getattr(n, "image", None) is not None}
+    # the images the export changes: the two swapped, or every one when the textures are scaled
+    touched = list(images)
+    if texture_size is not None:
+        every = {n.image.name: n.image for n in mat.node_tree.nodes if getattr(n, "image", None) is not None}
+        touched = list(every.values())
     own = {}
-    for img in every.values():
+    for img in touched:
         pixels = np.empty(len(img.pixels), np.float32)
         img.pixels.foreach_get(pixels)
         own[img.name] = (tuple(img.size), pixels, img.packed_file is not None)
@@ -55,7 +59,7 @@ def export_glb(obj: bpy.types.Object, mat: bpy.types.Material, path: Path, textu
         for img, data in swaps:
             material.set_pixels(img, data)
         if texture_size is not None:
-            for img in every.values():
+            for img in touched:
                 img.scale(texture_size, texture_size)
         bpy.ops.object.select_all(action="DESELECT")
         obj.select_set(True)
@@ -72,10 +76,8 @@ def export_glb(obj: bpy.types.Object, mat: bpy.types.Material, path: Path, textu
             )
     finally:
         obj.data.materials[0] = chosen
-        for img in every.values():
+        for img in touched:
             size, pixels, packed = own[img.name]
-            if img not in images and texture_size is None:
-                continue  # untouched
             if tuple(img.size) != size:
                 img.scale(*size)
             img.pixels.foreach_set(pixels)
