@@ -307,8 +307,9 @@ def _engine_args(context) -> list[str]:
 
 
 class NTP_OT_register_photos(_EngineProcess, bpy.types.Operator):
-    """Camera poses for the scan's photos (its poses file, else structure-from-motion aligned to the
-    mesh) in a background process, then a camera object per photo with the photo as background"""
+    """Camera poses for the scan's photos (its poses file, else the marker board it names, else
+    structure-from-motion; then aligned to the mesh) in a background process, then a camera object
+    per photo with the photo as background"""
 
     bl_idname = "ntp.register_photos"
     bl_label = "Register photos"

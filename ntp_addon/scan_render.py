@@ -8,7 +8,9 @@ above noise_threshold), bounces and seed, and the calibration patch (centre, nor
 in-plane axis, size). The scene: the asset with the ``NTP Accurate`` material built with the
 engine's Fresnel (Diffuse + the engine's GGX lobe with Schlick on w_i.h, bounded, as an OSL node, rendered
 with OSL on the CPU: ``material``, ``schlick_lobe``), the marker backdrop
-(``ntp_engine.sim.renderer.marker_albedo``, one texel per 5 mm cell, closest-texel lookup), and one
+(``ntp_engine.sim.renderer.marker_albedo``, one texel per 5 mm cell, closest-texel lookup), the
+marker board on it where the job has one (``board``: its layout and world-from-board 4x4; the
+printed page's albedo at ``BOARD_TEXEL_MM``, linear lookup, a hair above the backdrop), and one
 rectangular area light per lit emitter (Lambertian, as the device's cos^1 LEDs), moved with the
 camera for every pose. Direct and indirect light (``bounces``), exact shadows. Each photo is written
 as ``OUT/NAME.exr`` through a temporary name, so an interrupted job resumes where it stopped;
@@ -27,6 +29,7 @@ import bpy  # noqa: F401  (before torch, which the engine imports)
 import numpy as np
 from mathutils import Matrix
 
+from ntp_engine.scanner.board import Board
 from ntp_engine.scanner.device_file import load_scanner
 from ntp_engine.sim.renderer import BACKDROP_HALF, BACKDROP_Z, marker_albedo
 
@@ -35,6 +38,8 @@ from . import scene as bscene
 from .schlick_lobe import use_osl
 
 MARKER_CELL = 0.005  # m: the backdrop's small cells (renderer.marker_albedo); its big cells are 3 of them
+BOARD_TEXEL_MM = 0.2  # the board's texture: the engine renderer's (scanner.board.Board.albedo)
+BOARD_LIFT = 0.5e-4  # m above the backdrop (BACKDROP_Z = -0.1 mm): on top of it, under the object's foot
 
 
 def _diffuse_material(name: str) -> tuple[bpy.types.Material, bpy.types.Node]:
@@ -72,6 +77,39 @@ def _backdrop(collection: bpy.types.Collection) -> bpy.types.Object:
     mat.node_tree.links.new(tex.outputs["Color"], diffuse.inputs["Color"])
     mesh.materials.append(mat)
     obj = bpy.data.objects.new("backdrop", mesh)
+    collection.objects.link(obj)
+    return obj
+
+
+def _board(collection: bpy.types.Collection, record: dict) -> bpy.types.Object:
+    """The marker board's page on the backdrop: its albedo image (``Board.paper_image``) on a plane the
+    paper's size, placed by the record's world-from-board 4x4."""
+    board = Board(
+        record["paper"],
+        tuple(record["paper_mm"]),
+        tuple(record["squares"]),
+        record["square_mm"],
+        record["marker_mm"],
+        record["dictionary"],
+    )
+    w, h = (1e-3 * v / 2 for v in board.paper_mm)
+    z = BACKDROP_Z + BOARD_LIFT
+    mesh = bpy.data.meshes.new("marker board")
+    mesh.from_pydata([(-w, -h, 0.0), (w, -h, 0.0), (w, h, 0.0), (-w, h, 0.0)], [], [(0, 1, 2, 3)])
+    uv = mesh.uv_layers.new(name="UVMap")
+    for loop, (u, v) in zip(uv.data, ((0, 0), (1, 0), (1, 1), (0, 1))):
+        loop.uv = (u, v)
+    albedo = board.paper_image(BOARD_TEXEL_MM)[..., None]  # row 0 = the page's top = +y
+    img = material.packed_image("marker board albedo", np.repeat(albedo, 3, -1))
+    mat, diffuse = _diffuse_material("marker board")
+    tex = mat.node_tree.nodes.new("ShaderNodeTexImage")
+    tex.image, tex.interpolation = img, "Linear"
+    mat.node_tree.links.new(tex.outputs["Color"], diffuse.inputs["Color"])
+    mesh.materials.append(mat)
+    obj = bpy.data.objects.new("marker board", mesh)
+    placed = np.array(record["world_from_board"], float)
+    placed[2, 3] += z
+    obj.matrix_world = Matrix(placed.tolist())
     collection.objects.link(obj)
     return obj
 
@@ -156,6 +194,8 @@ def run(job_path: Path) -> None:
     # ground truth, not a result: the engine's BRDF, its Fresnel on w_i.h (bounded) on every path, bounces too
     material.build_materials(Path(job["asset"]), obj, "accurate", require_report=False, exact_fresnel=True)
     _backdrop(scene.collection)
+    if job.get("board") is not None:
+        _board(scene.collection, job["board"])
     camera = bscene.camera_object("scanner camera", cam, np.eye(4))
     scene.camera = camera
     lights = _emitters(job, scene.collection)

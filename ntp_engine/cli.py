@@ -47,6 +47,7 @@ from .pipeline.stages import (
     write_registration,
 )
 from .pipeline.task_pool import LOCAL, LocalPool, RayPool, TaskPool
+from .scanner.board import PAPERS, board_for_paper, write_board
 from .scanner.device_file import DEFAULT_DEVICE, list_devices, load_scanner, write_pattern
 from .scanner.scan_folder import Scan, load_scan
 from .sim import demo
@@ -225,9 +226,25 @@ def _view(args: argparse.Namespace) -> int:
     return 0
 
 
+def _board(args: argparse.Namespace) -> int:
+    board = board_for_paper(args.size)
+    layout = write_board(args.out, board)
+    print(
+        f"wrote {args.out} and {layout}: {board.squares[0]} x {board.squares[1]} squares of {board.square_mm:g} mm. "
+        f"Print at 100% and check the 100 mm bar; put {layout.name} in the scan folder and name it in scan.toml "
+        f'(board = "{layout.name}"); stand the object on the board.'
+    )
+    return 0
+
+
 def _virtual_scan(args: argparse.Namespace) -> int:
     cfg = ScanConfig(
-        views=args.views, scale=args.scale, seed=args.seed, exposure=args.exposure, blur_fraction=args.blur_fraction
+        views=args.views,
+        scale=args.scale,
+        seed=args.seed,
+        exposure=args.exposure,
+        blur_fraction=args.blur_fraction,
+        board=args.board,
     )
     scan = virtual_scan
     if args.renderer == "cycles":
@@ -311,6 +328,7 @@ def _parser() -> argparse.ArgumentParser:
     _add_register(sub)
     _add_device(sub)
     _add_view(sub)
+    _add_board(sub)
     _add_virtual_scan(sub)
     _add_train(sub)
     _add_bench(sub)
@@ -410,6 +428,14 @@ def _add_device(sub: Subcommands) -> None:
     dev.set_defaults(func=_device)
 
 
+def _add_board(sub: Subcommands) -> None:
+    """``ntp board``'s options and handler."""
+    bo = sub.add_parser("board", help="write a printable marker board (PDF) and its layout (JSON) for registration")
+    bo.add_argument("--size", choices=list(PAPERS), default="A4", help="paper size (landscape)")
+    bo.add_argument("--out", type=Path, default=Path("board.pdf"), help="the PDF; the layout is written beside it")
+    bo.set_defaults(func=_board)
+
+
 def _add_virtual_scan(sub: Subcommands) -> None:
     """``ntp virtual-scan``'s options and handler."""
     vs = sub.add_parser("virtual-scan", help="simulate a hand-held capture of a mesh with known maps")
@@ -430,6 +456,9 @@ def _add_virtual_scan(sub: Subcommands) -> None:
     vs.add_argument("--seed", type=SEED, default=0)
     vs.add_argument("--exposure", type=EXPOSURE, default=1.5, help="x the device's auto-exposure")
     vs.add_argument("--blur-fraction", type=FRACTION, default=0.0, help="fraction of photos with motion blur")
+    vs.add_argument(
+        "--board", choices=list(PAPERS), default=None, help="stand the object on a marker board (ntp board)"
+    )
     vs.add_argument(
         "--renderer", choices=["engine", "cycles"], default="engine", help="cycles: Blender Cycles through bpy"
     )

@@ -87,6 +87,7 @@ class GallerySettings:
     # more photo counts to scan each object at (accuracy against photo count: a method that uses its
     # data gets better with more of it); ``views`` is always scanned
     density: tuple[int, ...] = ()
+    board: str | None = None  # the objects stand on a marker board of this paper size (scanner.board)
 
     @property
     def photo_counts(self) -> tuple[int, ...]:
@@ -112,7 +113,7 @@ def scan_folder(out: Path, settings: GallerySettings, name: str, scanner: str, v
 
 def scan_object(settings: GallerySettings, name: str, scanner: str, out: Path, asset: Path, progress: Progress) -> dict:
     """The scan of one object by one scanner (kept when its settings and asset are unchanged)."""
-    cfg = ScanConfig(views=settings.views, scale=settings.scale, seed=settings.seed)
+    cfg = ScanConfig(views=settings.views, scale=settings.scale, seed=settings.seed, board=settings.board)
     cycles = CyclesConfig(samples=settings.samples, bounces=settings.bounces, max_samples=settings.max_samples)
     key = digest(
         {
@@ -244,9 +245,9 @@ def result_folder(out: Path, settings: GallerySettings, name: str, scanner: str,
 
 def _count_and_mesh(settings: GallerySettings, views: int | None) -> str:
     """A scan's or result's name beside the default's: ``-vN`` at another photo count,
-    ``-truemesh`` when ntp is given the photographed mesh."""
+    ``-truemesh`` when ntp is given the photographed mesh, ``-board`` when the object stands on one."""
     count = "" if views is None or views == settings.views else f"-v{views}"
-    return count + ("-truemesh" if settings.mesh == "true" else "")
+    return count + ("-truemesh" if settings.mesh == "true" else "") + ("-board" if settings.board else "")
 
 
 def _run_rows(record: dict) -> tuple[tuple, list[tuple]]:

@@ -6,8 +6,10 @@ alignments side by side are what a registration confidence is set from.
 
 Scans are the gallery's (``bench.gallery.scan_object``, shared with ``ntp bench gallery`` under the
 same ``--out``); each SfM model is kept as a COLMAP folder under ``OUT/sfm/<object>-<scanner>-s<seed>/``
-and reused (``register.colmap_model``), so re-runs only re-align. Writes ``OUT/registration.json``
-and ``OUT/registration.md``.
+and reused (``register.colmap_model``), so re-runs only re-align. With ``--board PAPER`` the objects
+stand on a marker board and the board registers the photos (``register.board_poses``; no SfM, so
+one row per object x scanner, its seed ``-``). Writes ``OUT/registration.json`` and
+``OUT/registration.md`` (``registration-board.*`` with the board).
 """
 
 from __future__ import annotations
@@ -25,10 +27,12 @@ from ..io.atomic import temp_dir, write_text_atomic
 from ..io.errors import NtpInputError
 from ..io.output_folder import claim
 from ..io.progress import QUIET, Progress, add_progress_arguments, progress_from_args
+from ..register.board_poses import BoardPoses, board_poses
 from ..register.check import register_to_mesh
 from ..register.colmap_model import model_files, read_colmap_model
 from ..register.refusal import named_rival, refusal, refusal_kind, symmetry_note
 from ..register.sfm import SfmResult, structure_from_motion
+from ..scanner.board import PAPERS
 from ..scanner.local_frame import pose_to_world
 from ..scanner.scan_folder import load_poses, load_scan
 from ..sim.evaluate import pose_error_modulo
@@ -70,6 +74,7 @@ def run(
     """Registration of every gallery object x scanner x seed into ``out``; returns the record."""
     settings = replace(settings, poses=("sfm",))
     out = Path(out)
+    stem = "registration-board" if settings.board else "registration"
     rows = []
     with claim(out, "gallery"):
         for name in settings.objects:
@@ -79,13 +84,22 @@ def run(
                 scan_object(settings, name, scanner, scan_dir, asset, progress)
                 scan = load_scan(scan_dir)
                 truth = load_poses(scan_dir / "ground_truth" / "poses.json")
-                for seed in seeds:
+                for seed in (None,) if settings.board else seeds:
                     row: dict = {"object": name, "set": object_set(name), "scanner": scanner, "seed": seed}
                     (out / "sfm").mkdir(exist_ok=True)
+                    reg: SfmResult | BoardPoses
                     try:
-                        reg, row["seconds_sfm"] = _sfm(
-                            scan_dir, out / "sfm" / f"{name}-{scanner}-s{seed}", seed, progress
-                        )
+                        if seed is None:
+                            assert scan.board is not None, scan_dir
+                            t0 = time.perf_counter()
+                            reg = board_poses(
+                                scan.photos_dir, [p.name for p in scan.photo_paths], scan.board, scan.scanner
+                            )
+                            row["seconds_board"] = time.perf_counter() - t0
+                        else:
+                            reg, row["seconds_sfm"] = _sfm(
+                                scan_dir, out / "sfm" / f"{name}-{scanner}-s{seed}", seed, progress
+                            )
                         names = sorted(reg.poses)
                         placed = register_to_mesh(scan, reg)
                         al, check = placed.icp, placed.check
@@ -118,7 +132,7 @@ def run(
                         icp_rotation_deg=icp["rotation_median_deg"],
                         centre_mm=err["centre_median_m"] * 1e3,
                         rotation_deg=err["rotation_median_deg"],
-                        residual_mm=al.residual_m * 1e3,
+                        residual_mm=al.residual_m * 1e3 if np.isfinite(al.residual_m) else None,
                         inliers=f"{al.kept_points}/{al.object_points}",
                         inlier_fraction=al.kept_points / max(al.object_points, 1),
                         azimuth_margin=al.azimuth_margin if np.isfinite(al.azimuth_margin) else None,
@@ -144,11 +158,11 @@ def run(
                     row["diagnosis"] = _diagnosis(row)
                     rows.append(row)
                     # rows so far survive an interrupted run (the SfM models are kept anyway)
-                    write_text_atomic(out / "registration.json", json.dumps({"runs": rows}, indent=1, default=float))
+                    write_text_atomic(out / f"{stem}.json", json.dumps({"runs": rows}, indent=1, default=float))
     record = {"settings": asdict(settings), "seeds": list(seeds), "runs": rows}
     table = _table(rows)
-    write_text_atomic(out / "registration.json", json.dumps(record, indent=1, default=float))
-    write_text_atomic(out / "registration.md", table)
+    write_text_atomic(out / f"{stem}.json", json.dumps(record, indent=1, default=float))
+    write_text_atomic(out / f"{stem}.md", table)
     if json_path:
         write_text_atomic(json_path, json.dumps(record, indent=1, default=float))
     print(table)
@@ -219,10 +233,10 @@ def _table(rows: list[dict]) -> str:
                 r["object"],
                 r.get("set", "tune"),
                 r["scanner"],
-                r["seed"],
+                "-" if r["seed"] is None else r["seed"],
                 r["registered"],
                 f"{r['icp_centre_mm']:.2f} / {r['icp_rotation_deg']:.2f}",
-                f"{r['residual_mm']:.2f}",
+                "-" if r["residual_mm"] is None else f"{r['residual_mm']:.2f}",
                 r["inliers"],
                 margin,
                 f"{r['centre_mm']:.2f} / {r['rotation_deg']:.2f}",
@@ -282,6 +296,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scale", type=float, default=None)
     parser.add_argument("--samples", type=int, default=None, help="Cycles samples per pixel")
     parser.add_argument("--json", type=Path, default=None)
+    parser.add_argument(
+        "--board", choices=list(PAPERS), default=None, help="the objects stand on a marker board, which registers them"
+    )
     add_progress_arguments(parser)
 
 
@@ -297,6 +314,7 @@ def command(args: argparse.Namespace) -> int:
         resolution=None,
         samples=args.samples,
         mesh=args.mesh,
+        board=args.board,
     )
     run(args.out, settings, tuple(args.seeds), json_path=args.json, progress=progress_from_args(args))
     return 0

@@ -26,6 +26,8 @@ MAX_BYTES = {
     "mesh": 4 << 30,
     # a pattern CSV/NPY: 512 emitters x 3 values, a few kB
     "pattern": 16 << 20,
+    # a marker board's layout (board.json): a few hundred bytes
+    "board": 1 << 20,
 }
 
 _KINDS = (

@@ -49,11 +49,12 @@ from ..refine.passes import refine_fit
 from ..refine.settings import TUNING as REFINE_TUNING
 from ..refine.settings import RefineSettings
 from ..refine.support_light import SupportAlbedo, SupportScene, estimate_support_albedo, exposed
+from ..register.board_poses import BoardPoses, board_poses
 from ..register.check import register_to_mesh
 from ..register.colmap_model import model_files, read_colmap_model
 from ..register.refusal import outline_picture, refusal, symmetry_note
 from ..register.settings import TUNING as REGISTRATION_TUNING
-from ..register.sfm import structure_from_motion
+from ..register.sfm import SfmResult, structure_from_motion
 from ..scanner import camera
 from ..scanner.device_file import scanner_to_dict
 from ..scanner.local_frame import local_origin, moved, pose_to_local, pose_to_world
@@ -78,6 +79,7 @@ STAGE_CODE: dict[str, tuple[str, ...]] = {
         "ntp_engine.register.sfm",
         "ntp_engine.register.colmap_model",
         "ntp_engine.register.check",
+        "ntp_engine.register.board_poses",
         "ntp_engine.register.refusal",
     ),
     "atlas": ("ntp_engine.io.texels",),
@@ -213,10 +215,14 @@ def _register_stage(
     """SfM on the kept photos, then the similarity that puts its cameras on the mesh."""
 
     def compute(d: Path) -> None:
+        reg: SfmResult | BoardPoses
         if scan.colmap is not None:
-            reg = read_colmap_model(scan.colmap, scan.scanner, sel.kept)
+            reg, source = read_colmap_model(scan.colmap, scan.scanner, sel.kept), f"COLMAP model {scan.colmap}"
+        elif scan.board is not None:
+            reg, source = _board_stage(scan, sel, progress), f"marker board {scan.board_path}"
         else:
             reg = structure_from_motion(scan.photos_dir, sel.kept, scan.scanner, d / "sfm", progress=progress)
+            source = "structure from motion"
         names = sorted(reg.poses)
         placed = register_to_mesh(scan, reg, progress)
         icp, check, photos, judged, mesh = placed.icp, placed.check, placed.photos, placed.judged, placed.mesh
@@ -227,23 +233,30 @@ def _register_stage(
             outline_picture(photos, np.stack([al.camera_from_mesh(reg.poses[n]) for n in judged]), mesh),
         )
         (d / "poses.json").write_text(json.dumps({n: al.camera_from_mesh(reg.poses[n]).tolist() for n in names}))
+        found: dict
+        if isinstance(reg, BoardPoses):
+            found = {"board": reg.to_json(), "alignment": {"scale": al.scale, "first_placement": "the cameras' aim"}}
+        else:
+            found = {
+                "sfm_points": len(reg.points),
+                "alignment": {
+                    "scale": al.scale,
+                    "residual_m": icp.residual_m,
+                    "object_points": icp.object_points,
+                    "inlier_points": icp.kept_points,
+                    "support_points": icp.support_points,
+                    "azimuth_margin": icp.azimuth_margin if np.isfinite(icp.azimuth_margin) else None,
+                    "candidates": [{"azimuth_deg": a, "score": v} for a, v in icp.candidates],
+                },
+            }
         (d / "registration.json").write_text(
             json.dumps(
                 {
-                    "source": f"COLMAP model {scan.colmap}" if scan.colmap else "structure from motion",
+                    "source": source,
                     "local_origin": placed.origin.tolist(),  # the frame of poses.json here (scanner.local_frame)
                     "registered": len(names),
                     "unregistered": reg.unregistered,
-                    "sfm_points": len(reg.points),
-                    "alignment": {
-                        "scale": al.scale,
-                        "residual_m": icp.residual_m,
-                        "object_points": icp.object_points,
-                        "inlier_points": icp.kept_points,
-                        "support_points": icp.support_points,
-                        "azimuth_margin": icp.azimuth_margin if np.isfinite(icp.azimuth_margin) else None,
-                        "candidates": [{"azimuth_deg": a, "score": v} for a, v in icp.candidates],
-                    },
+                    **found,
                     "photometric": {**check.to_json(), "photos": len(judged)},
                     "confidence": {
                         "accepted": why is None,
@@ -261,6 +274,7 @@ def _register_stage(
     key = {
         "select": h_sel,
         "colmap": content_key(model_files(scan.colmap)) if scan.colmap else None,
+        "board": content_key([scan.board_path]) if scan.board_path else None,
         "mesh": content_key([scan.mesh_path]),
         "support": scan.support_plane,
         "code": _stage_code("register"),
@@ -275,6 +289,19 @@ def _register_stage(
     origin = np.array(info.get("local_origin", [0.0, 0.0, 0.0]))  # the frame of the cached poses
     poses = {n: pose_to_world(np.array(m), origin) for n, m in json.loads((folder / "poses.json").read_text()).items()}
     return poses, info, h_pose
+
+
+def _board_stage(scan: Scan, sel: Selection, progress: Progress) -> BoardPoses:
+    """The marker board's pose in each kept photo; ``NtpInputError`` when too few photos see it."""
+    assert scan.board is not None
+    reg = board_poses(scan.photos_dir, sel.kept, scan.board, scan.scanner, progress)
+    if len(reg.poses) < REGISTRATION_TUNING.sfm.min_registered:
+        raise NtpInputError(
+            scan.board_path,
+            f"the marker board is seen in {len(reg.poses)} of {len(sel.kept)} photos (need "
+            f"{REGISTRATION_TUNING.sfm.min_registered}): is this the board that was printed, all of it in view?",
+        )
+    return reg
 
 
 def reconstruct(

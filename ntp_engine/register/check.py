@@ -28,6 +28,7 @@ from .align import (
     symmetry_profile,
     turned_distance,
 )
+from .board_poses import BoardPoses, first_placement
 from .photo_stack import PhotoStack
 from .photometric import (
     Correction,
@@ -133,11 +134,14 @@ def check_registration(
     mesh: Mesh,
     support_z: float | None,
     progress: Progress = QUIET,
+    on_board: bool = False,
 ) -> PhotoCheck:
     """``alignment`` refined by the photos ``photos`` (of ``names``; similarity only: SfM's relative
     poses are kept), its rivals found by sweeping the azimuth over the whole circle and refined the
-    same way, the best chosen and judged (see ``PhotoCheck``). Minutes on a large scan: ``progress``
-    counts its steps (the first refinement, the sweep, each rival's, the final one, the sharpness)."""
+    same way, the best chosen and judged (see ``PhotoCheck``). ``on_board``: the poses are a marker
+    board's (metric, the support its plane): only the azimuth and the shift on the plane move.
+    Minutes on a large scan: ``progress`` counts its steps (the first refinement, the sweep, each
+    rival's, the final one, the sharpness)."""
     with progress.counter("registration check", 4 + TUNING.check.rivals, unit="step") as steps:
         # candidates are compared on half the photos and fewer points (the chosen one is refined on all)
         pick = [names.index(n) for n in spread(names, TUNING.check.sweep_photos)]
@@ -147,6 +151,7 @@ def check_registration(
             support_z,
             points=TUNING.photometric.candidate_points,
             edge_stride=edge_stride(photos),
+            free_scale=not on_board,
         )
         sfm = np.stack([camera_from_sfm[n] for n in names])
 
@@ -168,6 +173,7 @@ def check_registration(
             support_z,
             points=TUNING.check.sweep_points,
             edge_stride=TUNING.check.sweep_edge_stride,
+            free_scale=not on_board,
         )
         turns, costs = scout.azimuth_profile(
             placed(trials[0][0])[pick], TUNING.photometric.blur_levels_px[0], TUNING.check.sweep_step_deg
@@ -196,7 +202,7 @@ def check_registration(
         ]
         others = [fit.cost for (_, fit), eq in zip(trials, same, strict=True) if not eq]
         margin = (min(others) - trials[chosen][1].cost) / trials[chosen][1].cost if others else float("inf")
-        free_height = support_z is not None and frees_height(pixel_m)
+        free_height = support_z is not None and frees_height(pixel_m) and not on_board
         finisher = PhotometricRegistration(
             mesh,
             photos,
@@ -204,6 +210,7 @@ def check_registration(
             points=TUNING.photometric.fine_points,
             edge_stride=edge_stride(photos),
             free_height=free_height,
+            free_scale=not on_board,
         )
         g, fit = finisher.refine(placed(best), levels=TUNING.photometric.blur_levels_px[1:])
         steps.update()
@@ -253,14 +260,31 @@ class MeshRegistration:
     seconds_photometric: float
 
 
-def register_to_mesh(scan: Scan, reg: SfmResult, progress: Progress = QUIET) -> MeshRegistration:
-    """The similarity from ``reg``'s frame to the mesh: aligned by the point cloud, then refined and
-    judged by (at most ``TUNING.check.max_photos`` of) the photos; ``NtpInputError`` when nothing can be aligned."""
+def register_to_mesh(scan: Scan, reg: SfmResult | BoardPoses, progress: Progress = QUIET) -> MeshRegistration:
+    """The similarity from ``reg``'s frame to the mesh: aligned by the point cloud (a marker board's
+    poses: put on the board, ``board_poses.first_placement``), then refined and judged by (at most
+    ``TUNING.check.max_photos`` of) the photos; ``NtpInputError`` when nothing can be aligned."""
     names = sorted(reg.poses)
     world = load_mesh(scan.mesh_path)
     origin = local_origin(world)
     mesh = moved(world, -origin)  # the photometric check's positions are float32: near the origin
+    on_board = isinstance(reg, BoardPoses)
     t0 = time.perf_counter()
+    if on_board:
+        icp = first_placement(mesh, [reg.poses[n] for n in names])
+    else:
+        assert isinstance(reg, SfmResult)
+        icp = _cloud_alignment(scan, reg, names, mesh, progress)
+    t1 = time.perf_counter()
+    judged = spread(names)  # the photos judge (and refine) the alignment
+    photos = PhotoStack([read_photo(scan.photos_dir / n, scan.scanner) for n in judged], scan.scanner)
+    support_z = float(mesh.vertices[:, 2].min()) if scan.support_plane else None
+    check = check_registration(icp, reg.poses, photos, judged, mesh, support_z, progress, on_board=on_board)
+    return MeshRegistration(icp, check, photos, judged, mesh, origin, t1 - t0, time.perf_counter() - t1)
+
+
+def _cloud_alignment(scan: Scan, reg: SfmResult, names: list[str], mesh: Mesh, progress: Progress) -> Alignment:
+    """The SfM point cloud's alignment to the mesh (``align.align_to_mesh``)."""
     try:
         with progress.counter("alignment to the mesh", 1, "step") as bar:
             icp = align_to_mesh(
@@ -273,9 +297,4 @@ def register_to_mesh(scan: Scan, reg: SfmResult, progress: Progress = QUIET) -> 
             bar.update()
     except ValueError as err:
         raise NtpInputError(scan.mesh_path, f"cannot align the SfM points to this mesh: {err}") from None
-    t1 = time.perf_counter()
-    judged = spread(names)  # the photos judge (and refine) the alignment
-    photos = PhotoStack([read_photo(scan.photos_dir / n, scan.scanner) for n in judged], scan.scanner)
-    support_z = float(mesh.vertices[:, 2].min()) if scan.support_plane else None
-    check = check_registration(icp, reg.poses, photos, judged, mesh, support_z, progress)
-    return MeshRegistration(icp, check, photos, judged, mesh, origin, t1 - t0, time.perf_counter() - t1)
+    return icp

@@ -148,9 +148,11 @@ class PhotometricRegistration:
         seed: int = 0,
         edge_stride: int = 1,
         free_height: bool = False,
+        free_scale: bool = True,
     ):
         """``edge_stride``: the mesh's image (for the edge distances) is cast every this many pixels;
-        ``free_height``: on a support, the height moves too (see ``frees_height``)."""
+        ``free_height``: on a support, the height moves too (see ``frees_height``); without
+        ``free_scale`` the poses are metric already (a marker board's) and the scale stays."""
         self.photos, self.scanner = photos, photos.scanner
         self.edge_stride = edge_stride
         # the pixels whose rays find the mesh's edges (``_observations``), cast every ``edge_stride``
@@ -168,7 +170,7 @@ class PhotometricRegistration:
         self.pivot = self.centre.copy()
         if support_z is not None:
             self.pivot[2] = support_z
-        self.free = np.array([support_z is None] * 2 + [True] * 3 + [support_z is None or free_height, True])
+        self.free = np.array([support_z is None] * 2 + [True] * 3 + [support_z is None or free_height, free_scale])
         # each photo's shading field's basis: 1 and the point's position (see ``_eliminated``)
         rel = (self.points - self.centre) / self.size
         self.field = torch.as_tensor(np.concatenate([np.ones((len(rel), 1)), rel], 1), dtype=WORK)

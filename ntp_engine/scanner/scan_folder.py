@@ -1,7 +1,9 @@
 """The scan folder format (docs/design.md), read and written here: ``scan.toml`` naming the mesh, the
 photos folder, the device file and, optionally, a poses file (camera-from-world 4x4 per photo name;
 SfM is skipped with it) or a COLMAP model folder (``colmap = "sparse/0"``: SfM is skipped, the
-model is aligned to the mesh) and ``support_plane = false`` when the object does not stand on a flat
+model is aligned to the mesh), a marker board's layout (``board = "board.json"``, written by ``ntp
+board``: the object stands on the printed board, which registers the photos; a poses file or a
+COLMAP model still wins) and ``support_plane = false`` when the object does not stand on a flat
 support at the mesh's lowest z (default true: SfM alignment uses the support, and the entries of
 photos whose LEDs the support shadows are kept out of the network's range with those LEDs masked),
 and ``support_light = false`` when the photos hold no light
@@ -29,10 +31,12 @@ from ..io.input_file import MAX_BYTES, regular_file
 from ..io.mesh import Mesh
 from ..io.progress import warn
 from ..io.toml_file import check_keys, read_toml
+from .board import Board, read_board
 from .device_file import load_scanner
 from .scanner import Scanner
 
-SCAN_KEYS = ("mesh", "photos", "device", "poses", "colmap", "support_plane", "support_light")  # scan.toml's keys
+# scan.toml's keys
+SCAN_KEYS = ("mesh", "photos", "device", "poses", "colmap", "board", "support_plane", "support_light")
 PHOTO_SUFFIXES = (".png", ".jpg", ".jpeg")
 # pixel formats a photo may hold: the camera's 8-bit codes, or them in a 16-bit file
 PHOTO_FORMATS = ("uint8", "uint16")
@@ -55,6 +59,8 @@ class Scan:
     colmap: Path | None = None  # a COLMAP model folder to use instead of running SfM
     support_plane: bool = True  # the object stands on a flat support at the mesh's lowest z
     support_light: bool = True  # the photos hold the light the support (and the object) reflect onto it
+    board: Board | None = None  # the marker board the object stands on (registration uses it)
+    board_path: Path | None = None
 
     @property
     def input_folders(self) -> tuple[Path, ...]:
@@ -139,7 +145,23 @@ def load_scan(
     if light and not support:
         raise NtpInputError(toml, "key 'support_light': true needs a support (support_plane = false)")
     poses = load_poses(pose_path) if pose_path else None
-    return Scan(folder, mesh, photos, scanner, paths, poses, model, support_plane=support, support_light=light)
+    board_path = _path(folder, table, "board", toml)
+    board = read_board(board_path) if board_path else None
+    if board is not None and not support:
+        raise NtpInputError(toml, "key 'board': the object stands on the board, so it needs a support (support_plane)")
+    return Scan(
+        folder,
+        mesh,
+        photos,
+        scanner,
+        paths,
+        poses,
+        model,
+        support_plane=support,
+        support_light=light,
+        board=board,
+        board_path=board_path,
+    )
 
 
 def _photo_paths(photos: Path) -> list[Path]:
@@ -210,11 +232,14 @@ def write_scan_toml(
     device: str = "device.toml",
     comments: tuple[str, ...] = (),
     support_light: bool = True,
+    board: str | None = None,
 ) -> None:
     """Write ``folder/scan.toml`` naming the mesh, the photos folder and the device file (atomic),
-    and ``support_light = false`` where asked; ``comments`` become ``#`` lines around them, the
-    first before, the rest after."""
+    the marker board's layout file where there is one, and ``support_light = false`` where asked;
+    ``comments`` become ``#`` lines around them, the first before, the rest after."""
     lines = [f"# {c}" for c in comments[:1]] + [f'mesh = "{mesh}"', f'photos = "{photos}"', f'device = "{device}"']
+    if board is not None:
+        lines.append(f'board = "{board}"  # the marker board the object stands on (ntp board)')
     if not support_light:
         lines.append("support_light = false  # the photos hold no light reflected by the support")
     lines += [f"# {c}" for c in comments[1:]] + [""]

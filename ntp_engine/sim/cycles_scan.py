@@ -222,6 +222,7 @@ def cycles_scan(
             "cycles": asdict(cycles),
             "seed": cfg.seed,
             "render_version": RENDER_VERSION,
+            **({"board": plan.board_record} if plan.board is not None else {}),  # scans without: keys as before
         }
         key_digest = digest(key)
         stamp = folder / "key.json"
@@ -250,6 +251,7 @@ def cycles_scan(
                 samples=cycles.calibration_samples,
             ),
             "out": str(folder),
+            "board": plan.board_record if plan.board is not None else None,
         }
         t0 = time.perf_counter()
         renders = [folder / f"{Path(n).stem}.exr" for n in plan.names] + [folder / "calibration.exr"]
@@ -264,7 +266,7 @@ def cycles_scan(
             write_png(out / "photos" / name, img.astype(np.float64) / 255.0)
         extra = {"cycles": asdict(cycles), "calibration_gain": gain.tolist()}
         capture = plan.record("cycles", src_mesh, scanner, seconds, **extra)
-        write_scan(out, mesh, maps, cam, plan.named_poses, capture, maps_dir, given)
+        write_scan(out, mesh, maps, cam, plan.named_poses, capture, maps_dir, given, plan.board_layout)
     return capture
 
 

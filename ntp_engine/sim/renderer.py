@@ -2,7 +2,8 @@
 standing on a textured backdrop, photographed by a scanner (paper Eq. 1 per pixel).
 
 World frame = the mesh's frame (metres, z up); the object stands on a backdrop at z = 0 (random grey
-blocks at two scales, like AR markers, so structure-from-motion finds features).
+blocks at two scales, like AR markers, so structure-from-motion finds features), and optionally on
+a printed marker board (``scanner.board``) lying on it.
 
 Image formation per pixel: Embree primary ray; on the object, the maps sampled at the hit's UV
 (bilinear) give rho_d, rho_s, alphas and the object-space shading frame; B from every emitter with
@@ -27,6 +28,7 @@ from ..io.raycast import RayCaster
 from ..physics.measurement import measurement_rgb
 from ..physics.pattern_sums import pattern_sums
 from ..scanner import camera
+from ..scanner.board import Board
 from ..scanner.scanner import Scanner
 
 BACKDROP_Z = -1e-4
@@ -72,7 +74,16 @@ def emitter_clusters(scanner: Scanner, k: int) -> tuple[np.ndarray, np.ndarray]:
 class Scene:
     """The object (mesh + maps) on the backdrop, ready to render with one scanner's emitters."""
 
-    def __init__(self, mesh: Mesh, maps: SVBRDFMaps, scanner: Scanner, clusters: int = 64, exposure: float = 1.0):
+    def __init__(
+        self,
+        mesh: Mesh,
+        maps: SVBRDFMaps,
+        scanner: Scanner,
+        clusters: int = 64,
+        exposure: float = 1.0,
+        board: tuple[Board, np.ndarray] | None = None,
+    ):
+        """``board``: a marker board and its world-from-board 4x4 (on the backdrop, z = 0)."""
         if mesh.uv is None:
             raise ValueError("mesh has no UVs")
         self.mesh, self.maps, self.scanner, self.uv = mesh, maps, scanner, mesh.uv
@@ -94,6 +105,7 @@ class Scene:
         self.exposure = exposure * float(scanner.exposure(scanner.pattern))
         lo, hi = mesh.vertices.min(0), mesh.vertices.max(0)
         self.center = 0.5 * (lo + hi)
+        self.board = board
 
     def render_linear(
         self,
@@ -197,4 +209,14 @@ class Scene:
             irr = (cos_p.clamp_min(0) * self.scanner.psi(cos_l) / r2) @ drive
             seen = ((-x_c) @ n_c > 0).to(torch.float32)[:, None]
             out[s : s + chunk] = (irr * seen).double().numpy()
-        return marker_albedo(x_w)[:, None] / math.pi * out
+        return self.support_albedo(x_w)[:, None] / math.pi * out
+
+    def support_albedo(self, x_w: np.ndarray) -> np.ndarray:
+        """Grey albedo of the backdrop at world points ``(N, 3)``: the board's print where it lies."""
+        albedo = marker_albedo(x_w)
+        if self.board is not None:
+            board, world_from_board = self.board
+            xy = (x_w - world_from_board[:3, 3]) @ world_from_board[:3, :3]
+            printed, on = board.albedo(xy[:, :2])
+            albedo[on] = printed[on]
+        return albedo

@@ -6,6 +6,10 @@ Writes exactly what a real capture gives (a scan folder: ``scan.toml``, ``mesh.o
 ``capture.json`` with the settings, the blurred photos and the timing). Photos are rendered by
 ``renderer.Scene``.
 
+With ``board`` (a paper size), the object stands on a printed marker board (``scanner.board``),
+turned and shifted at random under it (seeded apart from the photos: the same photos' poses as
+without); the scan folder gets ``board.json`` and ``ground_truth/capture.json`` its placement.
+
 Trajectory: a hand-held sweep over the upper hemisphere (a spiral in azimuth, elevation oscillating
 between 15 and 75 deg), the scanner aimed so the object's centre sits at the valid volume's centre,
 with jitter in distance, aim and roll. Seeded: the same seed gives the same scan.
@@ -36,6 +40,7 @@ from ..io.mesh import Mesh, load_mesh, save_obj
 from ..io.output_folder import claim
 from ..io.progress import QUIET, Progress
 from ..scanner import camera
+from ..scanner.board import Board, board_for_paper
 from ..scanner.device_file import load_scanner, save_scanner
 from ..scanner.scan_folder import load_scan, write_scan_toml
 from ..scanner.scanner import Scanner
@@ -61,6 +66,8 @@ class ScanConfig:
     blur_px: float = 12.0  # motion-blur streak length in pixels at scale 0.25 (scales with resolution)
     clusters: int = 64
     chunk: int = 2048  # object pixels shaded at once (512: 15% slower per photo, 8192: 10%)
+    board: str | None = None  # a marker board of this paper size (scanner.board.PAPERS) under the object
+    board_shift: float = 0.01  # m, the board's centre from the object's foot (each axis, normal sigma)
 
 
 def trajectory(center: np.ndarray, scanner: Scanner, cfg: ScanConfig, rng: np.random.Generator) -> list[np.ndarray]:
@@ -93,6 +100,7 @@ def take_photo(
     return sensor(lin, cam, cfg, rng, blur)
 
 
+BOARD_FILE = "board.json"  # the marker board's layout in a virtual scan folder
 RENDER_THREADS = 2  # photos rendered at once: Embree, numpy and torch leave each other's gaps (2 cores: x1.25)
 
 
@@ -179,7 +187,7 @@ def virtual_scan(
     given = load_given_mesh(given_mesh, mesh)
     scanner = load_scanner(device_path)
     plan = plan_capture(mesh, scanner, cfg)
-    scene = Scene(mesh, maps, scanner, cfg.clusters, cfg.exposure)
+    scene = Scene(mesh, maps, scanner, cfg.clusters, cfg.exposure, board=plan.board)
     inputs = (src_mesh.parent, maps_dir) + ((given_mesh.parent,) if given_mesh is not None else ())
     with claim(out, "scan", inputs=inputs):
         remove_old_photos(out, plan.names)
@@ -190,7 +198,7 @@ def virtual_scan(
             img = sensor(next(renders), plan.cam, cfg, plan.rng, blur=i in plan.blurred)
             write_png(out / "photos" / plan.names[i], img.astype(np.float64) / 255.0)
         capture = plan.record("engine", src_mesh, scanner, time.perf_counter() - t0)
-        write_scan(out, mesh, maps, plan.cam, plan.named_poses, capture, maps_dir, given)
+        write_scan(out, mesh, maps, plan.cam, plan.named_poses, capture, maps_dir, given, plan.board_layout)
     return capture
 
 
@@ -218,6 +226,12 @@ class CapturePlan:
     poses: list[np.ndarray]
     blurred: set[int]
     names: list[str]
+    board: tuple[Board, np.ndarray] | None = None  # the marker board and its world-from-board 4x4
+
+    @property
+    def board_layout(self) -> Board | None:
+        """The marker board's layout, where the object stands on one."""
+        return None if self.board is None else self.board[0]
 
     @property
     def named_poses(self) -> dict[str, np.ndarray]:
@@ -236,7 +250,14 @@ class CapturePlan:
             "blurred_photos": sorted(self.names[i] for i in self.blurred),
             "seconds": seconds,
             "seconds_per_photo": seconds / max(self.cfg.views, 1),
+            **({} if self.board is None else {"board": self.board_record}),
         }
+
+    @property
+    def board_record(self) -> dict:
+        """The marker board's layout and placement (world-from-board 4x4) for ``capture.json``."""
+        assert self.board is not None
+        return {**self.board[0].to_json(), "world_from_board": self.board[1].tolist()}
 
 
 def plan_capture(mesh: Mesh, scanner: Scanner, cfg: ScanConfig) -> CapturePlan:
@@ -250,7 +271,20 @@ def plan_capture(mesh: Mesh, scanner: Scanner, cfg: ScanConfig) -> CapturePlan:
     poses = trajectory(centre, scanner, cfg, rng)
     n_blur = int(round(cfg.blur_fraction * cfg.views))
     blurred = set(rng.choice(cfg.views, size=n_blur, replace=False).tolist()) if n_blur else set()
-    return CapturePlan(cfg, cam, rng, poses, blurred, [f"{i:04d}.png" for i in range(cfg.views)])
+    board = None if cfg.board is None else (board_for_paper(cfg.board), board_placement(mesh, cfg))
+    return CapturePlan(cfg, cam, rng, poses, blurred, [f"{i:04d}.png" for i in range(cfg.views)], board)
+
+
+def board_placement(mesh: Mesh, cfg: ScanConfig) -> np.ndarray:
+    """World-from-board 4x4 of the board under ``mesh``: turned uniformly, its centre
+    ``cfg.board_shift`` (normal sigma, each axis) from the mesh's foot, on z = 0; drawn from its own
+    generator (the seed's), so the photos' poses and noise are those of the scan without a board."""
+    rng = np.random.default_rng([cfg.seed, 1])
+    turn = rng.uniform(0, 2 * math.pi)
+    m = np.eye(4)
+    m[:2, :2] = [[math.cos(turn), -math.sin(turn)], [math.sin(turn), math.cos(turn)]]
+    m[:2, 3] = 0.5 * (mesh.vertices.min(0) + mesh.vertices.max(0))[:2] + rng.normal(0, cfg.board_shift, 2)
+    return m
 
 
 def holds_support_light(capture: dict) -> bool:
@@ -278,11 +312,13 @@ def write_scan(
     capture: dict,
     labels_from: Path,
     given: Mesh | None = None,
+    board: Board | None = None,
 ) -> None:
     """Everything of a scan folder but its photos (``out/photos/`` holds them already): the mesh
-    (``given`` where there is one, the photographed ``mesh`` then in ``ground_truth/mesh.obj``),
-    the device file at the photos' resolution, ``ground_truth/`` (maps, material labels when
-    ``labels_from`` has them, poses, ``capture.json``) and ``scan.toml``."""
+        (``given`` where there is one, the photographed ``mesh`` then in ``ground_truth/mesh.obj``),
+        the device file at the photos' resolution, ``ground_truth/`` (maps, material labels when
+        ``labels_from`` has them, poses, ``capture.json``), the marker board's layout (``board.json``)
+    where the object stands on one, and ``scan.toml``."""
     gt = out / "ground_truth"
     gt.mkdir(parents=True, exist_ok=True)
     save_obj(out / "mesh.obj", mesh if given is None else given)
@@ -297,6 +333,10 @@ def write_scan(
             shutil.copyfile(labels_from / f, gt / f)
     write_text_atomic(gt / "poses.json", json.dumps({n: p.tolist() for n, p in poses.items()}, indent=1))
     write_text_atomic(gt / "capture.json", json.dumps(capture, indent=2))
+    if board is not None:
+        write_text_atomic(out / BOARD_FILE, json.dumps(board.to_json(), indent=1))
+    else:
+        (out / BOARD_FILE).unlink(missing_ok=True)  # a re-scan without one
     write_scan_toml(
         out,
         comments=(
@@ -304,6 +344,7 @@ def write_scan(
             "ground truth for evaluation: ground_truth/ (maps, poses.json, capture.json)",
         ),
         support_light=holds_support_light(capture),
+        board=BOARD_FILE if board is not None else None,
     )
 
 
