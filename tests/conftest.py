@@ -78,6 +78,7 @@ SLOW_CALLS = (
     "reconstruct(",
     "register_photos(",
     "structure_from_motion(",
+    "fill_from_sfm(",
     "cycles_scan(",
     "make_virtual_scan(",
     "virtual_scan(",

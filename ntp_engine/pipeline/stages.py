@@ -49,6 +49,7 @@ from ..refine.passes import refine_fit
 from ..refine.settings import TUNING as REFINE_TUNING
 from ..refine.settings import RefineSettings
 from ..refine.support_light import SupportAlbedo, SupportScene, estimate_support_albedo, exposed
+from ..register.board_fallback import fill_from_sfm
 from ..register.board_poses import BoardPoses, board_poses
 from ..register.check import register_to_mesh
 from ..register.colmap_model import model_files, read_colmap_model
@@ -80,6 +81,7 @@ STAGE_CODE: dict[str, tuple[str, ...]] = {
         "ntp_engine.register.colmap_model",
         "ntp_engine.register.check",
         "ntp_engine.register.board_poses",
+        "ntp_engine.register.board_fallback",
         "ntp_engine.register.refusal",
     ),
     "atlas": ("ntp_engine.io.texels",),
@@ -219,7 +221,7 @@ def _register_stage(
         if scan.colmap is not None:
             reg, source = read_colmap_model(scan.colmap, scan.scanner, sel.kept), f"COLMAP model {scan.colmap}"
         elif scan.board is not None:
-            reg, source = _board_stage(scan, sel, progress), f"marker board {scan.board_path}"
+            reg, source = _board_stage(scan, sel, d / "sfm", progress), f"marker board {scan.board_path}"
         else:
             reg = structure_from_motion(scan.photos_dir, sel.kept, scan.scanner, d / "sfm", progress=progress)
             source = "structure from motion"
@@ -291,10 +293,18 @@ def _register_stage(
     return poses, info, h_pose
 
 
-def _board_stage(scan: Scan, sel: Selection, progress: Progress) -> BoardPoses:
-    """The marker board's pose in each kept photo; ``NtpInputError`` when too few photos see it."""
+def _board_stage(scan: Scan, sel: Selection, work: Path, progress: Progress) -> BoardPoses:
+    """The marker board's pose in each kept photo, those it misses by SfM beside their neighbours
+    (``register.board_fallback``; ``work`` holds its database); ``NtpInputError`` when too few
+    photos see the board."""
     assert scan.board is not None
     reg = board_poses(scan.photos_dir, sel.kept, scan.board, scan.scanner, progress)
+    if reg.unregistered and len(reg.poses) >= REGISTRATION_TUNING.sfm.min_registered:
+        added = fill_from_sfm(scan.photos_dir, sel.kept, reg, scan.scanner, work, progress)
+        shutil.rmtree(work, ignore_errors=True)
+        reg.poses.update(added.poses)
+        reg.unregistered = [n for n in reg.unregistered if n not in added.poses]
+        reg.sfm = added.to_json()
     if len(reg.poses) < REGISTRATION_TUNING.sfm.min_registered:
         raise NtpInputError(
             scan.board_path,

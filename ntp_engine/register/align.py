@@ -70,6 +70,33 @@ def convergence_point(camera_from_world: list[np.ndarray]) -> np.ndarray:
     return np.linalg.lstsq(A, b, rcond=None)[0]  # parallel axes: the least-norm point
 
 
+def camera_similarity(
+    poses: dict[str, np.ndarray], target: dict[str, np.ndarray]
+) -> tuple[float, np.ndarray, np.ndarray] | None:
+    """The similarity ``x_target = s R x + t`` that best fits the camera centres of ``poses``
+    (camera-from-world 4x4, any frame and scale) to those of the same names in ``target`` (Umeyama,
+    least squares); None with fewer than 3 names in common."""
+    names = [n for n in poses if n in target]
+    if len(names) < 3:
+        return None
+    a = np.array([-poses[n][:3, :3].T @ poses[n][:3, 3] for n in names])
+    b = np.array([-target[n][:3, :3].T @ target[n][:3, 3] for n in names])
+    ma, mb = a.mean(0), b.mean(0)
+    U, S, Vt = np.linalg.svd((a - ma).T @ (b - mb))
+    d = np.array([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
+    R = Vt.T @ np.diag(d) @ U.T
+    s = float((S * d).sum() / max(float(((a - ma) ** 2).sum()), 1e-300))
+    return s, R, mb - s * R @ ma
+
+
+def moved_pose(pose: np.ndarray, s: float, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """A camera-from-world pose in the frame ``x' = s R x + t`` (``camera_similarity``), metric there."""
+    out = np.eye(4)
+    out[:3, :3] = pose[:3, :3] @ R.T
+    out[:3, 3] = s * pose[:3, 3] - out[:3, :3] @ t
+    return out
+
+
 def ransac_plane(
     points: np.ndarray, threshold: float, iterations: int = 400, seed: int = 0
 ) -> tuple[np.ndarray, float, np.ndarray]:

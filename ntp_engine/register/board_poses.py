@@ -68,6 +68,7 @@ class BoardPoses:
     poses: dict[str, np.ndarray]
     unregistered: list[str]
     views: list[BoardView]
+    sfm: dict | None = None  # what structure from motion added (``board_fallback.Fallback.to_json``)
 
     def to_json(self) -> dict:
         """A summary for ``registration.json``."""
@@ -78,6 +79,7 @@ class BoardPoses:
             "corners_median": float(np.median([len(v.ids) for v in kept])) if kept else 0.0,
             "rms_px_median": float(np.median([v.rms_px for v in kept])) if kept else None,
             "corners_dropped": int(sum(v.dropped for v in kept)),
+            "sfm_fallback": self.sfm,
         }
 
 

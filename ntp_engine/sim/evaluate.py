@@ -39,6 +39,7 @@ from ..io.maps import MAP_FILES, SVBRDFMaps, bilinear, bilinear_corners, bilinea
 from ..io.mesh import Mesh, load_mesh
 from ..io.raycast import RayCaster
 from ..io.texels import rasterize
+from ..register.align import camera_similarity, moved_pose
 from ..scanner.camera import in_image, project, resampled
 from ..scanner.device_file import shipped_device
 from ..scanner.scanner import Scanner
@@ -428,21 +429,7 @@ def similarity_fit(poses: dict[str, np.ndarray], truth: dict[str, np.ndarray]) -
     """``poses`` (camera-from-world in an arbitrary frame and scale) moved by the similarity that best
     fits their camera centres to the true ones (Umeyama, least squares): what is left of their
     error once the 7 degrees of freedom no photo can know are taken out — SfM's own error."""
-    names = [n for n in poses if n in truth]
-    if len(names) < 3:
+    fit = camera_similarity(poses, truth)
+    if fit is None:
         return {}
-    a = np.array([-poses[n][:3, :3].T @ poses[n][:3, 3] for n in names])
-    b = np.array([-truth[n][:3, :3].T @ truth[n][:3, 3] for n in names])
-    ma, mb = a.mean(0), b.mean(0)
-    U, S, Vt = np.linalg.svd((a - ma).T @ (b - mb))
-    d = np.array([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
-    R = Vt.T @ np.diag(d) @ U.T
-    s = float((S * d).sum() / ((a - ma) ** 2).sum())
-    t = mb - s * R @ ma
-    out = {}
-    for n in names:
-        m = np.eye(4)
-        m[:3, :3] = poses[n][:3, :3] @ R.T
-        m[:3, 3] = s * poses[n][:3, 3] - m[:3, :3] @ t
-        out[n] = m
-    return out
+    return {n: moved_pose(poses[n], *fit) for n in poses if n in truth}
