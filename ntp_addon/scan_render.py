@@ -93,7 +93,6 @@ def _board(collection: bpy.types.Collection, record: dict) -> bpy.types.Object:
         record["dictionary"],
     )
     w, h = (1e-3 * v / 2 for v in board.paper_mm)
-    z = BACKDROP_Z + BOARD_LIFT
     mesh = bpy.data.meshes.new("marker board")
     mesh.from_pydata([(-w, -h, 0.0), (w, -h, 0.0), (w, h, 0.0), (-w, h, 0.0)], [], [(0, 1, 2, 3)])
     uv = mesh.uv_layers.new(name="UVMap")
@@ -108,7 +107,7 @@ def _board(collection: bpy.types.Collection, record: dict) -> bpy.types.Object:
     mesh.materials.append(mat)
     obj = bpy.data.objects.new("marker board", mesh)
     placed = np.array(record["world_from_board"], float)
-    placed[2, 3] += z
+    placed[2, 3] += BOARD_LIFT  # the record places it on the backdrop: lifted clear of it
     obj.matrix_world = Matrix(placed.tolist())
     collection.objects.link(obj)
     return obj

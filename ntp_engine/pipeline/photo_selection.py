@@ -1,13 +1,16 @@
 """Photo selection: drop unreadable photos and blurry ones (paper §7 cites Crete et al. 2007).
 
-The blur metric is scikit-image's ``measure.blur_effect`` (Crete et al.'s no-reference
-perceptual blur, 0 = sharp, 1 = fully blurred) on the photo's grey level. One scan's photos share
+The blur metric is Crete et al.'s no-reference perceptual blur (0 = sharp, 1 = fully blurred) on
+the photo's grey level, as scikit-image's ``measure.blur_effect`` computes it (the same score to
+1e-6, ``tests/pipeline/test_photo_selection.py``) in float32 OpenCV filters: 3x faster at the
+device's 5 MP, and photos are scored two at a time (``io.threads.configured_threads``). One scan's photos share
 their content, so a photo is blurry relative to the scan: its score exceeds the scan's median by
 more than ``margin`` (0.08 by default; a 1-pixel Gaussian blur adds ~0.14 on virtual scans).
 """
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -15,6 +18,7 @@ import numpy as np
 
 from ..io.errors import NtpInputError
 from ..io.progress import QUIET, Progress, warn
+from ..io.threads import configured_threads
 from ..scanner.scan_folder import read_photo
 from ..scanner.scanner import Scanner
 from .settings import TUNING
@@ -39,11 +43,29 @@ class Selection:
         return cls(d["kept"], d["blurry"], d["unreadable"], d["scores"])
 
 
-def blur_score(codes: np.ndarray) -> float:
-    """Crete et al. blur of an ``(H, W, 3)`` 8-bit photo (grey = channel mean)."""
-    from skimage.measure import blur_effect
+BLUR_WINDOW = 11  # pixels: Crete et al.'s (and scikit-image's) strong low-pass along each axis
 
-    return float(blur_effect(codes.mean(-1) / 255.0))
+
+def blur_score(codes: np.ndarray) -> float:
+    """Crete et al. blur of an ``(H, W, 3)`` 8-bit photo (grey = channel mean): per image axis, the
+    share of the Sobel gradient along it that an 11-pixel box blur along it does not remove is the
+    sharpness; the score is 1 minus the smaller one (reflected borders, the outer 2 pixels left out,
+    as scikit-image)."""
+    import cv2
+
+    grey = codes.astype(np.float32).mean(-1) / np.float32(255.0)
+    h, w = grey.shape
+    inner = (slice(2, h - 1), slice(2, w - 1))
+    scores = []
+    for dx, dy in ((0, 1), (1, 0)):  # along rows (y), then along columns (x)
+        box = (BLUR_WINDOW, 1) if dx else (1, BLUR_WINDOW)  # OpenCV sizes are (width, height)
+        blurred = cv2.blur(grey, box, borderType=cv2.BORDER_REFLECT)
+        sharp = np.abs(cv2.Sobel(grey, cv2.CV_32F, dx, dy, ksize=3, borderType=cv2.BORDER_REFLECT))[inner]
+        soft = np.abs(cv2.Sobel(blurred, cv2.CV_32F, dx, dy, ksize=3, borderType=cv2.BORDER_REFLECT))[inner]
+        total = float(sharp.sum(dtype=np.float64))
+        kept = float(np.maximum(sharp - soft, 0).sum(dtype=np.float64))
+        scores.append(abs(total - kept) / max(total, 1e-30))
+    return max(scores)
 
 
 def select_photos(
@@ -52,14 +74,20 @@ def select_photos(
     """Keep the readable photos of the camera's size whose blur is at most the median + ``margin``;
     each photo left out as unreadable (truncated, corrupt, wrong size) is named on stderr."""
     scores, unreadable = {}, []
-    for p in progress.track(paths, "blur check", unit="photo"):
+
+    def score(p: Path) -> float | NtpInputError:
         try:
-            img = read_photo(p, scanner)
+            return blur_score(read_photo(p, scanner))
         except NtpInputError as err:
-            warn(f"{err} — skipped")
-            unreadable.append(p.name)
-            continue
-        scores[p.name] = blur_score(img)
+            return err
+
+    with ThreadPoolExecutor(max(configured_threads(), 1)) as pool:
+        for p, s in zip(paths, progress.track(pool.map(score, paths), "blur check", len(paths), "photo"), strict=True):
+            if isinstance(s, NtpInputError):
+                warn(f"{s} — skipped")
+                unreadable.append(p.name)
+            else:
+                scores[p.name] = s
     if not scores:
         return Selection([], {}, unreadable, {})
     limit = float(np.median(list(scores.values()))) + margin

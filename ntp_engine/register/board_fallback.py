@@ -1,12 +1,12 @@
 """Photos the marker board does not place, placed by structure from motion beside those it does.
 
 SfM runs on the photos without a board pose and, as anchors, their neighbours along the sweep
-(``REACH`` each side: a hand-held sweep's neighbours overlap, the same pairing SfM's sequential
-matching uses). The anchors' board poses give the similarity from SfM's frame to the board's
-(``align.camera_similarity`` on the camera centres); an SfM photo enters the board frame through
-it. The photos SfM does not register, or a join whose anchors disagree with their board poses by
-more than ``MAX_ANCHOR_RMS_PX`` at the object, stay unregistered, named. The cost grows with the
-photos the board missed, not with the scan.
+(``TUNING.board.fallback_reach`` each side: a hand-held sweep's neighbours overlap, the pairing SfM's
+sequential matching uses). The anchors' board poses give the similarity from SfM's frame to the
+board's (``align.camera_similarity`` on the camera centres); an SfM photo enters the board frame
+through it. The photos SfM does not register, or a join whose anchors disagree with their board
+poses by more than ``TUNING.board.max_anchor_rms_px`` at the object, stay unregistered, named. The
+cost grows with the photos the board missed, not with the scan.
 
 Convention: camera-from-board 4x4 (OpenCV axes, metres), as ``register.board_poses``.
 """
@@ -23,14 +23,8 @@ from ..io.progress import QUIET, Progress
 from ..scanner.scanner import Scanner
 from .align import camera_similarity, moved_pose
 from .board_poses import BoardPoses
+from .settings import TUNING
 from .sfm import structure_from_motion
-
-# neighbours of a photo the board missed that SfM also maps (each side, in the sweep's order): SfM's
-# own sequential matching pairs each photo with its 10 neighbours, so 5 a side share its features
-REACH = 5
-# a join is kept when the anchors' SfM centres, moved into the board frame, lie within this many
-# pixels (at the working distance) of their board centres: the board's own poses scatter ~0.1-0.5 px
-MAX_ANCHOR_RMS_PX = 2.0
 
 
 @dataclass
@@ -52,7 +46,7 @@ class Fallback:
         }
 
 
-def sfm_subset(names: list[str], missing: list[str], reach: int = REACH) -> list[str]:
+def sfm_subset(names: list[str], missing: list[str], reach: int = TUNING.board.fallback_reach) -> list[str]:
     """The photos SfM maps: ``missing`` and their ``reach`` neighbours each side in ``names``' order."""
     order = sorted(names)
     at = {n: i for i, n in enumerate(order)}
@@ -87,7 +81,7 @@ def fill_from_sfm(
         for n in anchors
     ]
     rms = float(np.sqrt(np.mean(np.square(apart))))
-    if rms > MAX_ANCHOR_RMS_PX:
+    if rms > TUNING.board.max_anchor_rms_px:
         why = f"SfM's model disagrees with the board's poses ({rms:.1f} px RMS at the object)"
         return Fallback({}, len(anchors), rms, dict.fromkeys(missing, why))
     placed = {n: moved_pose(sfm.poses[n], *fit) for n in missing if n in sfm.poses}

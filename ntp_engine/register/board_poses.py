@@ -9,9 +9,10 @@ none of them.
 
 A corner the object half hides can pull the sub-pixel search onto its outline (pixels off): each
 photo's corners are judged by their own residuals — the one furthest out is dropped while it lies
-beyond ``OUTLIER_Z`` robust sigmas (1.4826 x the median absolute residual, at least
-``NOISE_FLOOR_PX``) and ``MIN_CORNERS`` remain — and the pose solved again without it. A photo with
-fewer corners is named as not seeing the board.
+beyond ``TUNING.board.outlier_z`` robust sigmas (1.4826 x the median absolute residual, at least
+``TUNING.board.noise_floor_px``) and more than ``TUNING.board.min_corners`` remain — and the pose
+solved again without it. A photo with fewer corners is named as not seeing the board. OpenCV's
+corners are moved by ``TUNING.board.corner_offset_px`` into the device file's pixel convention.
 """
 
 from __future__ import annotations
@@ -28,18 +29,7 @@ from ..io.threads import configured_threads
 from ..scanner.board import Board
 from ..scanner.scanner import Scanner
 from .align import Alignment, convergence_point
-
-# a planar pose has 6 unknowns and each corner gives 2 equations: 6 corners leave 6 residuals to judge it
-MIN_CORNERS = 6
-# OpenCV 4.10's ChArUco corners lie half a pixel right of and below the integer-centre convention: on
-# boards drawn at known positions (axis-aligned, turned 30 and 60 deg, 1-3.3 px/mm) they came out
-# +0.49-0.50 px in x and y (tests/register/test_board_poses.py); left in, every pose is off by it
-CORNER_OFFSET_PX = 0.5
-# Iglewicz and Hoaglin's outlier rule on the modified z-score (robust sigmas from the median)
-OUTLIER_Z = 3.5
-# the robust sigma is never taken below this: corners of engine renders scatter 0.04-0.07 px RMS (a
-# photo fitting nearly exactly would otherwise drop good corners)
-NOISE_FLOOR_PX = 0.05
+from .settings import TUNING
 
 
 @dataclass
@@ -95,18 +85,18 @@ def detect_corners(gray: np.ndarray, board: Board) -> tuple[np.ndarray, np.ndarr
     corners, ids, _, _ = detector.detectBoard(gray)
     if ids is None or len(ids) == 0:
         return np.zeros(0, dtype=int), np.zeros((0, 2))
-    return ids.ravel().astype(int), corners.reshape(-1, 2).astype(np.float64) - CORNER_OFFSET_PX
+    return ids.ravel().astype(int), corners.reshape(-1, 2).astype(np.float64) - TUNING.board.corner_offset_px
 
 
 def solve_pose(
     ids: np.ndarray, pixels: np.ndarray, board: Board, scanner: Scanner
 ) -> tuple[np.ndarray, np.ndarray] | None:
     """Camera-from-board 4x4 from corners (``detect_corners``) and each corner's reprojection
-    residual ``(N, 2)`` (pixels); None with fewer than ``MIN_CORNERS``, corners all on one line, or
-    the board behind the camera."""
+    residual ``(N, 2)`` (pixels); None with fewer than ``TUNING.board.min_corners``, corners all on
+    one line, or the board behind the camera."""
     import cv2
 
-    if len(ids) < MIN_CORNERS:
+    if len(ids) < TUNING.board.min_corners:
         return None
     obj = board.corner_points()[ids]
     centred = obj[:, :2] - obj[:, :2].mean(0)
@@ -136,14 +126,14 @@ def robust_pose(name: str, ids: np.ndarray, pixels: np.ndarray, board: Board, sc
         v.pose, residual = solved
         v.sum_sq_px = float((residual**2).sum())
         r = np.abs(residual).max(1)
-        sigma = max(1.4826 * float(np.median(np.abs(residual))), NOISE_FLOOR_PX)
+        sigma = max(1.4826 * float(np.median(np.abs(residual))), TUNING.board.noise_floor_px)
         worst = int(np.argmax(r))
-        if r[worst] <= OUTLIER_Z * sigma or keep.sum() <= MIN_CORNERS:
+        if r[worst] <= TUNING.board.outlier_z * sigma or keep.sum() <= TUNING.board.min_corners:
             v.ids, v.pixels, v.dropped = ids[keep], pixels[keep], int((~keep).sum())
             return v
         keep[np.flatnonzero(keep)[worst]] = False
     v.pose = None
-    v.rejected = f"board not seen ({len(ids)} corners, need {MIN_CORNERS} not on one line)"
+    v.rejected = f"board not seen ({len(ids)} corners, need {TUNING.board.min_corners} not on one line)"
     return v
 
 

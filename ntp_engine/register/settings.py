@@ -1,5 +1,6 @@
 """The registration's tuned constants (``RegistrationTuning``, one section per part: the photo stack,
-the photometric refinement, the check, the refusal, the mesh alignment, SfM and COLMAP import), every
+the photometric refinement, the check, the refusal, the mesh alignment, SfM and COLMAP import, the
+marker board), every
 value declared with its provenance (``io.tuned``; the table of them all is ``docs/tuning.md``,
 generated from here).
 
@@ -156,6 +157,38 @@ class SfmTuning:
 
 
 @dataclass(frozen=True)
+class BoardTuning:
+    """Camera poses from the marker board (``register.board_poses``, ``register.board_fallback``)."""
+
+    corner_offset_px: float = measured(
+        0.5,
+        "OpenCV 4.10's ChArUco corners lie this far right of and below the integer-centre convention (+0.49-0.50 "
+        "px in x and y on boards drawn at known positions, 1-3.3 px/mm, turned 0-60 deg); subtracted. Left in, "
+        "the demo on the board registered 2.0 mm / 0.46 deg off and was refused; taken out, 0.29 mm / 0.04 deg",
+        on="boards drawn by Board.albedo (tests/register/test_board_poses.py) and the demo on an A4 board, 40 photos",
+    )
+    min_corners: int = derived(
+        6, "a planar pose has 6 unknowns and each corner 2 equations: 6 corners leave 6 residuals to judge it by"
+    )
+    outlier_z: float = derived(
+        3.5, "a corner beyond this many robust sigmas of its photo's residuals is dropped (Iglewicz and Hoaglin)"
+    )
+    noise_floor_px: float = measured(
+        0.05,
+        "the robust sigma is never taken below this: corners of engine renders scatter 0.04-0.07 px RMS",
+        on="the demo on an A4 board (virtual scanner, quarter size, 40 photos)",
+    )
+    fallback_reach: int = derived(
+        5, "photos the board misses are mapped by SfM with this many neighbours a side (SfM's sequential pairing: 10)"
+    )
+    max_anchor_rms_px: float = unmeasured(
+        2.0,
+        "SfM's model joins the board frame when its photos that the board placed lie within this (at the object) "
+        "of their board poses; measured 1.4 px on the demo at quarter size",
+    )
+
+
+@dataclass(frozen=True)
 class RegistrationTuning:
     """The registration's tuned constants, one section per part (fixed per release; ``docs/tuning.md``)."""
 
@@ -165,6 +198,7 @@ class RegistrationTuning:
     refusal: RefusalTuning = field(default_factory=RefusalTuning)
     align: AlignTuning = field(default_factory=AlignTuning)
     sfm: SfmTuning = field(default_factory=SfmTuning)
+    board: BoardTuning = field(default_factory=BoardTuning)
 
 
 TUNING = RegistrationTuning()

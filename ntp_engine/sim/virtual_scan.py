@@ -45,7 +45,7 @@ from ..scanner.device_file import load_scanner, save_scanner
 from ..scanner.scan_folder import load_scan, write_scan_toml
 from ..scanner.scanner import Scanner
 from .materials import LABELS_FILE, MATERIALS_FILE
-from .renderer import Scene
+from .renderer import BACKDROP_Z, Scene
 
 
 @dataclass
@@ -277,13 +277,14 @@ def plan_capture(mesh: Mesh, scanner: Scanner, cfg: ScanConfig) -> CapturePlan:
 
 def board_placement(mesh: Mesh, cfg: ScanConfig) -> np.ndarray:
     """World-from-board 4x4 of the board under ``mesh``: turned uniformly, its centre
-    ``cfg.board_shift`` (normal sigma, each axis) from the mesh's foot, on z = 0; drawn from its own
+    ``cfg.board_shift`` (normal sigma, each axis) from the mesh's foot, on the backdrop; drawn from its own
     generator (the seed's), so the photos' poses and noise are those of the scan without a board."""
     rng = np.random.default_rng([cfg.seed, 1])
     turn = rng.uniform(0, 2 * math.pi)
     m = np.eye(4)
     m[:2, :2] = [[math.cos(turn), -math.sin(turn)], [math.sin(turn), math.cos(turn)]]
     m[:2, 3] = 0.5 * (mesh.vertices.min(0) + mesh.vertices.max(0))[:2] + rng.normal(0, cfg.board_shift, 2)
+    m[2, 3] = BACKDROP_Z  # printed on the backdrop, a tenth of a millimetre under the object's foot
     return m
 
 

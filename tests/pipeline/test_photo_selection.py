@@ -5,6 +5,7 @@ import shutil
 
 import numpy as np
 from scipy.ndimage import gaussian_filter
+from skimage.measure import blur_effect
 
 from ntp_engine.io.images import read_image, write_png
 from ntp_engine.pipeline.photo_selection import blur_score
@@ -24,3 +25,14 @@ def test_blurry_and_corrupt_photos_are_skipped_and_listed(scan24, tmp_path):
     assert list(rep.photos.blurry) == ["0003.png"]
     assert sorted(rep.photos.unreadable) == ["0007.png", "0008.png"]
     assert rep.photos.kept == 21
+
+
+def test_the_blur_score_is_crete_et_al_as_scikit_image_computes_it():
+    rng = np.random.default_rng(3)
+    sharp = rng.integers(0, 256, (120, 160, 3)).astype(np.float64)
+    sharp[40:80, 50:110] = 230.0  # a patch with edges
+    soft = np.stack([gaussian_filter(sharp[..., c], 1.5) for c in range(3)], -1)
+    for codes in (sharp, soft, sharp[:, :97]):
+        reference = float(blur_effect(codes.mean(-1) / 255.0))
+        assert abs(blur_score(codes) - reference) < 1e-5, (blur_score(codes), reference)
+    assert blur_score(soft) > blur_score(sharp) + 0.2

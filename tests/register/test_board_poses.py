@@ -9,16 +9,15 @@ import numpy as np
 import pytest
 
 from ntp_engine.io.mesh import load_mesh
-from ntp_engine.register.board_fallback import MAX_ANCHOR_RMS_PX, fill_from_sfm, sfm_subset
+from ntp_engine.register.board_fallback import fill_from_sfm, sfm_subset
 from ntp_engine.register.board_poses import (
-    CORNER_OFFSET_PX,
-    MIN_CORNERS,
     board_poses,
     detect_corners,
     first_placement,
     robust_pose,
     solve_pose,
 )
+from ntp_engine.register.settings import TUNING
 from ntp_engine.scanner.board import board_for_paper
 from ntp_engine.scanner.scan_folder import load_scan
 from ntp_engine.sim.virtual_scan import ScanConfig, virtual_scan
@@ -45,9 +44,9 @@ def test_corners_are_found_where_they_are(turn, scale):
     ids, px = detect_corners(image, board)
     assert len(ids) >= 37
     offset = (px - truth[ids]).mean(0)
-    # without CORNER_OFFSET_PX, OpenCV's corners lie +0.5 px off in x and y
+    # without TUNING.board.corner_offset_px, OpenCV's corners lie +0.5 px off in x and y
     assert np.abs(offset).max() < 0.05, offset
-    assert CORNER_OFFSET_PX == 0.5
+    assert TUNING.board.corner_offset_px == 0.5
 
 
 @pytest.fixture(scope="module")
@@ -93,7 +92,7 @@ def test_the_object_hides_part_of_the_board_and_the_rest_suffices(board_scan):
         ids, _ = detect_corners(cv2.imread(str(path), cv2.IMREAD_GRAYSCALE), scan.board)
         seen.append(len(ids))
     # the object stands on the board's middle: no photo sees all 40 corners, every one enough
-    assert max(seen) < len(scan.board.corner_points()) and min(seen) >= MIN_CORNERS, seen
+    assert max(seen) < len(scan.board.corner_points()) and min(seen) >= TUNING.board.min_corners, seen
 
 
 def test_an_outlying_corner_is_dropped_and_the_pose_kept(board_scan):
@@ -122,7 +121,7 @@ def test_too_little_board_and_another_board_give_no_pose(board_scan):
     few = robust_pose(path.name, ids[:5], px[:5], scan.board, scan.scanner)
     assert few.pose is None and "board not seen (5 corners" in (few.rejected or "")
     row = ids // (scan.board.squares[0] - 1) == ids[0] // (scan.board.squares[0] - 1)  # one row: a line
-    if row.sum() >= MIN_CORNERS:
+    if row.sum() >= TUNING.board.min_corners:
         assert solve_pose(ids[row], px[row], scan.board, scan.scanner) is None
     other = replace(scan.board, dictionary="DICT_5X5_250")  # a board printed from another dictionary
     found = board_poses(scan.photos_dir, [path.name], other, scan.scanner)
@@ -153,7 +152,7 @@ def test_a_photo_the_board_misses_is_placed_by_sfm_beside_its_neighbours(board_s
     known = found.poses.pop(hidden)  # as if the board were out of this photo
     assert sfm_subset(names, [hidden], reach=2) == names[1:6]
     added = fill_from_sfm(scan.photos_dir, names, found, scan.scanner, tmp_path / "sfm")
-    assert added.anchors >= 3 and added.anchor_rms_px <= MAX_ANCHOR_RMS_PX, added.to_json()
+    assert added.anchors >= 3 and added.anchor_rms_px <= TUNING.board.max_anchor_rms_px, added.to_json()
     assert list(added.poses) == [hidden] and not added.unplaced
     pose = added.poses[hidden]
     centre, centre_board = -pose[:3, :3].T @ pose[:3, 3], -known[:3, :3].T @ known[:3, 3]
