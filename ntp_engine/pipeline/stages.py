@@ -50,7 +50,7 @@ from ..refine.settings import TUNING as REFINE_TUNING
 from ..refine.settings import RefineSettings
 from ..refine.support_light import SupportAlbedo, SupportScene, estimate_support_albedo, exposed
 from ..register.board_fallback import fill_from_sfm
-from ..register.board_poses import BoardPoses, board_poses
+from ..register.board_poses import BoardPoses, poses_from_corners
 from ..register.check import register_to_mesh
 from ..register.colmap_model import model_files, read_colmap_model
 from ..register.refusal import outline_picture, refusal, symmetry_note
@@ -201,10 +201,11 @@ def _select_stage(scan: Scan, cache: StageCache, blur_margin: float, progress: P
         "code": _stage_code("select"),
         "margin": blur_margin,
         "camera": [scan.scanner.width, scan.scanner.height],
+        "board": content_key([scan.board_path]) if scan.board_path else None,  # its corners are found here
     }
 
     def compute(d: Path) -> None:
-        sel = select_photos(scan.photo_paths, scan.scanner, blur_margin, progress)
+        sel = select_photos(scan.photo_paths, scan.scanner, blur_margin, progress, scan.board)
         (d / "selection.json").write_text(json.dumps(sel.to_json(), indent=1))
 
     folder, h_sel = cache.get("select", key, compute)
@@ -298,7 +299,8 @@ def _board_stage(scan: Scan, sel: Selection, work: Path, progress: Progress) -> 
     (``register.board_fallback``; ``work`` holds its database); ``NtpInputError`` when too few
     photos see the board."""
     assert scan.board is not None
-    reg = board_poses(scan.photos_dir, sel.kept, scan.board, scan.scanner, progress)
+    assert sel.corners is not None  # the selection found them (``_select_stage`` with the board)
+    reg = poses_from_corners({n: sel.corners[n] for n in sel.kept}, scan.board, scan.scanner)
     if reg.unregistered and len(reg.poses) >= REGISTRATION_TUNING.sfm.min_registered:
         added = fill_from_sfm(scan.photos_dir, sel.kept, reg, scan.scanner, work, progress)
         shutil.rmtree(work, ignore_errors=True)

@@ -141,18 +141,25 @@ def board_poses(
     photos_dir: Path, names: list[str], board: Board, scanner: Scanner, progress: Progress = QUIET
 ) -> BoardPoses:
     """The board's pose in each photo of ``names`` (see the module docstring); photos read in
-    parallel (``io.threads.configured_threads``)."""
+    parallel (``io.threads.configured_threads``). The pipeline finds the corners as it selects the
+    photos (``pipeline.photo_selection``) and calls ``poses_from_corners``."""
 
-    def view(name: str) -> BoardView:
+    def corners(name: str) -> tuple[np.ndarray, np.ndarray]:
         import cv2
 
         gray = cv2.imread(str(photos_dir / name), cv2.IMREAD_GRAYSCALE)
         if gray is None:
-            return BoardView(name, np.zeros(0, dtype=int), np.zeros((0, 2)), rejected="unreadable")
-        return robust_pose(name, *detect_corners(gray, board), board, scanner)
+            return np.zeros(0, dtype=int), np.zeros((0, 2))
+        return detect_corners(gray, board)
 
     with ThreadPoolExecutor(max(configured_threads(), 1)) as pool:
-        views = list(progress.track(pool.map(view, names), "marker board", total=len(names), unit="photo"))
+        found = list(progress.track(pool.map(corners, names), "marker board", total=len(names), unit="photo"))
+    return poses_from_corners(dict(zip(names, found, strict=True)), board, scanner)
+
+
+def poses_from_corners(corners: dict[str, tuple[np.ndarray, np.ndarray]], board: Board, scanner: Scanner) -> BoardPoses:
+    """The board's pose in each photo from its corners (ids, pixels) by name (``robust_pose``)."""
+    views = [robust_pose(name, ids, px, board, scanner) for name, (ids, px) in corners.items()]
     poses = {v.name: v.pose for v in views if v.pose is not None}
     return BoardPoses(poses, [v.name for v in views if v.pose is None], views)
 
