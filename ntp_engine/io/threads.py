@@ -1,8 +1,11 @@
 """How many CPU threads a run uses (``ntp reconstruct|register --threads N``, the add-on's
-preference): one home for the setting, read by torch and by COLMAP's feature extraction, matching
-and mapping. 0 means every core (torch's and COLMAP's own default)."""
+preference): one home for the setting, read by torch, by COLMAP's feature extraction, matching
+and mapping, and by the pools that decode photos. 0 means every core (torch's and COLMAP's own
+default)."""
 
 from __future__ import annotations
+
+import os
 
 import torch
 
@@ -26,6 +29,11 @@ def set_threads(n: int) -> None:
 def configured_threads() -> int:
     """The setting (0: every core), e.g. the CPUs of a local Ray instance (``task_pool.RayPool``)."""
     return _threads
+
+
+def worker_threads() -> int:
+    """How many threads to decode or score photos on: the setting, every core for 0."""
+    return _threads or max(len(os.sched_getaffinity(0)), 1)
 
 
 def colmap_threads() -> int:

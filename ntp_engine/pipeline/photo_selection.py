@@ -3,7 +3,7 @@
 The blur metric is Crete et al.'s no-reference perceptual blur (0 = sharp, 1 = fully blurred) on
 the photo's grey level, as scikit-image's ``measure.blur_effect`` computes it (the same score to
 1e-6, ``tests/pipeline/test_photo_selection.py``) in float32 OpenCV filters: 3x faster at the
-device's 5 MP, and photos are scored two at a time (``io.threads.configured_threads``).
+device's 5 MP, and photos are scored on every core at once (``io.threads.worker_threads``).
 
 Where the object stands on a marker board, the same read of each photo finds the board's corners
 (``register.board_poses.detect_corners``), kept with the selection: a photo is decoded once (a 5 MP
@@ -22,7 +22,7 @@ import numpy as np
 
 from ..io.errors import NtpInputError
 from ..io.progress import QUIET, Progress, warn
-from ..io.threads import configured_threads
+from ..io.threads import worker_threads
 from ..register.board_poses import detect_corners
 from ..scanner.board import Board
 from ..scanner.scan_folder import read_photo
@@ -115,7 +115,7 @@ def select_photos(
         grey = cv2.cvtColor(codes.astype(np.uint8), cv2.COLOR_RGB2GRAY)
         return blur_score(codes), detect_corners(grey, board)
 
-    with ThreadPoolExecutor(max(configured_threads(), 1)) as pool:
+    with ThreadPoolExecutor(worker_threads()) as pool:
         stage = "blur check" if board is None else "blur check, marker board"
         done = progress.track(pool.map(score, paths), stage, len(paths), "photo")
         for p, s in zip(paths, done, strict=True):

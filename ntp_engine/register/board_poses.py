@@ -25,7 +25,7 @@ import numpy as np
 
 from ..io.mesh import Mesh
 from ..io.progress import QUIET, Progress
-from ..io.threads import configured_threads
+from ..io.threads import worker_threads
 from ..scanner.board import Board
 from ..scanner.scanner import Scanner
 from .align import Alignment, convergence_point
@@ -141,7 +141,7 @@ def board_poses(
     photos_dir: Path, names: list[str], board: Board, scanner: Scanner, progress: Progress = QUIET
 ) -> BoardPoses:
     """The board's pose in each photo of ``names`` (see the module docstring); photos read in
-    parallel (``io.threads.configured_threads``). The pipeline finds the corners as it selects the
+    parallel (``io.threads.worker_threads``). The pipeline finds the corners as it selects the
     photos (``pipeline.photo_selection``) and calls ``poses_from_corners``."""
 
     def corners(name: str) -> tuple[np.ndarray, np.ndarray]:
@@ -152,7 +152,7 @@ def board_poses(
             return np.zeros(0, dtype=int), np.zeros((0, 2))
         return detect_corners(gray, board)
 
-    with ThreadPoolExecutor(max(configured_threads(), 1)) as pool:
+    with ThreadPoolExecutor(worker_threads()) as pool:
         found = list(progress.track(pool.map(corners, names), "marker board", total=len(names), unit="photo"))
     return poses_from_corners(dict(zip(names, found, strict=True)), board, scanner)
 

@@ -51,3 +51,26 @@ def _write_jpeg(path, img):
     out.open(str(path), oiio.ImageSpec(img.shape[1], img.shape[0], 3, oiio.UINT8))
     out.write_image((img * 255).astype(np.uint8))
     out.close()
+
+
+def test_decoding_on_many_threads_leaves_stderr_where_it_was(tmp_path):
+    import os
+    from concurrent.futures import ThreadPoolExecutor
+
+    good = tmp_path / "good.png"
+    write_png(good, np.random.default_rng(0).random((64, 64, 3)))
+    bad = tmp_path / "bad.png"
+    bad.write_bytes(good.read_bytes()[:300])  # truncated: libpng complains on descriptor 2
+    before = os.fstat(2)
+
+    def read(i: int) -> bool:
+        try:
+            read_image(good if i % 3 else bad)
+            return True
+        except NtpInputError:
+            return False
+
+    with ThreadPoolExecutor(8) as pool:
+        results = list(pool.map(read, range(96)))
+    after = os.fstat(2)
+    assert results.count(False) == 32 and (after.st_dev, after.st_ino) == (before.st_dev, before.st_ino)
