@@ -26,6 +26,7 @@ from ntp_engine.io.images import read_image, write_png
 from ntp_engine.io.mesh import Mesh, load_mesh, save_obj
 from ntp_engine.io.output_folder import claim, is_complete
 from ntp_engine.learn import models
+from ntp_engine.scanner.board import board_for_paper
 from ntp_engine.scanner.device_file import DEFAULT_DEVICE
 
 RES = "16"
@@ -96,6 +97,19 @@ def _write(name: str, data: bytes | None) -> Callable[[Path, Path, Path], list[s
 
 def _toml(text: bytes) -> Callable[[Path, Path, Path], list[str]]:
     return _write("scan.toml", text)
+
+
+def _board(data: bytes | None) -> Callable[[Path, Path, Path], list[str]]:
+    """scan.toml names a marker board layout ``board.json`` holding ``data`` (None: no such file)."""
+
+    def setup(scan, out, tmp):
+        toml = scan / "scan.toml"
+        toml.write_text(toml.read_text() + '\nboard = "board.json"\n')
+        if data is not None:
+            (scan / "board.json").write_bytes(data)
+        return reconstruct_argv(scan, out)
+
+    return setup
 
 
 def _mesh(change: Callable[[Mesh], Mesh]) -> Callable[[Path, Path, Path], list[str]]:
@@ -272,6 +286,18 @@ CASES = {
     ),
     "blur_margin_nan": Case(
         lambda s, o, t: reconstruct_argv(s, o, "--blur-margin", "nan"), "not a finite number", "--blur-margin"
+    ),
+    "board_missing": Case(_board(None), "key 'board': board.json does not exist", "scan.toml"),
+    "board_truncated": Case(
+        _board(json.dumps(board_for_paper("A4").to_json()).encode()[:60]), "cannot read the board layout", "board.json"
+    ),
+    "board_foreign": Case(
+        _board(json.dumps({"0000.png": np.eye(4).tolist()}).encode()), "not an ntp board layout", "board.json"
+    ),
+    "board_unknown_dictionary": Case(
+        _board(json.dumps({**board_for_paper("A4").to_json(), "dictionary": "DICT_9X9"}).encode()),
+        "unknown marker dictionary",
+        "board.json",
     ),
     "scan_toml_typo": Case(
         _toml(b'mesh = "mesh.obj"\nphotos = "photos"\ndevice = "device.toml"\npose = "poses.json"\n'),

@@ -189,8 +189,8 @@ def _diagnostics(out: Path, cache: StageCache, reg_info: dict, force: bool) -> N
     if why is not None and not force:
         raise RegistrationRefused(
             out / "registration.json",
-            f"registration refused: {why} — look at registration.png; more photos, markers on the support "
-            "or a poses file help (--force-registration goes on anyway)",
+            f"registration refused: {why} — look at registration.png; more photos, a marker board under the "
+            "object (ntp board) or a poses file help (--force-registration goes on anyway)",
         )
     reg_info["confidence"]["forced"] = why is not None
 

@@ -10,6 +10,7 @@ in degrees about the support's normal.
 from __future__ import annotations
 
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -17,6 +18,7 @@ import numpy as np
 from ..io.errors import NtpInputError
 from ..io.mesh import Mesh, load_mesh
 from ..io.progress import QUIET, Progress
+from ..io.threads import worker_threads
 from ..scanner.local_frame import local_origin, moved
 from ..scanner.scan_folder import Scan, read_photo
 from .align import (
@@ -277,7 +279,8 @@ def register_to_mesh(scan: Scan, reg: SfmResult | BoardPoses, progress: Progress
         icp = _cloud_alignment(scan, reg, names, mesh, progress)
     t1 = time.perf_counter()
     judged = spread(names)  # the photos judge (and refine) the alignment
-    photos = PhotoStack([read_photo(scan.photos_dir / n, scan.scanner) for n in judged], scan.scanner)
+    with ThreadPoolExecutor(worker_threads()) as pool:  # decoded in parallel, averaged down one at a time
+        photos = PhotoStack(pool.map(lambda n: read_photo(scan.photos_dir / n, scan.scanner), judged), scan.scanner)
     support_z = float(mesh.vertices[:, 2].min()) if scan.support_plane else None
     check = check_registration(icp, reg.poses, photos, judged, mesh, support_z, progress, on_board=on_board)
     return MeshRegistration(icp, check, photos, judged, mesh, origin, t1 - t0, time.perf_counter() - t1)

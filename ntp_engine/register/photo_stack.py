@@ -9,6 +9,7 @@ metres.
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import replace
 
 import numpy as np
@@ -30,19 +31,24 @@ WORK = torch.float32
 class PhotoStack:
     """Linear photos ``(V, 3, h, w)`` at a working size, the matching scanner, and their blurs."""
 
-    def __init__(self, codes: list[np.ndarray], scanner: Scanner):
-        """``codes``: 8-bit ``(H, W, 3)`` photos of ``scanner``'s camera."""
+    def __init__(self, codes: Iterable[np.ndarray], scanner: Scanner):
+        """``codes``: 8-bit ``(H, W, 3)`` photos of ``scanner``'s camera, taken one at a time (a
+        generator keeps one full-size photo in memory, not all of them: 40 of the device's are 4.8 GB
+        as float64)."""
         factor = max(1, int(np.ceil(scanner.width / TUNING.stack.max_working_width)))
         self.scanner = camera.resampled(scanner, 1.0 / factor) if factor > 1 else scanner
-        stack = torch.as_tensor(np.stack(codes), dtype=torch.float32).permute(0, 3, 1, 2)
-        linear = camera.decode(scanner, stack)
-        usable = (
-            ((stack >= TUNING.stack.code_range[0]) & (stack <= TUNING.stack.code_range[1])).all(1, keepdim=True).float()
-        )
-        if factor > 1:  # area average; a pixel with any clipped source pixel is unusable
-            linear = F.avg_pool2d(linear, factor)
-            usable = (F.avg_pool2d(usable, factor) > 0.999).float()
-        self.linear, self.usable = linear, usable
+        linear, usable = [], []
+        for c in codes:
+            photo = torch.as_tensor(c, dtype=torch.float32).permute(2, 0, 1)[None]
+            lin = camera.decode(scanner, photo)
+            low, high = TUNING.stack.code_range
+            ok = ((photo >= low) & (photo <= high)).all(1, keepdim=True).float()
+            if factor > 1:  # area average; a pixel with any clipped source pixel is unusable
+                lin = F.avg_pool2d(lin, factor)
+                ok = (F.avg_pool2d(ok, factor) > 0.999).float()
+            linear.append(lin)
+            usable.append(ok)
+        self.linear, self.usable = torch.cat(linear), torch.cat(usable)
         self._blurred: dict[float, torch.Tensor] = {}
         self._gradients: dict[float, torch.Tensor] = {}
 
