@@ -9,7 +9,6 @@ import numpy as np
 import pytest
 
 from ntp_engine.io.mesh import load_mesh
-from ntp_engine.register.board_fallback import fill_from_sfm, sfm_subset
 from ntp_engine.register.board_poses import (
     board_poses,
     detect_corners,
@@ -141,19 +140,3 @@ def test_the_first_placement_stands_the_mesh_on_the_board_under_the_cameras_aim(
     foot_placed = placed.rotation.T @ (np.array([*centre[:2], 0.0]) - placed.translation)
     assert abs(placed.translation[2] - mesh.vertices[:, 2].min()) < 1e-12  # the foot on the plane
     assert np.hypot(*(foot_board[:2] - foot_placed[:2])) < 0.01
-
-
-def test_a_photo_the_board_misses_is_placed_by_sfm_beside_its_neighbours(board_scan, tmp_path):
-    scan = load_scan(board_scan)
-    assert scan.board is not None
-    names = [p.name for p in scan.photo_paths]
-    found = board_poses(scan.photos_dir, names, scan.board, scan.scanner)
-    hidden = names[3]
-    known = found.poses.pop(hidden)  # as if the board were out of this photo
-    assert sfm_subset(names, [hidden], reach=2) == names[1:6]
-    added = fill_from_sfm(scan.photos_dir, names, found, scan.scanner, tmp_path / "sfm")
-    assert added.anchors >= 3 and added.anchor_rms_px <= TUNING.board.max_anchor_rms_px, added.to_json()
-    assert list(added.poses) == [hidden] and not added.unplaced
-    pose = added.poses[hidden]
-    centre, centre_board = -pose[:3, :3].T @ pose[:3, 3], -known[:3, :3].T @ known[:3, 3]
-    assert np.linalg.norm(centre - centre_board) < 3e-3  # metres: SfM joined by its neighbours' board poses
