@@ -14,6 +14,7 @@ scales with it). Every problem with the file is a one-line ``NtpInputError`` nam
 
 from __future__ import annotations
 
+import functools
 import json
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass
@@ -112,22 +113,7 @@ class Board:
         """The printed page's albedo ``(rows, cols)`` float32, ``texel_mm`` a texel, row 0 the page's
         top (+y), the squares centred: each texel paper and ink in the share the ink covers it (4 x 4
         samples a texel). The virtual scanners' board texture (engine and Cycles)."""
-        cache = self.__dict__.setdefault("_images", {})
-        if texel_mm not in cache:
-            fine = texel_mm / 4
-            pw, ph = self.paper_mm
-            nx, ny = 4 * int(round(pw / texel_mm)), 4 * int(round(ph / texel_mm))
-            x0 = (pw - self.squares[0] * self.square_mm) / 2
-            y0 = (ph - self.squares[1] * self.square_mm) / 2
-            ink = np.zeros((ny, nx), dtype=np.float32)
-            for a, b, c, d in self.ink():
-                ink[
-                    int(round((y0 + b) / fine)) : int(round((y0 + d) / fine)),
-                    int(round((x0 + a) / fine)) : int(round((x0 + c) / fine)),
-                ] = 1
-            share = ink.reshape(ny // 4, 4, nx // 4, 4).mean((1, 3))
-            cache[texel_mm] = (PAPER_ALBEDO + (INK_ALBEDO - PAPER_ALBEDO) * share).astype(np.float32)
-        return cache[texel_mm]
+        return _paper_image(self, texel_mm)
 
     def to_json(self) -> dict:
         """The layout file's content."""
@@ -137,6 +123,24 @@ class Board:
             **asdict(self),
             "frame": "origin at the squares' centre, x along the long side, y up the page, z out of the paper; metres",
         }
+
+
+@functools.lru_cache(maxsize=4)
+def _paper_image(board: Board, texel_mm: float) -> np.ndarray:
+    """``Board.paper_image``, made once per board and texel (the renderer asks for it per chunk)."""
+    fine = texel_mm / 4
+    pw, ph = board.paper_mm
+    nx, ny = 4 * int(round(pw / texel_mm)), 4 * int(round(ph / texel_mm))
+    x0 = (pw - board.squares[0] * board.square_mm) / 2
+    y0 = (ph - board.squares[1] * board.square_mm) / 2
+    ink = np.zeros((ny, nx), dtype=np.float32)
+    for a, b, c, d in board.ink():
+        rows = slice(int(round((y0 + b) / fine)), int(round((y0 + d) / fine)))
+        ink[rows, int(round((x0 + a) / fine)) : int(round((x0 + c) / fine))] = 1
+    share = ink.reshape(ny // 4, 4, nx // 4, 4).mean((1, 3))
+    image = (PAPER_ALBEDO + (INK_ALBEDO - PAPER_ALBEDO) * share).astype(np.float32)
+    image.setflags(write=False)  # shared by every caller
+    return image
 
 
 def board_for_paper(paper: str) -> Board:
