@@ -29,7 +29,7 @@ import bpy  # noqa: F401  (before torch, which the engine imports)
 import numpy as np
 from mathutils import Matrix
 
-from ntp_engine.scanner.board import Board
+from ntp_engine.scanner.board import board_from_json
 from ntp_engine.scanner.device_file import load_scanner
 from ntp_engine.sim.renderer import BACKDROP_HALF, BACKDROP_Z, marker_albedo
 
@@ -56,60 +56,48 @@ def _diffuse_material(name: str) -> tuple[bpy.types.Material, bpy.types.Node]:
     return mat, diffuse
 
 
-def _backdrop(collection: bpy.types.Collection) -> bpy.types.Object:
-    """The marker backdrop square at z = BACKDROP_Z, its albedo one texel per cell."""
-    h = BACKDROP_HALF
-    mesh = bpy.data.meshes.new("backdrop")
-    mesh.from_pydata(
-        [(-h, -h, BACKDROP_Z), (h, -h, BACKDROP_Z), (h, h, BACKDROP_Z), (-h, h, BACKDROP_Z)], [], [(0, 1, 2, 3)]
-    )
+def _textured_quad(
+    collection: bpy.types.Collection, name: str, half: tuple[float, float], z: float, albedo: np.ndarray, lookup: str
+) -> bpy.types.Object:
+    """A ``2 half[0]`` x ``2 half[1]`` rectangle at height ``z`` with a diffuse material of the grey
+    ``albedo (rows, cols)`` (row 0 = top = +y) read by ``lookup`` (Blender's interpolation name)."""
+    w, h = half
+    mesh = bpy.data.meshes.new(name)
+    mesh.from_pydata([(-w, -h, z), (w, -h, z), (w, h, z), (-w, h, z)], [], [(0, 1, 2, 3)])
     uv = mesh.uv_layers.new(name="UVMap")
     for loop, (u, v) in zip(uv.data, ((0, 0), (1, 0), (1, 1), (0, 1))):
         loop.uv = (u, v)
+    img = material.packed_image(f"{name} albedo", np.repeat(albedo[..., None], 3, -1))
+    mat, diffuse = _diffuse_material(name)
+    tex = mat.node_tree.nodes.new("ShaderNodeTexImage")
+    tex.image, tex.interpolation = img, lookup
+    mat.node_tree.links.new(tex.outputs["Color"], diffuse.inputs["Color"])
+    mesh.materials.append(mat)
+    obj = bpy.data.objects.new(name, mesh)
+    collection.objects.link(obj)
+    return obj
+
+
+def _backdrop(collection: bpy.types.Collection) -> bpy.types.Object:
+    """The marker backdrop square at z = BACKDROP_Z, its albedo one texel per cell."""
+    h = BACKDROP_HALF
     n = int(round(2 * h / MARKER_CELL))
     centres = -h + (np.arange(n) + 0.5) * MARKER_CELL
     yy, xx = np.meshgrid(centres[::-1], centres, indexing="ij")  # row 0 = top = +y
-    albedo = marker_albedo(np.stack([xx, yy], -1).reshape(-1, 2)).reshape(n, n, 1)
-    img = material.packed_image("backdrop albedo", np.repeat(albedo, 3, -1))
-    mat, diffuse = _diffuse_material("backdrop")
-    tex = mat.node_tree.nodes.new("ShaderNodeTexImage")
-    tex.image, tex.interpolation = img, "Closest"
-    mat.node_tree.links.new(tex.outputs["Color"], diffuse.inputs["Color"])
-    mesh.materials.append(mat)
-    obj = bpy.data.objects.new("backdrop", mesh)
-    collection.objects.link(obj)
-    return obj
+    albedo = marker_albedo(np.stack([xx, yy], -1).reshape(-1, 2)).reshape(n, n)
+    return _textured_quad(collection, "backdrop", (h, h), BACKDROP_Z, albedo, "Closest")
 
 
 def _board(collection: bpy.types.Collection, record: dict) -> bpy.types.Object:
     """The marker board's page on the backdrop: its albedo image (``Board.paper_image``) on a plane the
     paper's size, placed by the record's world-from-board 4x4."""
-    board = Board(
-        record["paper"],
-        tuple(record["paper_mm"]),
-        tuple(record["squares"]),
-        record["square_mm"],
-        record["marker_mm"],
-        record["dictionary"],
-    )
+    board = board_from_json(record)
     w, h = (1e-3 * v / 2 for v in board.paper_mm)
-    mesh = bpy.data.meshes.new("marker board")
-    mesh.from_pydata([(-w, -h, 0.0), (w, -h, 0.0), (w, h, 0.0), (-w, h, 0.0)], [], [(0, 1, 2, 3)])
-    uv = mesh.uv_layers.new(name="UVMap")
-    for loop, (u, v) in zip(uv.data, ((0, 0), (1, 0), (1, 1), (0, 1))):
-        loop.uv = (u, v)
-    albedo = board.paper_image(BOARD_TEXEL_MM)[..., None]  # row 0 = the page's top = +y
-    img = material.packed_image("marker board albedo", np.repeat(albedo, 3, -1))
-    mat, diffuse = _diffuse_material("marker board")
-    tex = mat.node_tree.nodes.new("ShaderNodeTexImage")
-    tex.image, tex.interpolation = img, "Linear"
-    mat.node_tree.links.new(tex.outputs["Color"], diffuse.inputs["Color"])
-    mesh.materials.append(mat)
-    obj = bpy.data.objects.new("marker board", mesh)
+    # row 0 = the page's top = +y
+    obj = _textured_quad(collection, "marker board", (w, h), 0.0, board.paper_image(BOARD_TEXEL_MM), "Linear")
     placed = np.array(record["world_from_board"], float)
     placed[2, 3] += BOARD_LIFT  # the record places it on the backdrop: lifted clear of it
     obj.matrix_world = Matrix(placed.tolist())
-    collection.objects.link(obj)
     return obj
 
 

@@ -161,6 +161,12 @@ def read_board(path: Path) -> Board:
         data = json.loads(Path(path).read_text(encoding="utf-8"))
     except (OSError, ValueError) as err:
         raise NtpInputError(path, f"cannot read the board layout ({err})") from None
+    return board_from_json(data, path)
+
+
+def board_from_json(data: object, path: Path | None = None) -> Board:
+    """The board a layout's content describes (``Board.to_json``, e.g. a virtual scan's capture
+    record); a one-line ``NtpInputError`` naming ``path`` when it is not one OpenCV can make."""
     if not isinstance(data, dict) or data.get("format") != FORMAT:
         raise NtpInputError(path, f'not an ntp board layout (no "format": "{FORMAT}"; ntp board writes one)')
     if data.get("version") != VERSION:
@@ -191,7 +197,7 @@ def _numbers(value: object, count: int, kind: type) -> tuple:
     return out
 
 
-def _check(board: Board, path: Path) -> None:
+def _check(board: Board, path: Path | None) -> None:
     import cv2
 
     if not board.dictionary.startswith("DICT_") or not hasattr(cv2.aruco, board.dictionary):
