@@ -134,6 +134,12 @@ def _alignment_note(reg: dict) -> str:
     margin = "no rival azimuth" if ph["margin"] is None else f"azimuth margin {ph['margin']:.2f}"
     forced = " (FORCED: the photos did not confirm it)" if conf.get("forced") else ""
     symmetry = f"; the mesh is {conf['symmetry']}" if conf.get("symmetry") else ""
+    points = ph.get("triangulated_points")
+    if points is not None:  # placed on the marker board by the object's triangulated points
+        return (
+            f", placed by {points['inliers']} of {points['object_points']} points triangulated on the object "
+            f"({points['residual_mm']:.2f} mm RMS from the mesh), {margin}{forced}{symmetry}"
+        )
     return f", registration confirmed by the photos: sharpness {ph['sharpness']:.2f}, {margin}{forced}{symmetry}"
 
 

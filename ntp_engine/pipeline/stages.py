@@ -53,7 +53,7 @@ from ..register.board_fallback import fill_from_sfm
 from ..register.board_poses import BoardPoses, poses_from_corners
 from ..register.check import register_to_mesh
 from ..register.colmap_model import model_files, read_colmap_model
-from ..register.refusal import outline_picture, refusal, symmetry_note
+from ..register.refusal import min_margin, outline_picture, refusal, symmetry_note
 from ..register.settings import TUNING as REGISTRATION_TUNING
 from ..register.sfm import SfmResult, structure_from_motion
 from ..scanner import camera
@@ -83,6 +83,7 @@ STAGE_CODE: dict[str, tuple[str, ...]] = {
         "ntp_engine.register.board_poses",
         "ntp_engine.register.board_fallback",
         "ntp_engine.register.refusal",
+        "ntp_engine.register.triangulate",
     ),
     "atlas": ("ntp_engine.io.texels",),
     "traces": ("ntp_engine.pipeline.traces",),
@@ -238,7 +239,17 @@ def _register_stage(
         (d / "poses.json").write_text(json.dumps({n: al.camera_from_mesh(reg.poses[n]).tolist() for n in names}))
         found: dict
         if isinstance(reg, BoardPoses):
-            found = {"board": reg.to_json(), "alignment": {"scale": al.scale, "first_placement": "the cameras' aim"}}
+            placement = "points triangulated on the board" if check.cloud is not None else "the photometric check"
+            points = placed.by_points
+            found = {
+                "board": reg.to_json(),
+                "alignment": {
+                    "scale": al.scale,
+                    "placed_by": placement,
+                    # the points' own placement where they found one, confirmed or not
+                    "points": None if points is None else {**points.to_json(), "refusal": refusal(points)},
+                },
+            }
         else:
             found = {
                 "sfm_points": len(reg.points),
@@ -266,7 +277,7 @@ def _register_stage(
                         "refusal": why,
                         "symmetry": symmetry_note(check),
                         "min_sharpness": REGISTRATION_TUNING.refusal.min_sharpness,
-                        "min_margin": REGISTRATION_TUNING.refusal.min_margin,
+                        "min_margin": min_margin(check),
                     },
                 },
                 indent=1,

@@ -22,6 +22,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.cluster.vq import kmeans2
 from scipy.optimize import minimize_scalar
 from scipy.spatial import cKDTree
 
@@ -45,6 +46,9 @@ class Alignment:
     # first, and how much worse the best alternative more than TUNING.align.ambiguous_deg away scores (relative)
     candidates: list[tuple[float, float]] = field(default_factory=list)
     azimuth_margin: float = float("inf")
+    # a metric placement's spread (``align_on_board``): 1 sigma of the azimuth (rad) and shift (m)
+    azimuth_sigma: float = float("nan")
+    shift_sigma: np.ndarray = field(default_factory=lambda: np.full(3, np.nan))
 
     def apply(self, x: np.ndarray) -> np.ndarray:
         """SfM points ``(..., 3)`` in the mesh frame (metres)."""
@@ -154,17 +158,22 @@ def _support_frame(
     hi: np.ndarray,
     samples: np.ndarray,
     support_plane: bool,
+    plane: tuple[np.ndarray, float] | None = None,
 ) -> _SupportFrame:
-    """The support plane (RANSAC) fixes tilt and height; points above it near the object are the
-    object's, points on it around the object the support's. Without a support: points within the
-    object's size of the cameras' convergence point."""
+    """The support plane (RANSAC, or ``plane`` (n, d): n . x = d where it is known) fixes tilt and
+    height; points above it near the object are the object's, points on it around the object the
+    support's. Without a support: points within the object's size of the cameras' convergence point."""
     size = float(np.linalg.norm(hi - lo))
     if not support_plane:
         obj = np.linalg.norm(points - c, axis=1) * s0 < size
         return _SupportFrame(
             np.eye(3), points[obj].mean(0) if obj.any() else c, samples.mean(0), obj, np.zeros(len(points), bool)
         )
-    n, d, on_plane = ransac_plane(points, threshold=0.004 * size / s0)
+    if plane is None:
+        n, d, on_plane = ransac_plane(points, threshold=0.004 * size / s0)
+    else:
+        n, d = plane
+        on_plane = np.abs(points @ n - d) * s0 < 0.004 * size
     if (centres @ n - d).mean() < 0:
         n, d = -n, -d
     height = points @ n - d
@@ -196,9 +205,12 @@ class _AzimuthSearch:
         size: float,
         keep: float,
         iterations: int,
+        metric: bool = False,
     ):
         self.A, self.B, self.target, self.size = A, B, target, size
         self.keep, self.iterations = keep, iterations
+        # metric points (a marker board's): the scale stays 1 and the height moves instead
+        self.metric = metric
         self.samples, self.sample_normals = samples, sample_normals
         self.tree = cKDTree(self.samples)
         self.tau = TUNING.align.inlier_fraction * size
@@ -211,10 +223,11 @@ class _AzimuthSearch:
         return self.tree.query(X, distance_upper_bound=bound)
 
     def place(self, X: np.ndarray, s: float, yaw: float, txy: np.ndarray) -> np.ndarray:
-        """Points ``X`` scaled, turned by ``yaw`` about z and shifted: mesh frame."""
+        """Points ``X`` scaled, turned by ``yaw`` about z and shifted by ``txy`` (x, y and, for metric
+        points, a height change): mesh frame."""
         c, sn = np.cos(yaw), np.sin(yaw)
-        xy = s * X[:, :2] @ np.array([[c, sn], [-sn, c]]) + txy
-        return np.column_stack([xy, s * X[:, 2] + self.target[2]])
+        xy = s * X[:, :2] @ np.array([[c, sn], [-sn, c]]) + txy[:2]
+        return np.column_stack([xy, s * X[:, 2] + self.target[2] + (txy[2] if len(txy) > 2 else 0.0)])
 
     def score(self, s: float, yaw: float, txy: np.ndarray) -> tuple[float, np.ndarray]:
         """Truncated quadratic (MSAC) of the object points' distances to the mesh, plus an outlier's
@@ -251,6 +264,15 @@ class _AzimuthSearch:
                 yaw_new = float(np.arctan2((ac[:, 0] * qc[:, 1] - ac[:, 1] * qc[:, 0]).sum(), (ac * qc).sum()))
             c, sn = np.cos(yaw_new), np.sin(yaw_new)
             rot = a[:, :2] @ np.array([[c, sn], [-sn, c]])
+            if self.metric:  # the shift (x, y, height) by the mean offsets
+                shift = np.concatenate(
+                    [(q[:, :2] - s * rot).mean(0), [(q[:, 2] - s * a[:, 2] - self.target[2]).mean()]]
+                )
+                moved = abs(yaw_new - yaw) + np.abs(shift - txy).max() / self.size
+                yaw, txy = yaw_new, shift
+                if moved < 1e-7:
+                    break
+                continue
             n = len(a)  # (s, tx, ty) by linear least squares over x, y and z
             M = np.zeros((3 * n, 3))
             M[:n, 0], M[:n, 1] = rot[:, 0], 1
@@ -270,13 +292,16 @@ class _AzimuthSearch:
         score still tells)."""
         best: tuple[float, float, float, np.ndarray] | None = None
         self.candidates: list[tuple[float, float]] = []
+        start = np.zeros(3 if self.metric else 2)
+        start[:2] = self.target[:2]
         for yaw0 in np.radians(TUNING.align.coarse_azimuths_deg):
-            s, yaw, txy = self.icp(s0, float(yaw0), self.target[:2].copy(), True)
+            s, yaw, txy = self.icp(s0, float(yaw0), start.copy(), True)
             value = self.score(s, yaw, txy)[0]
             self.candidates.append((float(np.degrees(yaw)) % 360.0, value))
             best = self._keep_better(best, s, yaw, txy)
         assert best is not None
-        for yaw0 in best[2] + np.radians(TUNING.align.fine_azimuths_deg):
+        # metric points are many (a board's triangulation): the point-to-plane polish turns the azimuth
+        for yaw0 in [] if self.metric else best[2] + np.radians(TUNING.align.fine_azimuths_deg):
             best = self._keep_better(best, *self.icp(best[1], float(yaw0), best[3].copy(), False))
         return best[1], best[2], best[3]
 
@@ -287,6 +312,8 @@ class _AzimuthSearch:
     def polish(self, s: float, yaw: float, txy: np.ndarray) -> tuple[float, float, np.ndarray]:
         """Point-to-plane Gauss-Newton on (scale, azimuth, x, y) over the inliers — free of the
         samples' spacing, which biases point-to-point correspondences by a few tenths of a mm."""
+        if self.metric:
+            return self._polish_metric(s, yaw, txy)
         A = self.A
         for _ in range(self.iterations):
             dist, j = self.nearest(self.place(A, s, yaw, txy), self.tau)
@@ -308,6 +335,67 @@ class _AzimuthSearch:
             if moved < 1e-10:
                 break
         return s, yaw, txy
+
+    def _polish_metric(self, s: float, yaw: float, txy: np.ndarray) -> tuple[float, float, np.ndarray]:
+        """Metric points: Gauss-Newton on (azimuth, x, y, height), the scale held, reweighted by
+        Tukey's biweight at ``TUKEY`` robust sigmas of the signed point-to-plane residuals (1.4826 x
+        their median absolute value): the points' own noise and the mesh's set the scale, where
+        a truncation at a fixed distance would cut into the inliers of a noisy mesh."""
+        yaw0, txy0 = yaw, txy.copy()
+        for _ in range(self.iterations):
+            a = self.A
+            dist, j = self.nearest(self.place(a, s, yaw, txy), 3 * self.tau)
+            near = dist < 3 * self.tau
+            if near.sum() < 4:
+                break
+            a, q, nq = a[near], self.samples[j[near]], self.sample_normals[j[near]]
+            r = (nq * (self.place(a, s, yaw, txy) - q)).sum(1)
+            sigma = max(1.4826 * float(np.median(np.abs(r))), 1e-6 * self.size)
+            w = np.clip(1 - (r / (TUKEY * sigma)) ** 2, 0, None) ** 2
+            c, sn = np.cos(yaw), np.sin(yaw)
+            drot = a[:, :2] @ np.array([[-sn, c], [-c, -sn]])  # dR/dyaw a_xy
+            # the azimuth as the turn's arc at the object's size (metres, like the shift); a direction the
+            # points do not see (the azimuth of a body of revolution) is held at the start by a pull of
+            # 1e-3 of the best seen one's curvature instead of wandering in the solver's null space
+            J = np.column_stack([s * (nq[:, :2] * drot).sum(1) / self.size, nq])
+            normal = (J * w[:, None]).T @ J
+            pull = 1e-3 * float(np.diag(normal).max())
+            normal += pull * np.eye(4)
+            rhs = -(J * w[:, None]).T @ r
+            rhs -= pull * np.concatenate([[(yaw - yaw0) * self.size], txy - txy0])
+            step = np.linalg.solve(normal, rhs)
+            step[0] /= self.size
+            yaw, txy = yaw + float(step[0]), txy + step[1:]
+            if abs(step[0]) + np.abs(step[1:]).max() / self.size < 1e-9:
+                break
+        return s, yaw, txy
+
+    def jackknife(self, yaw: float, shift: np.ndarray, blocks: int) -> tuple[float, np.ndarray]:
+        """The spread (1 sigma) of a metric placement's azimuth (radians) and shift ``(3,)`` (metres) by
+        a block jackknife: the inliers cut into ``blocks`` regions (k-means on their positions), the
+        polish done again without each. Errors that are alike over a region of the surface — a
+        scanned mesh's deformation, a patch of features on one highlight — count once per region,
+        not once per point, as the points' own scatter would."""
+        A = self.A
+        dist, _ = self.nearest(self.place(A, 1.0, yaw, shift), self.tau)
+        inliers = A[dist < self.tau]
+        if len(inliers) < 2 * blocks:
+            return float("inf"), np.full(3, np.inf)
+        _, label = kmeans2(inliers, blocks, seed=0, minit="++")
+        runs = []
+        try:
+            for k in range(blocks):
+                self.A = inliers[label != k]
+                _, y, t = self._polish_metric(1.0, yaw, shift.copy())
+                runs.append(np.concatenate([[y], t]))
+        finally:
+            self.A = A
+        runs_a = np.array(runs)
+        spread = np.sqrt((blocks - 1) / blocks * ((runs_a - runs_a.mean(0)) ** 2).sum(0))
+        return float(spread[0]), spread[1:]
+
+
+TUKEY = 4.685  # Tukey's biweight constant: 95% efficiency on Gaussian residuals
 
 
 def trim_threshold(dist: np.ndarray, keep: float, tau: float) -> float | None:
@@ -364,6 +452,52 @@ def align_to_mesh(
     best.candidates = sorted(search.candidates, key=lambda c: c[1])
     away = [v for a, v in best.candidates if azimuth_apart(a, np.degrees(yaw)) > TUNING.align.ambiguous_deg]
     best.azimuth_margin = float((min(away) - final) / max(final, 1e-30)) if away else float("inf")
+    return best
+
+
+def align_on_board(points: np.ndarray, poses: list[np.ndarray], mesh: Mesh, iterations: int = 40) -> Alignment:
+    """The mesh placed on points triangulated in a marker board's frame (``register.triangulate``:
+    metric, the board the plane z = 0): ``align_to_mesh``'s search with the scale held at 1 and the
+    height free (the mesh's lowest vertex need not touch the board: a scanned mesh's foot is noisy,
+    and the board has a thickness). ``poses`` camera-from-board. Raises ValueError with fewer than
+    6 points on the object."""
+    c = convergence_point(poses)
+    centres = np.array([-m[:3, :3].T @ m[:3, 3] for m in poses])
+    lo, hi = mesh.vertices.min(0), mesh.vertices.max(0)
+    size = float(np.linalg.norm(hi - lo))
+    samples, sample_normals = surface_samples(mesh, TUNING.align.surface_samples, normals=True)
+    frame = _support_frame(points, centres, c, 1.0, lo, hi, samples, True, plane=(np.array([0.0, 0.0, 1.0]), 0.0))
+    P, S = points[frame.object_mask], points[frame.support_mask]
+    if len(P) < 6:
+        raise ValueError(f"only {len(P)} triangulated points lie on the object (need 6)")
+    # the search (every start azimuth) on a subset, the polish on every point
+    rng = np.random.default_rng(0)
+    few = TUNING.triangulation.search_points
+    P_all = (P - frame.anchor) @ frame.R_tilt.T
+    if len(S) > few:
+        S = S[rng.choice(len(S), few, replace=False)]
+    coarse = slice(None, None, max(len(samples) // TUNING.triangulation.search_samples, 1))
+
+    def searcher(A: np.ndarray, step: slice, rounds: int) -> _AzimuthSearch:
+        B = (S - frame.anchor) @ frame.R_tilt.T
+        return _AzimuthSearch(
+            A, B, mesh, samples[step], sample_normals[step], frame.target, size, 0.5, rounds, metric=True
+        )
+
+    # each start only has to reach its basin: the polish converges the winner
+    starts = TUNING.triangulation.search_iterations
+    search = searcher(P_all[rng.choice(len(P), few, replace=False)] if len(P) > few else P_all, coarse, starts)
+    found = search.search(1.0)
+    candidates = search.candidates
+    search = searcher(P_all, slice(None), iterations)
+    s, yaw, shift = search.polish(*found)
+    final, dist = search.score(s, yaw, shift)
+    best = _alignment(search, frame, s, yaw, shift, dist)
+    best.candidates = sorted(candidates, key=lambda c: c[1])
+    won = best.candidates[0][1]  # the margin on the subset's scores, as the candidates were scored
+    away = [v for a, v in best.candidates if azimuth_apart(a, np.degrees(yaw)) > TUNING.align.ambiguous_deg]
+    best.azimuth_margin = float((min(away) - won) / max(won, 1e-30)) if away else float("inf")
+    best.azimuth_sigma, best.shift_sigma = search.jackknife(yaw, shift, TUNING.triangulation.jackknife_blocks)
     return best
 
 
@@ -469,7 +603,8 @@ def _alignment(
     score's distances ``dist`` there."""
     c, sn = np.cos(yaw), np.sin(yaw)
     R = np.array([[c, -sn, 0], [sn, c, 0], [0, 0, 1]]) @ frame.R_tilt
-    t = np.array([txy[0], txy[1], frame.target[2]]) - s * R @ frame.anchor
+    height = txy[2] if len(txy) > 2 else 0.0
+    t = np.array([txy[0], txy[1], frame.target[2] + height]) - s * R @ frame.anchor
     kept = dist < search.tau
     rms = float(np.sqrt((dist[kept] ** 2).mean())) if kept.any() else float("inf")
     return Alignment(s, R, t, rms, len(search.A), int(kept.sum()), len(search.B))

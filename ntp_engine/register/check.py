@@ -23,8 +23,10 @@ from ..scanner.local_frame import local_origin, moved
 from ..scanner.scan_folder import Scan, read_photo
 from .align import (
     Alignment,
+    align_on_board,
     align_to_mesh,
     azimuth_apart,
+    convergence_point,
     equivalent_turns,
     mesh_symmetry,
     symmetry_profile,
@@ -43,6 +45,7 @@ from .photometric import (
 )
 from .settings import TUNING
 from .sfm import SfmResult
+from .triangulate import Features, photo_features, triangulated_points
 
 
 @dataclass
@@ -76,12 +79,14 @@ class PhotoCheck:
     height_from_photos: bool = False  # on a support: the refinement moved the height (``frees_height``)
     pixel_mm: float = float("nan")  # a working-size pixel at the object's distance
     equivalent_turns: list[float] | None = field(default_factory=list)
+    # placed by points triangulated on the marker board (``cloud_check``): their fit; None: by the photos
+    cloud: dict | None = None
 
     def to_json(self) -> dict:
         """The check as JSON values (``registration.json`` -> ``photometric``)."""
         return {
-            "fit": self.fit.to_json(),
-            "sharpness": self.sharpness,
+            "fit": None if self.cloud is not None else self.fit.to_json(),
+            "sharpness": self.sharpness if np.isfinite(self.sharpness) else None,
             "margin": self.margin if np.isfinite(self.margin) else None,
             "chosen_candidate": self.chosen,
             "candidates": self.candidates,
@@ -96,6 +101,7 @@ class PhotoCheck:
             },
             "height_from_photos": self.height_from_photos,
             "pixel_mm": self.pixel_mm if np.isfinite(self.pixel_mm) else None,
+            "triangulated_points": self.cloud,
         }
 
 
@@ -189,19 +195,17 @@ def check_registration(
             steps.update()
         chosen = int(np.argmin([fit.cost for _, fit in trials]))
         best = trials[chosen][0]
-        yaw = [float(np.degrees(np.arctan2(a.rotation[1, 0], a.rotation[0, 0]))) for a, _ in trials]
+        yaw = [_yaw_deg(a) for a, _ in trials]
         change = [(y - yaw[chosen] + 180.0) % 360.0 - 180.0 for y in yaw]
         pixel_m = object_distance(placed(best), judge.centre) / photos.scanner.fx
-        tolerance_m = TUNING.check.symmetry_px * pixel_m  # closer than this, no photo sees the difference
-        apart = turned_distance(mesh, judge.centre, np.array(change))
-        own = symmetry_profile(mesh, judge.centre)
-        same_turns = equivalent_turns(mesh, judge.centre, tolerance_m, own)
-        # candidates the refinement brought within ambiguous_deg of the chosen one's azimuth are the same
-        # answer, and those it brought as near a symmetry of the mesh the same asset: neither is a rival
-        same = [
-            same_turns is None or any(azimuth_apart(c, t) <= TUNING.align.ambiguous_deg for t in [0.0, *same_turns])
-            for c in change
-        ]
+        same_as = _SamePlacement(mesh, judge.centre, pixel_m, change)
+        same, apart, own, same_turns, tolerance_m = (
+            same_as.same,
+            same_as.apart,
+            same_as.own,
+            same_as.turns,
+            same_as.tolerance_m,
+        )
         others = [fit.cost for (_, fit), eq in zip(trials, same, strict=True) if not eq]
         margin = (min(others) - trials[chosen][1].cost) / trials[chosen][1].cost if others else float("inf")
         free_height = support_z is not None and frees_height(pixel_m) and not on_board
@@ -247,6 +251,119 @@ def check_registration(
         )
 
 
+def _yaw_deg(alignment: Alignment) -> float:
+    """The alignment's turn about the vertical (degrees)."""
+    return float(np.degrees(np.arctan2(alignment.rotation[1, 0], alignment.rotation[0, 0])))
+
+
+class _SamePlacement:
+    """Which candidates (turned ``change`` degrees from the chosen one) are the chosen placement: within
+    ``TUNING.align.ambiguous_deg`` of it — the same answer — or of one of the mesh's symmetries that
+    no photo of ``pixel_m`` metres a pixel can see (``align.equivalent_turns``) — the same asset.
+    Neither is a rival."""
+
+    def __init__(self, mesh: Mesh, centre: np.ndarray, pixel_m: float, change: list[float]):
+        self.tolerance_m = TUNING.check.symmetry_px * pixel_m  # closer than this, no photo sees the difference
+        self.apart = turned_distance(mesh, centre, np.array(change))
+        self.own = symmetry_profile(mesh, centre)
+        self.turns = equivalent_turns(mesh, centre, self.tolerance_m, self.own)
+        self.same = [
+            self.turns is None or any(azimuth_apart(c, t) <= TUNING.align.ambiguous_deg for t in [0.0, *self.turns])
+            for c in change
+        ]
+
+
+def cloud_check(
+    alignment: Alignment, camera_from_board: dict[str, np.ndarray], names: list[str], mesh: Mesh, fx: float
+) -> PhotoCheck:
+    """A placement on the marker board found from triangulated points (``align.align_on_board``),
+    judged by its own fit: its rivals are the search's other start azimuths, equivalent where a
+    symmetry of the mesh relates them; ``margin``: how much worse the best rival fits the points —
+    its trimmed score's rise over the inliers' squared residual (chi-square units). ``fx``: the
+    photos' focal length in pixels, for the symmetry's tolerance."""
+    centre = 0.5 * (mesh.vertices.min(0) + mesh.vertices.max(0))
+    chosen_yaw = _yaw_deg(alignment)
+    # the starts converge to few azimuths: one candidate each (within a degree), the best score kept
+    found: list[tuple[float, float]] = []
+    for azimuth, score in alignment.candidates:  # best first
+        turn = (azimuth - chosen_yaw + 180.0) % 360.0 - 180.0
+        if all(azimuth_apart(turn, t) > 1.0 for t, _ in found):
+            found.append((turn, score))
+    found.sort(key=lambda c: abs(c[0]))  # the chosen placement first
+    change = [t for t, _ in found]
+    placed = np.stack([alignment.camera_from_mesh(camera_from_board[n]) for n in names])
+    pixel_m = object_distance(placed, centre) / fx
+    same_as = _SamePlacement(mesh, centre, pixel_m, change)
+    best = min(score for (_, score), eq in zip(found, same_as.same, strict=True) if eq)
+    others = [score for (_, score), eq in zip(found, same_as.same, strict=True) if not eq]
+    # in the inliers' variance: twice the log-likelihood ratio of the two placements were the points
+    # independent Gaussian about the mesh (each point's truncated squared distance counts)
+    margin = (min(others) - best) / max(alignment.residual_m**2, 1e-30) if others else float("inf")
+    candidates = [
+        {"azimuth_change_deg": t, "coarse_cost": score, "mesh_turned_mm": 1e3 * d, "equivalent": bool(eq)}
+        for (t, score), d, eq in zip(found, same_as.apart, same_as.same, strict=True)
+    ]
+    turn, turned_m = mesh_symmetry(mesh, centre, same_as.own)
+    # the placement's 1-sigma spread where it moves the surface most: the shift plus the azimuth's at the rim
+    rim_m = float(np.linalg.norm(mesh.vertices[:, :2] - centre[:2], axis=1).max())
+    turning = 0.0 if same_as.turns is None else rim_m * alignment.azimuth_sigma  # a body of revolution: any turn
+    spread_m = float(np.linalg.norm(alignment.shift_sigma) + turning)
+    cloud = {
+        "spread_mm": 1e3 * spread_m if np.isfinite(spread_m) else None,
+        "spread_px": spread_m / pixel_m if np.isfinite(spread_m) else None,
+        "azimuth_sigma_deg": float(np.degrees(alignment.azimuth_sigma))
+        if np.isfinite(alignment.azimuth_sigma)
+        else None,
+        "shift_sigma_mm": (1e3 * alignment.shift_sigma).tolist() if np.isfinite(alignment.shift_sigma).all() else None,
+        "object_points": alignment.object_points,
+        "inliers": alignment.kept_points,
+        "inlier_fraction": alignment.kept_points / max(alignment.object_points, 1),
+        "residual_mm": 1e3 * alignment.residual_m,
+        "board_points": alignment.support_points,
+    }
+    return PhotoCheck(
+        alignment,
+        PhotometricFit(float("nan"), float("nan"), 0, 0),
+        float("nan"),
+        float(margin),
+        candidates,
+        0,
+        sorted((t, score) for t, score in found),
+        [],
+        (turn, 1e3 * turned_m),
+        1e3 * same_as.tolerance_m,
+        False,
+        1e3 * pixel_m,
+        same_as.turns,
+        cloud,
+    )
+
+
+def confirmed_by_points(check: PhotoCheck) -> bool:
+    """Whether a placement by points (``cloud_check``) stands on its own: its spread at most
+    ``TUNING.triangulation.max_spread_px`` and no rival azimuth within ``TUNING.triangulation.min_margin``.
+    Otherwise the photometric check judges it (it may still be right: a nearly round shape's azimuth
+    is the photos' texture's to tell)."""
+    assert check.cloud is not None
+    spread = check.cloud["spread_px"]
+    return (
+        spread is not None
+        and spread <= TUNING.triangulation.max_spread_px
+        and (check.margin >= TUNING.triangulation.min_margin)
+    )
+
+
+def placed_by_points(alignment: Alignment) -> bool:
+    """Whether triangulated points fix a placement on the board: enough of them lie on the placed
+    mesh (``TUNING.triangulation.min_points``, ``min_inlier_fraction``); otherwise the photometric
+    check places the mesh (a plain object, or a mesh that is not the photographed one)."""
+    fraction = alignment.kept_points / max(alignment.object_points, 1)
+    return (
+        alignment.kept_points >= TUNING.triangulation.min_points
+        and fraction >= TUNING.triangulation.min_inlier_fraction
+    )
+
+
 @dataclass
 class MeshRegistration:
     """An SfM (or COLMAP) model put on the mesh: the point cloud's alignment (``icp``), the photos'
@@ -260,30 +377,72 @@ class MeshRegistration:
     origin: np.ndarray
     seconds_align: float
     seconds_photometric: float
+    # on a marker board: the placement by triangulated points (``cloud_check``), whether or not it decided
+    by_points: PhotoCheck | None = None
 
 
 def register_to_mesh(scan: Scan, reg: SfmResult | BoardPoses, progress: Progress = QUIET) -> MeshRegistration:
-    """The similarity from ``reg``'s frame to the mesh: aligned by the point cloud (a marker board's
-    poses: put on the board, ``board_poses.first_placement``), then refined and judged by (at most
-    ``TUNING.check.max_photos`` of) the photos; ``NtpInputError`` when nothing can be aligned."""
+    """The similarity from ``reg``'s frame to the mesh: aligned by the point cloud, then refined and
+    judged by (at most ``TUNING.check.max_photos`` of) the photos; ``NtpInputError`` when nothing can
+    be aligned. On a marker board the photos' features, triangulated with the board's poses, place
+    the mesh (``cloud_check``) where they confirm it (``confirmed_by_points``); where they do not,
+    the photometric check starts from their placement (from ``board_poses.first_placement`` where
+    they are too few)."""
     names = sorted(reg.poses)
     world = load_mesh(scan.mesh_path)
     origin = local_origin(world)
     mesh = moved(world, -origin)  # the photometric check's positions are float32: near the origin
     on_board = isinstance(reg, BoardPoses)
+    judged = spread(names)  # the photos judge (and refine) the alignment
+    features: dict[str, Features] = {}
+
+    def read(name: str) -> np.ndarray:
+        codes = read_photo(scan.photos_dir / name, scan.scanner)
+        if on_board:  # the board's poses are metric: the photos' features give the object's points
+            features[name] = photo_features(codes, scan.scanner)
+        return codes
+
     t0 = time.perf_counter()
+    with ThreadPoolExecutor(worker_threads()) as pool:  # decoded in parallel, averaged down one at a time
+        photos = PhotoStack(progress.track(pool.map(read, judged), "photos", len(judged), "photo"), scan.scanner)
+    support_z = float(mesh.vertices[:, 2].min()) if scan.support_plane else None
+    by_points = None
     if on_board:
-        icp = first_placement(mesh, [reg.poses[n] for n in names])
+        icp = _board_alignment(scan, reg.poses, judged, [features[n] for n in judged], mesh, progress)
+        if placed_by_points(icp):
+            by_points = cloud_check(icp, reg.poses, judged, mesh, scan.scanner.fx)
+            if confirmed_by_points(by_points):
+                t1 = time.perf_counter()
+                return MeshRegistration(icp, by_points, photos, judged, mesh, origin, t1 - t0, 0.0, by_points)
+        else:  # too few points on the object (plain, glossy) or not this mesh's: the photos place it
+            icp = first_placement(mesh, [reg.poses[n] for n in names])
     else:
         assert isinstance(reg, SfmResult)
         icp = _cloud_alignment(scan, reg, names, mesh, progress)
     t1 = time.perf_counter()
-    judged = spread(names)  # the photos judge (and refine) the alignment
-    with ThreadPoolExecutor(worker_threads()) as pool:  # decoded in parallel, averaged down one at a time
-        photos = PhotoStack(pool.map(lambda n: read_photo(scan.photos_dir / n, scan.scanner), judged), scan.scanner)
-    support_z = float(mesh.vertices[:, 2].min()) if scan.support_plane else None
     check = check_registration(icp, reg.poses, photos, judged, mesh, support_z, progress, on_board=on_board)
-    return MeshRegistration(icp, check, photos, judged, mesh, origin, t1 - t0, time.perf_counter() - t1)
+    return MeshRegistration(icp, check, photos, judged, mesh, origin, t1 - t0, time.perf_counter() - t1, by_points)
+
+
+def _board_alignment(
+    scan: Scan,
+    camera_from_board: dict[str, np.ndarray],
+    names: list[str],
+    features: list[Features],
+    mesh: Mesh,
+    progress: Progress,
+) -> Alignment:
+    """The mesh placed on the points the photos ``names`` triangulate on the board
+    (``triangulate``, ``align.align_on_board``); an empty alignment where too few lie on the object."""
+    with progress.counter("points on the object", 1, "step") as bar:
+        poses = [camera_from_board[n] for n in names]
+        points = triangulated_points(features, poses, scan.scanner, convergence_point(poses))
+        try:
+            icp = align_on_board(points, poses, mesh)
+        except ValueError:
+            icp = Alignment(1.0, np.eye(3), np.zeros(3), float("inf"), 0, 0, 0)
+        bar.update()
+    return icp
 
 
 def _cloud_alignment(scan: Scan, reg: SfmResult, names: list[str], mesh: Mesh, progress: Progress) -> Alignment:

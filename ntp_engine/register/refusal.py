@@ -33,11 +33,21 @@ def refusal_kind(check: PhotoCheck) -> str | None:
     """Which test refuses a registration — ``unconfirmed`` or ``ambiguous``, in that order — or None
     when the photos confirm it. A symmetry of the mesh refuses nothing: the placements it relates put
     every surface point where the photos see one (no cost can choose) and give the same asset."""
-    if check.fit.points < TUNING.photometric.min_views or check.sharpness < TUNING.refusal.min_sharpness:
+    if check.cloud is None and (
+        check.fit.points < TUNING.photometric.min_views or check.sharpness < TUNING.refusal.min_sharpness
+    ):
         return "unconfirmed"
-    if check.margin < TUNING.refusal.min_margin:
+    if check.cloud is not None and not check.cloud["spread_px"] <= TUNING.triangulation.max_spread_px:
+        return "unconfirmed"  # None (no spread measured) is not below the bar either (``confirmed_by_points``)
+    if check.margin < min_margin(check):
         return "ambiguous"
     return None
+
+
+def min_margin(check: PhotoCheck) -> float:
+    """The margin a rival azimuth must leave: the photometric cost's, or, for a placement by points
+    triangulated on the board (``check.cloud_check``), their trimmed score's."""
+    return TUNING.refusal.min_margin if check.cloud is None else TUNING.triangulation.min_margin
 
 
 def symmetry_note(check: PhotoCheck) -> str | None:
@@ -56,6 +66,14 @@ def refusal(check: PhotoCheck) -> str | None:
     """Why the photos do not confirm a registration (one line, ``refusal_kind``'s cause), or None
     when they do."""
     kind = refusal_kind(check)
+    if kind == "unconfirmed" and check.cloud is not None:
+        spread = check.cloud["spread_px"]
+        said = "cannot be measured" if spread is None else f"is {spread:.2f} px at the object (1 sigma)"
+        return (
+            f"the points triangulated on the object do not fix where the mesh is: the placement's spread {said}, "
+            f"a confirmed one <= {TUNING.triangulation.max_spread_px:g} px; a nearly round shape or a noisy mesh, "
+            "or too few photos: take more (full-size) photos or give a poses file"
+        )
     if kind == "unconfirmed":
         return (
             f"the photos cannot confirm where the mesh is (moved {TUNING.photometric.sharpness_shift_px:g} px it "
@@ -69,7 +87,7 @@ def refusal(check: PhotoCheck) -> str | None:
         rival = check.candidates[i]
         return (
             f"the object's azimuth is ambiguous: turned by {rival['azimuth_change_deg']:.0f} deg it fits the photos "
-            f"nearly as well (margin {check.margin:.2f} < {TUNING.refusal.min_margin}; the mesh turned so lies "
+            f"nearly as well (margin {check.margin:.2f} < {min_margin(check)}; the mesh turned so lies "
             f"{rival['mesh_turned_mm']:.1f} mm from itself)"
         )
     return None

@@ -189,6 +189,56 @@ class BoardTuning:
 
 
 @dataclass(frozen=True)
+class TriangulationTuning:
+    """Surface points triangulated from the board's poses (``register.triangulate``) and the mesh
+    placed on them (``register.align.align_on_board``, ``register.check.cloud_check``)."""
+
+    features_per_photo: int = budget(4000, "SIFT features kept per photo (the strongest): bounds the matching's time")
+    contrast_threshold: float = unmeasured(
+        0.02, "SIFT's contrast threshold (OpenCV's default 0.04 keeps half as many features on printed labels)"
+    )
+    neighbours: int = budget(4, "each photo is matched with this many others nearest in viewing direction")
+    max_pair_deg: float = unmeasured(40.0, "photos further apart than this in viewing direction are not matched")
+    ratio: float = derived(0.8, "Lowe's ratio test: a match this much closer than the second best (Lowe 2004)")
+    max_reprojection_px: float = derived(
+        1.0, "a triangulated point reprojects within this of the feature in both photos (SIFT's ~0.3 px, ~3 sigma)"
+    )
+    min_parallax_deg: float = derived(
+        2.0, "rays closer than this in angle set depth to worse than ~0.5 mm at 0.3 m from a 0.3 px feature"
+    )
+    search_points: int = budget(
+        600, "object (and board) points the azimuth search scores every start on; the polish takes all"
+    )
+    search_samples: int = budget(
+        20_000, "mesh surface samples the azimuth search measures to (the polish: all of align.surface_samples)"
+    )
+    search_iterations: int = budget(15, "ICP iterations per start azimuth of the search (the winner is then polished)")
+    jackknife_blocks: int = derived(
+        16, "regions of the surface the placement's spread is measured over (block jackknife): enough for a variance"
+    )
+    max_spread_px: float = derived(
+        0.5,
+        "a placement by points is confirmed where its 1-sigma spread (block jackknife: the shift plus the azimuth's "
+        "at the object's rim) is at most this at the object's distance: 2 sigma within a pixel",
+    )
+    min_points: int = unmeasured(
+        30,
+        "fewer object points within the inlier distance of the placed mesh leave the placement to the photometric "
+        "check",
+    )
+    min_inlier_fraction: float = unmeasured(
+        0.25,
+        "of the object points: fewer within the inlier distance of the placed mesh leave the placement to the "
+        "photometric check (the blob on the board: 48% with the scanner's mesh)",
+    )
+    min_margin: float = unmeasured(
+        20.0,
+        "a rival azimuth whose trimmed distance score rises less than this over the best (in the inliers' squared "
+        "residual: chi-square units) makes the placement ambiguous",
+    )
+
+
+@dataclass(frozen=True)
 class RegistrationTuning:
     """The registration's tuned constants, one section per part (fixed per release; ``docs/tuning.md``)."""
 
@@ -199,6 +249,7 @@ class RegistrationTuning:
     align: AlignTuning = field(default_factory=AlignTuning)
     sfm: SfmTuning = field(default_factory=SfmTuning)
     board: BoardTuning = field(default_factory=BoardTuning)
+    triangulation: TriangulationTuning = field(default_factory=TriangulationTuning)
 
 
 TUNING = RegistrationTuning()
