@@ -338,9 +338,9 @@ class _AzimuthSearch:
 
     def _polish_metric(self, s: float, yaw: float, txy: np.ndarray) -> tuple[float, float, np.ndarray]:
         """Metric points: Gauss-Newton on (azimuth, x, y, height), the scale held, reweighted by
-        Tukey's biweight at ``TUKEY`` robust sigmas of the signed point-to-plane residuals (1.4826 x
-        their median absolute value): the points' own noise and the mesh's set the scale, where
-        a truncation at a fixed distance would cut into the inliers of a noisy mesh."""
+        Tukey's biweight at ``TUNING.triangulation.tukey`` robust sigmas of the signed point-to-plane
+        residuals (1.4826 x their median absolute value): the points' own noise and the mesh's set
+        the scale, where a truncation at a fixed distance would cut into a noisy mesh's inliers."""
         yaw0, txy0 = yaw, txy.copy()
         for _ in range(self.iterations):
             a = self.A
@@ -351,15 +351,15 @@ class _AzimuthSearch:
             a, q, nq = a[near], self.samples[j[near]], self.sample_normals[j[near]]
             r = (nq * (self.place(a, s, yaw, txy) - q)).sum(1)
             sigma = max(1.4826 * float(np.median(np.abs(r))), 1e-6 * self.size)
-            w = np.clip(1 - (r / (TUKEY * sigma)) ** 2, 0, None) ** 2
+            w = np.clip(1 - (r / (TUNING.triangulation.tukey * sigma)) ** 2, 0, None) ** 2
             c, sn = np.cos(yaw), np.sin(yaw)
             drot = a[:, :2] @ np.array([[-sn, c], [-c, -sn]])  # dR/dyaw a_xy
             # the azimuth as the turn's arc at the object's size (metres, like the shift); a direction the
-            # points do not see (the azimuth of a body of revolution) is held at the start by a pull of
-            # 1e-3 of the best seen one's curvature instead of wandering in the solver's null space
+            # points do not see (the azimuth of a body of revolution) is held at the start by a pull of a
+            # fraction of the best seen one's curvature instead of wandering in the solver's null space
             J = np.column_stack([s * (nq[:, :2] * drot).sum(1) / self.size, nq])
             normal = (J * w[:, None]).T @ J
-            pull = 1e-3 * float(np.diag(normal).max())
+            pull = TUNING.triangulation.azimuth_pull * float(np.diag(normal).max())
             normal += pull * np.eye(4)
             rhs = -(J * w[:, None]).T @ r
             rhs -= pull * np.concatenate([[(yaw - yaw0) * self.size], txy - txy0])
@@ -393,9 +393,6 @@ class _AzimuthSearch:
         runs_a = np.array(runs)
         spread = np.sqrt((blocks - 1) / blocks * ((runs_a - runs_a.mean(0)) ** 2).sum(0))
         return float(spread[0]), spread[1:]
-
-
-TUKEY = 4.685  # Tukey's biweight constant: 95% efficiency on Gaussian residuals
 
 
 def trim_threshold(dist: np.ndarray, keep: float, tau: float) -> float | None:
