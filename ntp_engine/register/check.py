@@ -385,9 +385,8 @@ def register_to_mesh(scan: Scan, reg: SfmResult | BoardPoses, progress: Progress
     """The similarity from ``reg``'s frame to the mesh: aligned by the point cloud, then refined and
     judged by (at most ``TUNING.check.max_photos`` of) the photos; ``NtpInputError`` when nothing can
     be aligned. On a marker board the photos' features, triangulated with the board's poses, place
-    the mesh (``cloud_check``) where they confirm it (``confirmed_by_points``); where they do not,
-    the photometric check starts from their placement (from ``board_poses.first_placement`` where
-    they are too few)."""
+    the mesh (``cloud_check``) where they confirm it (``confirmed_by_points``); where they do not, or
+    are too few, the photometric check places it from ``board_poses.first_placement``."""
     names = sorted(reg.poses)
     world = load_mesh(scan.mesh_path)
     origin = local_origin(world)
@@ -414,8 +413,10 @@ def register_to_mesh(scan: Scan, reg: SfmResult | BoardPoses, progress: Progress
             if confirmed_by_points(by_points):
                 t1 = time.perf_counter()
                 return MeshRegistration(icp, by_points, photos, judged, mesh, origin, t1 - t0, 0.0, by_points)
-        else:  # too few points on the object (plain, glossy) or not this mesh's: the photos place it
-            icp = first_placement(mesh, [reg.poses[n] for n in names])
+        # unconfirmed or too few points (a plain or glossy object): the photos place the mesh from the
+        # cameras' aim. Started from the points' placement instead, the validation set's star-1001 went
+        # 0.68 -> 1.68 mm and extrusion-1002 0.42 -> 0.22 mm (docs/pipeline.md): not kept
+        icp = first_placement(mesh, [reg.poses[n] for n in names])
     else:
         assert isinstance(reg, SfmResult)
         icp = _cloud_alignment(scan, reg, names, mesh, progress)

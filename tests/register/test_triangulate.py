@@ -5,6 +5,7 @@ tests that keep it, and the mesh placed on such points on a board."""
 from dataclasses import replace
 
 import numpy as np
+import pytest
 from scans import hemisphere
 
 from ntp_engine.register.align import align_on_board, surface_samples
@@ -91,6 +92,7 @@ def _board_scene(mesh, yaw_deg, shift, outliers, rng):
     return np.concatenate([board, support, clutter]), poses, R
 
 
+@pytest.mark.slow  # measured over 5 s on 2 cores
 def test_the_mesh_is_placed_on_the_boards_points_turn_shift_and_height():
     rng = np.random.default_rng(2)
     mesh = blob_mesh()
@@ -115,6 +117,7 @@ def test_the_mesh_is_placed_on_the_boards_points_turn_shift_and_height():
     assert why is not None and "2.00 px" in why and "poses file" in why
 
 
+@pytest.mark.slow  # measured over 5 s on 2 cores
 def test_a_body_of_revolution_on_the_board_has_no_rival():
     rng = np.random.default_rng(3)
     mesh = hemisphere()
@@ -125,6 +128,7 @@ def test_a_body_of_revolution_on_the_board_has_no_rival():
     assert refusal_kind(check) is None  # any turn is the same asset: the azimuth's spread does not count
 
 
+@pytest.mark.slow  # measured over 5 s on 2 cores
 def test_points_that_are_not_the_mesh_leave_the_placement_to_the_photos():
     rng = np.random.default_rng(4)
     points, poses, _ = _board_scene(blob_mesh(), 0.0, np.zeros(3), 0, rng)
