@@ -51,9 +51,9 @@ from ..refine.settings import RefineSettings
 from ..refine.support_light import SupportAlbedo, SupportScene, estimate_support_albedo, exposed
 from ..register.board_fallback import fill_from_sfm
 from ..register.board_poses import BoardPoses, poses_from_corners
-from ..register.check import register_to_mesh
+from ..register.check import min_margin, register_to_mesh
 from ..register.colmap_model import model_files, read_colmap_model
-from ..register.refusal import min_margin, outline_picture, refusal, symmetry_note
+from ..register.refusal import outline_picture, refusal, symmetry_note
 from ..register.settings import TUNING as REGISTRATION_TUNING
 from ..register.sfm import SfmResult, structure_from_motion
 from ..scanner import camera

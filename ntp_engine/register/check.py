@@ -339,18 +339,27 @@ def cloud_check(
     )
 
 
-def confirmed_by_points(check: PhotoCheck) -> bool:
-    """Whether a placement by points (``cloud_check``) stands on its own: its spread at most
-    ``TUNING.triangulation.max_spread_px`` and no rival azimuth within ``TUNING.triangulation.min_margin``.
-    Otherwise the photometric check judges it (it may still be right: a nearly round shape's azimuth
-    is the photos' texture's to tell)."""
+def min_margin(check: PhotoCheck) -> float:
+    """The margin a rival azimuth must leave: the photometric cost's, or, for a placement by points
+    triangulated on the board (``cloud_check``), their trimmed score's."""
+    return TUNING.refusal.min_margin if check.cloud is None else TUNING.triangulation.min_margin
+
+
+def spread_within_bar(check: PhotoCheck) -> bool:
+    """Whether a placement by points (``cloud_check``) spreads at most
+    ``TUNING.triangulation.max_spread_px``; a spread that could not be measured (too few inliers for
+    the jackknife) is not within it."""
     assert check.cloud is not None
     spread = check.cloud["spread_px"]
-    return (
-        spread is not None
-        and spread <= TUNING.triangulation.max_spread_px
-        and (check.margin >= TUNING.triangulation.min_margin)
-    )
+    return spread is not None and spread <= TUNING.triangulation.max_spread_px
+
+
+def confirmed_by_points(check: PhotoCheck) -> bool:
+    """Whether a placement by points (``cloud_check``) stands on its own: its spread within the bar
+    (``spread_within_bar``) and no rival azimuth within ``min_margin``. Otherwise the photometric
+    check judges it (it may still be right: a nearly round shape's azimuth is the photos' texture's
+    to tell)."""
+    return spread_within_bar(check) and check.margin >= min_margin(check)
 
 
 def placed_by_points(alignment: Alignment) -> bool:

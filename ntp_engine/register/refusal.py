@@ -12,7 +12,7 @@ import numpy as np
 from ..io.mesh import Mesh
 from ..io.raycast import RayCaster
 from ..scanner import camera
-from .check import PhotoCheck
+from .check import PhotoCheck, min_margin, spread_within_bar
 from .photo_stack import PhotoStack, edge_mask
 from .settings import TUNING
 
@@ -37,17 +37,11 @@ def refusal_kind(check: PhotoCheck) -> str | None:
         check.fit.points < TUNING.photometric.min_views or check.sharpness < TUNING.refusal.min_sharpness
     ):
         return "unconfirmed"
-    if check.cloud is not None and not check.cloud["spread_px"] <= TUNING.triangulation.max_spread_px:
-        return "unconfirmed"  # None (no spread measured) is not below the bar either (``confirmed_by_points``)
+    if check.cloud is not None and not spread_within_bar(check):
+        return "unconfirmed"
     if check.margin < min_margin(check):
         return "ambiguous"
     return None
-
-
-def min_margin(check: PhotoCheck) -> float:
-    """The margin a rival azimuth must leave: the photometric cost's, or, for a placement by points
-    triangulated on the board (``check.cloud_check``), their trimmed score's."""
-    return TUNING.refusal.min_margin if check.cloud is None else TUNING.triangulation.min_margin
 
 
 def symmetry_note(check: PhotoCheck) -> str | None:

@@ -115,6 +115,9 @@ def test_the_mesh_is_placed_on_the_boards_points_turn_shift_and_height():
     assert refusal_kind(loose) == "unconfirmed"
     why = refusal(loose)
     assert why is not None and "2.00 px" in why and "poses file" in why
+    # too few inliers for the jackknife: no spread, which confirms nothing
+    unmeasured = replace(check, cloud={**check.cloud, "spread_px": None})
+    assert refusal_kind(unmeasured) == "unconfirmed" and "cannot be measured" in (refusal(unmeasured) or "")
 
 
 @pytest.mark.slow  # measured over 5 s on 2 cores
