@@ -336,14 +336,18 @@ class _AzimuthSearch:
                 break
         return s, yaw, txy
 
-    def _polish_metric(self, s: float, yaw: float, txy: np.ndarray) -> tuple[float, float, np.ndarray]:
-        """Metric points: Gauss-Newton on (azimuth, x, y, height), the scale held, reweighted by
-        Tukey's biweight at ``TUNING.triangulation.tukey`` robust sigmas of the signed point-to-plane
-        residuals (1.4826 x their median absolute value): the points' own noise and the mesh's set
-        the scale, where a truncation at a fixed distance would cut into a noisy mesh's inliers."""
+    def _polish_metric(
+        self, s: float, yaw: float, txy: np.ndarray, points: np.ndarray | None = None
+    ) -> tuple[float, float, np.ndarray]:
+        """Metric points (``points``, default all of ``A``): Gauss-Newton on (azimuth, x, y, height),
+        the scale held, reweighted by Tukey's biweight at ``TUNING.triangulation.tukey`` robust
+        sigmas of the signed point-to-plane residuals (1.4826 x their median absolute value): the
+        points' own noise and the mesh's set the scale, where a truncation at a fixed distance would
+        cut into a noisy mesh's inliers."""
         yaw0, txy0 = yaw, txy.copy()
+        every = self.A if points is None else points
         for _ in range(self.iterations):
-            a = self.A
+            a = every
             dist, j = self.nearest(self.place(a, s, yaw, txy), 3 * self.tau)
             near = dist < 3 * self.tau
             if near.sum() < 4:
@@ -376,20 +380,15 @@ class _AzimuthSearch:
         polish done again without each. Errors that are alike over a region of the surface — a
         scanned mesh's deformation, a patch of features on one highlight — count once per region,
         not once per point, as the points' own scatter would."""
-        A = self.A
-        dist, _ = self.nearest(self.place(A, 1.0, yaw, shift), self.tau)
-        inliers = A[dist < self.tau]
+        dist, _ = self.nearest(self.place(self.A, 1.0, yaw, shift), self.tau)
+        inliers = self.A[dist < self.tau]
         if len(inliers) < 2 * blocks:
             return float("inf"), np.full(3, np.inf)
         _, label = kmeans2(inliers, blocks, seed=0, minit="++")
         runs = []
-        try:
-            for k in range(blocks):
-                self.A = inliers[label != k]
-                _, y, t = self._polish_metric(1.0, yaw, shift.copy())
-                runs.append(np.concatenate([[y], t]))
-        finally:
-            self.A = A
+        for k in range(blocks):
+            _, y, t = self._polish_metric(1.0, yaw, shift.copy(), inliers[label != k])
+            runs.append(np.concatenate([[y], t]))
         runs_a = np.array(runs)
         spread = np.sqrt((blocks - 1) / blocks * ((runs_a - runs_a.mean(0)) ** 2).sum(0))
         return float(spread[0]), spread[1:]
@@ -447,9 +446,15 @@ def align_to_mesh(
     final, dist = search.score(s, yaw, txy)
     best = _alignment(search, frame, s, yaw, txy, dist)
     best.candidates = sorted(search.candidates, key=lambda c: c[1])
-    away = [v for a, v in best.candidates if azimuth_apart(a, np.degrees(yaw)) > TUNING.align.ambiguous_deg]
-    best.azimuth_margin = float((min(away) - final) / max(final, 1e-30)) if away else float("inf")
+    best.azimuth_margin = _azimuth_margin(best.candidates, yaw, final)
     return best
+
+
+def _azimuth_margin(candidates: list[tuple[float, float]], yaw: float, score: float) -> float:
+    """How much worse (relative to ``score``) the best of the ``candidates`` (azimuth deg, score) more
+    than ``TUNING.align.ambiguous_deg`` from ``yaw`` (radians) scores; inf when there is none."""
+    away = [v for a, v in candidates if azimuth_apart(a, np.degrees(yaw)) > TUNING.align.ambiguous_deg]
+    return float((min(away) - score) / max(score, 1e-30)) if away else float("inf")
 
 
 def align_on_board(points: np.ndarray, poses: list[np.ndarray], mesh: Mesh, iterations: int = 40) -> Alignment:
@@ -474,9 +479,9 @@ def align_on_board(points: np.ndarray, poses: list[np.ndarray], mesh: Mesh, iter
     if len(S) > few:
         S = S[rng.choice(len(S), few, replace=False)]
     coarse = slice(None, None, max(len(samples) // TUNING.triangulation.search_samples, 1))
+    B = (S - frame.anchor) @ frame.R_tilt.T
 
     def searcher(A: np.ndarray, step: slice, rounds: int) -> _AzimuthSearch:
-        B = (S - frame.anchor) @ frame.R_tilt.T
         return _AzimuthSearch(
             A, B, mesh, samples[step], sample_normals[step], frame.target, size, 0.5, rounds, metric=True
         )
@@ -488,12 +493,11 @@ def align_on_board(points: np.ndarray, poses: list[np.ndarray], mesh: Mesh, iter
     candidates = search.candidates
     search = searcher(P_all, slice(None), iterations)
     s, yaw, shift = search.polish(*found)
-    final, dist = search.score(s, yaw, shift)
+    _, dist = search.score(s, yaw, shift)
     best = _alignment(search, frame, s, yaw, shift, dist)
     best.candidates = sorted(candidates, key=lambda c: c[1])
-    won = best.candidates[0][1]  # the margin on the subset's scores, as the candidates were scored
-    away = [v for a, v in best.candidates if azimuth_apart(a, np.degrees(yaw)) > TUNING.align.ambiguous_deg]
-    best.azimuth_margin = float((min(away) - won) / max(won, 1e-30)) if away else float("inf")
+    # the margin on the subset's scores, as the candidates were scored
+    best.azimuth_margin = _azimuth_margin(best.candidates, yaw, best.candidates[0][1])
     best.azimuth_sigma, best.shift_sigma = search.jackknife(yaw, shift, TUNING.triangulation.jackknife_blocks)
     return best
 

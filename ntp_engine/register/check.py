@@ -402,20 +402,13 @@ def register_to_mesh(scan: Scan, reg: SfmResult | BoardPoses, progress: Progress
     mesh = moved(world, -origin)  # the photometric check's positions are float32: near the origin
     on_board = isinstance(reg, BoardPoses)
     judged = spread(names)  # the photos judge (and refine) the alignment
-    features: dict[str, Features] = {}
-
-    def read(name: str) -> np.ndarray:
-        codes = read_photo(scan.photos_dir / name, scan.scanner)
-        if on_board:  # the board's poses are metric: the photos' features give the object's points
-            features[name] = photo_features(codes, scan.scanner)
-        return codes
-
-    t0 = time.perf_counter()
-    with ThreadPoolExecutor(worker_threads()) as pool:  # decoded in parallel, averaged down one at a time
-        photos = PhotoStack(progress.track(pool.map(read, judged), "photos", len(judged), "photo"), scan.scanner)
     support_z = float(mesh.vertices[:, 2].min()) if scan.support_plane else None
+    photos = None
     by_points = None
-    if on_board:
+    t0 = time.perf_counter()
+    if on_board:  # the board's poses are metric: the photos' features, found as they are read, place the mesh
+        features: dict[str, Features] = {}
+        photos = _judged_photos(scan, judged, features, progress)
         icp = _board_alignment(scan, reg.poses, judged, [features[n] for n in judged], mesh, progress)
         if placed_by_points(icp):
             by_points = cloud_check(icp, reg.poses, judged, mesh, scan.scanner.fx)
@@ -430,8 +423,26 @@ def register_to_mesh(scan: Scan, reg: SfmResult | BoardPoses, progress: Progress
         assert isinstance(reg, SfmResult)
         icp = _cloud_alignment(scan, reg, names, mesh, progress)
     t1 = time.perf_counter()
+    if photos is None:
+        photos = _judged_photos(scan, judged, None, progress)
     check = check_registration(icp, reg.poses, photos, judged, mesh, support_z, progress, on_board=on_board)
     return MeshRegistration(icp, check, photos, judged, mesh, origin, t1 - t0, time.perf_counter() - t1, by_points)
+
+
+def _judged_photos(
+    scan: Scan, judged: list[str], features: dict[str, Features] | None, progress: Progress
+) -> PhotoStack:
+    """The photos ``judged``, decoded in parallel and averaged down one at a time; with ``features``,
+    each photo's SIFT features (``triangulate.photo_features``) found from the same decode, by name."""
+
+    def read(name: str) -> np.ndarray:
+        codes = read_photo(scan.photos_dir / name, scan.scanner)
+        if features is not None:
+            features[name] = photo_features(codes, scan.scanner)
+        return codes
+
+    with ThreadPoolExecutor(worker_threads()) as pool:
+        return PhotoStack(progress.track(pool.map(read, judged), "photos", len(judged), "photo"), scan.scanner)
 
 
 def _board_alignment(
