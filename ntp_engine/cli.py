@@ -57,6 +57,10 @@ from .sim.virtual_scan import ScanConfig, virtual_scan
 FORCE_HELP = "go on with a registration the photos do not confirm (see OUT/registration.png)"
 COLMAP_HELP = "a COLMAP model folder (cameras/images/points3D, .bin or .txt) instead of running SfM"
 REFINE_HELP = "refine every texel against its photos after the network (analysis by synthesis; slower)"
+DISTIL_HELP = (
+    "refine a sample of the texels against their photos, fine-tune the network on them, and run it over "
+    "every texel again: the scan's own network (docs/distillation.md)"
+)
 RAY_HELP = (
     "run the fit stage's texel blocks as Ray tasks: on the cluster at ADDRESS (auto, HOST:6379, "
     "ray://HOST:10001), or without ADDRESS on a Ray instance started on this machine"
@@ -189,6 +193,7 @@ def _reconstruct(args: argparse.Namespace) -> int:
         refine=args.refine,
         cache=args.cache,
         ray=args.ray,
+        distil=args.distil,
     )
     assert rep.texels is not None and rep.photos is not None and rep.seconds is not None  # a finished run
     print(
@@ -380,7 +385,9 @@ def _add_reconstruct(sub: Subcommands) -> None:
         help="drop photos whose blur score exceeds the scan's median by this much",
     )
     rc.add_argument("--force-registration", action="store_true", help=FORCE_HELP)
-    rc.add_argument("--refine", action="store_true", help=REFINE_HELP)
+    paths = rc.add_mutually_exclusive_group()
+    paths.add_argument("--refine", action="store_true", help=REFINE_HELP)
+    paths.add_argument("--distil", action="store_true", help=DISTIL_HELP)
     rc.add_argument("--ray", nargs="?", const=LOCAL, default=None, metavar="ADDRESS", help=RAY_HELP)
     _run_options(rc)
     add_progress_arguments(rc)

@@ -50,6 +50,9 @@ from ..sim.virtual_scan import ScanConfig, scan_folder_is_current, true_mesh_pat
 from . import finite_mean, number, print_table, tune_validate
 
 SCANNERS = ("engine", "cycles")
+# reconstruction paths: network + fit alone, the scan's own network (``reconstruct(distil=True)``),
+# every texel refined (``reconstruct(refine=True)``)
+PATHS = ("fast", "distil", "refine")
 # a set's default scanner: the engine's. Cycles costs 4-6 min an object at 40 photos (the gallery's
 # Cycles half: 20 min for 5 objects; dome and two validation objects: 17 min), over an hour more for
 # the validation set's 12: ``--scanners`` adds it
@@ -78,7 +81,11 @@ class GallerySettings:
     relit_lights: int = 3
     relit_scale: float = 0.125
     seed: int = 0
-    refine: bool = False  # the analysis-by-synthesis refinement after the network's fit
+    refine: bool = False  # the analysis-by-synthesis refinement after the network's fit (the path "refine")
+    # the reconstruction paths each scan goes through, each into its own results (PATHS: network + fit,
+    # the scan's own network, every texel refined); more than one adds the run time against error table
+    paths: tuple[str, ...] = ()
+    distil: bool = False  # the scan's own network (the path "distil")
     model: str | None = None  # the trace network (a shipped name or a model folder; None: the default)
     budget: bool = False  # where the relit SSIM is lost, per material x group of maps (sim.evaluate.relit_budget)
     # the mesh ntp is given: a shape scanner's (coarser, smoothed, noisy: sim.scanner_mesh; the paper's
@@ -88,6 +95,17 @@ class GallerySettings:
     # data gets better with more of it); ``views`` is always scanned
     density: tuple[int, ...] = ()
     board: str | None = None  # the objects stand on a marker board of this paper size (scanner.board)
+
+    @property
+    def path_list(self) -> tuple[str, ...]:
+        """The paths run: ``paths``, else the one ``refine`` or ``distil`` picks."""
+        if self.paths:
+            return self.paths
+        return ("refine",) if self.refine else ("distil",) if self.distil else ("fast",)
+
+    def on_path(self, path: str) -> GallerySettings:
+        """These settings for one path alone."""
+        return replace(self, paths=(), refine=path == "refine", distil=path == "distil")
 
     @property
     def photo_counts(self) -> tuple[int, ...]:
@@ -143,12 +161,22 @@ def _evaluate(settings: GallerySettings, scan_dir: Path, poses: str, out: Path, 
     t0 = time.perf_counter()
     try:
         rep = reconstruct(
-            scan, out, resolution=settings.resolution, model=settings.model, progress=progress, refine=settings.refine
+            scan,
+            out,
+            resolution=settings.resolution,
+            model=settings.model,
+            progress=progress,
+            refine=settings.refine,
+            distil=settings.distil,
         )
     except NtpInputError as err:  # registration can fail on a hard object: that is a result too
         return {"failed": str(err), "seconds_reconstruct": time.perf_counter() - t0}
     seconds = time.perf_counter() - t0
     run: dict = {"stages": rep.stages, "seconds_reconstruct": seconds}
+    if rep.texels is not None:
+        run["texels_observed"] = rep.texels.observed
+    if rep.distil is not None:
+        run["distil"] = rep.distil
     if poses == "sfm":
         used, _, _ = register_photos(scan, out)
         run["pose_error"] = pose_error(used, load_poses(gt / "poses.json"))
@@ -176,12 +204,14 @@ def run(
         or not set(settings.scanners) <= set(SCANNERS)
         or not set(settings.poses) <= set(POSES)
         or settings.mesh not in MESHES
+        or not set(settings.path_list) <= set(PATHS)
         or not all(3 <= n <= 100_000 for n in settings.photo_counts)
     ):
         raise NtpInputError(
             None,
             f"objects from {', '.join(GALLERY)} or generated ones (<family>-<seed>: {', '.join(FAMILIES)}); "
             f"scanners from {', '.join(SCANNERS)}; poses from {', '.join(POSES)}; mesh from {', '.join(MESHES)}; "
+            f"paths from {', '.join(PATHS)}; "
             "3 to 100000 photos",
         )
     out = Path(out)
@@ -196,9 +226,10 @@ def run(
                 t0 = time.perf_counter()
                 capture = scan_object(at, name, scanner, scan_dir, asset, progress)
                 t_scan = time.perf_counter() - t0
-                for poses in settings.poses:
-                    result_dir = result_folder(out, settings, name, scanner, poses, count)
-                    result = _evaluate(at, scan_dir, poses, result_dir, progress)
+                for poses, path in ((p, q) for p in settings.poses for q in settings.path_list):
+                    one = settings.on_path(path)
+                    result_dir = result_folder(out, one, name, scanner, poses, count)
+                    result = _evaluate(at.on_path(path), scan_dir, poses, result_dir, progress)
                     runs.append(
                         {
                             "object": name,
@@ -206,6 +237,7 @@ def run(
                             "views": count,
                             "scanner": scanner,
                             "poses": poses,
+                            "path": path,
                             "seconds_scan": t_scan,
                             "seconds_per_photo": capture["seconds_per_photo"],
                             **result,
@@ -230,10 +262,14 @@ def run(
 
 
 def _suffix(settings: GallerySettings) -> str:
-    """Results and tables with another network or the refinement sit beside the default's (same
-    scans): ``-model-<folder name>``, then ``-refined``."""
+    """Results and tables with another network or another path sit beside the default's (same
+    scans): ``-model-<folder name>``, then ``-refined`` or ``-distilled`` (tables of several paths:
+    ``-paths``)."""
     model = f"-model-{Path(settings.model).name}" if settings.model else ""
-    return model + ("-refined" if settings.refine else "")
+    paths = settings.path_list
+    if len(paths) > 1:
+        return model + "-paths"
+    return model + {"fast": "", "refine": "-refined", "distil": "-distilled"}[paths[0]]
 
 
 def result_folder(out: Path, settings: GallerySettings, name: str, scanner: str, poses: str, views: int) -> Path:
@@ -255,6 +291,7 @@ def _run_rows(record: dict) -> tuple[tuple, list[tuple]]:
         "object",
         "scanner",
         "poses",
+        "path",
         "views",
         "registered",
         "pose err mm / deg",
@@ -272,6 +309,7 @@ def _run_rows(record: dict) -> tuple[tuple, list[tuple]]:
                 r["object"],
                 r["scanner"],
                 r["poses"],
+                r.get("path", "fast"),
                 r.get("views", record["settings"]["views"]),
                 r.get("registered", "-") if "failed" not in r else "FAILED",
                 pose,
@@ -287,16 +325,70 @@ def _run_rows(record: dict) -> tuple[tuple, list[tuple]]:
 
 
 def _material_rows(record: dict) -> tuple[tuple, list[tuple]]:
-    header = ("object", "material", "scanner", "poses", "views", *METRICS)
+    header = ("object", "material", "scanner", "poses", "path", "views", *METRICS)
     rows = []
     for r in record["runs"]:
         views = r.get("views", record["settings"]["views"])
+        path = r.get("path", "fast")
         for m in r.get("materials", []):
-            rows.append((r["object"], m["material"], r["scanner"], r["poses"], views, *(number(m[k]) for k in METRICS)))
+            rows.append(
+                (r["object"], m["material"], r["scanner"], r["poses"], path, views, *(number(m[k]) for k in METRICS))
+            )
     return header, rows
 
 
 SET_METRICS = ("normal_deg", "tangent_deg", "log_alpha", "rho_d_rmse", "log_rho_s", "spurious_lobe")
+# the stages that estimate the materials (after the traces): each path's run time is their sum
+MATERIAL_STAGES = ("network_and_fit", "support", "refine", "teacher", "distil", "polish")
+
+
+def material_seconds(run: dict) -> float:
+    """A run's seconds estimating materials (``MATERIAL_STAGES``; a cached stage counts ~0)."""
+    return float(sum(run.get("stages", {}).get(k, 0.0) for k in MATERIAL_STAGES))
+
+
+def _path_rows(record: dict) -> tuple[tuple, list[tuple]]:
+    """Run time against error per set x path (x scanner x poses x photo count): the materials'
+    seconds and texels/s (observed texels over those seconds, summed over the runs), the mean relit
+    SSIM and coverage over runs and each metric's mean over the materials."""
+    header = (
+        "set",
+        "scanner",
+        "poses",
+        "views",
+        "path",
+        "runs",
+        "s materials (mean)",
+        "texels/s",
+        "relit SSIM",
+        "coverage",
+        *SET_METRICS,
+    )
+    groups: dict[tuple, list[dict]] = {}
+    for r in record["runs"]:
+        if "failed" in r:
+            continue
+        key = (r.get("set", "tune"), r["scanner"], r["poses"], r.get("views", record["settings"]["views"]))
+        groups.setdefault((*key, r.get("path", "fast")), []).append(r)
+    order = {p: i for i, p in enumerate(PATHS)}
+    rows = []
+    for key in sorted(groups, key=lambda k: (*k[:4], order.get(k[4], 9))):
+        runs = groups[key]
+        seconds = [material_seconds(r) for r in runs]
+        texels = sum(r.get("texels_observed", 0) for r in runs)
+        mats = [m for r in runs for m in r.get("materials", [])]
+        rows.append(
+            (
+                *key,
+                len(runs),
+                number(sum(seconds) / len(seconds)),
+                number(texels / sum(seconds) if sum(seconds) > 0 else None),
+                number(finite_mean([r.get("relit_ssim") for r in runs])),
+                number(finite_mean([m.get("coverage") for m in mats])),
+                *(number(finite_mean([m.get(k) for m in mats])) for k in SET_METRICS),
+            )
+        )
+    return header, rows
 
 
 def _set_rows(record: dict) -> tuple[tuple, list[tuple]]:
@@ -305,16 +397,17 @@ def _set_rows(record: dict) -> tuple[tuple, list[tuple]]:
     header = (
         "scanner",
         "poses",
+        "path",
         "kind",
         "materials tune / validate",
         *(f"{m} tune / validate (gap)" for m in SET_METRICS),
     )
     cells = _set_cells(record)
     rows = []
-    for (scanner, poses, kind), by_set in sorted(cells.items()):
+    for (scanner, poses, path, kind), by_set in sorted(cells.items()):
         tune, validate = by_set["tune"], by_set["validate"]
         cols = [tune_validate([m[k] for m in tune], [m[k] for m in validate]) for k in SET_METRICS]
-        rows.append((scanner, poses, kind, f"{len(tune)} / {len(validate)}", *cols))
+        rows.append((scanner, poses, path, kind, f"{len(tune)} / {len(validate)}", *cols))
     return header, rows
 
 
@@ -329,7 +422,7 @@ def _set_cells(record: dict) -> dict[tuple, dict[str, list[dict]]]:
     cells: dict[tuple, dict[str, list[dict]]] = {}
     for r in _at_settings_count(record):
         for m in r.get("materials", []):
-            key = (r["scanner"], r["poses"], m.get("kind") or "?")
+            key = (r["scanner"], r["poses"], r.get("path", "fast"), m.get("kind") or "?")
             cells.setdefault(key, {"tune": [], "validate": []})[r.get("set", "tune")].append(m)
     return cells
 
@@ -365,7 +458,9 @@ def sets_figure(record: dict, path: Path) -> None:
                 ax.plot([xi] * len(v), v, ".", color="k", markersize=3)
         ax.set_ylabel(metric.replace("_", " "), fontsize=8)
         ax.grid(axis="y", alpha=0.3)
-        ax.set_xticks(x, [] if ax is not panels[-1] else [f"{g[2]}\n{g[0]}, {g[1]}" for g in groups], fontsize=7)
+        ax.set_xticks(
+            x, [] if ax is not panels[-1] else [f"{g[3]}\n{g[0]}, {g[1]}, {g[2]}" for g in groups], fontsize=7
+        )
     panels[0].legend(fontsize=7)
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -374,11 +469,11 @@ def sets_figure(record: dict, path: Path) -> None:
 
 
 def _density(record: dict) -> dict[tuple, dict[int, dict[str, float | None]]]:
-    """Each metric's mean per (scanner, poses, set, kind) and photo count."""
+    """Each metric's mean per (scanner, poses, path, set, kind) and photo count."""
     groups: dict[tuple, dict[int, list[dict]]] = {}
     for r in record["runs"]:
         for m in r.get("materials", []):
-            key = (r["scanner"], r["poses"], r.get("set", "tune"), m.get("kind") or "?")
+            key = (r["scanner"], r["poses"], r.get("path", "fast"), r.get("set", "tune"), m.get("kind") or "?")
             groups.setdefault(key, {}).setdefault(r.get("views", record["settings"]["views"]), []).append(m)
     return {
         key: {n: {k: finite_mean([m[k] for m in ms]) for k in SET_METRICS} for n, ms in sorted(by_n.items())}
@@ -387,19 +482,20 @@ def _density(record: dict) -> dict[tuple, dict[int, dict[str, float | None]]]:
 
 
 def _density_rows(record: dict) -> tuple[tuple, list[tuple]]:
-    """Accuracy against photo count: per scanner x poses x set x kind, each metric's mean at each count."""
+    """Accuracy against photo count: per scanner x poses x path x set x kind, each metric's mean at each count."""
     counts = sorted({r.get("views", record["settings"]["views"]) for r in record["runs"]})
     header = (
         "scanner",
         "poses",
+        "path",
         "set",
         "kind",
         *(f"{m} at {' / '.join(map(str, counts))} photos" for m in SET_METRICS),
     )
     rows = []
-    for (scanner, poses, which, kind), by_n in _density(record).items():
+    for (scanner, poses, path, which, kind), by_n in _density(record).items():
         cols = [" / ".join(number(by_n.get(n, {}).get(m)) for n in counts) for m in SET_METRICS]
-        rows.append((scanner, poses, which, kind, *cols))
+        rows.append((scanner, poses, path, which, kind, *cols))
     return header, rows
 
 
@@ -411,14 +507,14 @@ def density_figure(record: dict, path: Path) -> None:
     import matplotlib.pyplot as plt
 
     data = _density(record)
-    kinds = sorted({key[3] for key in data})
+    kinds = sorted({key[4] for key in data})
     fig, axes = plt.subplots(1, len(SET_METRICS), figsize=(3.2 * len(SET_METRICS), 3.2))
     for ax, metric in zip(axes, SET_METRICS):
-        for (scanner, poses, which, kind), by_n in data.items():
+        for (scanner, poses, run_path, which, kind), by_n in data.items():
             n = [c for c, v in by_n.items() if v[metric] is not None]
             if n:
                 style = "-" if which == "tune" else "--"
-                label = f"{kind} ({which}, {scanner}, {poses})"
+                label = f"{kind} ({which}, {scanner}, {poses}, {run_path})"
                 ax.plot(n, [by_n[c][metric] for c in n], style, marker="o", color=f"C{kinds.index(kind)}", label=label)
         ax.set_xscale("log")
         counts = sorted({c for by_n in data.values() for c in by_n})
@@ -470,6 +566,14 @@ def markdown(record: dict) -> str:
         *table(*_set_rows(record)),
         "",
     ]
+    if len({r.get("path", "fast") for r in record["runs"]}) > 1:
+        lines += [
+            "Run time against error per path (seconds estimating materials: network + fit and what follows it; "
+            "metrics: means over the materials):",
+            "",
+            *table(*_path_rows(record)),
+            "",
+        ]
     if len({r.get("views", s["views"]) for r in record["runs"]}) > 1:
         lines += [
             "Accuracy against photo count (mean over the materials of each kind; a method that uses its data "
@@ -498,6 +602,9 @@ def _print(record: dict) -> None:
     print()
     header, rows = _set_rows(record)
     print_table(rows, header)
+    if len({r.get("path", "fast") for r in record["runs"]}) > 1:
+        print()
+        print_table(*reversed(_path_rows(record)))
     if len({r.get("views", record["settings"]["views"]) for r in record["runs"]}) > 1:
         print()
         print_table(*reversed(_density_rows(record)))
@@ -628,6 +735,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="refine every texel against its photos after the network (results and tables *-refined)",
     )
     parser.add_argument(
+        "--paths",
+        nargs="+",
+        choices=PATHS,
+        default=None,
+        help="reconstruct each scan by these paths (fast: network + fit; distil: the scan's own network; refine: "
+        "every texel refined), each into its own results, and print run time against error side by side",
+    )
+    parser.add_argument(
         "--model",
         default=None,
         help="trace network: a shipped name or a model folder (results and tables *-model-NAME; default: compact)",
@@ -676,6 +791,7 @@ def settings_from_args(args: argparse.Namespace) -> GallerySettings:
         # without --samples the settings' own maximum stands
         max_samples=args.max_samples if args.samples is None else at_least_samples(args.max_samples, args.samples),
         refine=args.refine or None,
+        paths=tuple(args.paths) if args.paths else None,
         model=args.model,
         mesh=args.mesh,
         density=tuple(args.density) if args.density else None,

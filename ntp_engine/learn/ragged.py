@@ -163,6 +163,24 @@ class RaggedTraces:
             return torch.zeros(*mask.shape, 3, dtype=self.albedo_blend.dtype)
         return torch.where(mask[..., None], self.albedo_blend[rows], torch.zeros((), dtype=self.albedo_blend.dtype))
 
+    def only(self, idx: Tensor) -> RaggedTraces:
+        """The same N traces with only those of ``idx`` (sorted, distinct) keeping their entries, the
+        others empty, every column carried: a stage run on a sample of the texels, trace i still
+        texel i. Reads only those traces' rows (a memory-mapped table stays on disk)."""
+        lengths = torch.zeros(self.num_traces, dtype=torch.int64)
+        lengths[idx] = self.lengths[idx]
+        offsets = torch.zeros_like(self.offsets)
+        offsets[1:] = torch.cumsum(lengths, 0)
+        first = torch.repeat_interleave(self.offsets[idx] - offsets[idx], lengths[idx])
+        rows = first + torch.arange(int(offsets[-1]))
+
+        def column(c: Tensor | None) -> Tensor | None:
+            return None if c is None else c[rows]
+
+        return RaggedTraces(
+            self.entries[rows], offsets, column(self.in_range), column(self.shadow), column(self.albedo_blend)
+        )
+
     def spread(self, max_views: int) -> RaggedTraces:
         """The table with at most ``max_views`` entries per trace, the same ones ``padded`` keeps
         (evenly spread, first and last included); ``in_range``, ``shadow`` and ``albedo_blend`` are not

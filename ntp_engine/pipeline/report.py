@@ -75,6 +75,7 @@ class Report:
     registration: dict[str, Any] | None = None  # the registration's diagnostics (docs/pipeline.md)
     traces: TraceCounts | None = None
     refine: RefineSummary | None = None
+    distil: dict[str, Any] | None = None  # the scan's own network (pipeline.distil.DistilReport, seconds_fit)
     texels: TexelCounts | None = None
     model: dict[str, Any] | None = None  # the network's name and its training summary
     cached_stages: list[str] | None = None

@@ -74,6 +74,40 @@ class FitTuning:
 
 
 @dataclass(frozen=True)
+class DistilTuning:
+    """The scan's own network (``pipeline.distil``): the shipped network fine-tuned on a sample of the
+    scan's texels refined against their photos, then run over every texel (``--distil``)."""
+
+    seeds: int = budget(
+        2048,
+        "texels refined against their photos as the teacher (~10-20 s of refinement on 2 cores); 4096 instead "
+        "on the demo gave the held-out texels no closer answers in the same steps",
+    )
+    held_out: float = derived(
+        0.2, "share of the seeds kept out of the fine-tuning to decide when it stops (early stopping)"
+    )
+    batch: int = unmeasured(64, "traces per fine-tuning step: the network's training batch (docs/network.md)")
+    learning_rate: float = measured(
+        3e-4,
+        "Adam's rate; 1e-4 left the held-out loss at 0.23 after 400 steps where 3e-4 reached 0.19 "
+        "(and the teacher's tangents within 3.5 deg, not 5.7)",
+        on="the demo (tuning), true poses, 256^2 (docs/distillation.md)",
+    )
+    max_steps: int = budget(800, "fine-tuning steps at most: ~0.11 s each on 2 cores (batch 64, compact network)")
+    check_every: int = budget(50, "steps between evaluations of the held-out loss")
+    patience: int = derived(
+        3, "evaluations without a lower held-out loss before the fine-tuning stops (the best weights kept)"
+    )
+    polish_rounds: int = budget(1, "rounds of the refinement of every texel from the distilled answer")
+    polish_iterations: int = measured(
+        2,
+        "LM iterations of that round, no multi-start: relit SSIM 0.942 / 0.963 / 0.976 at 0 / 1 / 2 (the full "
+        "refinement 0.988; from the shipped network's answer 2 gave 0.945, tangents 11.9 deg against 0.48)",
+        on="the demo (tuning), true poses, 256^2 (docs/distillation.md)",
+    )
+
+
+@dataclass(frozen=True)
 class RunTuning:
     """What a run must have measured to be a result (``pipeline.stages``): below, refused (exit 2)."""
 
@@ -90,6 +124,7 @@ class PipelineTuning:
     select: SelectTuning = field(default_factory=SelectTuning)
     traces: TraceTuning = field(default_factory=TraceTuning)
     fit: FitTuning = field(default_factory=FitTuning)
+    distil: DistilTuning = field(default_factory=DistilTuning)
     run: RunTuning = field(default_factory=RunTuning)
 
 

@@ -43,6 +43,7 @@ from ..io.texels import Texels, rasterize, uv_atlas
 from ..io.threads import configured_threads
 from ..io.viewers import base_colour_for_fresnel_mix, beyond_principled
 from ..learn import models
+from ..learn.network import TraceNet
 from ..learn.ragged import RaggedTraces
 from ..physics.emitter_blocks import SHADOW_SPLITS
 from ..refine.passes import refine_fit
@@ -61,6 +62,7 @@ from ..scanner.device_file import scanner_to_dict
 from ..scanner.local_frame import local_origin, moved, pose_to_local, pose_to_world
 from ..scanner.scan_folder import Scan, check_mesh_size, read_photo
 from . import traces as trace_assembly
+from .distil import DistilReport, distilled_network, seed_texels
 from .fit_traces import fit_blocks
 from .photo_selection import Selection, select_photos
 from .report import PhotoCounts, RefineSummary, Report, TexelCounts, TraceCounts
@@ -72,6 +74,18 @@ DEFAULT_RESOLUTION = 1024  # texture maps are DEFAULT_RESOLUTION^2 unless asked 
 MIN_RESOLUTION = 8
 MAX_RESOLUTION = 16384  # the largest texture GPUs, glTF viewers and Blender's viewport take
 REFINE = RefineSettings()
+# the distilled path's last step: every texel refined from the scan's own network's answer, which is
+# close already (``TUNING.distil``: the rounds and iterations; no multi-start; the passes that
+# reweigh entries or pool texels left to the full refinement: docs/distillation.md)
+POLISH = dataclasses.replace(
+    REFINE,
+    rounds=TUNING.distil.polish_rounds,
+    iterations=TUNING.distil.polish_iterations,
+    starts=False,
+    materials=False,
+    albedo_blend=False,
+    albedo_map=False,
+)
 # the code behind each stage (``io.stage_cache.code_version``: these modules and every engine module
 # they import; this module's own code runs every stage, so a change to it recomputes them all)
 STAGE_CODE: dict[str, tuple[str, ...]] = {
@@ -90,6 +104,7 @@ STAGE_CODE: dict[str, tuple[str, ...]] = {
     "support": ("ntp_engine.refine.support_light",),
     "fit": ("ntp_engine.pipeline.fit_traces",),
     "refine": ("ntp_engine.refine.passes",),
+    "distil": ("ntp_engine.pipeline.distil",),
 }  # the refinement's settings when asked for (`reconstruct(refine=True)`)
 
 
@@ -338,10 +353,13 @@ def reconstruct(
     refine: bool = False,
     cache: Path | None = None,
     ray: str | None = None,
+    distil: bool = False,
 ) -> Report:
     """Run the pipeline on ``scan`` into ``out`` (``refine``: the analysis-by-synthesis refinement
-    after the network's fit; ``ray``: the fit stage's blocks as tasks on that Ray cluster,
-    ``task_pool.LOCAL`` for one on this machine — the same result); returns the report (also in
+    of every texel after the network's fit; ``distil``: of a sample of them, which the network is
+    then fine-tuned on before it runs over every texel again and every texel's answer is polished
+    by a short refinement, ``pipeline.distil``; ``ray``: the fit stage's blocks as tasks on that Ray
+    cluster, ``task_pool.LOCAL`` for one on this machine — the same result); returns the report (also in
     ``out/report.json``, written last). ``out`` must be absent, empty or an ntp result, outside the scan folder
     (``output_folder.claim``); a run that measured too little, or whose registration the photos do
     not confirm (unless ``force_registration``), is refused, the old result kept. Stages are cached
@@ -349,6 +367,8 @@ def reconstruct(
     cache folder); a re-run resumes from the last stage whose inputs did not change."""
     if not MIN_RESOLUTION <= resolution <= MAX_RESOLUTION:
         raise NtpInputError(None, f"--resolution {resolution}: need {MIN_RESOLUTION} to {MAX_RESOLUTION}")
+    if refine and distil:
+        raise NtpInputError(None, "--refine and --distil: choose one (every texel refined, or a sample distilled)")
     scan_mesh = load_mesh(scan.mesh_path)
     check_mesh_size(scan_mesh, scan.scanner, scan.mesh_path)
     pool: TaskPool = RayPool(ray, configured_threads()) if ray else LocalPool()
@@ -365,6 +385,7 @@ def reconstruct(
             refine,
             pool,
             local_origin(scan_mesh),
+            distil,
         )
 
 
@@ -380,6 +401,7 @@ def _reconstruct(
     refine: bool,
     pool: TaskPool,
     origin: np.ndarray,
+    distil: bool = False,
 ) -> Report:
     """The stages after the registration work in the scan's local frame (``scanner.local_frame``:
     float32 positions stay precise however far the mesh is from the world's origin)."""
@@ -391,13 +413,13 @@ def _reconstruct(
 
     t0 = time.perf_counter()
     mesh, h_atlas = _atlas_stage(scan, cache, resolution, origin, progress)
-    texels = rasterize(mesh, (resolution, resolution), curvature=refine)
+    texels = rasterize(mesh, (resolution, resolution), curvature=refine or distil)
     report.timed("atlas", t0)
 
     t0 = time.perf_counter()
     traces, stats, h_tr = _traces_stage(scan, cache, texels, mesh, h_atlas, poses, h_pose, progress)
     # what counts as observed: entries the fit reads — the in-range ones, or with the refinement all
-    lengths = (traces.lengths if refine else traces.in_range_lengths()).numpy()
+    lengths = (traces.lengths if refine else traces.in_range_lengths()).numpy()  # the distilled network: in-range
     _check_measured(scan, stats, lengths, len(poses))
     scale = net.exposure() / float(scan.scanner.exposure(scan.scanner.pattern))  # captured -> the model's
     report.traces = stats
@@ -425,7 +447,7 @@ def _reconstruct(
     folder, h_fit = cache.get("fit", {"traces": h_tr, **model_key, **fit_key}, fit_stage)
     fitted = TexelFit.load(folder / "fit.npz")
     report.timed("network_and_fit", t0)
-    if refine:
+    if refine or distil:
         t0 = time.perf_counter()
         scene, h_support = None, None
         if scan.support_light:  # the photos hold the support's light: its albedo map, its mesh for the rays
@@ -435,25 +457,45 @@ def _reconstruct(
             report.timed("support", t0)
             t0 = time.perf_counter()
 
-        def refine_stage(d: Path) -> None:
-            full = scene
-            if scene is not None:  # the texels whose rays above their plane meet nothing: only when it runs
-                full = dataclasses.replace(scene, exposed=exposed(mesh.vertices, texels.position, texels.normal))
-            refine_fit(scan.scanner, traces, fitted, REFINE, progress, texels, full).save(d / "refined.npz")
+        def refined(
+            table: RaggedTraces, start: TexelFit, h_start: str, settings: RefineSettings, name: str
+        ) -> tuple[TexelFit, str]:
+            """``refine_fit`` of ``table``'s traces from ``start`` (the others keep its answers), cached as ``name``."""
 
-        key = {
-            "fit": h_fit,
-            "support": h_support,
-            "settings": dataclasses.asdict(REFINE),
-            "views": REFINE_TUNING.inputs.refine_views,
-            "min_clear_entries": REFINE_TUNING.inputs.min_clear_entries,
-            "code": _stage_code("refine"),
-            "calibration_texels": REFINE_TUNING.inputs.calibration_texels,
-        }
-        folder, _ = cache.get("refine", key, refine_stage)
-        fitted = TexelFit.load(folder / "refined.npz")
-        report.refine = refine_summary(fitted)
-        report.timed("refine", t0)
+            def stage(d: Path) -> None:
+                full = scene
+                if scene is not None:  # the texels whose rays above their plane meet nothing: only when it runs
+                    full = dataclasses.replace(scene, exposed=exposed(mesh.vertices, texels.position, texels.normal))
+                refine_fit(scan.scanner, table, start, settings, progress, texels, full).save(d / "refined.npz")
+
+            key = {
+                "fit": h_start,
+                "support": h_support,
+                "settings": dataclasses.asdict(settings),
+                "views": REFINE_TUNING.inputs.refine_views,
+                "min_clear_entries": REFINE_TUNING.inputs.min_clear_entries,
+                "code": _stage_code("refine"),
+                "calibration_texels": REFINE_TUNING.inputs.calibration_texels,
+                "seeds": TUNING.distil.seeds if name == "teacher" else None,
+            }
+            folder, h = cache.get(name, key, stage)
+            return TexelFit.load(folder / "refined.npz"), h
+
+        if refine:
+            fitted, _ = refined(traces, fitted, h_fit, REFINE, "refine")
+            report.refine = refine_summary(fitted)
+            report.timed("refine", t0)
+        else:
+            seeds = seed_texels(lengths > 0, TUNING.distil.seeds)
+            teacher, h_teacher = refined(traces.only(torch.as_tensor(seeds)), fitted, h_fit, REFINE, "teacher")
+            report.timed("teacher", t0)
+            distilled, h_distil = _distil_stage(
+                scan, cache, traces, teacher, seeds, h_teacher, net, model_key, fit_key, scale, pool, progress, report
+            )
+            t0 = time.perf_counter()
+            fitted, _ = refined(traces, distilled, h_distil, POLISH, "polish")
+            report.refine = refine_summary(fitted)
+            report.timed("polish", t0)
 
     t0 = time.perf_counter()
     staging = temp_dir(out, "result")  # every output here first, then moved into place
@@ -477,6 +519,51 @@ def _reconstruct(
     finally:
         shutil.rmtree(staging, ignore_errors=True)
     return report
+
+
+def _distil_stage(
+    scan: Scan,
+    cache: StageCache,
+    traces: RaggedTraces,
+    teacher: TexelFit,
+    seeds: np.ndarray,
+    h_teacher: str,
+    net: TraceNet,
+    model_key: dict,
+    fit_key: dict,
+    scale: float,
+    pool: TaskPool,
+    progress: Progress,
+    report: Report,
+) -> tuple[TexelFit, str]:
+    """The network fine-tuned on the ``seeds``' refined answers (``teacher``; ``pipeline.distil``),
+    then the fit stage again over every texel with it (cached as ``distil``); the seeds keep the
+    teacher's own answers; and the stage's hash. Fills ``report.distil`` and the stage's seconds."""
+    t0 = time.perf_counter()
+
+    def compute(d: Path) -> None:
+        tuned, rep = distilled_network(net, traces, scale, teacher, seeds, progress=progress)
+        t1 = time.perf_counter()
+        with pool as p:
+            fit = fit_blocks(tuned, scan.scanner, traces, scale, p, progress)
+        write_text_atomic(d / "distil.json", json.dumps({**rep.to_json(), "seconds_fit": time.perf_counter() - t1}))
+        fit.save(d / "fit.npz")
+
+    key = {
+        "teacher": h_teacher,
+        **model_key,
+        **fit_key,
+        "tuning": dataclasses.asdict(TUNING.distil),
+        "code": _stage_code("distil"),
+    }
+    folder, h_distil = cache.get("distil", key, compute)
+    fitted = TexelFit.load(folder / "fit.npz")
+    for name in ("n_loc", "t_loc", "alpha", "flags", "rho_d", "rho_s"):  # the seeds: their own refinement
+        getattr(fitted, name)[seeds] = getattr(teacher, name)[seeds]
+    info = json.loads((folder / "distil.json").read_text())
+    report.distil = {k: info[k] for k in DistilReport.__dataclass_fields__} | {"seconds_fit": info["seconds_fit"]}
+    report.timed("distil", t0)
+    return fitted, h_distil
 
 
 def refine_summary(fitted: TexelFit) -> RefineSummary:

@@ -89,10 +89,10 @@ def test_tune_and_validate_are_reported_side_by_side_per_material_kind():
         ],
     }
     header, rows = gallery._set_rows(record)
-    by_kind = {r[2]: r for r in rows}
-    assert header[3] == "materials tune / validate" and set(by_kind) == {"lacquer", "matte", "plastic"}
-    assert by_kind["lacquer"][3] == "2 / 1" and by_kind["lacquer"][4] == "2 / 4 (+2)"  # means 2 and 4, gap +2
-    assert by_kind["matte"][4] == "0.5 / -" and by_kind["plastic"][4] == "- / -"
+    by_kind = {r[3]: r for r in rows}
+    assert header[4] == "materials tune / validate" and set(by_kind) == {"lacquer", "matte", "plastic"}
+    assert by_kind["lacquer"][4] == "2 / 1" and by_kind["lacquer"][5] == "2 / 4 (+2)"  # means 2 and 4, gap +2
+    assert by_kind["matte"][5] == "0.5 / -" and by_kind["plastic"][5] == "- / -"
 
 
 def test_a_set_is_scanned_by_the_engine_with_true_poses_unless_asked_otherwise():
@@ -166,12 +166,12 @@ def test_accuracy_against_photo_count_per_set_and_kind(tmp_path):
         "runs": [run(40, "tune", 2.0), run(120, "tune", 1.0), run(40, "validate", 3.0)],
     }
     header, rows = gallery._density_rows(record)
-    assert header[4] == "normal_deg at 40 / 120 photos"
+    assert header[5] == "normal_deg at 40 / 120 photos"
     assert rows == [
-        ("engine", "true", "tune", "lacquer", *["2 / 1"] * len(gallery.SET_METRICS)),
-        ("engine", "true", "validate", "lacquer", *["3 / -"] * len(gallery.SET_METRICS)),
+        ("engine", "true", "fast", "tune", "lacquer", *["2 / 1"] * len(gallery.SET_METRICS)),
+        ("engine", "true", "fast", "validate", "lacquer", *["3 / -"] * len(gallery.SET_METRICS)),
     ]
-    assert gallery._set_rows(record)[1][0][3] == "1 / 1"  # the set table is at the settings' count only
+    assert gallery._set_rows(record)[1][0][4] == "1 / 1"  # the set table is at the settings' count only
     gallery.density_figure(record, tmp_path / "d.png")
     assert (tmp_path / "d.png").stat().st_size > 5_000
     with pytest.raises(NtpInputError, match="3 to 100000 photos"):
