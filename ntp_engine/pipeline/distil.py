@@ -104,18 +104,19 @@ def distilled_network(
     pixel_scale: float,
     teacher: TexelFit,
     seeds: np.ndarray,
-    tuning: DistilTuning = TUNING.distil,
+    tuning: DistilTuning | None = None,
     progress: Progress = QUIET,
     seed: int = 0,
 ) -> tuple[TraceNet, DistilReport]:
-    """A copy of ``net`` fine-tuned (Adam, ``tuning``) toward ``teacher``'s answers on the traces
-    ``seeds`` (those with in-range entries; ``tuning.held_out`` of them kept out), stopped when the
-    held-out loss has not fallen for ``tuning.patience`` evaluations, with the weights of its lowest;
-    in eval mode. ``net`` is left as it was. Deterministic for a given ``seed`` (dropout included:
-    the global generator is forked and seeded for the run)."""
+    """A copy of ``net`` fine-tuned (Adam, ``tuning``, default ``TUNING.distil``) toward
+    ``teacher``'s answers on the traces ``seeds`` (those with in-range entries;
+    ``tuning.held_out`` of them kept out), stopped when the held-out loss has not fallen for
+    ``tuning.patience`` evaluations, with the weights of its lowest; in eval mode. ``net`` is left
+    as it was. Deterministic for a given ``seed`` (dropout included: the global generator is
+    forked and seeded for the run)."""
     with torch.random.fork_rng():
         torch.manual_seed(seed)
-        return _distilled(net, traces, pixel_scale, teacher, seeds, tuning, progress, seed)
+        return _distilled(net, traces, pixel_scale, teacher, seeds, tuning or TUNING.distil, progress, seed)
 
 
 def _distilled(

@@ -132,3 +132,15 @@ def test_albedo_blends_are_those_of_the_padded_entries():
     assert RaggedTraces(entries, tr.offsets).albedo_blend_at(*tr.padded_rows(idx)) is None
     with pytest.raises(ValueError):
         RaggedTraces(entries, tr.offsets, albedo_blend=offset[:, :2])
+
+
+def test_only_keeps_the_chosen_traces_entries_and_columns_in_place():
+    entries = torch.arange(10, dtype=torch.float32)[:, None].repeat(1, 12)
+    flags = torch.tensor([1, 0, 1, 1, 0, 1, 1, 1, 1, 0], dtype=torch.bool)
+    shadow = torch.arange(10, dtype=torch.int64) * 3
+    tr = RaggedTraces(entries, torch.tensor([0, 2, 2, 5, 9, 10]), flags, shadow)
+    sub = tr.only(torch.tensor([2, 4]))
+    assert sub.num_traces == 5 and sub.lengths.tolist() == [0, 0, 3, 0, 1]  # trace i is still texel i
+    assert sub.entries[:, 0].tolist() == [2, 3, 4, 9]
+    assert sub.in_range.tolist() == [True, True, False, False] and sub.shadow.tolist() == [6, 9, 12, 27]
+    assert tr.only(torch.tensor([], dtype=torch.int64)).lengths.sum() == 0
