@@ -205,7 +205,9 @@ def _reconstruct(args: argparse.Namespace) -> int:
 
 
 def _batch(args: argparse.Namespace) -> int:
-    options = BatchOptions(resolution=args.resolution, model=args.model, refine=args.refine, threads=args.threads)
+    options = BatchOptions(
+        resolution=args.resolution, model=args.model, refine=args.refine, distil=args.distil, threads=args.threads
+    )
     set_threads(args.threads)  # checks the value; also the CPUs of a local Ray instance
     pool: TaskPool = RayPool(args.ray, args.threads) if args.ray else LocalPool()
     outcomes = reconstruct_collection(args.scans, args.out, options, pool, progress_from_args(args))
@@ -401,7 +403,9 @@ def _add_batch(sub: Subcommands) -> None:
     ba.add_argument("--out", type=Path, required=True, help="collection folder (one result per scan, batch.json)")
     ba.add_argument("--resolution", type=RESOLUTION, default=DEFAULT_RESOLUTION, help="texture maps are RESOLUTION^2")
     ba.add_argument("--model", default=None, help="shipped model name or a model folder (default: compact)")
-    ba.add_argument("--refine", action="store_true", help=REFINE_HELP)
+    batch_paths = ba.add_mutually_exclusive_group()
+    batch_paths.add_argument("--refine", action="store_true", help=REFINE_HELP)
+    batch_paths.add_argument("--distil", action="store_true", help=DISTIL_HELP)
     ba.add_argument(
         "--threads", type=THREADS, default=0, help="CPU threads per scan (default 0: every core; 1 per Ray task)"
     )

@@ -35,6 +35,7 @@ class BatchOptions:
     resolution: int = DEFAULT_RESOLUTION
     model: str | None = None
     refine: bool = False
+    distil: bool = False  # the scan's own network (``reconstruct(distil=True)``)
     threads: int = 0  # per scan (0: every core in this process; one CPU per Ray task)
 
 
@@ -91,6 +92,7 @@ def _reconstruct_one(job: tuple[Path, Path], options: BatchOptions, progress: Pr
             resolution=options.resolution,
             model=options.model,
             refine=options.refine,
+            distil=options.distil,
             progress=progress,
         )
         outcome.update(ok=True, coverage=rep.texels.coverage if rep.texels else 0.0)

@@ -15,4 +15,4 @@ def test_the_albedo_check_reads_no_more_entries_than_the_network():
 
 
 def test_every_stage_is_a_section_with_provenance():
-    assert {r.name.split(".")[0] for r in provenance(PipelineTuning)} == {"select", "traces", "fit", "run"}
+    assert {r.name.split(".")[0] for r in provenance(PipelineTuning)} == {"select", "traces", "fit", "distil", "run"}

@@ -140,6 +140,34 @@ def test_refinement_stage_writes_uncertainty_and_resumes(scan24, tmp_path):
     assert again.cached_stages[-2:] == ["fit", "refine"]
 
 
+def test_distilled_path_teaches_the_network_polishes_and_resumes(scan24, tmp_path):
+    """``reconstruct(distil=True)``: the teacher, the fine-tuning and the polish run and are
+    reported; the maps are finite and no worse than the network's alone; a re-run is served from
+    the cache; with ``refine`` too it is refused in one line."""
+    from ntp_engine.io.images import read_image
+    from ntp_engine.sim.evaluate import map_errors
+
+    scan = load_scan(scan24, scan24 / "ground_truth" / "poses.json")
+    plain = reconstruct(scan, tmp_path / "plain", resolution=24)
+    rep = reconstruct(scan, tmp_path / "rec", resolution=24, distil=True)
+    assert {"teacher", "distil", "polish"} <= set(rep.stages) and "refine" not in rep.stages
+    d = rep.distil
+    assert d["seeds"] == plain.texels.observed  # fewer texels than seeds: every one a seed
+    assert d["trained_on"] + d["held_out"] == d["seeds"] and 0 < d["steps"] <= 800
+    assert d["loss_after"] < d["loss_before"]
+    for name in ("normal.exr", "roughness.exr", "specular_albedo.exr", "diffuse_albedo.exr"):
+        assert np.isfinite(read_image(tmp_path / "rec" / name)).all(), name
+    truth = scan24 / "ground_truth"
+    before, after = map_errors(tmp_path / "plain", truth), map_errors(tmp_path / "rec", truth)
+    assert after["normal_median_deg"] < before["normal_median_deg"] + 0.3
+    assert after["diffuse_rmse"] < before["diffuse_rmse"] + 0.01
+    again = reconstruct(scan, tmp_path / "rec", resolution=24, distil=True)
+    assert again.cached_stages[-4:] == ["fit", "teacher", "distil", "polish"] and again.distil == d
+    with pytest.raises(NtpInputError, match="choose one"):
+        reconstruct(scan, tmp_path / "both", resolution=24, distil=True, refine=True)
+    assert not (tmp_path / "both").exists()
+
+
 def test_fit_stage_on_ray_is_identical_even_with_a_worker_killed_mid_block(scan24, ray_local, tmp_path):
     """``reconstruct(ray=...)``: the fit stage's blocks as Ray tasks give the single-process maps bit
     for bit; a worker SIGKILLed while it fits a block is replaced and the block run again."""
