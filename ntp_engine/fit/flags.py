@@ -23,3 +23,4 @@ class TexelFlag(IntFlag):
     FROM_MATERIAL = 64  # the lobe is its basis material's: the texel's photos miss it
     MARGINAL = 128  # refined on entries the mesh shadows or sees at grazing angles (too few others)
     WIDTH_FROM_MATERIAL = 256  # a lobe of its own, its width its material's: the trace could not tell them apart
+    AT_BOUND = 512  # a kept lobe's alpha or rho_s settled on its range's bound: the photos bound it from one side

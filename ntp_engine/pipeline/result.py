@@ -105,7 +105,9 @@ def write_result(
                 "1-sigma of each parameter given the texel's photos (Gauss-Newton at the refined answer); "
                 "normal and tangent: after fusing with the neighbours' where the field is smooth"
             ),
-            "unconstrained": f">= {UNCONSTRAINED_STD:g}: the photos do not determine it (or no photo saw the texel)",
+            "unconstrained": f">= {UNCONSTRAINED_STD:g}: the photos do not determine it (or no photo saw the texel, "
+            "or it settled on its range's bound -- alpha 0.006 or 0.5, rho_s 10 -- and the photos bound it from one "
+            "side only: flag AT_BOUND)",
         }
     previews = out / "previews"
     write_png(previews / "diffuse_albedo.png", maps.diffuse_albedo ** (1 / PREVIEW_GAMMA))

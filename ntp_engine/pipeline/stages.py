@@ -433,9 +433,14 @@ def _reconstruct(
         "weights": content_digest(models.model_files(model_folder)),
     }
 
+    # the distilled path fits the shipped network's answers on its seeds alone: they are the teacher's start,
+    # and the fine-tuned network answers every texel after
+    seeds = seed_texels(lengths > 0, TUNING.distil.seeds) if distil else None
+    fitted_traces = traces if seeds is None else traces.only(torch.as_tensor(seeds))
+
     def fit_stage(d: Path) -> None:
         with pool as p:
-            fit_blocks(net, scan.scanner, traces, scale, p, progress).save(d / "fit.npz")
+            fit_blocks(net, scan.scanner, fitted_traces, scale, p, progress).save(d / "fit.npz")
 
     fit_key = {
         "albedo_views": TUNING.fit.albedo_views,
@@ -444,7 +449,8 @@ def _reconstruct(
         "block": TUNING.fit.fit_block,
         "code": _stage_code("fit"),
     }
-    folder, h_fit = cache.get("fit", {"traces": h_tr, **model_key, **fit_key}, fit_stage)
+    seeded = {} if seeds is None else {"seeds": TUNING.distil.seeds}
+    folder, h_fit = cache.get("fit", {"traces": h_tr, **model_key, **fit_key, **seeded}, fit_stage)
     fitted = TexelFit.load(folder / "fit.npz")
     report.timed("network_and_fit", t0)
     if refine or distil:
@@ -486,7 +492,7 @@ def _reconstruct(
             report.refine = refine_summary(fitted)
             report.timed("refine", t0)
         else:
-            seeds = seed_texels(lengths > 0, TUNING.distil.seeds)
+            assert seeds is not None
             teacher, h_teacher = refined(traces.only(torch.as_tensor(seeds)), fitted, h_fit, REFINE, "teacher")
             report.timed("teacher", t0)
             distilled, h_distil = _distil_stage(

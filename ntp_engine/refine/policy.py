@@ -39,6 +39,11 @@ from .priors import LobePrior, Prior, normal_prior
 from .settings import ANISOTROPY_PARAMS, LOBE_PARAMS, TUNING, RefineSettings, SensorNoise
 from .solver import albedo_start, robust_albedos, solve
 
+LOG_ALPHA_MIN, LOG_ALPHA_MAX = math.log(ALPHA_MIN), math.log(ALPHA_MAX)
+# within this of a bound (log alpha; rho_s) a parameter is on it: the solver projects onto the box
+# exactly, and its float32 copy of the bound rounds by ~1e-7
+BOUND_TOL = 1e-4
+
 
 @dataclass
 class Refined:
@@ -379,7 +384,14 @@ def _finish(
         [normal_std, torch.rad2deg(cov[:, 2]), cov[:, 3:5].amax(1), cov[:, P_RHO_S].mean(1) / rho_s_mean], 1
     )
     std = torch.where(kept[:, None], std, std.masked_fill(torch.tensor([False, True, True, True]), math.inf))
+    # a parameter on its bound: the Gauss-Newton sigma describes a minimum the range cut off, so it
+    # is written as undetermined and the texel flagged (the photos bound it from one side only)
+    alpha_bound = kept & ((la[:, 0] >= LOG_ALPHA_MAX - BOUND_TOL) | (la[:, 1] <= LOG_ALPHA_MIN + BOUND_TOL))
+    rho_s_bound = kept & (p[:, P_RHO_S] >= RHO_S_MAX - BOUND_TOL).any(1)
+    std[:, 2] = torch.where(alpha_bound, math.inf, std[:, 2])
+    std[:, 3] = torch.where(rho_s_bound, math.inf, std[:, 3])
     flags = (~seen).long() * TexelFlag.SPECULAR_UNCONSTRAINED | from_material.long() * TexelFlag.FROM_MATERIAL
+    flags = flags | (alpha_bound | rho_s_bound).long() * TexelFlag.AT_BOUND
     iso = (la[:, 0] - la[:, 1]) < math.log(TUNING.policy.isotropic_ratio)
     flags = flags | ((~seen | iso).long() * TexelFlag.TANGENT_UNCONSTRAINED)
     rho_s = torch.where(kept[:, None], p[:, P_RHO_S], torch.zeros_like(p[:, P_RHO_S]))

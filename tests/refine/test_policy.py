@@ -197,6 +197,20 @@ def test_matte_gets_no_spurious_lobe():
     assert _normal_err(r, p).median() < 0.5
 
 
+def test_a_lobe_beyond_the_models_range_is_flagged_at_its_bound_with_no_sigma():
+    """A dark metal brighter than rho_s's range (14 for 10 at most) settles on the bound: flagged
+    AT_BOUND and its log-rho_s sigma undetermined; a lobe inside the range is neither."""
+    bright, mask, p = _traces(24, 21, (0.05, 0.05, 0.05), (14.0, 14.0, 14.0), (0.3, 0.3))
+    r = refine(Observations(DEV, bright, mask), Start(*_perturbed(p, 22)), torch.ones(24, dtype=torch.bool))
+    kept, at = _seen(r), (r.flags & TexelFlag.AT_BOUND) != 0
+    assert kept.float().mean() > 0.8 and (at == kept).all()  # measured: 21 of 24 kept, each at rho_s 10
+    assert torch.isinf(r.std[at, 3]).all() and torch.isfinite(r.std[at, 0]).all()
+    inside, mask, p = _traces(24, 23, (0.2, 0.2, 0.2), (3.0, 3.0, 3.0), (0.2, 0.2))
+    r = refine(Observations(DEV, inside, mask), Start(*_perturbed(p, 24)), torch.ones(24, dtype=torch.bool))
+    assert _seen(r).any() and ((r.flags & TexelFlag.AT_BOUND) == 0).all()
+    assert torch.isfinite(r.std[_seen(r), 2:]).all()
+
+
 def test_a_lobe_that_cannot_pass_the_evidence_test_is_not_solved(monkeypatch):
     """Where the diffuse-only cost is already within the lobe evidence, no lobe can be kept (the full
     solve's cost is never below 0), so its solve is skipped: matte and glossy texels together, the
