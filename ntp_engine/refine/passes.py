@@ -109,10 +109,11 @@ def _refine_fit(
         # some entries. The weak pulls still centre on the start: centred on the first pass's
         # normal, which the blended entries had tipped, they held the matte normals there. A texel
         # that kept no lobe seeks none: noise on some of its entries shows no lobe that all did not
-        warm = fit.copy()
-        warm.flags[(fit.flags & TexelFlag.SPECULAR_UNCONSTRAINED) != 0] |= TexelFlag.NO_HIGHLIGHT
-        again = dataclasses.replace(settings, rounds=TUNING.inputs.edge_rounds, starts=False)
-        _refine_texels(scanner, traces, fit, warm, edges, again, progress, texels, support, "albedo edges", start)
+        if settings.edge_pass:
+            warm = fit.copy()
+            warm.flags[(fit.flags & TexelFlag.SPECULAR_UNCONSTRAINED) != 0] |= TexelFlag.NO_HIGHLIGHT
+            again = dataclasses.replace(settings, rounds=TUNING.inputs.edge_rounds, starts=False)
+            _refine_texels(scanner, traces, fit, warm, edges, again, progress, texels, support, "albedo edges", start)
     if settings.materials:
         material_pass(scanner, traces, fit, todo, settings, progress, texels, support)
     if settings.normal_field and texels is not None:

@@ -388,6 +388,11 @@ class RefineSettings:
         "the neighbours' albedo each entry's pixel may blend in, as noise on its diffuse light (refine.footprint)",
         on='docs/history/accuracy.md, "Albedo edges: what a pixel blends": ' + GALLERY,
     )
+    edge_pass: bool = budget(
+        True,
+        "with albedo_blend: the texels whose pixels may blend a neighbour's albedo refined again with that blend "
+        "as noise (TUNING.inputs.edge_rounds); without, the blend only picks the albedo map's texels",
+    )
     albedo_map: bool = measured(
         True,
         "the albedos near edges solved jointly from the entries' pixel samples (refine.albedo_map; needs the "

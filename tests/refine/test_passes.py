@@ -164,3 +164,9 @@ def test_refine_fit_sharpens_the_albedos_of_the_edge_pass_texels_only_when_asked
     passes.clear()
     passes_module.refine_fit(dev, traces, start, RefineSettings(materials=False, albedo_map=False), texels=tx)
     assert len(sharpened) == 1
+    # without the edge pass the blend still picks the albedo map's texels, which are solved jointly
+    passes.clear()
+    lean = passes_module.refine_fit(dev, traces, start, RefineSettings(materials=False, edge_pass=False), texels=tx)
+    assert [p[0] for p in passes] == ["refine"] and len(sharpened) == 2
+    np.testing.assert_array_equal(sharpened[1][0], sharpened[0][0])
+    assert np.isfinite(lean.rho_d).all()
