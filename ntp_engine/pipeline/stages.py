@@ -75,16 +75,14 @@ MIN_RESOLUTION = 8
 MAX_RESOLUTION = 16384  # the largest texture GPUs, glTF viewers and Blender's viewport take
 REFINE = RefineSettings()
 # the distilled path's last step: every texel refined from the scan's own network's answer, which is
-# close already (``TUNING.distil``: the rounds and iterations; no multi-start; the passes that
-# reweigh entries or pool texels left to the full refinement: docs/distillation.md)
+# close already (``TUNING.distil``: the rounds and iterations; no multi-start; the albedo edges not
+# refined again: docs/distillation.md)
 POLISH = dataclasses.replace(
     REFINE,
     rounds=TUNING.distil.polish_rounds,
     iterations=TUNING.distil.polish_iterations,
     starts=False,
-    materials=False,
-    albedo_blend=False,
-    albedo_map=False,
+    edge_pass=False,
 )
 # the code behind each stage (``io.stage_cache.code_version``: these modules and every engine module
 # they import; this module's own code runs every stage, so a change to it recomputes them all)
@@ -419,7 +417,8 @@ def _reconstruct(
     t0 = time.perf_counter()
     traces, stats, h_tr = _traces_stage(scan, cache, texels, mesh, h_atlas, poses, h_pose, progress)
     # what counts as observed: entries the fit reads — the in-range ones, or with the refinement all
-    lengths = (traces.lengths if refine else traces.in_range_lengths()).numpy()  # the distilled network: in-range
+    # (the distilled path's polish reads every entry too, so it counts as the refinement)
+    lengths = (traces.lengths if refine or distil else traces.in_range_lengths()).numpy()
     _check_measured(scan, stats, lengths, len(poses))
     scale = net.exposure() / float(scan.scanner.exposure(scan.scanner.pattern))  # captured -> the model's
     report.traces = stats
@@ -435,7 +434,7 @@ def _reconstruct(
 
     # the distilled path fits the shipped network's answers on its seeds alone: they are the teacher's start,
     # and the fine-tuned network answers every texel after
-    seeds = seed_texels(lengths > 0, TUNING.distil.seeds) if distil else None
+    seeds = seed_texels(traces.in_range_lengths().numpy() > 0, TUNING.distil.seeds) if distil else None
     fitted_traces = traces if seeds is None else traces.only(torch.as_tensor(seeds))
 
     def fit_stage(d: Path) -> None:
