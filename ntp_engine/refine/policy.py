@@ -39,11 +39,6 @@ from .priors import LobePrior, Prior, normal_prior
 from .settings import ANISOTROPY_PARAMS, LOBE_PARAMS, TUNING, RefineSettings, SensorNoise
 from .solver import albedo_start, robust_albedos, solve
 
-LOG_ALPHA_MIN, LOG_ALPHA_MAX = math.log(ALPHA_MIN), math.log(ALPHA_MAX)
-# within this of a bound (log alpha; rho_s) a parameter is on it: the solver projects onto the box
-# exactly, and its float32 copy of the bound rounds by ~1e-7
-BOUND_TOL = 1e-4
-
 
 @dataclass
 class Refined:
@@ -386,8 +381,9 @@ def _finish(
     std = torch.where(kept[:, None], std, std.masked_fill(torch.tensor([False, True, True, True]), math.inf))
     # a parameter on its bound: the Gauss-Newton sigma describes a minimum the range cut off, so it
     # is written as undetermined and the texel flagged (the photos bound it from one side only)
-    alpha_bound = kept & ((la[:, 0] >= LOG_ALPHA_MAX - BOUND_TOL) | (la[:, 1] <= LOG_ALPHA_MIN + BOUND_TOL))
-    rho_s_bound = kept & (p[:, P_RHO_S] >= RHO_S_MAX - BOUND_TOL).any(1)
+    tol = TUNING.policy.at_bound
+    alpha_bound = kept & ((la[:, 0] >= math.log(ALPHA_MAX) - tol) | (la[:, 1] <= math.log(ALPHA_MIN) + tol))
+    rho_s_bound = kept & (p[:, P_RHO_S] >= RHO_S_MAX - tol).any(1)
     std[:, 2] = torch.where(alpha_bound, math.inf, std[:, 2])
     std[:, 3] = torch.where(rho_s_bound, math.inf, std[:, 3])
     flags = (~seen).long() * TexelFlag.SPECULAR_UNCONSTRAINED | from_material.long() * TexelFlag.FROM_MATERIAL

@@ -101,6 +101,11 @@ class PolicyTuning:
         "<= 0.04 more and cost 3x (the vase's refine stage +31%)",
         on=GALLERY,
     )
+    at_bound: float = derived(
+        1e-4,
+        "a lobe's log alpha or rho_s within this of its range's bound is on it (flag AT_BOUND): the solver "
+        "projects onto the box exactly, and its float32 copy of a bound rounds by ~1e-7",
+    )
     tangent_turns: int = budget(4, "tangents an anisotropic material's lobe is tried at (material_costs): 45 deg apart")
     normal_fixed_deg: float = unmeasured(
         1.0, "a texel whose normal's 1-sigma is below this (deg) has it from its photos, not the prior (calibrated)"
