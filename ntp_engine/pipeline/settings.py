@@ -80,8 +80,8 @@ class DistilTuning:
 
     seeds: int = budget(
         2048,
-        "texels refined against their photos as the teacher (~10-20 s of refinement on 2 cores); 4096 instead "
-        "on the demo gave the held-out texels no closer answers in the same steps",
+        "texels refined against their photos as the teacher (~7-13 s of refinement on 2 cores at 256^2); other "
+        "counts not compared at the same rate and steps (4096 was tried only with another learning rate)",
     )
     held_out: float = derived(
         0.2, "share of the seeds kept out of the fine-tuning to decide when it stops (early stopping)"
