@@ -37,6 +37,15 @@ def spans(offsets: np.ndarray, max_entries: int) -> Iterator[tuple[int, int]]:
         start = stop
 
 
+def concatenated_rows(starts: Tensor, lengths: Tensor) -> tuple[Tensor, Tensor]:
+    """The table rows of traces that start at ``starts (n,)`` and hold ``lengths (n,)`` entries,
+    concatenated in that order ``(sum lengths,)``, and the CSR offsets ``(n + 1,)`` of the result."""
+    offsets = torch.zeros(len(lengths) + 1, dtype=torch.int64)
+    offsets[1:] = torch.cumsum(lengths, 0)
+    first = torch.repeat_interleave(starts - offsets[:-1], lengths)
+    return first + torch.arange(int(offsets[-1])), offsets
+
+
 def spread_rows(rows: Tensor, usable: Tensor, max_views: int | None = None) -> tuple[Tensor, Tensor]:
     """``padded_rows``'s selection over the ``usable (n, W)`` entries of ``rows (n, W)`` alone: at
     most ``max_views`` of them per trace, spread evenly (first and last included), in trace order;
@@ -171,8 +180,7 @@ class RaggedTraces:
         lengths[idx] = self.lengths[idx]
         offsets = torch.zeros_like(self.offsets)
         offsets[1:] = torch.cumsum(lengths, 0)
-        first = torch.repeat_interleave(self.offsets[idx] - offsets[idx], lengths[idx])
-        rows = first + torch.arange(int(offsets[-1]))
+        rows, _ = concatenated_rows(self.offsets[idx], lengths[idx])
 
         def column(c: Tensor | None) -> Tensor | None:
             return None if c is None else c[rows]

@@ -25,7 +25,7 @@ from torch import Tensor
 from ..fit.texel_fit import TexelFit
 from ..io.progress import QUIET, Progress
 from ..learn.network import TraceNet, lumitexel_loss
-from ..learn.ragged import RaggedTraces
+from ..learn.ragged import RaggedTraces, concatenated_rows
 from ..physics.lumitexel import render_lumitexels
 from .settings import TUNING, DistilTuning
 
@@ -81,21 +81,18 @@ class _SeedTraces:
     them) and each seed's rows."""
 
     def __init__(self, net: TraceNet, traces: RaggedTraces, seeds: np.ndarray, pixel_scale: float):
-        table = traces.only(torch.as_tensor(seeds)).in_range_only().spread(TUNING.fit.network_views)
+        at = torch.as_tensor(seeds)
+        table = traces.only(at).in_range_only().spread(TUNING.fit.network_views)
         raw = table.entries.float().clone()
         raw[:, :3] *= pixel_scale
         with torch.no_grad():
             self.entries = net.entries(raw[:, 0:3], raw[:, 3:6], raw[:, 6:9], raw[:, 9:12])
-        self.offsets = table.offsets[torch.as_tensor(seeds)]
-        self.lengths = table.lengths[torch.as_tensor(seeds)]
+        self.starts, self.lengths = table.offsets[at], table.lengths[at]
 
     def batch(self, k: np.ndarray) -> tuple[Tensor, Tensor]:
         """Entries and CSR offsets of the seeds at positions ``k``."""
-        lengths = self.lengths[k]
-        offsets = torch.zeros(len(k) + 1, dtype=torch.int64)
-        offsets[1:] = torch.cumsum(lengths, 0)
-        first = torch.repeat_interleave(self.offsets[k] - offsets[:-1], lengths)
-        return self.entries[first + torch.arange(int(offsets[-1]))], offsets
+        rows, offsets = concatenated_rows(self.starts[k], self.lengths[k])
+        return self.entries[rows], offsets
 
 
 def distilled_network(

@@ -93,7 +93,11 @@ class DistilTuning:
         "(and the teacher's tangents within 3.5 deg, not 5.7)",
         on="the demo (tuning), true poses, 256^2 (docs/distillation.md)",
     )
-    max_steps: int = budget(800, "fine-tuning steps at most: ~0.11 s each on 2 cores (batch 64, compact network)")
+    max_steps: int = budget(
+        800,
+        "fine-tuning steps at most: ~0.035 s each on 2 cores alone (batch 64, the compact network; 0.065-0.07 s "
+        "inside a 256^2 demo run, not explained)",
+    )
     check_every: int = budget(50, "steps between evaluations of the held-out loss")
     patience: int = derived(
         3, "evaluations without a lower held-out loss before the fine-tuning stops (the best weights kept)"

@@ -62,7 +62,7 @@ from ..scanner.device_file import scanner_to_dict
 from ..scanner.local_frame import local_origin, moved, pose_to_local, pose_to_world
 from ..scanner.scan_folder import Scan, check_mesh_size, read_photo
 from . import traces as trace_assembly
-from .distil import DistilReport, distilled_network, seed_texels
+from .distil import distilled_network, seed_texels
 from .fit_traces import fit_blocks
 from .photo_selection import Selection, select_photos
 from .report import PhotoCounts, RefineSummary, Report, TexelCounts, TraceCounts
@@ -435,7 +435,8 @@ def _reconstruct(
     # the distilled path fits the shipped network's answers on its seeds alone: they are the teacher's start,
     # and the fine-tuned network answers every texel after
     seeds = seed_texels(traces.in_range_lengths().numpy() > 0, TUNING.distil.seeds) if distil else None
-    fitted_traces = traces if seeds is None else traces.only(torch.as_tensor(seeds))
+    seed_traces = None if seeds is None else traces.only(torch.as_tensor(seeds))  # the fit's and the teacher's
+    fitted_traces = traces if seed_traces is None else seed_traces
 
     def fit_stage(d: Path) -> None:
         with pool as p:
@@ -481,8 +482,7 @@ def _reconstruct(
                 "min_clear_entries": REFINE_TUNING.inputs.min_clear_entries,
                 "code": _stage_code("refine"),
                 "calibration_texels": REFINE_TUNING.inputs.calibration_texels,
-                "seeds": TUNING.distil.seeds if name == "teacher" else None,
-            }
+            }  # a table of the seeds alone: the start's key holds their count
             folder, h = cache.get(name, key, stage)
             return TexelFit.load(folder / "refined.npz"), h
 
@@ -491,8 +491,8 @@ def _reconstruct(
             report.refine = refine_summary(fitted)
             report.timed("refine", t0)
         else:
-            assert seeds is not None
-            teacher, h_teacher = refined(traces.only(torch.as_tensor(seeds)), fitted, h_fit, REFINE, "teacher")
+            assert seeds is not None and seed_traces is not None
+            teacher, h_teacher = refined(seed_traces, fitted, h_fit, REFINE, "teacher")
             report.timed("teacher", t0)
             distilled, h_distil = _distil_stage(
                 scan, cache, traces, teacher, seeds, h_teacher, net, model_key, fit_key, scale, pool, progress, report
@@ -565,8 +565,7 @@ def _distil_stage(
     fitted = TexelFit.load(folder / "fit.npz")
     for name in ("n_loc", "t_loc", "alpha", "flags", "rho_d", "rho_s"):  # the seeds: their own refinement
         getattr(fitted, name)[seeds] = getattr(teacher, name)[seeds]
-    info = json.loads((folder / "distil.json").read_text())
-    report.distil = {k: info[k] for k in DistilReport.__dataclass_fields__} | {"seconds_fit": info["seconds_fit"]}
+    report.distil = json.loads((folder / "distil.json").read_text())  # DistilReport's fields and seconds_fit
     report.timed("distil", t0)
     return fitted, h_distil
 

@@ -3,6 +3,7 @@ import pytest
 import torch
 
 from ntp_engine.learn.inference import RaggedTraces
+from ntp_engine.learn.ragged import concatenated_rows
 
 
 def test_bad_ragged_input():
@@ -144,3 +145,10 @@ def test_only_keeps_the_chosen_traces_entries_and_columns_in_place():
     assert sub.entries[:, 0].tolist() == [2, 3, 4, 9]
     assert sub.in_range.tolist() == [True, True, False, False] and sub.shadow.tolist() == [6, 9, 12, 27]
     assert tr.only(torch.tensor([], dtype=torch.int64)).lengths.sum() == 0
+
+
+def test_concatenated_rows_are_each_traces_rows_in_the_given_order():
+    rows, offsets = concatenated_rows(torch.tensor([5, 0, 9]), torch.tensor([3, 2, 0]))
+    assert rows.tolist() == [5, 6, 7, 0, 1] and offsets.tolist() == [0, 3, 5, 5]
+    rows, offsets = concatenated_rows(torch.zeros(0, dtype=torch.int64), torch.zeros(0, dtype=torch.int64))
+    assert rows.tolist() == [] and offsets.tolist() == [0]
