@@ -33,6 +33,7 @@ from ..io.errors import NtpInputError
 from ..io.output_folder import claim
 from ..io.progress import QUIET, Progress, add_progress_arguments, progress_from_args
 from ..io.stage_cache import content_digest, digest
+from ..pipeline.settings import PATHS
 from ..pipeline.stages import reconstruct, register_photos
 from ..scanner.scan_folder import load_poses, load_scan
 from ..sim.cycles_scan import RENDER_VERSION, CyclesConfig, at_least_samples, cycles_scan
@@ -50,9 +51,6 @@ from ..sim.virtual_scan import ScanConfig, scan_folder_is_current, true_mesh_pat
 from . import finite_mean, number, print_table, tune_validate
 
 SCANNERS = ("engine", "cycles")
-# reconstruction paths: network + fit alone, the scan's own network (``reconstruct(distil=True)``),
-# every texel refined (``reconstruct(refine=True)``)
-PATHS = ("fast", "distil", "refine")
 # a set's default scanner: the engine's. Cycles costs 4-6 min an object at 40 photos (the gallery's
 # Cycles half: 20 min for 5 objects; dome and two validation objects: 17 min), over an hour more for
 # the validation set's 12: ``--scanners`` adds it

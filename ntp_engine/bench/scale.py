@@ -1,6 +1,8 @@
 """``ntp bench scale``: time and peak memory of every stage of ``ntp reconstruct`` as scans grow —
 photos (60 / 300 / 1000) x maps (256² / 1024²) — on virtual scans of the demo asset with their true
-poses (SfM at scale is ``ntp bench sfm``'s).
+poses (SfM at scale is ``ntp bench sfm``'s) — by each reconstruction path asked for (``--paths``:
+network + fit, the scan's own network, every texel refined), with the maps' errors against the
+truth beside the seconds: run time against error as photos and maps grow.
 
 Each reconstruct runs as users run it, ``ntp reconstruct`` in a child process; its memory is read
 from ``/proc`` every ``SAMPLE_S`` (``RssAnon``: the process's own memory; memory-mapped trace files
@@ -20,10 +22,13 @@ import sys
 import time
 from pathlib import Path
 
+from ..io.errors import NtpInputError
 from ..io.output_folder import claim
 from ..pipeline.report import Report
-from ..sim.virtual_scan import ScanConfig, virtual_scan
-from . import dump_json, print_table
+from ..pipeline.settings import PATHS
+from ..sim.evaluate import map_errors, relit_ssim
+from ..sim.virtual_scan import ScanConfig, true_mesh_path, virtual_scan
+from . import dump_json, number, print_table
 
 PHOTOS = (60, 300, 1000)
 RESOLUTIONS = (256, 1024)
@@ -31,7 +36,12 @@ RESOLUTIONS = (256, 1024)
 # photos are read do not depend on the photos' pixel count, only the scan's disk size does
 CAMERA_SCALE = 0.1
 SAMPLE_S = 0.1
-STAGES = ("select", "atlas", "traces", "fit", "maps")
+# "refine": everything after the network + fit that estimates materials (the distilled path's teacher,
+# fine-tuning and polish; the refinement)
+STAGES = ("select", "atlas", "traces", "fit", "refine", "maps")
+_REFINE_STAGES = ("teacher", "distil", "polish", "refine")
+# the refinement's counters (refine.passes, refine.material_pass) and the fine-tuning's (pipeline.distil)
+_REFINING = ("refine", "albedo edges", "materials", "material lobes", "albedo map", "distil")
 # progress counter -> the stage it runs in, and the stage that follows it when it closes
 _RUNNING = {
     "blur check": "select",
@@ -40,6 +50,7 @@ _RUNNING = {
     "traces": "traces",
     "trace table": "traces",
     "network + fit": "fit",
+    **dict.fromkeys(_REFINING, "refine"),
 }
 _AFTER = {
     "blur check": "atlas",
@@ -48,6 +59,7 @@ _AFTER = {
     "traces": "traces",
     "trace table": "fit",
     "network + fit": "maps",
+    **dict.fromkeys(_REFINING, "refine"),  # the next counter says when it ends
 }
 MEMORY_GOAL_GB = 12.0  # the scale issue's goal at 1000 photos x 1024²
 
@@ -60,22 +72,29 @@ def run(
     threads: int = 0,
     json_path: Path | None = None,
     plot: Path | None = None,
+    paths: tuple[str, ...] = ("fast",),
 ) -> dict:
-    """Every (photos, resolution) cell: stage seconds and peak memory; a table, JSON, a plot."""
-    rows = []
+    """Every (photos, resolution, path) cell: stage seconds, peak memory and the maps' errors; a
+    table, JSON, a plot."""
+    if not paths or not set(paths) <= set(PATHS):
+        raise NtpInputError(None, f"paths from {', '.join(PATHS)}")
+    rows: list[dict] = []
+    record = {"camera_scale": camera_scale, "threads": threads, "cells": rows}
     with claim(out, "gallery"):
         for n in photos:
             scan = _scan(out / "scans" / f"p{n}", n, camera_scale)
-            for res in resolutions:
-                result = out / "results" / f"p{n}_r{res}"
+            for res, path in ((r, q) for r in resolutions for q in paths):
+                suffix = "" if path == "fast" else f"_{path}"
+                result = out / "results" / f"p{n}_r{res}{suffix}"
                 shutil.rmtree(result, ignore_errors=True)  # the bench's own folder: time from scratch
-                rows.append({"photos": n, "resolution": res, **_measure(scan, result, res, threads)})
+                cell = _measure(scan, result, res, threads, path)
+                rows.append({"photos": n, "resolution": res, "path": path, **cell})
                 _print_row(rows[-1])
-                dump_json(json_path, {"camera_scale": camera_scale, "threads": threads, "cells": rows})  # so far
+                dump_json(json_path, record)  # so far
     _table(rows)
     if plot is not None:
         _plot(rows, plot)
-    return {"camera_scale": camera_scale, "threads": threads, "cells": rows}
+    return record
 
 
 def _scan(folder: Path, views: int, camera_scale: float) -> Path:
@@ -91,8 +110,10 @@ def _scan(folder: Path, views: int, camera_scale: float) -> Path:
     return folder
 
 
-def _measure(scan: Path, result: Path, resolution: int, threads: int) -> dict:
-    """One ``ntp reconstruct`` in a child process, sampled: seconds and peak memory per stage."""
+def _measure(scan: Path, result: Path, resolution: int, threads: int, path: str = "fast") -> dict:
+    """One ``ntp reconstruct`` by ``path`` in a child process, sampled: seconds and peak memory per
+    stage; then the maps' errors against the scan's truth (``sim.evaluate``: normal, diffuse RMSE,
+    relit SSIM), after the child has finished."""
     result.parent.mkdir(parents=True, exist_ok=True)
     progress = result.parent / f"{result.name}.progress.jsonl"
     progress.unlink(missing_ok=True)
@@ -113,6 +134,7 @@ def _measure(scan: Path, result: Path, resolution: int, threads: int) -> dict:
         "--quiet",
         "--progress",
         str(progress),
+        *({"fast": [], "distil": ["--distil"], "refine": ["--refine"]}[path]),
     ]
     peak = dict.fromkeys(STAGES, 0.0)
     high_water = 0.0
@@ -136,9 +158,12 @@ def _measure(scan: Path, result: Path, resolution: int, threads: int) -> dict:
         "atlas": st["atlas"],
         "traces": st["traces"],
         "fit": st["network_and_fit"],
+        "refine": sum(st.get(k, 0.0) for k in _REFINE_STAGES),
         "maps": st["maps"],
     }
     observed = report.texels.observed
+    truth = scan / "ground_truth"
+    errors = map_errors(result, truth)
     return {
         "texels_observed": observed,
         "entries": report.traces.entries,
@@ -147,6 +172,11 @@ def _measure(scan: Path, result: Path, resolution: int, threads: int) -> dict:
         "seconds": seconds,
         "wall_s": round(wall, 1),
         "fit_texels_per_s": round(observed / max(seconds["fit"], 1e-9)),
+        # material estimation: the network + fit and what refines after it
+        "material_texels_per_s": round(observed / max(seconds["fit"] + seconds["refine"], 1e-9)),
+        "normal_median_deg": errors["normal_median_deg"],
+        "diffuse_rmse": errors["diffuse_rmse"],
+        "relit_ssim": relit_ssim(result, true_mesh_path(scan), truth)["relit_ssim"],
         "peak_anon_gb": {k: round(v / 2**20, 3) for k, v in peak.items()},
         "high_water_gb": round(high_water / 2**20, 3),
     }
@@ -183,8 +213,9 @@ def _stage(progress: Path) -> str:
 def _print_row(r: dict) -> None:
     s = r["seconds"]
     print(
-        f"{r['photos']} photos, {r['resolution']}²: {r['wall_s']:.0f} s "
-        f"(traces {s['traces']:.0f}, fit {s['fit']:.0f}), "
+        f"{r['photos']} photos, {r['resolution']}², {r['path']}: {r['wall_s']:.0f} s "
+        f"(traces {s['traces']:.0f}, fit {s['fit']:.0f}, refine {s['refine']:.0f}; "
+        f"materials {r['material_texels_per_s']} texels/s), relit SSIM {r['relit_ssim']:.3f}, "
         f"peak {r['high_water_gb']:.2f} GB, table {r['table_gb']:.2f} GB",
         flush=True,
     )
@@ -196,12 +227,15 @@ def _table(rows: list[dict]) -> None:
             (
                 r["photos"],
                 f"{r['resolution']}²",
+                r.get("path", "fast"),
                 f"{r['entries'] / 1e6:.1f} M",
                 f"{r['table_gb']:.2f}",
-                *(f"{r['seconds'][k]:.1f}" for k in STAGES),
+                *(f"{r['seconds'].get(k, 0.0):.1f}" for k in STAGES),
                 f"{r['wall_s']:.0f}",
                 r["fit_texels_per_s"],
-                *(f"{r['peak_anon_gb'][k]:.2f}" for k in ("traces", "fit")),
+                r.get("material_texels_per_s", r["fit_texels_per_s"]),
+                *(number(r.get(k)) for k in ("normal_median_deg", "diffuse_rmse", "relit_ssim")),
+                *(f"{r['peak_anon_gb'].get(k, 0.0):.2f}" for k in ("traces", "fit", "refine")),
                 f"{r['high_water_gb']:.2f}",
             )
             for r in rows
@@ -209,13 +243,19 @@ def _table(rows: list[dict]) -> None:
         (
             "photos",
             "maps",
+            "path",
             "entries",
             "table GB",
             *(f"{k} s" for k in STAGES),
             "wall s",
             "fit texels/s",
+            "materials texels/s",
+            "normal °",
+            "ρd RMSE",
+            "relit SSIM",
             "traces GB",
             "fit GB",
+            "refine GB",
             "peak GB",
         ),
     )
@@ -228,11 +268,11 @@ def _plot(rows: list[dict], path: Path) -> None:
     import matplotlib.pyplot as plt
 
     fig, (a, b) = plt.subplots(1, 2, figsize=(12, 4))
-    labels = [f"{r['photos']} photos\n{r['resolution']}²" for r in rows]
+    labels = [f"{r['photos']} photos\n{r['resolution']}²\n{r.get('path', 'fast')}" for r in rows]
     x = range(len(rows))
     bottom = [0.0] * len(rows)
     for k in STAGES:
-        v = [r["seconds"][k] / 60 for r in rows]
+        v = [r["seconds"].get(k, 0.0) / 60 for r in rows]
         a.bar(x, v, bottom=bottom, label=k)
         bottom = [p + q for p, q in zip(bottom, v)]
     a.set_xticks(list(x), labels, fontsize=8)
@@ -241,7 +281,7 @@ def _plot(rows: list[dict], path: Path) -> None:
     a.legend(fontsize=8)
     width = 0.8 / len(STAGES)
     for j, k in enumerate(STAGES):
-        b.bar([i + (j - 2) * width for i in x], [r["peak_anon_gb"][k] for r in rows], width, label=k)
+        b.bar([i + (j - 2.5) * width for i in x], [r["peak_anon_gb"].get(k, 0.0) for r in rows], width, label=k)
     b.plot(list(x), [r["high_water_gb"] for r in rows], "k_", markersize=20, label="whole run (VmHWM)")
     b.axhline(MEMORY_GOAL_GB, color="r", ls="--", lw=1, label=f"goal {MEMORY_GOAL_GB:.0f} GB")
     b.set_xticks(list(x), labels, fontsize=8)
@@ -255,7 +295,7 @@ def _plot(rows: list[dict], path: Path) -> None:
     print(f"wrote {path}")
 
 
-HELP = "time and peak memory per stage: photos x map resolution (true poses)"
+HELP = "time, peak memory and error per stage: photos x map resolution x path (true poses)"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -265,6 +305,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--resolutions", type=int, nargs="+", default=list(RESOLUTIONS))
     parser.add_argument("--scale", type=float, default=CAMERA_SCALE, help="virtual camera resolution scale")
     parser.add_argument("--threads", type=int, default=0, help="CPU threads of each reconstruct (0: every core)")
+    parser.add_argument(
+        "--paths",
+        nargs="+",
+        choices=PATHS,
+        default=["fast"],
+        help="reconstruct each cell by these paths (fast: network + fit; distil: the scan's own network; "
+        "refine: every texel refined), each timed and measured against the truth",
+    )
     parser.add_argument("--plot", type=Path, default=None, help="PNG: seconds and memory (default OUT/bench_scale.png)")
     parser.add_argument("--json", type=Path, default=None)
 
@@ -279,5 +327,6 @@ def command(args: argparse.Namespace) -> int:
         threads=args.threads,
         json_path=args.json,
         plot=args.plot if args.plot is not None else args.out / "bench_scale.png",
+        paths=tuple(args.paths),
     )
     return 0

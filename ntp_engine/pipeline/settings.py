@@ -133,3 +133,7 @@ class PipelineTuning:
 
 
 TUNING = PipelineTuning()
+
+# the reconstruction paths: network + fit alone, the scan's own network (``reconstruct(distil=True)``,
+# ``--distil``), every texel refined (``reconstruct(refine=True)``, ``--refine``)
+PATHS = ("fast", "distil", "refine")

@@ -25,6 +25,23 @@ def test_bounded_ls2_matches_scipy():
         assert cost([float(u), float(v)]) <= cost(ref) + 1e-9
 
 
+def test_bounded_ls2_batches_broadcast_and_an_empty_or_nan_problem_gives_zero():
+    rng = np.random.default_rng(1)
+    a, b = torch.tensor(rng.random((4, 3, 6))), torch.tensor(rng.random((4, 3, 6)))
+    y = 0.4 * a + 2.0 * b
+    u, v = bounded_ls2(a, b, y, torch.ones(6, dtype=torch.float64), 1.0, 10.0)  # w broadcast
+    assert u.shape == v.shape == (4, 3) and u.dtype == torch.float64
+    assert torch.allclose(u, torch.full_like(u, 0.4)) and torch.allclose(v, torch.full_like(v, 2.0))
+    w = torch.ones(4, 3, 6, dtype=torch.float64)
+    w[0] = 0.0  # no data
+    y = y.clone()
+    y[1, 0, 2] = float("nan")
+    u, v = bounded_ls2(a.float(), b.float(), y.float(), w.float(), 1.0, 10.0)
+    assert u.dtype == torch.float32
+    assert (u[0] == 0).all() and (v[0] == 0).all() and u[1, 0] == 0 and v[1, 0] == 0
+    assert torch.isfinite(u).all() and torch.allclose(u[2:], torch.full_like(u[2:], 0.4))
+
+
 def test_albedo_fit_recovers_rgb_from_the_trace():
     dev = load_scanner()
     cfg = SyntheticConfig(views_min=24, views_max=24, albedo_jitter=0.0, roughness_jitter=0.0)
