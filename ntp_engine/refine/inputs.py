@@ -74,13 +74,7 @@ def refine_inputs(
     grazing ones its relit SSIM (docs/history/accuracy.md). With ``support`` (and ``texels``, the atlas of
     the traces), the support's light on them; with ``texels``, the normals each entry's pixel sample
     spans where the surface turns (``refine.footprint``)."""
-    groups = shadow_groups(scanner)
-    rows, mask = traces.padded_rows(idx)  # every entry of each trace
-    marginal_entry = mask & (shadowed(groups, traces.shadow_at(rows, mask)) | grazing(traces.entries_at(rows, mask)))
-    clear = mask & ~marginal_entry
-    few = clear.sum(1) < TUNING.inputs.min_clear_entries
-    marginal = few & marginal_entry.any(1)
-    rows, mask = spread_rows(rows, torch.where(few[:, None], mask, clear), TUNING.inputs.refine_views)
+    rows, mask, marginal = _chosen_rows(scanner, traces, idx)
     i = idx.numpy()
     specular = torch.as_tensor(fit.flags[i] & TexelFlag.NO_HIGHLIGHT == 0)
     start = Start.from_fit(fit, i)
@@ -98,6 +92,44 @@ def refine_inputs(
     blend = traces.albedo_blend_at(rows, mask)
     footprint = None if spread is None and blend is None else Footprint(spread, blend)
     return RefineInputs(Observations(scanner, entries, mask, shadow, view, footprint), start, specular, marginal)
+
+
+def _chosen_rows(scanner: Scanner, traces: RaggedTraces, idx: torch.Tensor) -> tuple[torch.Tensor, ...]:
+    """The table rows ``(n, V)`` of the entries the refinement reads of the traces ``idx``
+    (``refine_inputs``), their mask, and which texels read a marginal one ``(n,)``."""
+    groups = shadow_groups(scanner)
+    rows, mask = traces.padded_rows(idx)  # every entry of each trace
+    marginal_entry = mask & (shadowed(groups, traces.shadow_at(rows, mask)) | grazing(traces.entries_at(rows, mask)))
+    clear = mask & ~marginal_entry
+    few = clear.sum(1) < TUNING.inputs.min_clear_entries
+    rows, mask = spread_rows(rows, torch.where(few[:, None], mask, clear), TUNING.inputs.refine_views)
+    read_marginal = (marginal_entry.gather(1, (rows - traces.offsets[idx][:, None]).clamp_min(0)) & mask).any(1)
+    return rows, mask, few & read_marginal
+
+
+def read_traces(scanner: Scanner, traces: RaggedTraces) -> RaggedTraces:
+    """The entries the refinement reads of every trace (``refine_inputs``' choice: at most
+    ``TUNING.inputs.refine_views``, spread evenly, clear ones first) as a table of their own, every
+    column carried; ``refine_inputs`` on it reads the same entries. Chosen once, in blocks of
+    ~``TUNING.inputs.blend_entries`` entries: every later pass reads ~``refine_views`` entries a
+    texel, not the whole trace (~400 at 1,000 photos)."""
+    parts: list[torch.Tensor] = []
+    for start, stop in spans(traces.offsets.numpy(), TUNING.inputs.blend_entries):
+        rows, mask, _ = _chosen_rows(scanner, traces, torch.arange(start, stop))
+        parts.append(rows[mask])  # trace by trace, in trace order
+    rows = torch.cat(parts) if parts else torch.zeros(0, dtype=torch.int64)
+    # each chosen row's trace: the table's rows are grouped by trace, so its count per trace
+    trace = torch.searchsorted(traces.offsets, rows, right=True) - 1
+    lengths = torch.bincount(trace, minlength=traces.num_traces)
+    offsets = torch.zeros(traces.num_traces + 1, dtype=torch.int64)
+    offsets[1:] = torch.cumsum(lengths, 0)
+
+    def column(c: torch.Tensor | None) -> torch.Tensor | None:
+        return None if c is None else c[rows]
+
+    return RaggedTraces(
+        traces.entries[rows], offsets, column(traces.in_range), column(traces.shadow), column(traces.albedo_blend)
+    )
 
 
 def with_albedo_blend(scanner: Scanner, traces: RaggedTraces, rho_d: np.ndarray, texels: Texels) -> RaggedTraces:

@@ -23,7 +23,7 @@ from ..learn.ragged import RaggedTraces
 from ..scanner.scanner import Scanner
 from .albedo_map import sharpened_albedos, tap_texels
 from .footprint import sample_points
-from .inputs import refine_inputs, store_refined, with_albedo_blend
+from .inputs import read_traces, refine_inputs, store_refined, with_albedo_blend
 from .material_pass import material_pass
 from .model import Start, predicted_light
 from .normal_field import fused_normals
@@ -77,6 +77,7 @@ def _refine_fit(
     support: SupportScene | None,
 ) -> TexelFit:
     fit = fit.copy()
+    traces = read_traces(scanner, traces)  # every pass reads these entries alone, not whole traces
     todo = (traces.lengths > 0).nonzero().squeeze(1)
     settings = settings or RefineSettings()
     support = _lit_by_itself(support, texels, fit, todo)  # from the network's albedos

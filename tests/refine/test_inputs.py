@@ -8,19 +8,14 @@ from ntp_engine.refine import inputs as inputs_module
 from ntp_engine.scanner.device_file import load_scanner
 
 
-def test_refine_inputs_read_marginal_entries_only_where_too_few_others_are_left():
-    """A texel with at least ``TUNING.inputs.min_clear_entries`` clear entries — neither shadowed by its mesh
-    (over ``MAX_SHADOWED_DRIVE`` of the drive hidden) nor grazing (wo . n^ <= ``MIN_COS_VIEW``) —
-    is refined on those alone; one with fewer reads its marginal entries too, with their masks,
-    and is flagged ``marginal``."""
+def _traces_of(kinds: list[str]):
+    """The scanner, a table of traces whose entries are of ``kinds`` (per trace, per entry: c clear,
+    s shadowed — half the emitter groups hidden — g grazing; entry k's pixel red = k), the shadow
+    masks per trace, and a start for each."""
     from ntp_engine.physics.emitter_blocks import shadow_groups
-    from ntp_engine.refine.inputs import refine_inputs
-    from ntp_engine.refine.settings import TUNING
 
     dev = load_scanner()
     half = (1 << (len(shadow_groups(dev).points) // 2)) - 1  # half the groups hidden: shadowed
-    # kinds of each trace's entries (c clear, s shadowed, g grazing): plenty clear, too few, none, no entries
-    kinds = ["csg" * 13 + "c", "c" * (TUNING.inputs.min_clear_entries - 1) + "sg" * 15, "sgsgs", ""]
     table = [torch.tensor([half if k == "s" else 0 for k in t], dtype=torch.int64) for t in kinds]
     shadow = torch.cat(table)
     lengths = [len(t) for t in kinds]
@@ -35,7 +30,22 @@ def test_refine_inputs_read_marginal_entries_only_where_too_few_others_are_left(
     N = len(kinds)
     fit = {"n_loc": np.tile([0, 0, 1.0], (N, 1)), "t_loc": np.tile([1.0, 0, 0], (N, 1)), "alpha": np.full((N, 2), 0.1)}
     fit |= {"rho_d": np.full((N, 3), 0.5), "rho_s": np.zeros((N, 3)), "flags": np.zeros(N, np.int64)}
-    fit = TexelFit.from_arrays(fit)
+    return dev, traces, table, TexelFit.from_arrays(fit)
+
+
+def test_refine_inputs_read_marginal_entries_only_where_too_few_others_are_left():
+    """A texel with at least ``TUNING.inputs.min_clear_entries`` clear entries — neither shadowed by its mesh
+    (over ``MAX_SHADOWED_DRIVE`` of the drive hidden) nor grazing (wo . n^ <= ``MIN_COS_VIEW``) —
+    is refined on those alone; one with fewer reads its marginal entries too, with their masks,
+    and is flagged ``marginal``."""
+    from ntp_engine.refine.inputs import refine_inputs
+    from ntp_engine.refine.settings import TUNING
+
+    # kinds of each trace's entries (c clear, s shadowed, g grazing): plenty clear, too few, none, no entries
+    kinds = ["csg" * 13 + "c", "c" * (TUNING.inputs.min_clear_entries - 1) + "sg" * 15, "sgsgs", ""]
+    lengths = [len(t) for t in kinds]
+    dev, traces, table, fit = _traces_of(kinds)
+    N = len(kinds)
     inp = refine_inputs(dev, traces, torch.arange(N), fit)
     ent, mask, masks, marginal = inp.obs.entries, inp.obs.mask, inp.obs.shadow, inp.marginal
     assert inp.obs.support is None  # none asked for
@@ -48,6 +58,33 @@ def test_refine_inputs_read_marginal_entries_only_where_too_few_others_are_left(
         assert len(got) == min(len(usable), TUNING.inputs.refine_views) and set(got.tolist()) <= usable
         assert torch.equal(masks[i, mask[i]], table[i][got])
     assert not few[0] and few[1] and mask[2].sum() == 5  # both cases are there
+
+
+def test_the_read_table_holds_what_the_refinement_reads_and_reading_it_again_reads_the_same(monkeypatch):
+    """``read_traces``: per trace at most ``refine_views`` entries, those ``refine_inputs`` picks from
+    the whole trace, every column carried; ``refine_inputs`` on it reads the same entries, masks
+    and marginal flags — chosen in blocks smaller than a trace too."""
+    from ntp_engine.refine.inputs import read_traces, refine_inputs
+    from ntp_engine.refine.settings import TUNING
+
+    few = TUNING.inputs.min_clear_entries - 1
+    kinds = ["c" * 70, "csg" * 13 + "c", "c" * few + "sg" * 15, "sgsgs", "", "gc" * 3 + "s" * 30, "c" * 3]
+    dev, traces, table, fit = _traces_of(kinds)
+    traces.albedo_blend = torch.rand(len(traces.entries), 3)
+    N = len(kinds)
+    whole = refine_inputs(dev, traces, torch.arange(N), fit)
+    monkeypatch.setattr(inputs_module, "TUNING", retuned(TUNING, "inputs", blend_entries=40))
+    read = read_traces(dev, traces)
+    assert (read.lengths <= TUNING.inputs.refine_views).all() and int(read.lengths[4]) == 0
+    assert torch.equal(read.lengths, whole.obs.mask.sum(1))
+    again = refine_inputs(dev, read, torch.arange(N), fit)
+    assert torch.equal(again.marginal, whole.marginal)
+    for a, b in ((again.obs.mask, whole.obs.mask), (again.obs.shadow, whole.obs.shadow)):
+        assert torch.equal(a[:, : b.shape[1]], b) and not a[:, b.shape[1] :].any()
+    V = whole.obs.mask.shape[1]
+    assert torch.equal(again.obs.entries[:, :V], whole.obs.entries)
+    assert torch.equal(again.obs.footprint.albedo_blend[:, :V], whole.obs.footprint.albedo_blend)
+    assert torch.equal(read.in_range, (read.shadow == 0) & (read.entries[:, 8] < -0.5))  # carried row by row
 
 
 def _square():
