@@ -22,6 +22,8 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
+import shutil
 import time
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
@@ -224,9 +226,13 @@ def run(
                 t0 = time.perf_counter()
                 capture = scan_object(at, name, scanner, scan_dir, asset, progress)
                 t_scan = time.perf_counter() - t0
+                first: dict[str, Path] = {}  # per poses: the first path's result, whose shared stages the others take
                 for poses, path in ((p, q) for p in settings.poses for q in settings.path_list):
                     one = settings.on_path(path)
                     result_dir = result_folder(out, one, name, scanner, poses, count)
+                    if poses in first:
+                        share_stages(first[poses], result_dir)
+                    first.setdefault(poses, result_dir)
                     result = _evaluate(at.on_path(path), scan_dir, poses, result_dir, progress)
                     runs.append(
                         {
@@ -257,6 +263,24 @@ def run(
     _print(record)
     print(f"wrote {out / (stem + '.md')}, {out / (stem + '.json')}, {out / (stem + '.png')}")
     return record
+
+
+# the stages every path computes alike (their keys hold no path): a later path's result takes the
+# first one's by hard links (a stage folder is replaced whole, never written in place), so a scan's
+# traces are assembled once, not once a path (~45 s an object at 360 photos)
+SHARED_STAGES = ("select", "atlas", "traces")
+
+
+def share_stages(source: Path, result: Path) -> None:
+    """``result``'s stage cache given ``source``'s ``SHARED_STAGES`` (a result folder of the same
+    scan and poses) where it has none of its own; its keys still decide whether a stage is used."""
+    if not (source / "cache").is_dir():
+        return
+    with claim(result, "result"):
+        for stage in SHARED_STAGES:
+            src, dst = source / "cache" / stage, result / "cache" / stage
+            if src.is_dir() and not dst.exists():
+                shutil.copytree(src, dst, copy_function=os.link)
 
 
 def _suffix(settings: GallerySettings) -> str:

@@ -176,3 +176,20 @@ def test_accuracy_against_photo_count_per_set_and_kind(tmp_path):
     assert (tmp_path / "d.png").stat().st_size > 5_000
     with pytest.raises(NtpInputError, match="3 to 100000 photos"):
         gallery.run(tmp_path / "x", replace(TINY, density=(2,)))
+
+
+def test_each_path_reconstructs_into_its_own_results_from_the_first_ones_traces(tmp_path):
+    """``--paths fast refine``: one run per path, each into its own results; the refinement's run
+    takes the first path's select / atlas / traces stages (hard links, used because their keys
+    match) instead of assembling the traces again."""
+    settings = replace(TINY, poses=("true",), paths=("fast", "refine"))
+    r = gallery.run(tmp_path, settings)
+    assert [(x["path"], "refine" in x["stages"]) for x in r["runs"]] == [("fast", False), ("refine", True)]
+    fast = gallery.result_folder(tmp_path, settings.on_path("fast"), "box", "engine", "true", 5)
+    refined = gallery.result_folder(tmp_path, settings.on_path("refine"), "box", "engine", "true", 5)
+    assert fast != refined
+    report = json.loads((refined / "report.json").read_text())
+    assert set(gallery.SHARED_STAGES) <= set(report["cached_stages"])
+    table = refined / "cache" / "traces" / "entries.npy"
+    assert table.stat().st_ino == (fast / "cache" / "traces" / "entries.npy").stat().st_ino
+    assert "refine" not in json.loads((fast / "report.json").read_text())["stages"]
