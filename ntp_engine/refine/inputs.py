@@ -114,8 +114,13 @@ def read_traces(scanner: Scanner, traces: RaggedTraces) -> RaggedTraces:
     ~``TUNING.inputs.blend_entries`` entries: every later pass reads ~``refine_views`` entries a
     texel, not the whole trace (~400 at 1,000 photos)."""
     parts: list[torch.Tensor] = []
-    for start, stop in spans(traces.offsets.numpy(), TUNING.inputs.blend_entries):
-        rows, mask, _ = _chosen_rows(scanner, traces, torch.arange(start, stop))
+    # over the traces with entries alone, ~blend_entries at a time: a table of a sample (most traces
+    # empty, ``RaggedTraces.only``) would otherwise pad every trace of a block to its longest
+    seen = (traces.lengths > 0).nonzero().squeeze(1)
+    counted = np.zeros(len(seen) + 1, np.int64)
+    counted[1:] = np.cumsum(traces.lengths[seen].numpy())
+    for start, stop in spans(counted, TUNING.inputs.blend_entries):
+        rows, mask, _ = _chosen_rows(scanner, traces, seen[start:stop])
         parts.append(rows[mask])  # trace by trace, in trace order
     rows = torch.cat(parts) if parts else torch.zeros(0, dtype=torch.int64)
     # each chosen row's trace: the table's rows are grouped by trace, so its count per trace

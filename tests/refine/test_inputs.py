@@ -85,6 +85,15 @@ def test_the_read_table_holds_what_the_refinement_reads_and_reading_it_again_rea
     assert torch.equal(again.obs.entries[:, :V], whole.obs.entries)
     assert torch.equal(again.obs.footprint.albedo_blend[:, :V], whole.obs.footprint.albedo_blend)
     assert torch.equal(read.in_range, (read.shadow == 0) & (read.entries[:, 8] < -0.5))  # carried row by row
+    # a sample's table (most traces empty): the same entries, its blocks holding only traces with entries
+    sample = traces.only(torch.tensor([1, 5]))
+    padded = []
+    real = RaggedTraces.padded_rows
+    counted = lambda self, idx, *a: padded.append(len(idx)) or real(self, idx, *a)  # noqa: E731
+    monkeypatch.setattr(RaggedTraces, "padded_rows", counted)
+    part = read_traces(dev, sample)
+    assert max(padded) <= 2 and torch.equal(part.lengths[[1, 5]], read.lengths[[1, 5]])
+    assert torch.equal(part.entries, torch.cat([read.entries[read.offsets[i] : read.offsets[i + 1]] for i in (1, 5)]))
 
 
 def _square():
