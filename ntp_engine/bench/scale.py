@@ -227,15 +227,15 @@ def _table(rows: list[dict]) -> None:
             (
                 r["photos"],
                 f"{r['resolution']}²",
-                r.get("path", "fast"),
+                r["path"],
                 f"{r['entries'] / 1e6:.1f} M",
                 f"{r['table_gb']:.2f}",
-                *(f"{r['seconds'].get(k, 0.0):.1f}" for k in STAGES),
+                *(f"{r['seconds'][k]:.1f}" for k in STAGES),
                 f"{r['wall_s']:.0f}",
                 r["fit_texels_per_s"],
-                r.get("material_texels_per_s", r["fit_texels_per_s"]),
+                r["material_texels_per_s"],
                 *(number(r.get(k)) for k in ("normal_median_deg", "diffuse_rmse", "relit_ssim")),
-                *(f"{r['peak_anon_gb'].get(k, 0.0):.2f}" for k in ("traces", "fit", "refine")),
+                *(f"{r['peak_anon_gb'][k]:.2f}" for k in ("traces", "fit", "refine")),
                 f"{r['high_water_gb']:.2f}",
             )
             for r in rows
@@ -268,11 +268,11 @@ def _plot(rows: list[dict], path: Path) -> None:
     import matplotlib.pyplot as plt
 
     fig, (a, b) = plt.subplots(1, 2, figsize=(12, 4))
-    labels = [f"{r['photos']} photos\n{r['resolution']}²\n{r.get('path', 'fast')}" for r in rows]
+    labels = [f"{r['photos']} photos\n{r['resolution']}²\n{r['path']}" for r in rows]
     x = range(len(rows))
     bottom = [0.0] * len(rows)
     for k in STAGES:
-        v = [r["seconds"].get(k, 0.0) / 60 for r in rows]
+        v = [r["seconds"][k] / 60 for r in rows]
         a.bar(x, v, bottom=bottom, label=k)
         bottom = [p + q for p, q in zip(bottom, v)]
     a.set_xticks(list(x), labels, fontsize=8)
@@ -281,7 +281,8 @@ def _plot(rows: list[dict], path: Path) -> None:
     a.legend(fontsize=8)
     width = 0.8 / len(STAGES)
     for j, k in enumerate(STAGES):
-        b.bar([i + (j - 2.5) * width for i in x], [r["peak_anon_gb"].get(k, 0.0) for r in rows], width, label=k)
+        at = [i + (j - (len(STAGES) - 1) / 2) * width for i in x]  # the stages' bars centred on the cell
+        b.bar(at, [r["peak_anon_gb"][k] for r in rows], width, label=k)
     b.plot(list(x), [r["high_water_gb"] for r in rows], "k_", markersize=20, label="whole run (VmHWM)")
     b.axhline(MEMORY_GOAL_GB, color="r", ls="--", lw=1, label=f"goal {MEMORY_GOAL_GB:.0f} GB")
     b.set_xticks(list(x), labels, fontsize=8)

@@ -178,9 +178,14 @@ class RaggedTraces:
         texel i. Reads only those traces' rows (a memory-mapped table stays on disk)."""
         lengths = torch.zeros(self.num_traces, dtype=torch.int64)
         lengths[idx] = self.lengths[idx]
+        rows, _ = concatenated_rows(self.offsets[idx], lengths[idx])
+        return self.taking(rows, lengths)
+
+    def taking(self, rows: Tensor, lengths: Tensor) -> RaggedTraces:
+        """The same N traces holding only the entries at the table ``rows`` (grouped trace by trace,
+        in trace order), ``lengths (N,)`` of them each; every column carried."""
         offsets = torch.zeros_like(self.offsets)
         offsets[1:] = torch.cumsum(lengths, 0)
-        rows, _ = concatenated_rows(self.offsets[idx], lengths[idx])
 
         def column(c: Tensor | None) -> Tensor | None:
             return None if c is None else c[rows]

@@ -114,6 +114,7 @@ def read_traces(scanner: Scanner, traces: RaggedTraces) -> RaggedTraces:
     ~``TUNING.inputs.blend_entries`` entries: every later pass reads ~``refine_views`` entries a
     texel, not the whole trace (~400 at 1,000 photos)."""
     parts: list[torch.Tensor] = []
+    lengths = torch.zeros(traces.num_traces, dtype=torch.int64)
     # over the traces with entries alone, ~blend_entries at a time: a table of a sample (most traces
     # empty, ``RaggedTraces.only``) would otherwise pad every trace of a block to its longest
     seen = (traces.lengths > 0).nonzero().squeeze(1)
@@ -122,19 +123,8 @@ def read_traces(scanner: Scanner, traces: RaggedTraces) -> RaggedTraces:
     for start, stop in spans(counted, TUNING.inputs.blend_entries):
         rows, mask, _ = _chosen_rows(scanner, traces, seen[start:stop])
         parts.append(rows[mask])  # trace by trace, in trace order
-    rows = torch.cat(parts) if parts else torch.zeros(0, dtype=torch.int64)
-    # each chosen row's trace: the table's rows are grouped by trace, so its count per trace
-    trace = torch.searchsorted(traces.offsets, rows, right=True) - 1
-    lengths = torch.bincount(trace, minlength=traces.num_traces)
-    offsets = torch.zeros(traces.num_traces + 1, dtype=torch.int64)
-    offsets[1:] = torch.cumsum(lengths, 0)
-
-    def column(c: torch.Tensor | None) -> torch.Tensor | None:
-        return None if c is None else c[rows]
-
-    return RaggedTraces(
-        traces.entries[rows], offsets, column(traces.in_range), column(traces.shadow), column(traces.albedo_blend)
-    )
+        lengths[seen[start:stop]] = mask.sum(1)
+    return traces.taking(torch.cat(parts) if parts else torch.zeros(0, dtype=torch.int64), lengths)
 
 
 def with_albedo_blend(scanner: Scanner, traces: RaggedTraces, rho_d: np.ndarray, texels: Texels) -> RaggedTraces:
