@@ -30,10 +30,12 @@ from ..io.progress import QUIET, Progress, add_progress_arguments, progress_from
 from ..register.board_poses import BoardPoses, board_poses
 from ..register.check import register_to_mesh
 from ..register.colmap_model import model_files, read_colmap_model
+from ..register.photometric import PhotometricRegistration, edge_stride
 from ..register.refusal import named_rival, refusal, refusal_kind, symmetry_note
+from ..register.settings import TUNING
 from ..register.sfm import SfmResult, structure_from_motion
 from ..scanner.board import PAPERS
-from ..scanner.local_frame import pose_to_world
+from ..scanner.local_frame import pose_to_local, pose_to_world
 from ..scanner.scan_folder import load_poses, load_scan
 from ..sim.evaluate import pose_error_modulo
 from ..sim.gallery import build_asset, object_set
@@ -137,6 +139,7 @@ def run(
                         inlier_fraction=al.kept_points / max(al.object_points, 1),
                         azimuth_margin=al.azimuth_margin if np.isfinite(al.azimuth_margin) else None,
                         sharpness=check.sharpness if np.isfinite(check.sharpness) else None,
+                        texture_sharpness=check.texture_sharpness if np.isfinite(check.texture_sharpness) else None,
                         photometric_margin=check.margin if np.isfinite(check.margin) else None,
                         agreement=check.fit.agreement if np.isfinite(check.fit.agreement) else None,
                         placed_by="points" if check.cloud is not None else "photos",
@@ -155,6 +158,7 @@ def run(
                         height_from_photos=check.height_from_photos,
                         pixel_mm=check.pixel_mm,
                     )
+                    row.update(_at_truth(placed, truth, scan.support_plane, on_board=seed is None))
                     row["right"] = row["centre_mm"] <= RIGHT_MM and row["rotation_deg"] <= RIGHT_DEG
                     row["diagnosis"] = _diagnosis(row)
                     rows.append(row)
@@ -168,6 +172,27 @@ def run(
         write_text_atomic(json_path, json.dumps(record, indent=1, default=float))
     print(table)
     return record
+
+
+def _at_truth(placed, truth: dict[str, np.ndarray], support_plane: bool, on_board: bool) -> dict:
+    """The check's statistics of the scan at its true poses — what a right registration of it scores,
+    beside what the registration found — measured as the check's finisher measures them."""
+    mesh = placed.mesh
+    support_z = float(mesh.vertices[:, 2].min()) if support_plane else None
+    judge = PhotometricRegistration(
+        mesh,
+        placed.photos,
+        support_z,
+        points=TUNING.photometric.fine_points,
+        edge_stride=edge_stride(placed.photos),
+        free_scale=not on_board,
+    )
+    true = np.stack([pose_to_local(truth[n], placed.origin) for n in placed.judged])
+    sigma = TUNING.photometric.sharpness_sigma_px
+    return {
+        "truth_sharpness": judge.sharpness(true, sigma),
+        "truth_texture_sharpness": judge.texture_sharpness(true, sigma),
+    }
 
 
 NEAR_DEG = 5.0  # a candidate this close (rotation median) to the truth holds it: finer refinement finds it
@@ -204,7 +229,7 @@ def _table(rows: list[dict]) -> str:
         "inliers",
         "cloud margin",
         "refined mm / deg",
-        "sharpness",
+        "sharpness shading / texture",
         "photo margin",
         "mesh symmetry deg / mm (equivalent placements)",
         "right",
@@ -241,7 +266,7 @@ def _table(rows: list[dict]) -> str:
                 r["inliers"],
                 margin,
                 f"{r['centre_mm']:.2f} / {r['rotation_deg']:.2f}",
-                "-" if r["sharpness"] is None or not np.isfinite(r["sharpness"]) else f"{r['sharpness']:.2f}",
+                f"{_number(r['sharpness'])} / {_number(r.get('texture_sharpness'))}",
                 photo_margin,
                 _symmetry_cell(r),
                 "yes" if r["right"] else "NO",
@@ -256,6 +281,11 @@ def _table(rows: list[dict]) -> str:
     if len(sets) > 1:  # the tuning set's outcome and the validation set's, side by side
         lines += [_summary([r for r in rows if r.get("set", "tune") == s], f"{s}: ") for s in sets]
     return "\n".join(lines) + "\n"
+
+
+def _number(value: float | None) -> str:
+    """A statistic to two decimals, "-" where it was not measured."""
+    return "-" if value is None or not np.isfinite(value) else f"{value:.2f}"
 
 
 def _symmetry_cell(r: dict) -> str:

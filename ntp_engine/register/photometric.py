@@ -33,6 +33,7 @@ from scipy.ndimage import distance_transform_edt
 
 from ..io.mesh import Mesh
 from ..io.raycast import RayCaster
+from ..physics.frame import any_tangent
 from ..physics.shadows import MIN_COS_VIEW, SupportShadow
 from ..scanner import camera
 from .align import surface_samples
@@ -235,10 +236,11 @@ class PhotometricRegistration:
         R = poses[:, :3, :3]
         return self._camera_points(poses, params), (self.normals @ rotation_matrix(params[:3])) @ R.transpose(0, 2, 1)
 
-    def _camera_points(self, poses: np.ndarray, params: np.ndarray) -> np.ndarray:
-        """``_camera``'s points alone ``(V, N, 3)``."""
+    def _camera_points(self, poses: np.ndarray, params: np.ndarray, points: np.ndarray | None = None) -> np.ndarray:
+        """``_camera``'s points alone ``(V, N, 3)`` (``points (N, 3)``: others than the samples)."""
         Rw = rotation_matrix(params[:3])
-        local = (self.points - self.pivot - params[3:6] * self.size) @ Rw  # R_w^T (x - c0 - tau), rows
+        at = self.points if points is None else points
+        local = (at - self.pivot - params[3:6] * self.size) @ Rw  # R_w^T (x - c0 - tau), rows
         R, t = poses[:, :3, :3], poses[:, :3, 3]
         return local @ R.transpose(0, 2, 1) + (np.exp(params[6]) * (R @ self.pivot + t))[:, None, :]
 
@@ -482,6 +484,54 @@ class PhotometricRegistration:
         base = cost(np.zeros(7))
         moved = [cost(np.eye(7)[3 + axis] * sign * shift) for axis in range(3) for sign in (-1, 1)]
         return float(np.mean(moved) / max(base, 1e-12) - 1)
+
+    def texture_sharpness(self, poses: np.ndarray, sigma: float) -> float:
+        """``sharpness`` measured by the texture alone: the mean relative rise of ``texture_cost``
+        when ``poses`` move ``TUNING.photometric.sharpness_shift_px`` either way along each mesh axis
+        (observations held). Free of the shading model, so of the mesh's normals: a scanner's mesh
+        (normals ~11 deg off) leaves it as sharp as the photographed one (docs/pipeline.md)."""
+        seen = self._usable(poses, np.zeros(7), sigma, *self._observations(poses))
+        shift = TUNING.photometric.sharpness_shift_px * object_distance(poses, self.centre) / self.scanner.fx
+        base = self.texture_cost(poses, np.zeros(7), sigma, seen)
+        moved = [
+            self.texture_cost(poses, np.eye(7)[3 + axis] * sign * shift / self.size, sigma, seen)
+            for axis in range(3)
+            for sign in (-1, 1)
+        ]
+        return float(np.mean(moved) / max(base, 1e-12) - 1)
+
+    def texture_cost(self, poses: np.ndarray, params: np.ndarray, sigma: float, seen: np.ndarray) -> float:
+        """The photos' disagreement about the surface's texture under the correction ``params``: each
+        point ``seen (V, N)`` sampled with a small patch around it on its tangent plane
+        (``patch_samples``), each photo's mean over a patch taken out (the shading, exposure and
+        bounced light — all that Eq. 1's diffuse term and the shading fields model — are one gain over
+        a patch a pixel wide), then each sample's mean over the photos (the texture); the Cauchy cost
+        of what remains, averaged over the samples. inf where nothing is seen."""
+        V, N = seen.shape
+        pts = self.patch_samples(object_distance(poses, self.centre) / self.scanner.fx)
+        S = pts.shape[1]
+        x = self._camera_points(poses, params, pts.reshape(-1, 3))
+        px = camera.project(self.scanner, torch.as_tensor(x, dtype=WORK))
+        log_m = torch.log(self._sample(self.photos.blurred(sigma), px).clamp_min(1e-6)).reshape(V, N, S, 3)
+        ok = torch.as_tensor(seen)
+        ok = ok & (ok.sum(0) >= TUNING.photometric.min_views)[None]
+        gain_out = log_m - log_m.mean(2, keepdim=True)
+        gain_out = torch.where(ok[..., None, None], gain_out, 0.0)
+        texture = gain_out.sum(0) / ok.sum(0).clamp_min(1)[:, None, None]
+        e = torch.where(ok[..., None, None], gain_out - texture[None], 0.0)
+        count = int(ok.sum()) * S
+        cost = torch.log1p((e / TUNING.photometric.cauchy_log) ** 2).sum(dtype=torch.float64)
+        return float(cost) / count if count else float("inf")
+
+    def patch_samples(self, pixel_m: float) -> np.ndarray:
+        """Each surface point and ``TUNING.photometric.patch_offsets`` around it on its tangent plane,
+        ``TUNING.photometric.patch_radius_px`` pixels of ``pixel_m`` metres apart: ``(N, S, 3)`` metres,
+        mesh frame (the mesh's own normal lays the patch out: a normal 11 deg off moves a sample 2%
+        of the radius)."""
+        t1 = any_tangent(torch.as_tensor(self.normals)).numpy()
+        t2 = np.cross(self.normals, t1)
+        offsets = np.asarray(TUNING.photometric.patch_offsets, float) * TUNING.photometric.patch_radius_px * pixel_m
+        return self.points[:, None] + offsets[None, :, :1] * t1[:, None] + offsets[None, :, 1:] * t2[:, None]
 
     def _correction(self, params: np.ndarray) -> Correction:
         return Correction(params[:3].copy(), params[3:6] * self.size, float(params[6]), self.pivot.copy())

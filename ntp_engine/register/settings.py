@@ -89,6 +89,15 @@ class PhotometricTuning:
     edge_grid_width: int = budget(
         320, "the mesh's image (for edge distances) is cast on a grid at most about this wide"
     )
+    patch_radius_px: float = derived(
+        1.0,
+        "a texture patch's samples lie this far (working pixels) from its centre: one blur sigma at the sharpness's "
+        "blur (sharpness_sigma_px), far enough for the texture to differ, near enough for the shading not to",
+    )
+    patch_offsets: tuple[tuple[float, float], ...] = derived(
+        ((0.0, 0.0), (1.0, 0.0), (-1.0, 0.0), (0.0, 1.0), (0.0, -1.0)),
+        "a texture patch: its centre and four neighbours along the tangent plane's two axes (in patch radii)",
+    )
 
 
 @dataclass(frozen=True)
