@@ -27,8 +27,9 @@ from ..io.atomic import temp_dir, write_text_atomic
 from ..io.errors import NtpInputError
 from ..io.output_folder import claim
 from ..io.progress import QUIET, Progress, add_progress_arguments, progress_from_args
+from ..register.align import Alignment
 from ..register.board_poses import BoardPoses, board_poses
-from ..register.check import register_to_mesh
+from ..register.check import MeshRegistration, corrected, register_to_mesh
 from ..register.colmap_model import model_files, read_colmap_model
 from ..register.photometric import PhotometricRegistration, edge_stride
 from ..register.refusal import named_rival, refusal, refusal_kind, symmetry_note
@@ -158,7 +159,18 @@ def run(
                         height_from_photos=check.height_from_photos,
                         pixel_mm=check.pixel_mm,
                     )
-                    row.update(_at_truth(placed, truth, scan.support_plane, on_board=seed is None))
+                    # the texture's own answer (``refine_texture`` from the check's): a second cue,
+                    # free of the mesh's normals, and both cues' statistics at the true poses
+                    cues, by_texture = _texture_cues(placed, reg, truth, scan.support_plane, on_board=seed is None)
+                    tex = pose_error_modulo(world(by_texture), truth, centre, check.equivalent_turns)
+                    apart = pose_error_modulo(world(by_texture), world(check.alignment), centre, [])
+                    row.update(
+                        cues,
+                        texture_centre_mm=tex["centre_median_m"] * 1e3,
+                        texture_rotation_deg=tex["rotation_median_deg"],
+                        cues_apart_mm=apart["centre_median_m"] * 1e3,
+                        cues_apart_deg=apart["rotation_median_deg"],
+                    )
                     row["right"] = row["centre_mm"] <= RIGHT_MM and row["rotation_deg"] <= RIGHT_DEG
                     row["diagnosis"] = _diagnosis(row)
                     rows.append(row)
@@ -174,9 +186,16 @@ def run(
     return record
 
 
-def _at_truth(placed, truth: dict[str, np.ndarray], support_plane: bool, on_board: bool) -> dict:
-    """The check's statistics of the scan at its true poses — what a right registration of it scores,
-    beside what the registration found — measured as the check's finisher measures them."""
+def _texture_cues(
+    placed: MeshRegistration,
+    reg: SfmResult | BoardPoses,
+    truth: dict[str, np.ndarray],
+    support_plane: bool,
+    on_board: bool,
+) -> tuple[dict, Alignment]:
+    """The check's answer refined by the texture alone (``PhotometricRegistration.refine_texture``,
+    the finisher's blur levels) and both sharpnesses at the true poses — what a right registration
+    of the scan scores —, measured as the check's finisher measures them."""
     mesh = placed.mesh
     support_z = float(mesh.vertices[:, 2].min()) if support_plane else None
     judge = PhotometricRegistration(
@@ -187,12 +206,15 @@ def _at_truth(placed, truth: dict[str, np.ndarray], support_plane: bool, on_boar
         edge_stride=edge_stride(placed.photos),
         free_scale=not on_board,
     )
+    answer = np.stack([placed.check.alignment.camera_from_mesh(reg.poses[n]) for n in placed.judged])
+    g, _ = judge.refine_texture(answer, TUNING.photometric.blur_levels_px[1:])
     true = np.stack([pose_to_local(truth[n], placed.origin) for n in placed.judged])
     sigma = TUNING.photometric.sharpness_sigma_px
-    return {
+    stats = {
         "truth_sharpness": judge.sharpness(true, sigma),
         "truth_texture_sharpness": judge.texture_sharpness(true, sigma),
     }
+    return stats, corrected(placed.check.alignment, g)
 
 
 NEAR_DEG = 5.0  # a candidate this close (rotation median) to the truth holds it: finer refinement finds it
@@ -229,7 +251,8 @@ def _table(rows: list[dict]) -> str:
         "inliers",
         "cloud margin",
         "refined mm / deg",
-        "sharpness shading / texture",
+        "the texture's mm / deg",
+        "sharpness shading / texture (at the truth)",
         "photo margin",
         "mesh symmetry deg / mm (equivalent placements)",
         "right",
@@ -246,7 +269,7 @@ def _table(rows: list[dict]) -> str:
                     r["scanner"],
                     r["seed"],
                     "FAILED",
-                    *[""] * 9,
+                    *[""] * 10,
                     "refused",
                     r["diagnosis"],
                 )
@@ -266,7 +289,9 @@ def _table(rows: list[dict]) -> str:
                 r["inliers"],
                 margin,
                 f"{r['centre_mm']:.2f} / {r['rotation_deg']:.2f}",
-                f"{_number(r['sharpness'])} / {_number(r.get('texture_sharpness'))}",
+                f"{_number(r.get('texture_centre_mm'))} / {_number(r.get('texture_rotation_deg'))}",
+                f"{_number(r['sharpness'])} / {_number(r.get('texture_sharpness'))} "
+                f"({_number(r.get('truth_sharpness'))} / {_number(r.get('truth_texture_sharpness'))})",
                 photo_margin,
                 _symmetry_cell(r),
                 "yes" if r["right"] else "NO",

@@ -248,12 +248,14 @@ class PhotometricRegistration:
         """Pixel coordinates ``(V, N, 2)`` of the mesh samples under the correction ``params``."""
         return camera.project(self.scanner, torch.as_tensor(self._camera_points(poses, params), dtype=WORK))
 
-    def _pixel_jacobian(self, poses: np.ndarray, params: np.ndarray, x: np.ndarray) -> torch.Tensor:
+    def _pixel_jacobian(
+        self, poses: np.ndarray, params: np.ndarray, x: np.ndarray, points: np.ndarray | None = None
+    ) -> torch.Tensor:
         """d pixel / d params ``(V, N, 2, 7)`` at the camera-space samples ``x`` (``_camera``'s at
         ``params``): the chain rule through ``_camera`` (the rotation's own derivative by central
         differences of the ``(N, 3)`` local points, exact to ~1e-10)."""
         Rw = rotation_matrix(params[:3])
-        base = self.points - self.pivot - params[3:6] * self.size
+        base = (self.points if points is None else points) - self.pivot - params[3:6] * self.size
         d_local = np.zeros((len(base), 3, 3))  # d (R_w^T (x - c0 - tau)) / d omega_k
         for k in range(3):
             e = np.zeros(3)
@@ -507,21 +509,81 @@ class PhotometricRegistration:
         bounced light — all that Eq. 1's diffuse term and the shading fields model — are one gain over
         a patch a pixel wide), then each sample's mean over the photos (the texture); the Cauchy cost
         of what remains, averaged over the samples. inf where nothing is seen."""
+        e, ok, _ = self._texture_residuals(poses, params, sigma, seen, jacobian=False)
+        count = int(ok.sum()) * e.shape[2]
+        cost = torch.log1p((e / TUNING.photometric.cauchy_log) ** 2).sum(dtype=torch.float64)
+        return float(cost) / count if count else float("inf")
+
+    def _texture_residuals(
+        self, poses: np.ndarray, params: np.ndarray, sigma: float, seen: np.ndarray, jacobian: bool = True
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+        """``texture_cost``'s residuals ``(V, N, S, 3)`` (0 where unused), the points' use ``(V, N)``
+        and, with ``jacobian``, the residuals' derivative in the 7 parameters ``(V, N, S, 3, 7)``
+        (the same centring applied to the log photos' derivatives: it is linear)."""
         V, N = seen.shape
         pts = self.patch_samples(object_distance(poses, self.centre) / self.scanner.fx)
         S = pts.shape[1]
-        x = self._camera_points(poses, params, pts.reshape(-1, 3))
+        flat = pts.reshape(-1, 3)
+        x = self._camera_points(poses, params, flat)
         px = camera.project(self.scanner, torch.as_tensor(x, dtype=WORK))
-        log_m = torch.log(self._sample(self.photos.blurred(sigma), px).clamp_min(1e-6)).reshape(V, N, S, 3)
+        m = self._sample(self.photos.blurred(sigma), px).clamp_min(1e-6)
         ok = torch.as_tensor(seen)
         ok = ok & (ok.sum(0) >= TUNING.photometric.min_views)[None]
-        gain_out = log_m - log_m.mean(2, keepdim=True)
-        gain_out = torch.where(ok[..., None, None], gain_out, 0.0)
-        texture = gain_out.sum(0) / ok.sum(0).clamp_min(1)[:, None, None]
-        e = torch.where(ok[..., None, None], gain_out - texture[None], 0.0)
-        count = int(ok.sum()) * S
-        cost = torch.log1p((e / TUNING.photometric.cauchy_log) ** 2).sum(dtype=torch.float64)
-        return float(cost) / count if count else float("inf")
+        values = torch.log(m)[..., None]
+        if jacobian:
+            g = self._sample(self.photos.gradients(sigma), px).reshape(V, N * S, 3, 2)
+            J_px = torch.nan_to_num(self._pixel_jacobian(poses, params, x, flat))
+            values = torch.cat([values, (g / m[..., None]) @ J_px], -1)
+        values = values.reshape(V, N, S, 3, -1)
+        values = values - values.mean(2, keepdim=True)  # each photo's gain over a patch
+        values = torch.where(ok[..., None, None, None], values, 0.0)
+        texture = values.sum(0) / ok.sum(0).clamp_min(1)[:, None, None, None]  # each sample's, over the photos
+        values = torch.where(ok[..., None, None, None], values - texture[None], 0.0)
+        return values[..., 0], ok, values[..., 1:] if jacobian else None
+
+    def refine_texture(
+        self, poses: np.ndarray, levels: tuple[float, ...], iterations: int = 15
+    ) -> tuple[Correction, float]:
+        """The correction G that minimises ``texture_cost`` — Levenberg-Marquardt on the iteratively
+        reweighted (Cauchy) least squares, observations held per level — coarse to fine (``levels``:
+        blur sigmas in pixels); and the cost at the finest level. ``poses (V, 4, 4)``: camera-from-mesh
+        before G."""
+        poses = np.asarray(poses)
+        params, cost = np.zeros(7), float("inf")
+        c = TUNING.photometric.cauchy_log
+        for sigma in levels:
+            seen = self._held(poses, params, sigma, jacobian=False)
+            damping = 1e-3
+            e, ok, J = self._texture_residuals(poses, params, sigma, seen)
+            cost = self.texture_cost(poses, params, sigma, seen)
+            for _ in range(iterations):
+                assert J is not None
+                w = (ok[..., None, None] / (1 + (e / c) ** 2)).double()
+                Jd = J.double()
+                A = torch.einsum("vnsc,vnsck,vnscl->kl", w, Jd, Jd)
+                b = torch.einsum("vnsc,vnsck,vnsc->k", w, Jd, e.double())
+                diag = torch.diag(A).numpy()
+                seen_dir = self.free & (diag > 1e-6 * max(float(diag[self.free].max()), 1e-30))
+                if not seen_dir.any():
+                    break
+                sd = torch.as_tensor(seen_dir)
+                Af = A[sd][:, sd]
+                improved = False
+                while damping < 1e6:
+                    step = np.zeros(7)
+                    step[seen_dir] = -torch.linalg.solve(Af + damping * torch.diag(torch.diag(Af)), b[sd]).numpy()
+                    step = _bounded(params + step) - params
+                    trial = self.texture_cost(poses, params + step, sigma, seen)
+                    if trial < cost:
+                        params, cost = params + step, trial
+                        e, ok, J = self._texture_residuals(poses, params, sigma, seen)
+                        damping = max(damping / 10, 1e-7)
+                        improved = True
+                        break
+                    damping *= 10
+                if not improved or np.abs(step).max() < 1e-7:
+                    break
+        return self._correction(params), cost
 
     def patch_samples(self, pixel_m: float) -> np.ndarray:
         """Each surface point and ``TUNING.photometric.patch_offsets`` around it on its tangent plane,
