@@ -1,8 +1,11 @@
 """``ntp bench registration``: registration alone on the gallery — every object x scanner x SfM seed:
 pycolmap SfM as a user runs it, the similarity to the mesh, the error of the resulting poses against
 the truth (camera centre and rotation medians) and the alignment's own diagnostics (residual,
-inliers, the azimuth margin: how much worse the best alternative azimuth scores). Right and wrong
-alignments side by side are what a registration confidence is set from.
+inliers, the azimuth margin: how much worse the best alternative azimuth scores), a second cue — the
+check's answer refined by the photos' texture alone (``PhotometricRegistration.refine_texture``) and
+its error — and the check's sharpnesses (shading, texture) at the true poses, what a right
+registration of the scan scores. Right and wrong alignments side by side are what a registration
+confidence is set from.
 
 Scans are the gallery's (``bench.gallery.scan_object``, shared with ``ntp bench gallery`` under the
 same ``--out``); each SfM model is kept as a COLMAP folder under ``OUT/sfm/<object>-<scanner>-s<seed>/``

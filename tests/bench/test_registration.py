@@ -18,6 +18,9 @@ def test_registration_runs_per_seed_and_reuses_the_kept_sfm_model(tmp_path):
     assert len(row["candidate_rotation_deg"]) >= 1
     assert row["symmetry_mm"] is None or row["symmetry_mm"] > 0.3  # the dome has no symmetry
     assert row["equivalent_turns"] == [] and row["symmetry"] is None and row["truth_turn_deg"] == 0.0
+    # the second cue and the statistics a right registration of this scan scores
+    assert row["texture_centre_mm"] >= 0 and row["texture_rotation_deg"] >= 0 and row["cues_apart_mm"] >= 0
+    assert row["truth_sharpness"] > 0 and row["truth_texture_sharpness"] > 0 and row["texture_sharpness"] > -1
     table = (tmp_path / "g" / "registration.md").read_text()
     assert table.count("\n") == 5 and "wrong accepted:" in table and "right refused:" in table
     # a rerun reads the kept model back instead of running SfM again (the registration after it is
