@@ -143,7 +143,6 @@ def run(
                         inlier_fraction=al.kept_points / max(al.object_points, 1),
                         azimuth_margin=al.azimuth_margin if np.isfinite(al.azimuth_margin) else None,
                         sharpness=check.sharpness if np.isfinite(check.sharpness) else None,
-                        texture_sharpness=check.texture_sharpness if np.isfinite(check.texture_sharpness) else None,
                         photometric_margin=check.margin if np.isfinite(check.margin) else None,
                         agreement=check.fit.agreement if np.isfinite(check.fit.agreement) else None,
                         placed_by="points" if check.cloud is not None else "photos",
@@ -197,8 +196,9 @@ def _texture_cues(
     on_board: bool,
 ) -> tuple[dict, Alignment]:
     """The check's answer refined by the texture alone (``PhotometricRegistration.refine_texture``,
-    the finisher's blur levels) and both sharpnesses at the true poses — what a right registration
-    of the scan scores —, measured as the check's finisher measures them."""
+    the finisher's blur levels), the texture's sharpness there (a placement by photos) and both
+    sharpnesses at the true poses — what a right registration of the scan scores —, measured as the
+    check's finisher measures them."""
     mesh = placed.mesh
     support_z = float(mesh.vertices[:, 2].min()) if support_plane else None
     judge = PhotometricRegistration(
@@ -210,13 +210,14 @@ def _texture_cues(
         free_scale=not on_board,
     )
     answer = np.stack([placed.check.alignment.camera_from_mesh(reg.poses[n]) for n in placed.judged])
-    g, _ = judge.refine_texture(answer, TUNING.photometric.blur_levels_px[1:])
     true = np.stack([pose_to_local(truth[n], placed.origin) for n in placed.judged])
     sigma = TUNING.photometric.sharpness_sigma_px
     stats = {
+        "texture_sharpness": judge.texture_sharpness(answer, sigma) if placed.check.cloud is None else None,
         "truth_sharpness": judge.sharpness(true, sigma),
         "truth_texture_sharpness": judge.texture_sharpness(true, sigma),
     }
+    g, _ = judge.refine_texture(answer, TUNING.photometric.blur_levels_px[1:])
     return stats, corrected(placed.check.alignment, g)
 
 

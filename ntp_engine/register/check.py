@@ -81,15 +81,12 @@ class PhotoCheck:
     equivalent_turns: list[float] | None = field(default_factory=list)
     # placed by points triangulated on the marker board (``cloud_check``): their fit; None: by the photos
     cloud: dict | None = None
-    # the sharpness of the texture alone (``PhotometricRegistration.texture_sharpness``)
-    texture_sharpness: float = float("nan")
 
     def to_json(self) -> dict:
         """The check as JSON values (``registration.json`` -> ``photometric``)."""
         return {
             "fit": None if self.cloud is not None else self.fit.to_json(),
             "sharpness": self.sharpness if np.isfinite(self.sharpness) else None,
-            "texture_sharpness": self.texture_sharpness if np.isfinite(self.texture_sharpness) else None,
             "margin": self.margin if np.isfinite(self.margin) else None,
             "chosen_candidate": self.chosen,
             "candidates": self.candidates,
@@ -225,7 +222,6 @@ def check_registration(
         steps.update()
         best = corrected(best, g)
         sharpness = finisher.sharpness(placed(best), TUNING.photometric.sharpness_sigma_px)
-        texture = finisher.texture_sharpness(placed(best), TUNING.photometric.sharpness_sigma_px)
         steps.update()
         candidates = [
             {
@@ -252,7 +248,6 @@ def check_registration(
             free_height,
             1e3 * pixel_m,
             same_turns,
-            texture_sharpness=texture,
         )
 
 
