@@ -24,7 +24,9 @@ their photo's field).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import torch
@@ -212,11 +214,15 @@ class PhotometricRegistration:
         return seen, edge_px
 
     def _held(self, poses: np.ndarray, params: np.ndarray, sigma: float, jacobian: bool = True) -> np.ndarray:
-        """The observations a round holds, taken at ``params``."""
-        current = self._correction(params).camera_from_mesh
-        seen = self._usable(poses, params, sigma, *self._observations(np.stack([current(p) for p in poses])))
+        """The observations a round holds, taken at ``params``, and the round's shading."""
+        seen = self._seen(poses, params, sigma)
         self._hold_shading(poses, params, seen, jacobian)
         return seen
+
+    def _seen(self, poses: np.ndarray, params: np.ndarray, sigma: float) -> np.ndarray:
+        """The usable observations ``(V, N)`` at ``params`` (``_observations``, ``_usable``)."""
+        current = self._correction(params).camera_from_mesh
+        return self._usable(poses, params, sigma, *self._observations(np.stack([current(p) for p in poses])))
 
     def _fit_at(self, poses: np.ndarray, params: np.ndarray, sigma: float, seen: np.ndarray) -> PhotometricFit:
         """The fit (``_cost``'s) of the observations ``seen`` at ``params``."""
@@ -419,31 +425,48 @@ class PhotometricRegistration:
             wJ = (w[..., None] * Jc).reshape(-1, 7)
             A = (wJ.T @ Jc.reshape(-1, 7)).double()  # 7 x 7 sums in float32, solved in float64
             b = (wJ.T @ ec.reshape(-1)).double()
-            # a direction the photos do not see (the azimuth of an untextured body of revolution) has
-            # a ~zero diagonal: it does not move (solving for it would be singular or wild)
-            diag = torch.diag(A).numpy()
-            seen_dir = self.free & (diag > 1e-6 * max(float(diag[self.free].max()), 1e-30))
-            if not seen_dir.any():
-                break
-            sd = torch.as_tensor(seen_dir)
-            Af = A[sd][:, sd]
-            improved = False
-            while damping < 1e6:
-                step = np.zeros(7)
-                step[seen_dir] = -torch.linalg.solve(Af + damping * torch.diag(torch.diag(Af)), b[sd]).numpy()
-                step = _bounded(params + step) - params
-                r2, ok2, at2 = self._residuals(poses, params + step, sigma, seen)
+
+            def trial(q: np.ndarray, best: float = fit.cost) -> tuple | None:
+                r2, ok2, at2 = self._residuals(poses, q, sigma, seen)
                 e2, used2, fit2 = self._cost(r2, ok2)
-                if fit2.cost < fit.cost:  # the step taken: its samples give the next Jacobian
-                    params, r, e, used, fit = at2.params, r2, e2, used2, fit2
-                    J, _ = self._jacobian(poses, at2, sigma, ok2)
-                    damping = max(damping / 10, 1e-7)
-                    improved = True
-                    break
-                damping *= 10
-            if not improved or np.abs(step).max() < 1e-7:
+                return (r2, ok2, at2, e2, used2, fit2) if fit2.cost < best else None
+
+            step, damping, taken = self._damped_step(A, b, params, damping, trial)
+            if step is None:
+                break
+            if taken is not None:  # the step taken: its samples give the next Jacobian
+                r, ok2, at2, e, used, fit = taken
+                params = at2.params
+                J, _ = self._jacobian(poses, at2, sigma, ok2)
+            if taken is None or np.abs(step).max() < 1e-7:
                 break
         return params, fit
+
+    def _damped_step(
+        self, A: torch.Tensor, b: torch.Tensor, params: np.ndarray, damping: float, trial: Callable[[np.ndarray], Any]
+    ) -> tuple[np.ndarray | None, float, Any]:
+        """One Levenberg-Marquardt step of ``params`` on the normal equations ``A (7, 7) d = -b``
+        (float64), the damping raised until ``trial(params + d)`` returns what it accepted (not None).
+        Returns the last step tried (None: no free direction the photos see), the next damping and
+        the accepted trial's result (None: no step improved)."""
+        # a direction the photos do not see (the azimuth of an untextured body of revolution) has
+        # a ~zero diagonal: it does not move (solving for it would be singular or wild)
+        diag = torch.diag(A).numpy()
+        seen_dir = self.free & (diag > 1e-6 * max(float(diag[self.free].max()), 1e-30))
+        if not seen_dir.any():
+            return None, damping, None
+        sd = torch.as_tensor(seen_dir)
+        Af = A[sd][:, sd]
+        step = np.zeros(7)
+        while damping < 1e6:
+            step = np.zeros(7)
+            step[seen_dir] = -torch.linalg.solve(Af + damping * torch.diag(torch.diag(Af)), b[sd]).numpy()
+            step = _bounded(params + step) - params
+            taken = trial(params + step)
+            if taken is not None:
+                return step, max(damping / 10, 1e-7), taken
+            damping *= 10
+        return step, damping, None
 
     def _azimuth_search(self, poses, params, sigma, seen) -> np.ndarray:
         """``params`` turned about the vertical through the object's centre to the best of
@@ -475,31 +498,25 @@ class PhotometricRegistration:
     def sharpness(self, poses: np.ndarray, sigma: float) -> float:
         """Mean relative rise of the cost when ``poses`` move ``TUNING.photometric.sharpness_shift_px`` (at the object's
         distance) either way along each mesh axis, observations held."""
-        seen = self._usable(poses, np.zeros(7), sigma, *self._observations(poses))
+        seen = self._seen(poses, np.zeros(7), sigma)
         self._hold_shading(poses, np.zeros(7), seen)
-        distance = object_distance(poses, self.centre)
-        shift = TUNING.photometric.sharpness_shift_px * distance / self.scanner.fx / self.size
-
-        def cost(params: np.ndarray) -> float:
-            return self._fit_at(poses, params, sigma, seen).cost
-
-        base = cost(np.zeros(7))
-        moved = [cost(np.eye(7)[3 + axis] * sign * shift) for axis in range(3) for sign in (-1, 1)]
-        return float(np.mean(moved) / max(base, 1e-12) - 1)
+        return self._rise(poses, lambda params: self._fit_at(poses, params, sigma, seen).cost)
 
     def texture_sharpness(self, poses: np.ndarray, sigma: float) -> float:
         """``sharpness`` measured by the texture alone: the mean relative rise of ``texture_cost``
         when ``poses`` move ``TUNING.photometric.sharpness_shift_px`` either way along each mesh axis
         (observations held). Free of the shading model, so of the mesh's normals: a scanner's mesh
         (normals ~11 deg off) leaves it as sharp as the photographed one (docs/pipeline.md)."""
-        seen = self._usable(poses, np.zeros(7), sigma, *self._observations(poses))
-        shift = TUNING.photometric.sharpness_shift_px * object_distance(poses, self.centre) / self.scanner.fx
-        base = self.texture_cost(poses, np.zeros(7), sigma, seen)
-        moved = [
-            self.texture_cost(poses, np.eye(7)[3 + axis] * sign * shift / self.size, sigma, seen)
-            for axis in range(3)
-            for sign in (-1, 1)
-        ]
+        seen = self._seen(poses, np.zeros(7), sigma)
+        return self._rise(poses, lambda params: self.texture_cost(poses, params, sigma, seen))
+
+    def _rise(self, poses: np.ndarray, cost: Callable[[np.ndarray], float]) -> float:
+        """Mean relative rise of ``cost`` (of the correction's parameters) when ``poses`` move
+        ``TUNING.photometric.sharpness_shift_px`` (at the object's distance) either way along each mesh axis."""
+        distance = object_distance(poses, self.centre)
+        shift = TUNING.photometric.sharpness_shift_px * distance / self.scanner.fx / self.size
+        base = cost(np.zeros(7))
+        moved = [cost(np.eye(7)[3 + axis] * sign * shift) for axis in range(3) for sign in (-1, 1)]
         return float(np.mean(moved) / max(base, 1e-12) - 1)
 
     def texture_cost(self, poses: np.ndarray, params: np.ndarray, sigma: float, seen: np.ndarray) -> float:
@@ -550,40 +567,36 @@ class PhotometricRegistration:
         before G."""
         poses = np.asarray(poses)
         params, cost = np.zeros(7), float("inf")
-        c = TUNING.photometric.cauchy_log
         for sigma in levels:
-            seen = self._held(poses, params, sigma, jacobian=False)
-            damping = 1e-3
-            e, ok, J = self._texture_residuals(poses, params, sigma, seen)
-            cost = self.texture_cost(poses, params, sigma, seen)
-            for _ in range(iterations):
-                assert J is not None
-                w = (ok[..., None, None] / (1 + (e / c) ** 2)).double()
-                Jd = J.double()
-                A = torch.einsum("vnsc,vnsck,vnscl->kl", w, Jd, Jd)
-                b = torch.einsum("vnsc,vnsck,vnsc->k", w, Jd, e.double())
-                diag = torch.diag(A).numpy()
-                seen_dir = self.free & (diag > 1e-6 * max(float(diag[self.free].max()), 1e-30))
-                if not seen_dir.any():
-                    break
-                sd = torch.as_tensor(seen_dir)
-                Af = A[sd][:, sd]
-                improved = False
-                while damping < 1e6:
-                    step = np.zeros(7)
-                    step[seen_dir] = -torch.linalg.solve(Af + damping * torch.diag(torch.diag(Af)), b[sd]).numpy()
-                    step = _bounded(params + step) - params
-                    trial = self.texture_cost(poses, params + step, sigma, seen)
-                    if trial < cost:
-                        params, cost = params + step, trial
-                        e, ok, J = self._texture_residuals(poses, params, sigma, seen)
-                        damping = max(damping / 10, 1e-7)
-                        improved = True
-                        break
-                    damping *= 10
-                if not improved or np.abs(step).max() < 1e-7:
-                    break
+            seen = self._seen(poses, params, sigma)  # the texture reads no shading
+            params, cost = self._descend_texture(poses, params, sigma, seen, iterations)
         return self._correction(params), cost
+
+    def _descend_texture(self, poses, params, sigma, seen, iterations) -> tuple[np.ndarray, float]:
+        """``_descend`` on ``texture_cost``: its parameters and cost after the steps."""
+        damping = 1e-3
+        e, ok, J = self._texture_residuals(poses, params, sigma, seen)
+        cost = self.texture_cost(poses, params, sigma, seen)
+        for _ in range(iterations):
+            assert J is not None
+            w = (ok[..., None, None] / (1 + (e / TUNING.photometric.cauchy_log) ** 2)).double()
+            Jd = J.double()
+            A = torch.einsum("vnsc,vnsck,vnscl->kl", w, Jd, Jd)
+            b = torch.einsum("vnsc,vnsck,vnsc->k", w, Jd, e.double())
+
+            def trial(q: np.ndarray, best: float = cost) -> float | None:
+                at_q = self.texture_cost(poses, q, sigma, seen)
+                return at_q if at_q < best else None
+
+            step, damping, taken = self._damped_step(A, b, params, damping, trial)
+            if step is None:
+                break
+            if taken is not None:
+                params, cost = params + step, taken
+                e, ok, J = self._texture_residuals(poses, params, sigma, seen)
+            if taken is None or np.abs(step).max() < 1e-7:
+                break
+        return params, cost
 
     def patch_samples(self, pixel_m: float) -> np.ndarray:
         """Each surface point and ``TUNING.photometric.patch_offsets`` around it on its tangent plane,
