@@ -85,20 +85,25 @@ def _quiet_stderr() -> Iterator[None]:
 
 @dataclass(frozen=True)
 class Decoded:
-    """An image as decoded: float32 ``(H, W, C)`` pixels (integer formats scaled to [0, 1]), the
-    file's own pixel format (``"uint8"``, ``"uint16"``, ``"half"``, ``"float"``, ...) and the alpha
-    channel's index (-1: none). Alpha is *not* multiplied in: the colour channels are the file's."""
+    """An image as decoded: float32 ``(H, W, C)`` pixels (integer formats scaled to [0, 1]; an 8-bit
+    file's uint8 codes where ``decode`` was asked for them), the file's own pixel format (``"uint8"``,
+    ``"uint16"``, ``"half"``, ``"float"``, ...) and the alpha channel's index (-1: none). Alpha is
+    *not* multiplied in: the colour channels are the file's."""
 
     pixels: np.ndarray
     format: str
     alpha_channel: int
 
 
-def decode(path: str | Path, size: tuple[int, int] | None = None, max_pixels: int = MAX_PIXELS) -> Decoded:
+def decode(
+    path: str | Path, size: tuple[int, int] | None = None, max_pixels: int = MAX_PIXELS, eight_bit: bool = False
+) -> Decoded:
     """Decode any image OpenImageIO knows. Only a regular file is opened (``io.input_file``); its
     header is checked before any pixel is decoded: ``size`` (width, height) where given, at most
     ``max_pixels`` values otherwise. Strict: a file the decoder reports any problem with raises
-    ``NtpInputError`` (a truncated JPEG would otherwise decode, its missing rows grey)."""
+    ``NtpInputError`` (a truncated JPEG would otherwise decode, its missing rows grey).
+    ``eight_bit``: an 8-bit file's pixels come back as its uint8 codes (a quarter of the float's
+    memory, no conversion); other files as float32 all the same."""
     path = Path(path)
     regular_file(path)
     config = oiio.ImageSpec()
@@ -114,13 +119,14 @@ def decode(path: str | Path, size: tuple[int, int] | None = None, max_pixels: in
                 raise NtpInputError(path, f"{w}x{h} image, expected {size[0]}x{size[1]}")
             if w * h * c > max_pixels:
                 raise NtpInputError(path, f"declares {w}x{h}x{c} values, more than the {max_pixels:.3g} ntp reads")
-            pixels = inp.read_image(oiio.FLOAT)
+            as_codes = eight_bit and str(spec.format) == "uint8"
+            pixels = inp.read_image(oiio.UINT8 if as_codes else oiio.FLOAT)
             problem = inp.geterror().strip().splitlines() if pixels is None or inp.has_error else None
         finally:
             inp.close()
     if problem is not None:
         raise NtpInputError(path, f"truncated or corrupt image ({problem[0] if problem else 'decode failed'})")
-    pixels = np.asarray(pixels, dtype=np.float32)
+    pixels = np.asarray(pixels, dtype=np.uint8 if as_codes else np.float32)
     return Decoded(pixels if pixels.ndim == 3 else pixels[..., None], str(spec.format), spec.alpha_channel)
 
 

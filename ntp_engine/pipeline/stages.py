@@ -60,7 +60,7 @@ from ..register.sfm import SfmResult, structure_from_motion
 from ..scanner import camera
 from ..scanner.device_file import scanner_to_dict
 from ..scanner.local_frame import local_origin, moved, pose_to_local, pose_to_world
-from ..scanner.scan_folder import Scan, check_mesh_size, read_photo
+from ..scanner.scan_folder import Scan, check_mesh_size, read_codes
 from . import traces as trace_assembly
 from .distil import distilled_network, seed_texels
 from .fit_traces import fit_blocks
@@ -639,7 +639,7 @@ def _atlas_stage(
 
 def _photo_codes(scan: Scan, name: str) -> np.ndarray:
     """A kept photo's 8-bit codes (its content is in the stage key, so it is the photo selected)."""
-    return read_photo(scan.photos_dir / name, scan.scanner).astype(np.uint8)
+    return read_codes(scan.photos_dir / name, scan.scanner)
 
 
 def _support_stage(

@@ -203,6 +203,12 @@ class TriangulationTuning:
     placed on them (``register.align.align_on_board``, ``register.check.cloud_check``)."""
 
     features_per_photo: int = budget(4000, "SIFT features kept per photo (the strongest): bounds the matching's time")
+    max_feature_width: int = budget(
+        1280,
+        "SIFT reads a photo averaged down by a whole factor to at most this width: the device's full 2448 px cost "
+        "~2.5 s a photo (40 photos: 53 s of a 1000-photo board registration); the points' placement was measured "
+        "at 612 px (docs/pipeline.md), and its floor is the scanned mesh's deformation, not the features' precision",
+    )
     contrast_threshold: float = unmeasured(
         0.02, "SIFT's contrast threshold (OpenCV's default 0.04 keeps half as many features on printed labels)"
     )

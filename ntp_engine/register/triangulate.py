@@ -35,10 +35,16 @@ class Features:
 
 def photo_features(codes: np.ndarray, scanner: Scanner) -> Features:
     """SIFT features of a photo of 8-bit codes ``(H, W, 3)`` (at most
-    ``TUNING.triangulation.features_per_photo``, the strongest)."""
+    ``TUNING.triangulation.features_per_photo``, the strongest), found on the photo averaged down by
+    the smallest whole factor that brings it within ``TUNING.triangulation.max_feature_width``; the
+    rays are the full photo's (a pixel k of the smaller image is the full one's f (k + 0.5) - 0.5)."""
     import cv2
 
     gray = cv2.cvtColor(np.clip(codes, 0, 255).astype(np.uint8), cv2.COLOR_RGB2GRAY)
+    factor = -(-gray.shape[1] // TUNING.triangulation.max_feature_width)
+    if factor > 1:
+        h, w = gray.shape[0] // factor, gray.shape[1] // factor
+        gray = cv2.resize(gray[: h * factor, : w * factor], (w, h), interpolation=cv2.INTER_AREA)
     sift = cv2.SIFT.create(
         nfeatures=TUNING.triangulation.features_per_photo,
         contrastThreshold=TUNING.triangulation.contrast_threshold,
@@ -48,7 +54,7 @@ def photo_features(codes: np.ndarray, scanner: Scanner) -> Features:
     keypoints, descriptors = sift.detectAndCompute(gray, everywhere)
     if descriptors is None or not keypoints:
         return Features(np.zeros((0, 2)), np.zeros((0, 128), np.float32))
-    pixels = np.array([k.pt for k in keypoints], np.float64).reshape(-1, 1, 2)
+    pixels = factor * (np.array([k.pt for k in keypoints], np.float64).reshape(-1, 1, 2) + 0.5) - 0.5
     rays = cv2.undistortPoints(pixels, scanner.K, scanner.distortion).reshape(-1, 2)
     return Features(rays, np.asarray(descriptors, np.float32))
 

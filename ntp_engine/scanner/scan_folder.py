@@ -203,13 +203,13 @@ def _length(metres: float) -> str:
     raise AssertionError
 
 
-def read_photo(path: Path, scanner: Scanner) -> np.ndarray:
-    """8-bit codes ``(H, W, 3)`` float; ``NtpInputError`` naming the photo if it is unreadable,
-    truncated or corrupt, not the scanner camera's size (checked before decoding), not RGB, not of
-    integer pixels (the camera's codes are 8-bit; a 16-bit file is read as its 8-bit codes), or
-    has pixels that are not opaque (the camera writes no alpha; a photo composited or cut out by
-    another program no longer holds what the camera measured)."""
-    img = decode(path, size=(scanner.width, scanner.height))
+def read_codes(path: Path, scanner: Scanner) -> np.ndarray:
+    """The photo's 8-bit codes, uint8 ``(H, W, 3)``; ``NtpInputError`` naming the photo if it is
+    unreadable, truncated or corrupt, not the scanner camera's size (checked before decoding), not
+    RGB, not of integer pixels (the camera's codes are 8-bit; a 16-bit file is read as its 8-bit
+    codes, rounded), or has pixels that are not opaque (the camera writes no alpha; a photo
+    composited or cut out by another program no longer holds what the camera measured)."""
+    img = decode(path, size=(scanner.width, scanner.height), eight_bit=True)
     channels = img.pixels.shape[2] - (img.alpha_channel >= 0)
     if channels < 3:
         kind = "grayscale" if channels == 1 else f"{channels}-channel"
@@ -218,11 +218,19 @@ def read_photo(path: Path, scanner: Scanner) -> np.ndarray:
         raise NtpInputError(
             path, f"holds {img.format} pixels (an HDR/EXR image under this name?); the camera's photos are 8-bit"
         )
+    opaque = 255 if img.pixels.dtype == np.uint8 else 1.0
     if img.alpha_channel >= 0:
-        clear = int((img.pixels[..., img.alpha_channel] < 1.0).sum())
+        clear = int((img.pixels[..., img.alpha_channel] < opaque).sum())
         if clear:
             raise NtpInputError(path, f"{clear} pixels are not opaque (alpha < 1); the camera's photos have no alpha")
-    return np.round(img.pixels[..., :3] * 255.0)
+    if img.pixels.dtype == np.uint8:
+        return np.ascontiguousarray(img.pixels[..., :3])
+    return np.round(img.pixels[..., :3] * 255.0).astype(np.uint8)
+
+
+def read_photo(path: Path, scanner: Scanner) -> np.ndarray:
+    """``read_codes`` as float32 ``(H, W, 3)`` (the codes 0-255, what the models read)."""
+    return read_codes(path, scanner).astype(np.float32)
 
 
 def write_scan_toml(
