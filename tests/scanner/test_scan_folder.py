@@ -5,7 +5,9 @@ import json
 import shutil
 import subprocess
 import sys
+from pathlib import Path
 
+import numpy as np
 import pytest
 
 from ntp_engine.io.errors import NtpInputError
@@ -128,3 +130,35 @@ def test_the_support_stage_runs_where_the_scan_says_its_photos_hold_that_light(s
         rep = reconstruct(load_scan(scan, poses), tmp_path / "out", resolution=16, refine=True)
         assert "support" in rep.stages and (tmp_path / "out" / "cache" / "support" / "support.npz").is_file()
         assert ("support" in rep.cached_stages) == (run == 1)
+
+
+def test_read_codes_are_the_files_8_bit_codes_from_8_and_16_bit_files(scan24, tmp_path):
+    """An 8-bit photo's codes come back as uint8, exactly; its 16-bit copy (code * 257, as a
+    converter writes it) gives the same codes; ``read_photo`` is the same as float32; an alpha of 254
+    (not opaque) is refused in the 8-bit read too."""
+    import OpenImageIO as oiio
+
+    from ntp_engine.scanner.scan_folder import read_codes, read_photo
+
+    scan = load_scan(scan24)
+    s = scan.scanner
+    rng = np.random.default_rng(0)
+    codes = rng.integers(0, 256, (s.height, s.width, 3), dtype=np.uint8)
+
+    def write(name: str, pixels: np.ndarray, fmt) -> Path:
+        out = oiio.ImageOutput.create(str(tmp_path / name))
+        out.open(str(tmp_path / name), oiio.ImageSpec(s.width, s.height, pixels.shape[2], fmt))
+        out.write_image(np.ascontiguousarray(pixels))
+        out.close()
+        return tmp_path / name
+
+    eight = read_codes(write("a.png", codes, oiio.UINT8), s)
+    assert eight.dtype == np.uint8 and np.array_equal(eight, codes)
+    sixteen = read_codes(write("b.png", codes.astype(np.uint16) * 257, oiio.UINT16), s)
+    assert sixteen.dtype == np.uint8 and np.array_equal(sixteen, codes)
+    photo = read_photo(tmp_path / "a.png", s)
+    assert photo.dtype == np.float32 and np.array_equal(photo, codes.astype(np.float32))
+    rgba = np.concatenate([codes, np.full((s.height, s.width, 1), 255, np.uint8)], -1)
+    rgba[0, 0, 3] = 254
+    with pytest.raises(NtpInputError, match=r"c.png: 1 pixels are not opaque"):
+        read_codes(write("c.png", rgba, oiio.UINT8), s)
