@@ -201,12 +201,18 @@ def _diagnostics(out: Path, cache: StageCache, reg_info: dict, force: bool) -> N
         shutil.copyfile(cache.folder / "register" / "registration.png", tmp)
     why = reg_info["confidence"]["refusal"]
     if why is not None and not force:
-        raise RegistrationRefused(
-            out / "registration.json",
-            f"registration refused: {why} — look at registration.png; more photos, a marker board under the "
-            "object (ntp board) or a poses file help (--force-registration goes on anyway)",
-        )
+        raise RegistrationRefused(out / "registration.json", refused_line(why, on_board="board" in reg_info))
     reg_info["confidence"]["forced"] = why is not None
+
+
+def refused_line(why: str, on_board: bool) -> str:
+    """The one line a refused registration ends the run with: its cause ``why`` and what helps — a
+    marker board only where the scan has none (``on_board``)."""
+    board = "" if on_board else ", a marker board under the object (ntp board)"
+    return (
+        f"registration refused: {why} — look at registration.png; more photos{board} or a poses file help "
+        "(--force-registration goes on anyway)"
+    )
 
 
 def _select_stage(scan: Scan, cache: StageCache, blur_margin: float, progress: Progress) -> tuple[Selection, str]:

@@ -36,6 +36,7 @@ def test_an_unconfirmed_registration_is_refused_with_its_diagnostics_and_forced_
     # not pin it down either (measured sharpness 0.38 < 0.8): refused as unconfirmed
     assert "registration refused" in line and "cannot confirm where the mesh is" in line, line
     assert str(out / "registration.json") in line and "--force-registration" in line
+    assert "a marker board under the object (ntp board)" in line  # a scan without one is told of it
     reg = json.loads((out / "registration.json").read_text())
     assert reg["confidence"]["accepted"] is False and reg["photometric"]["margin"] is None  # no rival: all equivalent
     assert "body of revolution" in reg["confidence"]["symmetry"]
@@ -77,3 +78,11 @@ def test_refusal_names_the_cause():
     # a near-symmetry (above the quarter pixel) is a rival: the photos must tell it apart, or it is named
     near = PhotoCheck(None, fit, 2.0, 0.02, rivals, 0, [], [], (180.0, 0.4), 0.26, equivalent_turns=[])  # type: ignore[arg-type]
     assert (why := refusal(near)) and "turned by 180 deg" in why and "from itself" in why
+
+
+def test_a_refused_board_scan_is_not_told_to_print_a_board():
+    from ntp_engine.pipeline.stages import refused_line
+
+    assert "ntp board" in refused_line("the photos cannot confirm it", on_board=False)
+    line = refused_line("the photos cannot confirm it", on_board=True)
+    assert "ntp board" not in line and "a poses file" in line and "more photos" in line
