@@ -49,6 +49,9 @@ class Alignment:
     # a metric placement's spread (``align_on_board``): 1 sigma of the azimuth (rad) and shift (m)
     azimuth_sigma: float = float("nan")
     shift_sigma: np.ndarray = field(default_factory=lambda: np.full(3, np.nan))
+    # a metric placement's rivals (``align_on_board``): per candidate (``candidates``' order) how
+    # significantly worse it fits the points than the answer, by surface regions (``_AzimuthSearch.rival_z``)
+    candidate_z: list[float] = field(default_factory=list)
 
     def apply(self, x: np.ndarray) -> np.ndarray:
         """SfM points ``(..., 3)`` in the mesh frame (metres)."""
@@ -292,12 +295,14 @@ class _AzimuthSearch:
         score still tells)."""
         best: tuple[float, float, float, np.ndarray] | None = None
         self.candidates: list[tuple[float, float]] = []
+        self.placements: list[tuple[float, np.ndarray]] = []  # each candidate's (yaw, txy)
         start = np.zeros(3 if self.metric else 2)
         start[:2] = self.target[:2]
         for yaw0 in np.radians(TUNING.align.coarse_azimuths_deg):
             s, yaw, txy = self.icp(s0, float(yaw0), start.copy(), True)
             value = self.score(s, yaw, txy)[0]
             self.candidates.append((float(np.degrees(yaw)) % 360.0, value))
+            self.placements.append((yaw, txy.copy()))
             best = self._keep_better(best, s, yaw, txy)
         assert best is not None
         # metric points are many (a board's triangulation): the point-to-plane polish turns the azimuth
@@ -373,6 +378,33 @@ class _AzimuthSearch:
             if abs(step[0]) + np.abs(step[1:]).max() / self.size < 1e-9:
                 break
         return s, yaw, txy
+
+    def rival_z(
+        self, yaw: float, shift: np.ndarray, rivals: list[tuple[float, np.ndarray]], blocks: int
+    ) -> list[float]:
+        """How significantly each of the metric placements ``rivals`` ((yaw, shift) each) fits the
+        points worse than (``yaw``, ``shift``): the points' truncated squared distances (the score's
+        terms) differenced point by point, summed over ``blocks`` regions of the points (k-means), and
+        the total over its standard error from the regions' spread (a paired test whose unit is a
+        region: a scanned mesh's deformation, alike over millimetres, counts once per region, where
+        counting points as independent would make any rival look hundreds of chi-square units
+        worse). inf where the regions agree exactly."""
+        A = self.A
+        if len(A) < 2 * blocks:
+            return [float("nan")] * len(rivals)
+        _, label = kmeans2(A, blocks, seed=0, minit="++")
+
+        def terms(y: float, t: np.ndarray) -> np.ndarray:
+            dist, _ = self.nearest(self.place(A, 1.0, y, t), self.tau)
+            return np.minimum(dist, self.tau) ** 2
+
+        own = terms(yaw, shift)
+        out = []
+        for y, t in rivals:
+            total = np.bincount(label, weights=terms(y, t) - own, minlength=blocks)
+            se = np.sqrt(blocks * total.var(ddof=1))
+            out.append(float(total.sum() / se) if se > 0 else float("inf") * np.sign(total.sum()))
+        return out
 
     def jackknife(self, yaw: float, shift: np.ndarray, blocks: int) -> tuple[float, np.ndarray]:
         """The spread (1 sigma) of a metric placement's azimuth (radians) and shift ``(3,)`` (metres) by
@@ -490,15 +522,18 @@ def align_on_board(points: np.ndarray, poses: list[np.ndarray], mesh: Mesh, iter
     starts = TUNING.triangulation.search_iterations
     search = searcher(P_all[rng.choice(len(P), few, replace=False)] if len(P) > few else P_all, coarse, starts)
     found = search.search(1.0)
-    candidates = search.candidates
+    order = np.argsort([score for _, score in search.candidates], kind="stable")
+    candidates, placements = [search.candidates[i] for i in order], [search.placements[i] for i in order]
     search = searcher(P_all, slice(None), iterations)
     s, yaw, shift = search.polish(*found)
     _, dist = search.score(s, yaw, shift)
     best = _alignment(search, frame, s, yaw, shift, dist)
-    best.candidates = sorted(candidates, key=lambda c: c[1])
+    best.candidates = candidates
     # the margin on the subset's scores, as the candidates were scored
     best.azimuth_margin = _azimuth_margin(best.candidates, yaw, best.candidates[0][1])
-    best.azimuth_sigma, best.shift_sigma = search.jackknife(yaw, shift, TUNING.triangulation.jackknife_blocks)
+    blocks = TUNING.triangulation.jackknife_blocks
+    best.azimuth_sigma, best.shift_sigma = search.jackknife(yaw, shift, blocks)
+    best.candidate_z = search.rival_z(yaw, shift, placements, blocks)  # on every point, the answer polished
     return best
 
 

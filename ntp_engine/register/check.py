@@ -278,30 +278,36 @@ def cloud_check(
 ) -> PhotoCheck:
     """A placement on the marker board found from triangulated points (``align.align_on_board``),
     judged by its own fit: its rivals are the search's other start azimuths, equivalent where a
-    symmetry of the mesh relates them; ``margin``: how much worse the best rival fits the points —
-    its trimmed score's rise over the inliers' squared residual (chi-square units). ``fx``: the
-    photos' focal length in pixels, for the symmetry's tolerance."""
+    symmetry of the mesh relates them; ``margin``: how significantly the best rival fits the points
+    worse — the least of the rivals' ``Alignment.candidate_z`` (the paired difference of their
+    points' terms over its standard error between surface regions). ``fx``: the photos' focal
+    length in pixels, for the symmetry's tolerance."""
     centre = 0.5 * (mesh.vertices.min(0) + mesh.vertices.max(0))
     chosen_yaw = _yaw_deg(alignment)
     # the starts converge to few azimuths: one candidate each (within a degree), the best score kept
-    found: list[tuple[float, float]] = []
-    for azimuth, score in alignment.candidates:  # best first
+    found: list[tuple[float, float, float]] = []
+    z_of = alignment.candidate_z or [float("nan")] * len(alignment.candidates)
+    for (azimuth, score), z in zip(alignment.candidates, z_of, strict=True):  # best first
         turn = (azimuth - chosen_yaw + 180.0) % 360.0 - 180.0
-        if all(azimuth_apart(turn, t) > 1.0 for t, _ in found):
-            found.append((turn, score))
+        if all(azimuth_apart(turn, t) > 1.0 for t, _, _ in found):
+            found.append((turn, score, z))
     found.sort(key=lambda c: abs(c[0]))  # the chosen placement first
-    change = [t for t, _ in found]
+    change = [t for t, _, _ in found]
     placed = np.stack([alignment.camera_from_mesh(camera_from_board[n]) for n in names])
     pixel_m = object_distance(placed, centre) / fx
     same_as = _SamePlacement(mesh, centre, pixel_m, change)
-    best = min(score for (_, score), eq in zip(found, same_as.same, strict=True) if eq)
-    others = [score for (_, score), eq in zip(found, same_as.same, strict=True) if not eq]
-    # in the inliers' variance: twice the log-likelihood ratio of the two placements were the points
-    # independent Gaussian about the mesh (each point's truncated squared distance counts)
-    margin = (min(others) - best) / max(alignment.residual_m**2, 1e-30) if others else float("inf")
+    others = [z for (_, _, z), eq in zip(found, same_as.same, strict=True) if not eq]
+    # a rival whose significance could not be measured (too few points for the regions) is no margin
+    margin = float(np.nan_to_num(min(others), nan=-np.inf)) if others else float("inf")
     candidates = [
-        {"azimuth_change_deg": t, "coarse_cost": score, "mesh_turned_mm": 1e3 * d, "equivalent": bool(eq)}
-        for (t, score), d, eq in zip(found, same_as.apart, same_as.same, strict=True)
+        {
+            "azimuth_change_deg": t,
+            "coarse_cost": score,
+            "significance": z if np.isfinite(z) else None,
+            "mesh_turned_mm": 1e3 * d,
+            "equivalent": bool(eq),
+        }
+        for (t, score, z), d, eq in zip(found, same_as.apart, same_as.same, strict=True)
     ]
     turn, turned_m = mesh_symmetry(mesh, centre, same_as.own)
     # the placement's 1-sigma spread where it moves the surface most: the shift plus the azimuth's at the rim
@@ -328,7 +334,7 @@ def cloud_check(
         float(margin),
         candidates,
         0,
-        sorted((t, score) for t, score in found),
+        sorted((t, score) for t, score, _ in found),
         [],
         (turn, 1e3 * turned_m),
         1e3 * same_as.tolerance_m,
