@@ -127,7 +127,8 @@ def _crete_sums(codes: np.ndarray, half: int) -> np.ndarray:
         total += row_total
         kept += row_kept
     out[0] = total, kept
-    # along x: a running sum along each row
+    # along x: a running sum along each row (the y pass on the transposed image would be one loop
+    # for both, but the transposed copy made the score ~17% slower, measured)
     for i in range(h):
         run = 0.0
         for k in range(-half, half + 1):

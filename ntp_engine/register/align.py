@@ -388,7 +388,8 @@ class _AzimuthSearch:
         the total over its standard error from the regions' spread (a paired test whose unit is a
         region: a scanned mesh's deformation, alike over millimetres, counts once per region, where
         counting points as independent would make any rival look hundreds of chi-square units
-        worse). inf where the regions agree exactly."""
+        worse). Where every region's total is the same: ±inf by its sign, nan where it is 0 (the
+        same placement); nan for all with fewer than 2 ``blocks`` points."""
         A = self.A
         if len(A) < 2 * blocks:
             return [float("nan")] * len(rivals)

@@ -286,8 +286,7 @@ def cloud_check(
     chosen_yaw = _yaw_deg(alignment)
     # the starts converge to few azimuths: one candidate each (within a degree), the best score kept
     found: list[tuple[float, float, float]] = []
-    z_of = alignment.candidate_z or [float("nan")] * len(alignment.candidates)
-    for (azimuth, score), z in zip(alignment.candidates, z_of, strict=True):  # best first
+    for (azimuth, score), z in zip(alignment.candidates, alignment.candidate_z, strict=True):  # best first
         turn = (azimuth - chosen_yaw + 180.0) % 360.0 - 180.0
         if all(azimuth_apart(turn, t) > 1.0 for t, _, _ in found):
             found.append((turn, score, z))

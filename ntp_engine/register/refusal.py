@@ -79,17 +79,15 @@ def refusal(check: PhotoCheck) -> str | None:
         i = named_rival(check.candidates)
         assert i is not None  # a finite margin has a rival
         rival = check.candidates[i]
-        if check.cloud is not None:
-            return (
-                f"the object's azimuth is ambiguous: turned by {rival['azimuth_change_deg']:.0f} deg it fits the "
-                f"points triangulated on the object nearly as well (worse by {check.margin:.2f} standard errors "
-                f"between surface regions < {min_margin(check):g}; the mesh turned so lies "
-                f"{rival['mesh_turned_mm']:.1f} mm from itself)"
-            )
+        fits = (
+            f"the points triangulated on the object nearly as well (worse by {check.margin:.2f} standard errors "
+            f"between surface regions < {min_margin(check):g}"
+            if check.cloud is not None
+            else f"the photos nearly as well (margin {check.margin:.2f} < {min_margin(check)}"
+        )
         return (
-            f"the object's azimuth is ambiguous: turned by {rival['azimuth_change_deg']:.0f} deg it fits the photos "
-            f"nearly as well (margin {check.margin:.2f} < {min_margin(check)}; the mesh turned so lies "
-            f"{rival['mesh_turned_mm']:.1f} mm from itself)"
+            f"the object's azimuth is ambiguous: turned by {rival['azimuth_change_deg']:.0f} deg it fits {fits}; "
+            f"the mesh turned so lies {rival['mesh_turned_mm']:.1f} mm from itself)"
         )
     return None
 
