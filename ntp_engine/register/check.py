@@ -273,6 +273,13 @@ class _SamePlacement:
         ]
 
 
+def weakest_rival(significance: list[float]) -> float:
+    """The margin of a placement by points over its rivals: the least of their significances
+    (``Alignment.candidate_z``); a rival whose significance could not be measured (nan: too few
+    points for the regions) leaves no margin (-inf), whatever its place in the list; none: inf."""
+    return min((-np.inf if np.isnan(z) else z for z in significance), default=np.inf)
+
+
 def cloud_check(
     alignment: Alignment, camera_from_board: dict[str, np.ndarray], names: list[str], mesh: Mesh, fx: float
 ) -> PhotoCheck:
@@ -295,9 +302,7 @@ def cloud_check(
     placed = np.stack([alignment.camera_from_mesh(camera_from_board[n]) for n in names])
     pixel_m = object_distance(placed, centre) / fx
     same_as = _SamePlacement(mesh, centre, pixel_m, change)
-    others = [z for (_, _, z), eq in zip(found, same_as.same, strict=True) if not eq]
-    # a rival whose significance could not be measured (too few points for the regions) is no margin
-    margin = float(np.nan_to_num(min(others), nan=-np.inf)) if others else float("inf")
+    margin = weakest_rival([z for (_, _, z), eq in zip(found, same_as.same, strict=True) if not eq])
     candidates = [
         {
             "azimuth_change_deg": t,

@@ -9,7 +9,7 @@ import pytest
 from scans import hemisphere
 
 from ntp_engine.register.align import align_on_board, surface_samples
-from ntp_engine.register.check import cloud_check, confirmed_by_points, placed_by_points
+from ntp_engine.register.check import cloud_check, confirmed_by_points, placed_by_points, weakest_rival
 from ntp_engine.register.refusal import refusal, refusal_kind
 from ntp_engine.register.settings import TUNING
 from ntp_engine.register.triangulate import Features, photo_features, photo_pairs, triangulate_pair, triangulated_points
@@ -149,6 +149,14 @@ def test_a_body_of_revolution_on_the_board_has_no_rival():
     check = cloud_check(al, dict(enumerate(poses)), list(range(len(poses))), mesh, 300.0)
     assert check.equivalent_turns is None and check.margin == float("inf")
     assert refusal_kind(check) is None  # any turn is the same asset: the azimuth's spread does not count
+
+
+def test_a_rival_whose_significance_is_unmeasured_leaves_no_margin_wherever_it_stands():
+    """``weakest_rival``: the least significance; a nan (too few points for the regions) is no
+    margin before or after a measured one (Python's ``min`` alone keeps a nan only in first place)."""
+    nan = float("nan")
+    assert weakest_rival([4.0, 3.2]) == 3.2 and weakest_rival([]) == float("inf")
+    assert weakest_rival([4.0, nan]) == weakest_rival([nan, 4.0]) == -float("inf")
 
 
 @pytest.mark.slow  # measured over 5 s on 2 cores
