@@ -145,7 +145,11 @@ def run(
                         sharpness=check.sharpness if np.isfinite(check.sharpness) else None,
                         photometric_margin=check.margin if np.isfinite(check.margin) else None,
                         agreement=check.fit.agreement if np.isfinite(check.fit.agreement) else None,
-                        placed_by="points" if check.cloud is not None else "photos",
+                        placed_by="points"
+                        if check.cloud is not None
+                        else "outline"
+                        if check.outline is not None
+                        else "photos",
                         accepted=why is None,
                         refusal=why,
                         candidate_rotation_deg=near,
@@ -161,6 +165,17 @@ def run(
                         height_from_photos=check.height_from_photos,
                         pixel_mm=check.pixel_mm,
                     )
+                    if placed.by_outline is not None:  # the outline's own placement, decided or not
+                        o = placed.by_outline
+                        oe = pose_error_modulo(world(o.alignment), truth, centre, o.equivalent_turns)
+                        row.update(
+                            outline_centre_mm=oe["centre_median_m"] * 1e3,
+                            outline_rotation_deg=oe["rotation_median_deg"],
+                            outline_margin=o.margin if np.isfinite(o.margin) else None,
+                            outline_spread_px=o.outline["spread_px"] if o.outline else None,
+                            outline_outside=o.outline["points_outside"] if o.outline else None,
+                            outline_refusal=refusal(o),
+                        )
                     # the texture's own answer (``refine_texture`` from the check's): a second cue,
                     # free of the mesh's normals, and both cues' statistics at the true poses
                     cues, by_texture = _texture_cues(placed, reg, truth, scan.support_plane, on_board=seed is None)
@@ -254,6 +269,7 @@ def _table(rows: list[dict]) -> str:
         "residual mm",
         "inliers",
         "cloud margin",
+        "outline mm / deg (margin, spread px)",
         "refined mm / deg",
         "the texture's mm / deg",
         "sharpness shading / texture (at the truth)",
@@ -273,7 +289,7 @@ def _table(rows: list[dict]) -> str:
                     r["scanner"],
                     r["seed"],
                     "FAILED",
-                    *[""] * 10,
+                    *[""] * 11,
                     "refused",
                     r["diagnosis"],
                 )
@@ -292,6 +308,7 @@ def _table(rows: list[dict]) -> str:
                 "-" if r["residual_mm"] is None else f"{r['residual_mm']:.2f}",
                 r["inliers"],
                 margin,
+                _outline_cell(r),
                 f"{r['centre_mm']:.2f} / {r['rotation_deg']:.2f}",
                 f"{_number(r.get('texture_centre_mm'))} / {_number(r.get('texture_rotation_deg'))}",
                 f"{_number(r['sharpness'])} / {_number(r.get('texture_sharpness'))} "
@@ -310,6 +327,16 @@ def _table(rows: list[dict]) -> str:
     if len(sets) > 1:  # the tuning set's outcome and the validation set's, side by side
         lines += [_summary([r for r in rows if r.get("set", "tune") == s], f"{s}: ") for s in sets]
     return "\n".join(lines) + "\n"
+
+
+def _outline_cell(r: dict) -> str:
+    """The outline's own placement (error modulo symmetry), its rival margin and spread; - where none."""
+    if r.get("outline_centre_mm") is None:
+        return "-"
+    return (
+        f"{r['outline_centre_mm']:.2f} / {r['outline_rotation_deg']:.2f} "
+        f"({_number(r.get('outline_margin'))}, {_number(r.get('outline_spread_px'))})"
+    )
 
 
 def _number(value: float | None) -> str:

@@ -258,15 +258,22 @@ def _register_stage(
         (d / "poses.json").write_text(json.dumps({n: al.camera_from_mesh(reg.poses[n]).tolist() for n in names}))
         found: dict
         if isinstance(reg, BoardPoses):
-            placement = "points triangulated on the board" if check.cloud is not None else "the photometric check"
-            points = placed.by_points
+            placement = (
+                "points triangulated on the board"
+                if check.cloud is not None
+                else "the object's outline against the board"
+                if check.outline is not None
+                else "the photometric check"
+            )
+            points, outline = placed.by_points, placed.by_outline
             found = {
                 "board": reg.to_json(),
                 "alignment": {
                     "scale": al.scale,
                     "placed_by": placement,
-                    # the points' own placement where they found one, confirmed or not
+                    # the points' and the outline's own placements where they found one, confirmed or not
                     "points": None if points is None else {**points.to_json(), "refusal": refusal(points)},
+                    "outline": None if outline is None else {**outline.to_json(), "refusal": refusal(outline)},
                 },
             }
         else:

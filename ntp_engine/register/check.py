@@ -45,6 +45,7 @@ from .photometric import (
 )
 from .settings import TUNING
 from .sfm import SfmResult
+from .silhouette import SilhouettePlacement, Silhouettes
 from .triangulate import Features, photo_features, triangulated_points
 
 
@@ -81,11 +82,13 @@ class PhotoCheck:
     equivalent_turns: list[float] | None = field(default_factory=list)
     # placed by points triangulated on the marker board (``cloud_check``): their fit; None: by the photos
     cloud: dict | None = None
+    # placed by the object's outline against the marker board (``outline_check``): its fit
+    outline: dict | None = None
 
     def to_json(self) -> dict:
         """The check as JSON values (``registration.json`` -> ``photometric``)."""
         return {
-            "fit": None if self.cloud is not None else self.fit.to_json(),
+            "fit": None if self.cloud is not None or self.outline is not None else self.fit.to_json(),
             "sharpness": self.sharpness if np.isfinite(self.sharpness) else None,
             "margin": self.margin if np.isfinite(self.margin) else None,
             "chosen_candidate": self.chosen,
@@ -102,6 +105,7 @@ class PhotoCheck:
             "height_from_photos": self.height_from_photos,
             "pixel_mm": self.pixel_mm if np.isfinite(self.pixel_mm) else None,
             "triangulated_points": self.cloud,
+            "outline": self.outline,
         }
 
 
@@ -349,9 +353,81 @@ def cloud_check(
     )
 
 
+def outline_check(
+    placement: SilhouettePlacement, camera_from_board: dict[str, np.ndarray], names: list[str], mesh: Mesh, fx: float
+) -> PhotoCheck:
+    """A placement on the marker board found from the object's outline against the print
+    (``Silhouettes.place``), judged by its own fit: its rivals are the sweep's other minima,
+    equivalent where a symmetry of the mesh relates them; ``margin``: the least significance of the
+    others (how many standard errors over photos they fit the outlines worse); ``outline``: the fit,
+    its jackknife spread (px at the object's distance) and the share of points outside the outline."""
+    alignment = placement.alignment
+    centre = 0.5 * (mesh.vertices.min(0) + mesh.vertices.max(0))
+    change = [0.0] + [t for t, _, _ in placement.rivals]
+    placed = np.stack([alignment.camera_from_mesh(camera_from_board[n]) for n in names])
+    pixel_m = object_distance(placed, centre) / fx
+    same_as = _SamePlacement(mesh, centre, pixel_m, change)
+    margin = weakest_rival([z for (_, z, _), eq in zip(placement.rivals, same_as.same[1:], strict=True) if not eq])
+    costs = [float(placement.costs.mean())] + [c for _, _, c in placement.rivals]
+    significance: list[float | None] = [None] + [z for _, z, _ in placement.rivals]
+    candidates = [
+        {
+            "azimuth_change_deg": t,
+            "coarse_cost": c,
+            "significance": z,
+            "mesh_turned_mm": 1e3 * d,
+            "equivalent": bool(eq),
+        }
+        for t, c, z, d, eq in zip(change, costs, significance, same_as.apart, same_as.same, strict=True)
+    ]
+    turn, turned_m = mesh_symmetry(mesh, centre, same_as.own)
+    rim_m = float(np.linalg.norm(mesh.vertices[:, :2] - centre[:2], axis=1).max())
+    turning = 0.0 if same_as.turns is None else rim_m * placement.turn_sigma  # a body of revolution: any turn
+    spread_m = float(np.linalg.norm(placement.shift_sigma) + turning)
+    outline = {**placement.to_json(), "spread_mm": 1e3 * spread_m, "spread_px": spread_m / pixel_m}
+    return PhotoCheck(
+        alignment,
+        PhotometricFit(float("nan"), float("nan"), 0, 0),
+        float("nan"),
+        float(margin),
+        candidates,
+        0,
+        [],
+        [],
+        (turn, 1e3 * turned_m),
+        1e3 * same_as.tolerance_m,
+        False,
+        1e3 * pixel_m,
+        same_as.turns,
+        None,
+        outline,
+    )
+
+
+def outline_fits(check: PhotoCheck) -> bool:
+    """Whether a placement by the outline (``outline_check``) fits it: at most
+    ``TUNING.silhouette.max_outside`` of its points lie deeper than ``fit_px`` into print a photo sees,
+    and its spread is within ``TUNING.silhouette.max_spread_px``."""
+    assert check.outline is not None
+    return (
+        check.outline["points_outside"] <= TUNING.silhouette.max_outside
+        and check.outline["spread_px"] <= TUNING.silhouette.max_spread_px
+    )
+
+
+def confirmed_by_outline(check: PhotoCheck) -> bool:
+    """Whether a placement by the outline stands on its own: it fits (``outline_fits``) and no
+    rival azimuth that is not a symmetry of the mesh fits within ``min_margin``. Otherwise the
+    photometric check places the mesh (a body of revolution's azimuth is its texture's to tell)."""
+    return outline_fits(check) and check.margin >= min_margin(check)
+
+
 def min_margin(check: PhotoCheck) -> float:
     """The margin a rival azimuth must leave: the photometric cost's, or, for a placement by points
-    triangulated on the board (``cloud_check``), their trimmed score's."""
+    triangulated on the board (``cloud_check``), their trimmed score's, or for one by the outline
+    (``outline_check``), its significance over photos."""
+    if check.outline is not None:
+        return TUNING.silhouette.min_significance
     return TUNING.refusal.min_margin if check.cloud is None else TUNING.triangulation.min_margin
 
 
@@ -396,8 +472,10 @@ class MeshRegistration:
     origin: np.ndarray
     seconds_align: float
     seconds_photometric: float
-    # on a marker board: the placement by triangulated points (``cloud_check``), whether or not it decided
+    # on a marker board: the placement by triangulated points (``cloud_check``) and by the object's
+    # outline (``outline_check``), whether or not they decided
     by_points: PhotoCheck | None = None
+    by_outline: PhotoCheck | None = None
 
 
 def register_to_mesh(scan: Scan, reg: SfmResult | BoardPoses, progress: Progress = QUIET) -> MeshRegistration:
@@ -414,7 +492,7 @@ def register_to_mesh(scan: Scan, reg: SfmResult | BoardPoses, progress: Progress
     judged = spread(names)  # the photos judge (and refine) the alignment
     support_z = float(mesh.vertices[:, 2].min()) if scan.support_plane else None
     photos = None
-    by_points = None
+    by_points = by_outline = None
     t0 = time.perf_counter()
     if on_board:  # the board's poses are metric: the photos' features, found as they are read, place the mesh
         features: dict[str, Features] = {}
@@ -425,10 +503,17 @@ def register_to_mesh(scan: Scan, reg: SfmResult | BoardPoses, progress: Progress
             if confirmed_by_points(by_points):
                 t1 = time.perf_counter()
                 return MeshRegistration(icp, by_points, photos, judged, mesh, origin, t1 - t0, 0.0, by_points)
-        # unconfirmed or too few points (a plain or glossy object): the photos place the mesh from the
-        # cameras' aim. Started from the points' placement instead, 1 of 5 validation objects came out
-        # right against 3 of 5 from the aim (docs/pipeline.md): not kept
+        # unconfirmed or too few points (a plain or glossy object): the outline against the print
+        # places the mesh from the cameras' aim, then, where it does not confirm (a near-symmetric
+        # outline), the photometric check does from there. Started from the points' placement
+        # instead, 1 of 5 validation objects came out right against 3 of 5 from the aim (docs/pipeline.md)
         icp = first_placement(mesh, [reg.poses[n] for n in names])
+        assert scan.board is not None  # board poses come from the scan's board
+        outline = Silhouettes(photos, np.stack([reg.poses[n] for n in judged]), scan.board, mesh)
+        by_outline = outline_check(outline.place(icp), reg.poses, judged, mesh, photos.scanner.fx)
+        if confirmed_by_outline(by_outline):
+            t1 = time.perf_counter()
+            return MeshRegistration(icp, by_outline, photos, judged, mesh, origin, t1 - t0, 0.0, by_points, by_outline)
     else:
         assert isinstance(reg, SfmResult)
         icp = _cloud_alignment(scan, reg, names, mesh, progress)
@@ -436,7 +521,9 @@ def register_to_mesh(scan: Scan, reg: SfmResult | BoardPoses, progress: Progress
     if photos is None:
         photos = _judged_photos(scan, judged, None, progress)
     check = check_registration(icp, reg.poses, photos, judged, mesh, support_z, progress, on_board=on_board)
-    return MeshRegistration(icp, check, photos, judged, mesh, origin, t1 - t0, time.perf_counter() - t1, by_points)
+    return MeshRegistration(
+        icp, check, photos, judged, mesh, origin, t1 - t0, time.perf_counter() - t1, by_points, by_outline
+    )
 
 
 def _judged_photos(

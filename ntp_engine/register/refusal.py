@@ -12,7 +12,7 @@ import numpy as np
 from ..io.mesh import Mesh
 from ..io.raycast import RayCaster
 from ..scanner import camera
-from .check import PhotoCheck, min_margin, spread_within_bar
+from .check import PhotoCheck, confirmed_by_outline, min_margin, outline_fits, spread_within_bar
 from .photo_stack import PhotoStack, edge_mask
 from .settings import TUNING
 
@@ -33,6 +33,8 @@ def refusal_kind(check: PhotoCheck) -> str | None:
     """Which test refuses a registration — ``unconfirmed`` or ``ambiguous``, in that order — or None
     when the photos confirm it. A symmetry of the mesh refuses nothing: the placements it relates put
     every surface point where the photos see one (no cost can choose) and give the same asset."""
+    if check.outline is not None:
+        return None if confirmed_by_outline(check) else ("unconfirmed" if not outline_fits(check) else "ambiguous")
     if check.cloud is None and (
         check.fit.points < TUNING.photometric.min_views or check.sharpness < TUNING.refusal.min_sharpness
     ):
@@ -68,6 +70,14 @@ def refusal(check: PhotoCheck) -> str | None:
             f"a confirmed one <= {TUNING.triangulation.max_spread_px:g} px; a nearly round shape or a noisy mesh, "
             "or too few photos: take more (full-size) photos or give a poses file"
         )
+    if kind == "unconfirmed" and check.outline is not None:
+        o = check.outline
+        return (
+            f"the object's outline against the board does not fix where the mesh is: {100 * o['points_outside']:.1f}% "
+            f"of its points lie over print a photo sees (at most {100 * TUNING.silhouette.max_outside:g}%), its spread "
+            f"is {o['spread_px']:.2f} px (at most {TUNING.silhouette.max_spread_px:g}): a mesh that is not the "
+            "object's, or too few photos seeing the board around it: take more photos or give a poses file"
+        )
     if kind == "unconfirmed":
         return (
             f"the photos cannot confirm where the mesh is (moved {TUNING.photometric.sharpness_shift_px:g} px it "
@@ -79,12 +89,18 @@ def refusal(check: PhotoCheck) -> str | None:
         i = named_rival(check.candidates)
         assert i is not None  # a finite margin has a rival
         rival = check.candidates[i]
-        fits = (
-            f"the points triangulated on the object nearly as well (worse by {check.margin:.2f} standard errors "
-            f"between surface regions < {min_margin(check):g}"
-            if check.cloud is not None
-            else f"the photos nearly as well (margin {check.margin:.2f} < {min_margin(check)}"
-        )
+        if check.outline is not None:
+            fits = (
+                f"its outline against the board nearly as well (worse by {check.margin:.2f} standard errors "
+                f"over photos < {min_margin(check):g}"
+            )
+        elif check.cloud is not None:
+            fits = (
+                f"the points triangulated on the object nearly as well (worse by {check.margin:.2f} standard errors "
+                f"between surface regions < {min_margin(check):g}"
+            )
+        else:
+            fits = f"the photos nearly as well (margin {check.margin:.2f} < {min_margin(check)}"
         return (
             f"the object's azimuth is ambiguous: turned by {rival['azimuth_change_deg']:.0f} deg it fits {fits}; "
             f"the mesh turned so lies {rival['mesh_turned_mm']:.1f} mm from itself)"

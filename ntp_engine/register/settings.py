@@ -266,6 +266,68 @@ class TriangulationTuning:
 
 
 @dataclass(frozen=True)
+class SilhouetteTuning:
+    """The board as a backdrop: the object's outline where a photo shows the print
+    (``register.silhouette``)."""
+
+    print_texel_mm: float = budget(0.2, "the print is rasterised at this texel (a working pixel is ~0.5 mm)")
+    min_paper_px: int = unmeasured(
+        500, "a photo with fewer white-paper pixels than this has no gain fit (sees no print)"
+    )
+    tukey: float = derived(4.685, "Tukey's biweight constant in robust sigmas: 95% efficiency on Gaussian residuals")
+    gain_rounds: int = budget(8, "reweightings of the print's gain fit")
+    ink_floor: float = derived(
+        0.05,
+        "relative residuals are over the prediction plus this share of the gain: the ink's albedo (0.04) "
+        "and a margin, so the black print's noise does not count as not seen",
+    )
+    seen_sigmas: float = unmeasured(
+        5.0,
+        "a pixel shows the print where each channel lies within this many robust sigmas of the gain fit's "
+        "relative residual",
+    )
+    points: int = budget(2000, "mesh surface samples the sweep scores a placement's outline on")
+    fine_points: int = budget(8000, "... and the distinct minima are refined and compared on")
+    cap_px: float = unmeasured(
+        8.0,
+        "penetrations are capped softly here (pixels) when placements are compared: a point deeper than the "
+        "object's outline could be is wrong, whatever its depth",
+    )
+    sweep_cap_px: float = unmeasured(20.0, "... and under this wider cap in the sweep (a basin for the shift)")
+    sweep_step_deg: float = unmeasured(10.0, "the sweep's start azimuths are this far apart")
+    sweep_rounds: int = budget(4, "Levenberg-Marquardt rounds per start of the sweep")
+    final_rounds: int = budget(10, "... and per distinct minimum after it")
+    jacobian_rad: float = budget(1e-3, "the numerical Jacobian's step in azimuth")
+    jacobian_m: float = budget(1e-4, "... and along the board")
+    rivals: int = budget(3, "distinct minima besides the best refined and compared with it")
+    rim_cos: float = derived(
+        0.1,
+        "a surface point is on a photo's contour generator where its normal is this close to perpendicular to "
+        "the view: on a 40 mm radius it projects within ~0.2 mm (r cos^2 / 2) of the outline",
+    )
+    fit_px: float = derived(2.0, "a surface point deeper than this into seen print lies outside the object's outline")
+    jackknife_blocks: int = derived(
+        16, "regions of the surface the placement's spread is measured over (as triangulation.jackknife_blocks)"
+    )
+    jackknife_rounds: int = budget(3, "Levenberg-Marquardt rounds per region left out, from the answer")
+    max_outside: float = unmeasured(
+        0.01,
+        "a placement fits the outline where at most this share of its points lie deeper than fit_px into "
+        "print a photo sees",
+    )
+    max_spread_px: float = derived(
+        0.5,
+        "... and its 1-sigma spread (block jackknife: the shift plus the turn's at the rim) is at most this at "
+        "the object's distance: 2 sigma within a pixel (as triangulation.max_spread_px)",
+    )
+    min_significance: float = derived(
+        3.0,
+        "a rival azimuth must fit the outlines worse by this many standard errors over photos (paired): "
+        "one-sided 0.1% were the photos' differences independent and normal (as triangulation.min_margin)",
+    )
+
+
+@dataclass(frozen=True)
 class RegistrationTuning:
     """The registration's tuned constants, one section per part (fixed per release; ``docs/tuning.md``)."""
 
@@ -277,6 +339,7 @@ class RegistrationTuning:
     sfm: SfmTuning = field(default_factory=SfmTuning)
     board: BoardTuning = field(default_factory=BoardTuning)
     triangulation: TriangulationTuning = field(default_factory=TriangulationTuning)
+    silhouette: SilhouetteTuning = field(default_factory=SilhouetteTuning)
 
 
 TUNING = RegistrationTuning()
