@@ -200,15 +200,13 @@ class Silhouettes:
         return (self._residuals(alignment, cap, fine) ** 2).mean(1).numpy()
 
     def _residuals(self, alignment: Alignment, cap: float, fine: bool, keep: np.ndarray | None = None) -> torch.Tensor:
-        import os
-
+        """The sweep's points' penetrations, or (``fine``) the fine points' (those ``keep`` selects)
+        penetrations and contour distances."""
         if not fine:
             return self.residuals(alignment, cap)
         p, n = self.fine_points, self.fine_normals
         if keep is not None:
             p, n = p[keep], n[keep]
-        if os.environ.get("ONESIDED"):
-            return self.residuals(alignment, cap, p)
         return self.residuals(alignment, cap, p, n)
 
     def refine(
@@ -258,9 +256,19 @@ class Silhouettes:
                 minima.append(found[i])
             if len(minima) == s.rivals + 1:
                 break
-        refined = [self.refine(m, s.cap_px, s.final_rounds, fine=True) for m in minima]
-        costs = [self.costs(a, fine=True) for a in refined]
-        best = int(np.argmin([c.mean() for c in costs]))
+        refined, costs = [], []
+        for m in minima:  # refined, two minima may meet: the better kept
+            a = self.refine(m, s.cap_px, s.final_rounds, fine=True)
+            refined.append(a)
+            costs.append(self.costs(a, fine=True))
+        order = np.argsort([c.mean() for c in costs])
+        kept: list[int] = []
+        for i in order:
+            yaw = _yaw_deg(refined[i])
+            if all(azimuth_apart(yaw, _yaw_deg(refined[j])) > TUNING.align.ambiguous_deg for j in kept):
+                kept.append(int(i))
+        refined, costs = [refined[i] for i in kept], [costs[i] for i in kept]
+        best = 0
         answer = refined[best]
         used = self.seen
         rivals = []

@@ -13,6 +13,7 @@ from ntp_engine.register.align import Alignment
 from ntp_engine.register.board_poses import first_placement
 from ntp_engine.register.check import confirmed_by_outline, outline_check, outline_fits
 from ntp_engine.register.photo_stack import PhotoStack
+from ntp_engine.register.refusal import refusal
 from ntp_engine.register.silhouette import Silhouettes, board_hits, board_seen, penetration, turned
 from ntp_engine.scanner import camera
 from ntp_engine.scanner.scan_folder import load_scan, read_photo
@@ -127,3 +128,5 @@ def test_a_mesh_that_is_not_the_objects_does_not_fit_the_outline(scene):
     found = outline.place(first_placement(bigger, list(camera_from_board)))
     check = outline_check(found, dict(zip(names, camera_from_board, strict=True)), names, bigger, photos.scanner.fx)
     assert not outline_fits(check) and not confirmed_by_outline(check), check.outline
+    why = refusal(check)
+    assert why is not None and why.startswith("the object's outline against the board does not fix"), why
