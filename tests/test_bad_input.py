@@ -230,6 +230,16 @@ CASES = {
         "needs a support",
         "scan.toml",
     ),
+    "scan_toml_mesh_accuracy_negative": Case(
+        _toml(b'mesh = "mesh.obj"\nphotos = "photos"\ndevice = "device.toml"\nmesh_accuracy_mm = -0.3\n'),
+        "key 'mesh_accuracy_mm': expected the mesh's accuracy in millimetres",
+        "scan.toml",
+    ),
+    "scan_toml_mesh_accuracy_not_a_number": Case(
+        _toml(b'mesh = "mesh.obj"\nphotos = "photos"\ndevice = "device.toml"\nmesh_accuracy_mm = "0.3 mm"\n'),
+        "key 'mesh_accuracy_mm': expected the mesh's accuracy in millimetres",
+        "scan.toml",
+    ),
     "mesh_missing": Case(_write("mesh.obj", None), "does not exist", "mesh.obj"),
     "mesh_garbage": Case(_write("mesh.obj", b"\x00\xffnot a mesh"), "mesh", "mesh.obj"),
     "mesh_in_millimetres": Case(_mesh(lambda m: _moved(m, scale=1000)), "is it in millimetres?", "mesh.obj"),

@@ -147,6 +147,7 @@ def check_registration(
     support_z: float | None,
     progress: Progress = QUIET,
     on_board: bool = False,
+    accuracy_m: float | None = None,
 ) -> PhotoCheck:
     """``alignment`` refined by the photos ``photos`` (of ``names``; similarity only: SfM's relative
     poses are kept), its rivals found by sweeping the azimuth over the whole circle and refined the
@@ -202,7 +203,7 @@ def check_registration(
         yaw = [_yaw_deg(a) for a, _ in trials]
         change = [(y - yaw[chosen] + 180.0) % 360.0 - 180.0 for y in yaw]
         pixel_m = object_distance(placed(best), judge.centre) / photos.scanner.fx
-        same_as = _SamePlacement(mesh, judge.centre, pixel_m, change)
+        same_as = _SamePlacement(mesh, judge.centre, pixel_m, change, accuracy_m)
         same, apart, own, same_turns, tolerance_m = (
             same_as.same,
             same_as.apart,
@@ -263,11 +264,16 @@ def _yaw_deg(alignment: Alignment) -> float:
 class _SamePlacement:
     """Which candidates (turned ``change`` degrees from the chosen one) are the chosen placement: within
     ``TUNING.align.ambiguous_deg`` of it — the same answer — or of one of the mesh's symmetries that
-    no photo of ``pixel_m`` metres a pixel can see (``align.equivalent_turns``) — the same asset.
-    Neither is a rival."""
+    no photo of ``pixel_m`` metres a pixel can see, nor the mesh's own accuracy ``accuracy_m`` tell
+    (``align.equivalent_turns``) — the same asset. Neither is a rival."""
 
-    def __init__(self, mesh: Mesh, centre: np.ndarray, pixel_m: float, change: list[float]):
-        self.tolerance_m = TUNING.check.symmetry_px * pixel_m  # closer than this, no photo sees the difference
+    def __init__(
+        self, mesh: Mesh, centre: np.ndarray, pixel_m: float, change: list[float], accuracy_m: float | None = None
+    ):
+        # closer than this, no photo sees the difference; nor is it one where the mesh is no more
+        # accurate than that (its stated 1-sigma error: a symmetric shape scanned so lies ~0.85-0.95
+        # sigma from its turned self)
+        self.tolerance_m = max(TUNING.check.symmetry_px * pixel_m, accuracy_m or 0.0)
         self.apart = turned_distance(mesh, centre, np.array(change))
         self.own = symmetry_profile(mesh, centre)
         self.turns = equivalent_turns(mesh, centre, self.tolerance_m, self.own)
@@ -285,7 +291,12 @@ def weakest_rival(significance: list[float]) -> float:
 
 
 def cloud_check(
-    alignment: Alignment, camera_from_board: dict[str, np.ndarray], names: list[str], mesh: Mesh, fx: float
+    alignment: Alignment,
+    camera_from_board: dict[str, np.ndarray],
+    names: list[str],
+    mesh: Mesh,
+    fx: float,
+    accuracy_m: float | None = None,
 ) -> PhotoCheck:
     """A placement on the marker board found from triangulated points (``align.align_on_board``),
     judged by its own fit: its rivals are the search's other start azimuths, equivalent where a
@@ -305,7 +316,7 @@ def cloud_check(
     change = [t for t, _, _ in found]
     placed = np.stack([alignment.camera_from_mesh(camera_from_board[n]) for n in names])
     pixel_m = object_distance(placed, centre) / fx
-    same_as = _SamePlacement(mesh, centre, pixel_m, change)
+    same_as = _SamePlacement(mesh, centre, pixel_m, change, accuracy_m)
     margin = weakest_rival([z for (_, _, z), eq in zip(found, same_as.same, strict=True) if not eq])
     candidates = [
         {
@@ -354,7 +365,12 @@ def cloud_check(
 
 
 def outline_check(
-    placement: SilhouettePlacement, camera_from_board: dict[str, np.ndarray], names: list[str], mesh: Mesh, fx: float
+    placement: SilhouettePlacement,
+    camera_from_board: dict[str, np.ndarray],
+    names: list[str],
+    mesh: Mesh,
+    fx: float,
+    accuracy_m: float | None = None,
 ) -> PhotoCheck:
     """A placement on the marker board found from the object's outline against the print
     (``Silhouettes.place``), judged by its own fit: its rivals are the sweep's other minima,
@@ -366,7 +382,7 @@ def outline_check(
     change = [0.0] + [t for t, _, _ in placement.rivals]
     placed = np.stack([alignment.camera_from_mesh(camera_from_board[n]) for n in names])
     pixel_m = object_distance(placed, centre) / fx
-    same_as = _SamePlacement(mesh, centre, pixel_m, change)
+    same_as = _SamePlacement(mesh, centre, pixel_m, change, accuracy_m)
     margin = weakest_rival([z for (_, z, _), eq in zip(placement.rivals, same_as.same[1:], strict=True) if not eq])
     costs = [float(placement.costs.mean())] + [c for _, _, c in placement.rivals]
     significance: list[float | None] = [None] + [z for _, z, _ in placement.rivals]
@@ -499,7 +515,7 @@ def register_to_mesh(scan: Scan, reg: SfmResult | BoardPoses, progress: Progress
         photos = _judged_photos(scan, judged, features, progress)
         icp = _board_alignment(scan, reg.poses, judged, [features[n] for n in judged], mesh, progress)
         if placed_by_points(icp):
-            by_points = cloud_check(icp, reg.poses, judged, mesh, scan.scanner.fx)
+            by_points = cloud_check(icp, reg.poses, judged, mesh, scan.scanner.fx, scan.mesh_accuracy_m)
             if confirmed_by_points(by_points):
                 t1 = time.perf_counter()
                 return MeshRegistration(icp, by_points, photos, judged, mesh, origin, t1 - t0, 0.0, by_points)
@@ -510,7 +526,7 @@ def register_to_mesh(scan: Scan, reg: SfmResult | BoardPoses, progress: Progress
         icp = first_placement(mesh, [reg.poses[n] for n in names])
         assert scan.board is not None  # board poses come from the scan's board
         outline = Silhouettes(photos, np.stack([reg.poses[n] for n in judged]), scan.board, mesh)
-        by_outline = outline_check(outline.place(icp), reg.poses, judged, mesh, photos.scanner.fx)
+        by_outline = outline_check(outline.place(icp), reg.poses, judged, mesh, photos.scanner.fx, scan.mesh_accuracy_m)
         if confirmed_by_outline(by_outline):
             t1 = time.perf_counter()
             return MeshRegistration(icp, by_outline, photos, judged, mesh, origin, t1 - t0, 0.0, by_points, by_outline)
@@ -520,7 +536,9 @@ def register_to_mesh(scan: Scan, reg: SfmResult | BoardPoses, progress: Progress
     t1 = time.perf_counter()
     if photos is None:
         photos = _judged_photos(scan, judged, None, progress)
-    check = check_registration(icp, reg.poses, photos, judged, mesh, support_z, progress, on_board=on_board)
+    check = check_registration(
+        icp, reg.poses, photos, judged, mesh, support_z, progress, on_board=on_board, accuracy_m=scan.mesh_accuracy_m
+    )
     return MeshRegistration(
         icp, check, photos, judged, mesh, origin, t1 - t0, time.perf_counter() - t1, by_points, by_outline
     )

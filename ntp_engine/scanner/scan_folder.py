@@ -36,7 +36,17 @@ from .device_file import load_scanner
 from .scanner import Scanner
 
 # scan.toml's keys
-SCAN_KEYS = ("mesh", "photos", "device", "poses", "colmap", "board", "support_plane", "support_light")
+SCAN_KEYS = (
+    "mesh",
+    "photos",
+    "device",
+    "poses",
+    "colmap",
+    "board",
+    "support_plane",
+    "support_light",
+    "mesh_accuracy_mm",
+)
 PHOTO_SUFFIXES = (".png", ".jpg", ".jpeg")
 # pixel formats a photo may hold: the camera's 8-bit codes, or them in a 16-bit file
 PHOTO_FORMATS = ("uint8", "uint16")
@@ -61,6 +71,8 @@ class Scan:
     support_light: bool = True  # the photos hold the light the support (and the object) reflect onto it
     board: Board | None = None  # the marker board the object stands on (registration uses it)
     board_path: Path | None = None
+    # the mesh's stated accuracy (1 sigma of its surface's error, metres: a shape scanner's spec), or None
+    mesh_accuracy_m: float | None = None
 
     @property
     def input_folders(self) -> tuple[Path, ...]:
@@ -149,6 +161,13 @@ def load_scan(
     board = read_board(board_path) if board_path else None
     if board is not None and not support:
         raise NtpInputError(toml, "key 'board': the object stands on the board, so it needs a support (support_plane)")
+    accuracy = table.get("mesh_accuracy_mm")
+    if accuracy is not None and (
+        isinstance(accuracy, bool) or not isinstance(accuracy, int | float) or not 0 < accuracy < 100
+    ):
+        raise NtpInputError(
+            toml, f"key 'mesh_accuracy_mm': expected the mesh's accuracy in millimetres (0 to 100), got {accuracy!r}"
+        )
     return Scan(
         folder,
         mesh,
@@ -161,6 +180,7 @@ def load_scan(
         support_light=light,
         board=board,
         board_path=board_path,
+        mesh_accuracy_m=None if accuracy is None else 1e-3 * float(accuracy),
     )
 
 
@@ -241,13 +261,17 @@ def write_scan_toml(
     comments: tuple[str, ...] = (),
     support_light: bool = True,
     board: str | None = None,
+    mesh_accuracy_mm: float | None = None,
 ) -> None:
     """Write ``folder/scan.toml`` naming the mesh, the photos folder and the device file (atomic),
-    the marker board's layout file where there is one, and ``support_light = false`` where asked;
+    the marker board's layout file where there is one, the mesh's accuracy where it is known, and
+    ``support_light = false`` where asked;
     ``comments`` become ``#`` lines around them, the first before, the rest after."""
     lines = [f"# {c}" for c in comments[:1]] + [f'mesh = "{mesh}"', f'photos = "{photos}"', f'device = "{device}"']
     if board is not None:
         lines.append(f'board = "{board}"  # the marker board the object stands on (ntp board)')
+    if mesh_accuracy_mm is not None:
+        lines.append(f"mesh_accuracy_mm = {mesh_accuracy_mm:.3g}  # the mesh's surface error, 1 sigma")
     if not support_light:
         lines.append("support_light = false  # the photos hold no light reflected by the support")
     lines += [f"# {c}" for c in comments[1:]] + [""]

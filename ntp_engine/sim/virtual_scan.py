@@ -319,7 +319,8 @@ def write_scan(
         (``given`` where there is one, the photographed ``mesh`` then in ``ground_truth/mesh.obj``),
         the device file at the photos' resolution, ``ground_truth/`` (maps, material labels when
         ``labels_from`` has them, poses, ``capture.json``), the marker board's layout (``board.json``)
-    where the object stands on one, and ``scan.toml``."""
+    where the object stands on one, and ``scan.toml`` (with the given mesh's ``surface_error`` as its
+    stated accuracy)."""
     gt = out / "ground_truth"
     gt.mkdir(parents=True, exist_ok=True)
     save_obj(out / "mesh.obj", mesh if given is None else given)
@@ -346,7 +347,22 @@ def write_scan(
         ),
         support_light=holds_support_light(capture),
         board=BOARD_FILE if board is not None else None,
+        mesh_accuracy_mm=None if given is None else 1e3 * surface_error(given, mesh),
     )
+
+
+def surface_error(given: Mesh, truth: Mesh, count: int = 50_000) -> float:
+    """The RMS distance (metres) of ``given``'s surface from ``truth``'s: area-uniform samples of
+    ``given``, each one's point-to-plane distance to the nearest of as many samples of ``truth`` —
+    what a shape scanner's spec states as its accuracy (1 sigma)."""
+    from scipy.spatial import cKDTree
+
+    from ..register.align import surface_samples
+
+    points = surface_samples(given, count, seed=2)
+    ref, normals = surface_samples(truth, 4 * count, seed=3, normals=True)
+    _, near = cKDTree(ref).query(points)
+    return float(np.sqrt(np.mean(((points - ref[near]) * normals[near]).sum(1) ** 2)))
 
 
 def true_mesh_path(scan: Path) -> Path:

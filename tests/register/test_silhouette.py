@@ -130,3 +130,21 @@ def test_a_mesh_that_is_not_the_objects_does_not_fit_the_outline(scene):
     assert not outline_fits(check) and not confirmed_by_outline(check), check.outline
     why = refusal(check)
     assert why is not None and why.startswith("the object's outline against the board does not fix"), why
+
+
+def test_a_noisy_symmetric_meshs_turn_is_equivalent_within_its_stated_accuracy():
+    from ntp_engine.register.check import _SamePlacement
+    from ntp_engine.sim.scanner_mesh import scanner_mesh
+    from ntp_engine.sim.shapes import box_mesh
+    from ntp_engine.sim.virtual_scan import surface_error
+
+    truth = box_mesh(n=24)
+    noisy = scanner_mesh(truth, seed=0, noise_m=3e-4)
+    accuracy = surface_error(noisy, truth)
+    centre = 0.5 * (noisy.vertices.min(0) + noisy.vertices.max(0))
+    pixel = 5e-4  # the benches' quarter size: the photos alone see 0.25 px = 0.13 mm
+    alone = _SamePlacement(noisy, centre, pixel, [0.0, 180.0, 90.0])
+    stated = _SamePlacement(noisy, centre, pixel, [0.0, 180.0, 90.0], accuracy)
+    # the half turn moves the noisy mesh ~0.85 sigma from itself: beyond what a photo sees, within
+    # what the mesh itself can say; a quarter turn of a 9 x 6.5 cm box is no symmetry at any accuracy
+    assert alone.same == [True, False, False] and stated.same == [True, True, False], (accuracy, alone.apart)
