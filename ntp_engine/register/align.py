@@ -609,10 +609,16 @@ def equivalent_turns(
     away = np.abs(turns) > TUNING.align.ambiguous_deg
     if (d[away] <= tolerance_m).all():
         return None
-    out = []
+    found = []
     for i in np.nonzero(_local_minima(turns, d) & (d <= tolerance_m))[0]:
         turn, dist = _refined_minimum(mesh, centre, float(turns[i]), float(d[i]))
         if dist <= tolerance_m:
+            found.append((dist, turn))
+    # a noisy mesh's profile dips more than once about one symmetry: minima within
+    # TUNING.align.ambiguous_deg of a closer one are that one (as candidates are)
+    out: list[float] = []
+    for _, turn in sorted(found):
+        if all(azimuth_apart(turn, t) > TUNING.align.ambiguous_deg for t in out):
             out.append(turn)
     return sorted(out) if is_turn_group(out) else []
 

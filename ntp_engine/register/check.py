@@ -270,10 +270,10 @@ class _SamePlacement:
     def __init__(
         self, mesh: Mesh, centre: np.ndarray, pixel_m: float, change: list[float], accuracy_m: float | None = None
     ):
-        # closer than this, no photo sees the difference; nor is it one where the mesh is no more
-        # accurate than that (its stated 1-sigma error: a symmetric shape scanned so lies ~0.85-0.95
-        # sigma from its turned self)
-        self.tolerance_m = max(TUNING.check.symmetry_px * pixel_m, accuracy_m or 0.0)
+        # closer than this, no photo sees the difference; nor does the mesh where two independent
+        # errors of its stated 1 sigma would differ by as much (RMS sqrt(2) sigma: a symmetric shape
+        # scanned so lies a median 0.95 sigma from its turned self for Gaussian errors)
+        self.tolerance_m = max(TUNING.check.symmetry_px * pixel_m, np.sqrt(2.0) * (accuracy_m or 0.0))
         self.apart = turned_distance(mesh, centre, np.array(change))
         self.own = symmetry_profile(mesh, centre)
         self.turns = equivalent_turns(mesh, centre, self.tolerance_m, self.own)

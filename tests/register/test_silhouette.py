@@ -146,5 +146,6 @@ def test_a_noisy_symmetric_meshs_turn_is_equivalent_within_its_stated_accuracy()
     alone = _SamePlacement(noisy, centre, pixel, [0.0, 180.0, 90.0])
     stated = _SamePlacement(noisy, centre, pixel, [0.0, 180.0, 90.0], accuracy)
     # the half turn moves the noisy mesh ~0.85 sigma from itself: beyond what a photo sees, within
-    # what the mesh itself can say; a quarter turn of a 9 x 6.5 cm box is no symmetry at any accuracy
+    # what two scans of one box would differ by (sqrt(2) sigma); a quarter turn of a 9 x 6.5 cm box
+    # is no symmetry at any accuracy
     assert alone.same == [True, False, False] and stated.same == [True, True, False], (accuracy, alone.apart)
