@@ -634,6 +634,11 @@ def is_turn_group(turns_deg: list[float]) -> bool:
     return all(min(azimuth_apart(a + b, c) for c in found) <= close for a in found for b in found)
 
 
+def yaw_deg(alignment: Alignment) -> float:
+    """The alignment's turn about the vertical (degrees)."""
+    return float(np.degrees(np.arctan2(alignment.rotation[1, 0], alignment.rotation[0, 0])))
+
+
 def azimuth_apart(a_deg: float, b_deg: float) -> float:
     """The angle between two azimuths, degrees in [0, 180]."""
     return abs((a_deg - b_deg + 180.0) % 360.0 - 180.0)

@@ -31,6 +31,7 @@ from .align import (
     mesh_symmetry,
     symmetry_profile,
     turned_distance,
+    yaw_deg,
 )
 from .board_poses import BoardPoses, first_placement
 from .photo_stack import PhotoStack
@@ -200,7 +201,7 @@ def check_registration(
             steps.update()
         chosen = int(np.argmin([fit.cost for _, fit in trials]))
         best = trials[chosen][0]
-        yaw = [_yaw_deg(a) for a, _ in trials]
+        yaw = [yaw_deg(a) for a, _ in trials]
         change = [(y - yaw[chosen] + 180.0) % 360.0 - 180.0 for y in yaw]
         pixel_m = object_distance(placed(best), judge.centre) / photos.scanner.fx
         same_as = _SamePlacement(mesh, judge.centre, pixel_m, change, accuracy_m)
@@ -256,11 +257,6 @@ def check_registration(
         )
 
 
-def _yaw_deg(alignment: Alignment) -> float:
-    """The alignment's turn about the vertical (degrees)."""
-    return float(np.degrees(np.arctan2(alignment.rotation[1, 0], alignment.rotation[0, 0])))
-
-
 class _SamePlacement:
     """Which candidates (turned ``change`` degrees from the chosen one) are the chosen placement: within
     ``TUNING.align.ambiguous_deg`` of it — the same answer — or of one of the mesh's symmetries that
@@ -304,36 +300,25 @@ def cloud_check(
     worse — the least of the rivals' ``Alignment.candidate_z`` (the paired difference of their
     points' terms over its standard error between surface regions). ``fx``: the photos' focal
     length in pixels, for the symmetry's tolerance."""
-    centre = 0.5 * (mesh.vertices.min(0) + mesh.vertices.max(0))
-    chosen_yaw = _yaw_deg(alignment)
+    chosen_yaw = yaw_deg(alignment)
     # the starts converge to few azimuths: one candidate each (within a degree), the best score kept
-    found: list[tuple[float, float, float]] = []
+    found: list[tuple[float, float, float | None]] = []
     for (azimuth, score), z in zip(alignment.candidates, alignment.candidate_z, strict=True):  # best first
         turn = (azimuth - chosen_yaw + 180.0) % 360.0 - 180.0
         if all(azimuth_apart(turn, t) > 1.0 for t, _, _ in found):
             found.append((turn, score, z))
     found.sort(key=lambda c: abs(c[0]))  # the chosen placement first
-    change = [t for t, _, _ in found]
-    placed = np.stack([alignment.camera_from_mesh(camera_from_board[n]) for n in names])
-    pixel_m = object_distance(placed, centre) / fx
-    same_as = _SamePlacement(mesh, centre, pixel_m, change, accuracy_m)
-    margin = weakest_rival([z for (_, _, z), eq in zip(found, same_as.same, strict=True) if not eq])
-    candidates = [
-        {
-            "azimuth_change_deg": t,
-            "coarse_cost": score,
-            "significance": z if np.isfinite(z) else None,
-            "mesh_turned_mm": 1e3 * d,
-            "equivalent": bool(eq),
-        }
-        for (t, score, z), d, eq in zip(found, same_as.apart, same_as.same, strict=True)
-    ]
-    turn, turned_m = mesh_symmetry(mesh, centre, same_as.own)
-    # the placement's 1-sigma spread where it moves the surface most: the shift plus the azimuth's at the rim
-    rim_m = float(np.linalg.norm(mesh.vertices[:, :2] - centre[:2], axis=1).max())
-    turning = 0.0 if same_as.turns is None else rim_m * alignment.azimuth_sigma  # a body of revolution: any turn
-    spread_m = float(np.linalg.norm(alignment.shift_sigma) + turning)
-    cloud = {
+    check, spread_m, pixel_m = _judged_by_own_fit(
+        alignment,
+        found,
+        [alignment.camera_from_mesh(camera_from_board[n]) for n in names],
+        mesh,
+        fx,
+        accuracy_m,
+        (alignment.azimuth_sigma, alignment.shift_sigma),
+    )
+    check.profile = sorted((t, score) for t, score, _ in found)
+    check.cloud = {
         "spread_mm": 1e3 * spread_m if np.isfinite(spread_m) else None,
         "spread_px": spread_m / pixel_m if np.isfinite(spread_m) else None,
         "azimuth_sigma_deg": float(np.degrees(alignment.azimuth_sigma))
@@ -346,22 +331,7 @@ def cloud_check(
         "residual_mm": 1e3 * alignment.residual_m,
         "board_points": alignment.support_points,
     }
-    return PhotoCheck(
-        alignment,
-        PhotometricFit(float("nan"), float("nan"), 0, 0),
-        float("nan"),
-        float(margin),
-        candidates,
-        0,
-        sorted((t, score) for t, score, _ in found),
-        [],
-        (turn, 1e3 * turned_m),
-        1e3 * same_as.tolerance_m,
-        False,
-        1e3 * pixel_m,
-        same_as.turns,
-        cloud,
-    )
+    return check
 
 
 def outline_check(
@@ -377,35 +347,60 @@ def outline_check(
     equivalent where a symmetry of the mesh relates them; ``margin``: the least significance of the
     others (how many standard errors over photos they fit the outlines worse); ``outline``: the fit,
     its jackknife spread (px at the object's distance) and the share of points outside the outline."""
+    found: list[tuple[float, float, float | None]] = [(0.0, float(placement.costs.mean()), None)]
+    found += [(t, c, z) for t, z, c in placement.rivals]
     alignment = placement.alignment
+    check, spread_m, pixel_m = _judged_by_own_fit(
+        alignment,
+        found,
+        [alignment.camera_from_mesh(camera_from_board[n]) for n in names],
+        mesh,
+        fx,
+        accuracy_m,
+        (placement.turn_sigma, np.concatenate([placement.shift_sigma, [0.0]])),
+    )
+    check.outline = {**placement.to_json(), "spread_mm": 1e3 * spread_m, "spread_px": spread_m / pixel_m}
+    return check
+
+
+def _judged_by_own_fit(
+    alignment: Alignment,
+    found: list[tuple[float, float, float | None]],
+    placed: list[np.ndarray],
+    mesh: Mesh,
+    fx: float,
+    accuracy_m: float | None,
+    sigma: tuple[float, np.ndarray],
+) -> tuple[PhotoCheck, float, float]:
+    """A metric placement judged by its own fit (points or outline): ``found`` its candidates as
+    (turn from it in degrees, score, significance; the placement itself first), ``placed`` the
+    cameras it puts (camera from mesh), ``sigma`` its 1-sigma turn (radians) and shift ``(3,)``
+    (metres). The check (margin: the least significance of the rivals no symmetry of the mesh
+    relates), its spread where it moves the surface most (metres: the shift plus the turn's at the
+    rim; no turn for a body of revolution) and a photo pixel at the object's distance (metres)."""
     centre = 0.5 * (mesh.vertices.min(0) + mesh.vertices.max(0))
-    change = [0.0] + [t for t, _, _ in placement.rivals]
-    placed = np.stack([alignment.camera_from_mesh(camera_from_board[n]) for n in names])
-    pixel_m = object_distance(placed, centre) / fx
-    same_as = _SamePlacement(mesh, centre, pixel_m, change, accuracy_m)
-    margin = weakest_rival([z for (_, z, _), eq in zip(placement.rivals, same_as.same[1:], strict=True) if not eq])
-    costs = [float(placement.costs.mean())] + [c for _, _, c in placement.rivals]
-    significance: list[float | None] = [None] + [z for _, z, _ in placement.rivals]
+    pixel_m = object_distance(np.stack(placed), centre) / fx
+    same_as = _SamePlacement(mesh, centre, pixel_m, [t for t, _, _ in found], accuracy_m)
+    rivals = [np.nan if z is None else z for (_, _, z), eq in zip(found, same_as.same, strict=True) if not eq]
     candidates = [
         {
             "azimuth_change_deg": t,
-            "coarse_cost": c,
-            "significance": z,
+            "coarse_cost": score,
+            "significance": z if z is not None and np.isfinite(z) else None,
             "mesh_turned_mm": 1e3 * d,
             "equivalent": bool(eq),
         }
-        for t, c, z, d, eq in zip(change, costs, significance, same_as.apart, same_as.same, strict=True)
+        for (t, score, z), d, eq in zip(found, same_as.apart, same_as.same, strict=True)
     ]
     turn, turned_m = mesh_symmetry(mesh, centre, same_as.own)
     rim_m = float(np.linalg.norm(mesh.vertices[:, :2] - centre[:2], axis=1).max())
-    turning = 0.0 if same_as.turns is None else rim_m * placement.turn_sigma  # a body of revolution: any turn
-    spread_m = float(np.linalg.norm(placement.shift_sigma) + turning)
-    outline = {**placement.to_json(), "spread_mm": 1e3 * spread_m, "spread_px": spread_m / pixel_m}
-    return PhotoCheck(
+    turning = 0.0 if same_as.turns is None else rim_m * sigma[0]  # a body of revolution: any turn
+    spread_m = float(np.linalg.norm(sigma[1]) + turning)
+    check = PhotoCheck(
         alignment,
         PhotometricFit(float("nan"), float("nan"), 0, 0),
         float("nan"),
-        float(margin),
+        float(weakest_rival(rivals)),
         candidates,
         0,
         [],
@@ -415,9 +410,8 @@ def outline_check(
         False,
         1e3 * pixel_m,
         same_as.turns,
-        None,
-        outline,
     )
+    return check, spread_m, pixel_m
 
 
 def outline_fits(check: PhotoCheck) -> bool:

@@ -10,8 +10,10 @@ errors (which defeat the shading's check) do not touch it, and its 0.1-0.3 mm of
 a fraction of a pixel at the benches' sizes.
 
 ``Silhouettes`` sweeps the mesh's azimuth on the board over the whole circle, each start's azimuth
-and shift on the plane refined by Levenberg-Marquardt on the penetrations, and compares the best
-placement with its rivals per photo (a paired test whose unit is a photo).
+and shift on the plane refined by Levenberg-Marquardt on the penetrations, refines the distinct
+minima with the contour generator's points held to the outline from inside too, compares the best
+placement with its rivals per photo (a paired test whose unit is a photo) and measures its spread
+by a block jackknife over surface regions.
 
 Convention: camera_from_board poses rigid 4x4 (OpenCV axes); the board frame in metres, z out of the
 paper; ``Alignment`` maps the board frame to the mesh frame (scale 1); turns in radians about the
@@ -31,7 +33,7 @@ from ..io.mesh import Mesh
 from ..scanner import camera
 from ..scanner.board import Board
 from ..scanner.scanner import Scanner
-from .align import Alignment, azimuth_apart, surface_samples
+from .align import Alignment, azimuth_apart, surface_samples, yaw_deg
 from .photo_stack import PhotoStack
 from .settings import TUNING
 
@@ -212,8 +214,9 @@ class Silhouettes:
     def refine(
         self, alignment: Alignment, cap: float, rounds: int, fine: bool = False, keep: np.ndarray | None = None
     ) -> Alignment:
-        """Levenberg-Marquardt on the capped penetrations over the turn about the vertical and the
-        shift along the board (numerical Jacobian: three parameters), from ``alignment``."""
+        """Levenberg-Marquardt on the capped residuals (``_residuals``: ``fine`` adds the contour's,
+        ``keep`` selects fine points) over the turn about the vertical and the shift along the board
+        (numerical Jacobian: three parameters), from ``alignment``."""
         step = np.array([TUNING.silhouette.jacobian_rad, *(2 * [TUNING.silhouette.jacobian_m])])
         lam, current = 1e-3, alignment
         r0 = self._residuals(current, cap, fine, keep).flatten().numpy()
@@ -251,8 +254,8 @@ class Silhouettes:
         coarse = [float(self.costs(a, s.sweep_cap_px).mean()) for a in found]
         minima: list[Alignment] = []
         for i in np.argsort(coarse):  # distinct minima, best first
-            yaw = _yaw_deg(found[i])
-            if all(azimuth_apart(yaw, _yaw_deg(m)) > TUNING.align.ambiguous_deg for m in minima):
+            yaw = yaw_deg(found[i])
+            if all(azimuth_apart(yaw, yaw_deg(m)) > TUNING.align.ambiguous_deg for m in minima):
                 minima.append(found[i])
             if len(minima) == s.rivals + 1:
                 break
@@ -264,27 +267,23 @@ class Silhouettes:
         order = np.argsort([c.mean() for c in costs])
         kept: list[int] = []
         for i in order:
-            yaw = _yaw_deg(refined[i])
-            if all(azimuth_apart(yaw, _yaw_deg(refined[j])) > TUNING.align.ambiguous_deg for j in kept):
+            yaw = yaw_deg(refined[i])
+            if all(azimuth_apart(yaw, yaw_deg(refined[j])) > TUNING.align.ambiguous_deg for j in kept):
                 kept.append(int(i))
         refined, costs = [refined[i] for i in kept], [costs[i] for i in kept]
-        best = 0
-        answer = refined[best]
-        used = self.seen
+        answer, used = refined[0], self.seen
         rivals = []
-        for i, (a, c) in enumerate(zip(refined, costs, strict=True)):
-            if i == best:
-                continue
-            diff = (c - costs[best])[used]
+        for a, c in zip(refined[1:], costs[1:], strict=True):
+            diff = (c - costs[0])[used]
             se = diff.std(ddof=1) / np.sqrt(diff.size) if diff.size > 1 else 0.0
             z = float(diff.mean() / se) if se > 0 else float(np.sign(diff.mean()) * np.inf)
-            turn = (_yaw_deg(a) - _yaw_deg(answer) + 180.0) % 360.0 - 180.0
+            turn = (yaw_deg(a) - yaw_deg(answer) + 180.0) % 360.0 - 180.0
             rivals.append((float(turn), z, float(c.mean())))
         rivals.sort(key=lambda r: r[1])
         depth = self.residuals(answer, 1e6, self.fine_points)[torch.as_tensor(used)]  # penetrations alone
         outside = float((depth > s.fit_px).double().mean())
         turn_sigma, shift_sigma = self.spread(answer, s.jackknife_blocks)
-        return SilhouettePlacement(answer, costs[best], outside, rivals, int(used.sum()), turn_sigma, shift_sigma)
+        return SilhouettePlacement(answer, costs[0], outside, rivals, int(used.sum()), turn_sigma, shift_sigma)
 
     def spread(self, answer: Alignment, blocks: int) -> tuple[float, np.ndarray]:
         """The 1-sigma spread of ``answer``'s turn (radians) and shift along the board ``(2,)`` (metres)
@@ -293,18 +292,13 @@ class Silhouettes:
         deformation is alike over a region and moves every photo's outline there alike: it counts once
         per region, not once per photo."""
         _, label = kmeans2(self.fine_points, blocks, seed=0, minit="++")
-        yaw0 = np.radians(_yaw_deg(answer))
+        yaw0 = np.radians(yaw_deg(answer))
         runs = []
         for k in range(blocks):
             a = self.refine(answer, TUNING.silhouette.cap_px, TUNING.silhouette.jackknife_rounds, True, label != k)
-            turn = (np.radians(_yaw_deg(a)) - yaw0 + np.pi) % (2 * np.pi) - np.pi
+            turn = (np.radians(yaw_deg(a)) - yaw0 + np.pi) % (2 * np.pi) - np.pi
             base = turned(answer, turn, np.zeros(2), self.pivot)
             runs.append([turn, *(a.translation - base.translation)[:2]])
         r = np.array(runs)
         sigma = np.sqrt((blocks - 1) / blocks * ((r - r.mean(0)) ** 2).sum(0))
         return float(sigma[0]), sigma[1:]
-
-
-def _yaw_deg(alignment: Alignment) -> float:
-    """The alignment's turn about the vertical (degrees)."""
-    return float(np.degrees(np.arctan2(alignment.rotation[1, 0], alignment.rotation[0, 0])))
