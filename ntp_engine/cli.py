@@ -144,7 +144,14 @@ def _alignment_note(reg: dict) -> str:
             f", placed by {points['inliers']} of {points['object_points']} points triangulated on the object "
             f"({points['residual_mm']:.2f} mm RMS from the mesh), {margin}{forced}{symmetry}"
         )
-    return f", registration confirmed by the photos: sharpness {ph['sharpness']:.2f}, {margin}{forced}{symmetry}"
+    outline = ph.get("outline")
+    if outline is not None:  # placed on the marker board by the object's outline against the print
+        return (
+            f", placed by the object's outline against the board over {outline['photos']} photos "
+            f"(spread {outline['spread_mm']:.2f} mm), {margin}{forced}{symmetry}"
+        )
+    sharpness = "unmeasured" if ph["sharpness"] is None else f"{ph['sharpness']:.2f}"
+    return f", registration confirmed by the photos: sharpness {sharpness}, {margin}{forced}{symmetry}"
 
 
 # ------------------------------------------------------------------------------------ handlers

@@ -299,7 +299,7 @@ def cloud_check(
     symmetry of the mesh relates them; ``margin``: how significantly the best rival fits the points
     worse — the least of the rivals' ``Alignment.candidate_z`` (the paired difference of their
     points' terms over its standard error between surface regions). ``fx``: the photos' focal
-    length in pixels, for the symmetry's tolerance."""
+    length in pixels, and ``accuracy_m`` the mesh's stated accuracy, for the symmetry's tolerance."""
     chosen_yaw = yaw_deg(alignment)
     # the starts converge to few azimuths: one candidate each (within a degree), the best score kept
     found: list[tuple[float, float, float | None]] = []
@@ -346,7 +346,8 @@ def outline_check(
     (``Silhouettes.place``), judged by its own fit: its rivals are the sweep's other minima,
     equivalent where a symmetry of the mesh relates them; ``margin``: the least significance of the
     others (how many standard errors over photos they fit the outlines worse); ``outline``: the fit,
-    its jackknife spread (px at the object's distance) and the share of points outside the outline."""
+    its jackknife spread (px at the object's distance) and the share of points outside the outline.
+    ``fx`` (the working size's) and ``accuracy_m`` as ``cloud_check``'s."""
     found: list[tuple[float, float, float | None]] = [(0.0, float(placement.costs.mean()), None)]
     found += [(t, c, z) for t, z, c in placement.rivals]
     alignment = placement.alignment

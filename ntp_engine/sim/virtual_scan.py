@@ -30,6 +30,7 @@ from pathlib import Path
 import numpy as np
 import torch
 from scipy import ndimage
+from scipy.spatial import cKDTree
 
 from ..io.assets import DEMO_DIR
 from ..io.atomic import write_text_atomic
@@ -39,6 +40,7 @@ from ..io.maps import SVBRDFMaps
 from ..io.mesh import Mesh, load_mesh, save_obj
 from ..io.output_folder import claim
 from ..io.progress import QUIET, Progress
+from ..register.align import surface_samples
 from ..scanner import camera
 from ..scanner.board import Board, board_for_paper
 from ..scanner.device_file import load_scanner, save_scanner
@@ -355,10 +357,6 @@ def surface_error(given: Mesh, truth: Mesh, count: int = 50_000) -> float:
     """The RMS distance (metres) of ``given``'s surface from ``truth``'s: area-uniform samples of
     ``given``, each one's point-to-plane distance to the nearest of as many samples of ``truth`` —
     what a shape scanner's spec states as its accuracy (1 sigma)."""
-    from scipy.spatial import cKDTree
-
-    from ..register.align import surface_samples
-
     points = surface_samples(given, count, seed=2)
     ref, normals = surface_samples(truth, 4 * count, seed=3, normals=True)
     _, near = cKDTree(ref).query(points)

@@ -24,5 +24,15 @@ def test_the_scouts_are_smaller_than_what_they_scout_for():
 def test_every_section_is_listed_with_provenance():
     rows = provenance(RegistrationTuning)
     sections = {r.name.split(".")[0] for r in rows}
-    assert sections == {"stack", "photometric", "check", "refusal", "align", "sfm", "board", "triangulation"}
+    assert sections == {
+        "stack",
+        "photometric",
+        "check",
+        "refusal",
+        "align",
+        "sfm",
+        "board",
+        "triangulation",
+        "silhouette",
+    }
     assert {r.kind for r in rows} <= set(Kind)
