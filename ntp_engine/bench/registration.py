@@ -149,11 +149,7 @@ def run(
                         sharpness=check.sharpness if np.isfinite(check.sharpness) else None,
                         photometric_margin=check.margin if np.isfinite(check.margin) else None,
                         agreement=check.fit.agreement if np.isfinite(check.fit.agreement) else None,
-                        placed_by="points"
-                        if check.cloud is not None
-                        else "outline"
-                        if check.outline is not None
-                        else "photos",
+                        placed_by=check.placed_by,
                         accepted=why is None,
                         refusal=why,
                         candidate_rotation_deg=near,
@@ -213,7 +209,8 @@ def _true_symmetry(scan_dir: Path, pixel_m: float) -> tuple[np.ndarray, list[flo
     mesh: no scanner's noise in it)."""
     true_mesh = load_mesh(true_mesh_path(scan_dir))
     centre = 0.5 * (true_mesh.vertices.min(0) + true_mesh.vertices.max(0))
-    turns = equivalent_turns(true_mesh, centre, TUNING.check.symmetry_px * (pixel_m if np.isfinite(pixel_m) else 5e-4))
+    pixel_m = pixel_m if np.isfinite(pixel_m) else 5e-4  # unmeasured: the benches' quarter-size pixel
+    turns = equivalent_turns(true_mesh, centre, TUNING.check.symmetry_px * pixel_m)
     return centre, turns
 
 

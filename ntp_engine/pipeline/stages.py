@@ -258,13 +258,11 @@ def _register_stage(
         (d / "poses.json").write_text(json.dumps({n: al.camera_from_mesh(reg.poses[n]).tolist() for n in names}))
         found: dict
         if isinstance(reg, BoardPoses):
-            placement = (
-                "points triangulated on the board"
-                if check.cloud is not None
-                else "the object's outline against the board"
-                if check.outline is not None
-                else "the photometric check"
-            )
+            placement = {
+                "points": "points triangulated on the board",
+                "outline": "the object's outline against the board",
+                "photos": "the photometric check",
+            }[check.placed_by]
             points, outline = placed.by_points, placed.by_outline
             found = {
                 "board": reg.to_json(),

@@ -86,6 +86,12 @@ class PhotoCheck:
     # placed by the object's outline against the marker board (``outline_check``): its fit
     outline: dict | None = None
 
+    @property
+    def placed_by(self) -> str:
+        """What placed the mesh: ``"points"`` (``cloud_check``), ``"outline"`` (``outline_check``) or
+        ``"photos"`` (``check_registration``)."""
+        return "points" if self.cloud is not None else "outline" if self.outline is not None else "photos"
+
     def to_json(self) -> dict:
         """The check as JSON values (``registration.json`` -> ``photometric``)."""
         return {

@@ -274,7 +274,6 @@ class SilhouetteTuning:
     min_paper_px: int = unmeasured(
         500, "a photo with fewer white-paper pixels than this has no gain fit (sees no print)"
     )
-    tukey: float = derived(4.685, "Tukey's biweight constant in robust sigmas: 95% efficiency on Gaussian residuals")
     gain_rounds: int = budget(8, "reweightings of the print's gain fit")
     ink_floor: float = derived(
         0.05,

@@ -81,7 +81,7 @@ def board_seen(
     A = _gain_basis(xy[white])
     r = np.log(np.maximum(lum[white], 1e-6) / albedo[white])
     w = np.ones_like(r)
-    k = TUNING.silhouette.tukey
+    k = TUNING.triangulation.tukey  # Tukey's biweight constant: one home for it
     for _ in range(TUNING.silhouette.gain_rounds):
         coef = np.linalg.lstsq(A * w[:, None], r * w, rcond=None)[0]
         e = r - A @ coef
@@ -185,7 +185,8 @@ class Silhouettes:
         h, w = self.fields.shape[-2:]
         grid = torch.stack([2 * px[..., 0] / (w - 1) - 1, 2 * px[..., 1] / (h - 1) - 1], -1).float()
         grid = torch.nan_to_num(grid, nan=2.0)  # behind a camera: outside
-        d = F.grid_sample(self.fields, grid[:, :, None], mode="bilinear", padding_mode="zeros", align_corners=True)
+        fields = self.fields if normals is not None else self.fields[:, :1]  # the contour's field only with normals
+        d = F.grid_sample(fields, grid[:, :, None], mode="bilinear", padding_mode="zeros", align_corners=True)
         d = (cap * torch.tanh(d[..., 0].double() / cap)).nan_to_num(0.0)  # (V, 2, N)
         if normals is None:
             return d[:, 0]
