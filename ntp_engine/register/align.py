@@ -78,11 +78,11 @@ def convergence_point(camera_from_world: list[np.ndarray]) -> np.ndarray:
 
 
 def camera_similarity(
-    poses: dict[str, np.ndarray], target: dict[str, np.ndarray]
+    poses: dict[str, np.ndarray], target: dict[str, np.ndarray], scale: bool = True
 ) -> tuple[float, np.ndarray, np.ndarray] | None:
     """The similarity ``x_target = s R x + t`` that best fits the camera centres of ``poses``
     (camera-from-world 4x4, any frame and scale) to those of the same names in ``target`` (Umeyama,
-    least squares); None with fewer than 3 names in common."""
+    least squares; ``s`` = 1 without ``scale``); None with fewer than 3 names in common."""
     names = [n for n in poses if n in target]
     if len(names) < 3:
         return None
@@ -92,7 +92,7 @@ def camera_similarity(
     U, S, Vt = np.linalg.svd((a - ma).T @ (b - mb))
     d = np.array([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
     R = Vt.T @ np.diag(d) @ U.T
-    s = float((S * d).sum() / max(float(((a - ma) ** 2).sum()), 1e-300))
+    s = float((S * d).sum() / max(float(((a - ma) ** 2).sum()), 1e-300)) if scale else 1.0
     return s, R, mb - s * R @ ma
 
 

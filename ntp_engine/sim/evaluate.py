@@ -425,11 +425,14 @@ def pose_error_modulo(
     return {**out, "symmetry_turn_deg": turn} if out else {}
 
 
-def similarity_fit(poses: dict[str, np.ndarray], truth: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+def similarity_fit(
+    poses: dict[str, np.ndarray], truth: dict[str, np.ndarray], scale: bool = True
+) -> dict[str, np.ndarray]:
     """``poses`` (camera-from-world in an arbitrary frame and scale) moved by the similarity that best
     fits their camera centres to the true ones (Umeyama, least squares): what is left of their
-    error once the 7 degrees of freedom no photo can know are taken out — SfM's own error."""
-    fit = camera_similarity(poses, truth)
+    error once the 7 degrees of freedom no photo can know are taken out — SfM's own error. Without
+    ``scale``, a rigid motion (6 degrees of freedom): metric poses' own error (the board's)."""
+    fit = camera_similarity(poses, truth, scale)
     if fit is None:
         return {}
     return {n: moved_pose(poses[n], *fit) for n in poses if n in truth}

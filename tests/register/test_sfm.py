@@ -63,6 +63,14 @@ def test_similarity_fit_takes_out_exactly_a_similarity():
     err = pose_error(similarity_fit(moved, truth), truth)
     assert err["centre_max_m"] < 1e-9 and err["rotation_max_deg"] < 1e-5
     assert similarity_fit({"0": truth["0"]}, truth) == {}
+    # a rigid fit (metric poses: the board's) takes out the motion and leaves the scale's error
+    rigid = pose_error(similarity_fit(moved, truth, scale=False), truth)
+    assert rigid["rotation_max_deg"] < 1e-5 and rigid["centre_median_m"] > 0.1
+    metric = {n: m.copy() for n, m in moved.items()}
+    for m in metric.values():
+        m[:3, 3] *= scale  # the same cameras, metric: only the motion is left
+    err = pose_error(similarity_fit(metric, truth, scale=False), truth)
+    assert err["centre_max_m"] < 1e-9 and err["rotation_max_deg"] < 1e-5
 
 
 def test_auto_picks_the_mapper_by_photo_count():
