@@ -107,8 +107,9 @@ def run(
                             # the board's poses' own error, whatever placement the mesh gets: the
                             # floor every placement's camera errors stand on
                             own = pose_error(similarity_fit(reg.poses, truth, scale=False), truth)
-                            row["board_centre_mm"] = own["centre_median_m"] * 1e3
-                            row["board_rotation_deg"] = own["rotation_median_deg"]
+                            if own:  # at least 3 photos placed
+                                row["board_centre_mm"] = own["centre_median_m"] * 1e3
+                                row["board_rotation_deg"] = own["rotation_median_deg"]
                         else:
                             reg, row["seconds_sfm"] = _sfm(
                                 scan_dir, out / "sfm" / f"{name}-{scanner}-s{seed}", seed, progress
