@@ -512,10 +512,13 @@ class PhotometricRegistration:
 
     def _rise(self, poses: np.ndarray, cost: Callable[[np.ndarray], float]) -> float:
         """Mean relative rise of ``cost`` (of the correction's parameters) when ``poses`` move
-        ``TUNING.photometric.sharpness_shift_px`` (at the object's distance) either way along each mesh axis."""
+        ``TUNING.photometric.sharpness_shift_px`` (at the object's distance) either way along each mesh axis;
+        NaN where the cost at ``poses`` is not finite (nothing seen there to measure the rise against)."""
         distance = object_distance(poses, self.centre)
         shift = TUNING.photometric.sharpness_shift_px * distance / self.scanner.fx / self.size
         base = cost(np.zeros(7))
+        if not np.isfinite(base):
+            return float("nan")
         moved = [cost(np.eye(7)[3 + axis] * sign * shift) for axis in range(3) for sign in (-1, 1)]
         return float(np.mean(moved) / max(base, 1e-12) - 1)
 

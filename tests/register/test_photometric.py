@@ -2,6 +2,7 @@
 finds a known error of the poses again from the photos alone."""
 
 import math
+import warnings
 from types import SimpleNamespace
 
 import numpy as np
@@ -49,6 +50,19 @@ def test_a_residual_that_is_not_finite_is_no_observation():
     e, used, fit = PhotometricRegistration._cost(SimpleNamespace(field=field), r, ok)  # type: ignore[arg-type]
     assert torch.isfinite(e).all() and math.isfinite(fit.cost)
     assert not used[2, :40].any() and used[2, 40:].all() and fit.observations == clean[2].observations - 40
+
+
+def test_a_sharpness_with_nothing_seen_is_nan_without_a_warning():
+    # the texture's cost is inf where no point is seen (a registration SfM put nowhere near the object):
+    # the rise cannot be measured, and inf / inf must not reach numpy as a division
+    judge = SimpleNamespace(centre=np.zeros(3), scanner=SimpleNamespace(fx=1000.0), size=0.1)
+    poses = np.tile(np.eye(4), (3, 1, 1))
+    poses[:, 2, 3] = 0.3
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        unseen = PhotometricRegistration._rise(judge, poses, lambda p: float("inf"))  # type: ignore[arg-type]
+        rising = PhotometricRegistration._rise(judge, poses, lambda p: 1.0 + float(np.abs(p).sum() > 0))  # type: ignore[arg-type]
+    assert math.isnan(unseen) and rising == pytest.approx(1.0)
 
 
 def test_turned_distance_is_zero_for_symmetries_of_the_mesh_only():
