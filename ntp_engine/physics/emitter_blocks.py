@@ -15,6 +15,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 import torch
@@ -112,8 +113,22 @@ class ShadowGroups:
         return (shadow[..., None] >> bit) & 1 == 1
 
     def share(self, shadow: Tensor) -> Tensor:
-        """The share ``(...)`` of the pattern's drive (float64) that ``shadow (...)`` masks hide."""
-        return (self.hidden(shadow).double() * torch.from_numpy(self.drive)).sum(-1)
+        """The share ``(...)`` of the pattern's drive (float64) that ``shadow (...)`` masks hide: a
+        mask's eight bytes looked up in ``byte_shares`` and summed (8 gathers, not 64 bit tests)."""
+        table = torch.from_numpy(self.byte_shares)
+        total = torch.zeros(shadow.shape, dtype=torch.float64)
+        for b in range(8):  # >> on int64 sign-extends; & 255 keeps the byte either way
+            total += table[b][(shadow >> (8 * b)) & 255]
+        return total
+
+    @cached_property
+    def byte_shares(self) -> np.ndarray:
+        """``(8, 256)`` float64: entry [b, v] the drive share of the groups whose bits are set in
+        byte value ``v`` at byte ``b`` of a mask (groups past P carry none)."""
+        drive = np.zeros(8 * 8)
+        drive[: min(len(self.drive), 64)] = self.drive[:64]
+        bits = (np.arange(256)[:, None] >> np.arange(8)) & 1  # (256, 8)
+        return np.stack([bits @ drive[8 * b : 8 * b + 8] for b in range(8)])
 
     def block_visibility(self, shadow: Tensor, dtype: torch.dtype) -> Tensor:
         """Per emitter block ``(..., C)``: the share of its drive ``shadow (...)`` leaves visible."""

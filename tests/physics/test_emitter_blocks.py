@@ -80,3 +80,19 @@ def test_shadow_groups_are_halves_of_the_blocks_and_weigh_what_they_hide():
     np.testing.assert_allclose(g.share(one_half).item(), g.drive[6])
     point = shadow_groups(shipped_device("point_light.toml"))
     assert point.block is None and len(point.points) == len(point.group)
+
+
+def test_the_share_a_mask_hides_is_its_groups_drive_summed():
+    """``share`` reads a mask a byte at a time: it equals the drive of the groups whose bits are set,
+    summed, for random masks, the sign bit (group 63) set, none and all."""
+    from ntp_engine.physics.emitter_blocks import shadow_groups
+
+    g = shadow_groups(load_scanner())
+    gen = torch.Generator().manual_seed(0)
+    masks = torch.randint(-(2**63), 2**63 - 1, (4000,), generator=gen, dtype=torch.int64)
+    masks = torch.cat([masks, torch.tensor([0, -1, -(2**63), 1 << 6])])
+    bits = (masks[:, None] >> torch.arange(64)) & 1 == 1
+    reference = (bits.double() * torch.from_numpy(g.drive)).sum(-1)
+    np.testing.assert_allclose(g.share(masks).numpy(), reference.numpy(), rtol=0, atol=1e-15)
+    assert g.share(torch.tensor(0)).item() == 0.0 and abs(g.share(torch.tensor(-1)).item() - 1.0) < 1e-15
+    assert g.share(masks.reshape(-1, 2)).shape == (masks.numel() // 2, 2)  # one share a mask
