@@ -1,7 +1,9 @@
 """``ntp bench gallery``: ntp measured on the gallery — every object x scanner (the engine's virtual
 scanner and Cycles) x poses (true, structure from motion) — reported per material.
 
-Per run: pose error (SfM), relit SSIM under novel point lights (object pixels), seconds per stage;
+Per run: pose error (SfM), relit SSIM under novel point lights (object pixels) and, where ntp is
+given another mesh than the photographed one, that mesh's ceiling (the truth's own maps on it:
+``sim.evaluate.mesh_ceiling``), seconds per stage;
 per material (``sim.evaluate.material_errors``): the share of its surface texels some photo sees
 (true poses), coverage (of those, the share some trace reached), normal angle, tangent angle mod 180 on
 anisotropic texels, |log alpha ratio|, rho_d RMSE and ratio, the share of texels on a material
@@ -43,6 +45,7 @@ from ..sim.evaluate import (
     BUDGET_GROUPS,
     PARAMETER_METRICS,
     material_errors,
+    mesh_ceiling,
     pose_error,
     relit_budget,
     relit_ssim,
@@ -182,8 +185,13 @@ def _evaluate(settings: GallerySettings, scan_dir: Path, poses: str, out: Path, 
         run["pose_error"] = pose_error(used, load_poses(gt / "poses.json"))
         run["registered"] = f"{len(used)}/{settings.views}"
     relit = relit_budget if settings.budget else relit_ssim  # the budget's as-is score is relit_ssim's
-    scores = relit(out, true_mesh_path(scan_dir), gt, lights=settings.relit_lights, scale=settings.relit_scale)
+    truth_mesh = true_mesh_path(scan_dir)
+    scores = relit(out, truth_mesh, gt, lights=settings.relit_lights, scale=settings.relit_scale)
     run["relit_ssim"] = scores["relit_ssim"]
+    if truth_mesh.resolve() != scan.mesh_path.resolve():  # ntp was given another mesh: what it allows
+        run["mesh_ceiling"] = mesh_ceiling(
+            scan.mesh_path, truth_mesh, gt, lights=settings.relit_lights, scale=settings.relit_scale
+        )
     if settings.budget:
         run["relit_budget"] = scores
     true_poses = list(load_poses(gt / "poses.json").values())  # what the photos saw, whichever poses ran
@@ -318,6 +326,7 @@ def _run_rows(record: dict) -> tuple[tuple, list[tuple]]:
         "registered",
         "pose err mm / deg",
         "relit SSIM",
+        "mesh ceiling",
         "s scan",
         "s reconstruct",
         "s register / traces / net+fit",
@@ -336,6 +345,7 @@ def _run_rows(record: dict) -> tuple[tuple, list[tuple]]:
                 r.get("registered", "-") if "failed" not in r else "FAILED",
                 pose,
                 number(r.get("relit_ssim")),
+                number(r.get("mesh_ceiling")),
                 f"{r['seconds_scan']:.0f}",
                 f"{r['seconds_reconstruct']:.0f}",
                 " / ".join(
@@ -383,6 +393,7 @@ def _path_rows(record: dict) -> tuple[tuple, list[tuple]]:
         "s materials (mean)",
         "texels/s",
         "relit SSIM",
+        "mesh ceiling",
         "coverage",
         *SET_METRICS,
     )
@@ -406,6 +417,7 @@ def _path_rows(record: dict) -> tuple[tuple, list[tuple]]:
                 number(sum(seconds) / len(seconds)),
                 number(texels / sum(seconds) if sum(seconds) > 0 else None),
                 number(finite_mean([r.get("relit_ssim") for r in runs])),
+                number(finite_mean([r.get("mesh_ceiling") for r in runs])),
                 number(finite_mean([m.get("coverage") for m in mats])),
                 *(number(finite_mean([m.get(k) for m in mats])) for k in SET_METRICS),
             )

@@ -7,6 +7,10 @@
   with exact shadows; one display transform for both (the truth's 99th percentile to 1, clip,
   gamma 2.2); SSIM averaged over the object's pixels only (the backdrop would inflate it).
 
+- the given mesh's ceiling (``mesh_ceiling``): the relit SSIM of the truth's own maps on the mesh a
+  scan hands ntp in place of the photographed one — what the given geometry alone costs, the bound
+  on any result's relit SSIM on that mesh.
+
 - per material (``material_errors``, gallery assets with ``labels.png``): **seen** (the share of the
   material's surface texels — those the result's atlas puts on the mesh — that some photo sees: in
   the image, facing the camera, not hidden by the mesh; ``seen_texels``, from the true poses) and
@@ -321,6 +325,28 @@ def relit_ssim(
     rec_scene = Scene(load_mesh(result / "mesh.obj"), SVBRDFMaps.load(result), point, clusters=1)
     scores = _relit_scores(rec_scene, _novel_views(true_scene, lights, scale, seed), save_dir)
     return {"relit_ssim": float(np.mean(scores)), "relit_ssim_per_light": scores}
+
+
+def mesh_ceiling(
+    given_mesh: Path,
+    truth_mesh: Path,
+    truth_maps: Path,
+    lights: int = 3,
+    scale: float = 0.25,
+    seed: int = 1000,
+) -> float:
+    """What any maps can score on ``given_mesh`` (the mesh a scan hands ntp in place of the
+    photographed ``truth_mesh``; the same UV layout): ``relit_ssim`` of the truth's own maps rendered
+    on it, at the truth's resolution. Below 1 by what the given mesh's geometry alone changes in the
+    renders — where its shadows fall, where its silhouette lies —, the maps' shading normals being
+    the truth's; 1.0 for the photographed mesh itself."""
+    point = shipped_device(NOVEL_LIGHT_DEVICE)
+    truth = SVBRDFMaps.load(truth_maps)
+    views = _novel_views(Scene(load_mesh(truth_mesh), truth, point, clusters=1), lights, scale, seed)
+    given = load_mesh(given_mesh)
+    if given.uv is None:
+        raise ValueError(f"{given_mesh}: no UVs, so the truth's maps cannot lie on it")
+    return float(np.mean(_relit_scores(Scene(given, truth, point, clusters=1), views)))
 
 
 def relit_budget(

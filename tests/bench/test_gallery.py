@@ -26,7 +26,10 @@ def test_tiny_gallery_writes_tables_json_and_figure(tmp_path):
     names = [m["material"] for m in true_run["materials"]]
     assert names == ["lacquer_mirror", "metal_brushed_line", "matte_white", "metal_rough"]
     assert 0 < true_run["relit_ssim"] <= 1 and {"atlas", "traces"} <= set(true_run["stages"])
+    # ntp was given the scanner's mesh: what the truth's own maps score on it, beside the result
+    assert 0 < true_run["mesh_ceiling"] <= 1
     md = (tmp_path / "gallery.md").read_text()
+    assert "| relit SSIM | mesh ceiling |" in md
     assert md.count("| box | metal_rough |") == sum("materials" in x for x in r["runs"])
     sfm = r["runs"][1]
     assert ("failed" in sfm) == ("FAILED" in md)  # 5 tiny photos: SfM may fail, and then says so

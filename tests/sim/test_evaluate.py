@@ -8,7 +8,7 @@ from ntp_engine.io.assets import DEMO_DIR
 from ntp_engine.io.errors import NtpInputError
 from ntp_engine.io.images import write_exr
 from ntp_engine.io.maps import MAP_FILES, SVBRDFMaps, texel_uv
-from ntp_engine.io.mesh import Mesh, load_mesh, smooth_normals
+from ntp_engine.io.mesh import Mesh, load_mesh, save_obj, smooth_normals
 from ntp_engine.io.texels import rasterize
 from ntp_engine.scanner.camera import look_at
 from ntp_engine.scanner.device_file import load_scanner
@@ -16,6 +16,7 @@ from ntp_engine.sim.evaluate import (
     compare_images,
     material_border,
     material_errors,
+    mesh_ceiling,
     parameter_errors,
     pose_error,
     relit_budget,
@@ -26,6 +27,7 @@ from ntp_engine.sim.evaluate import (
 )
 from ntp_engine.sim.gallery import build_asset
 from ntp_engine.sim.materials import load_labels
+from ntp_engine.sim.scanner_mesh import scanner_mesh
 
 
 def test_identical_renders_score_one_and_differences_lower_it():
@@ -56,6 +58,23 @@ def test_the_truth_relit_against_itself_is_perfect(tmp_path):
     shutil.copy(DEMO_DIR / "mesh.obj", result / "mesh.obj")
     r = relit_ssim(result, DEMO_DIR / "mesh.obj", DEMO_DIR / "ground_truth", lights=1, scale=0.05, save_dir=tmp_path)
     assert r["relit_ssim"] == pytest.approx(1.0) and (tmp_path / "relit_0.png").is_file()
+
+
+def test_the_given_meshs_ceiling_is_perfect_for_the_photographed_mesh_and_falls_with_its_error(tmp_path):
+    """The truth's maps on the demo's own mesh score 1; on a scanner's mesh of it (the same UVs, noise
+    along the normals) less, and less the noisier it is; a mesh without UVs cannot hold the maps."""
+    truth_mesh, truth = DEMO_DIR / "mesh.obj", DEMO_DIR / "ground_truth"
+    assert mesh_ceiling(truth_mesh, truth_mesh, truth, lights=1, scale=0.1) == pytest.approx(1.0)
+    ceilings = []
+    for noise_m in (3e-4, 1e-3):
+        given = tmp_path / f"given-{noise_m}.obj"
+        save_obj(given, scanner_mesh(load_mesh(truth_mesh), seed=0, noise_m=noise_m))
+        ceilings.append(mesh_ceiling(given, truth_mesh, truth, lights=1, scale=0.1))
+    assert 1.0 > ceilings[0] > ceilings[1] + 0.05, ceilings
+    bare = load_mesh(truth_mesh)
+    save_obj(tmp_path / "bare.obj", Mesh(bare.vertices, bare.faces, None, bare.normals))
+    with pytest.raises(ValueError, match="no UVs"):
+        mesh_ceiling(tmp_path / "bare.obj", truth_mesh, truth, lights=1, scale=0.1)
 
 
 def _result_from_truth(tmp_path, name="vase", res=32, observed=None):
