@@ -296,6 +296,11 @@ def _novel_views(true_scene: Scene, lights: int, scale: float, seed: int) -> lis
     return views
 
 
+def _relit_scene(mesh: Mesh, maps: SVBRDFMaps) -> Scene:
+    """``mesh`` with ``maps`` lit by the relit comparison's point-light device."""
+    return Scene(mesh, maps, shipped_device(NOVEL_LIGHT_DEVICE), clusters=1)
+
+
 def _relit_scores(scene: Scene, views: list[tuple], save_dir: Path | None = None) -> list[float]:
     """SSIM of ``scene``'s render against the truth's in each of ``views`` (``_novel_views``)."""
     scores = []
@@ -320,10 +325,8 @@ def relit_ssim(
     """Mean SSIM over ``lights`` novel views, each lit by the point-light device, of the result
     rendered against the truth (object pixels; see the module docstring). ``save_dir`` gets the
     pairs as PNG (truth left)."""
-    point = shipped_device(NOVEL_LIGHT_DEVICE)
-    true_scene = Scene(load_mesh(truth_mesh), SVBRDFMaps.load(truth_maps), point, clusters=1)
-    rec_scene = Scene(load_mesh(result / "mesh.obj"), SVBRDFMaps.load(result), point, clusters=1)
-    scores = _relit_scores(rec_scene, _novel_views(true_scene, lights, scale, seed), save_dir)
+    views = _novel_views(_relit_scene(load_mesh(truth_mesh), SVBRDFMaps.load(truth_maps)), lights, scale, seed)
+    scores = _relit_scores(_relit_scene(load_mesh(result / "mesh.obj"), SVBRDFMaps.load(result)), views, save_dir)
     return {"relit_ssim": float(np.mean(scores)), "relit_ssim_per_light": scores}
 
 
@@ -340,13 +343,12 @@ def mesh_ceiling(
     on it, at the truth's resolution. Below 1 by what the given mesh's geometry alone changes in the
     renders — where its shadows fall, where its silhouette lies —, the maps' shading normals being
     the truth's; 1.0 for the photographed mesh itself."""
-    point = shipped_device(NOVEL_LIGHT_DEVICE)
-    truth = SVBRDFMaps.load(truth_maps)
-    views = _novel_views(Scene(load_mesh(truth_mesh), truth, point, clusters=1), lights, scale, seed)
     given = load_mesh(given_mesh)
-    if given.uv is None:
+    if given.uv is None:  # before the truth's renders: nothing to compare them with
         raise ValueError(f"{given_mesh}: no UVs, so the truth's maps cannot lie on it")
-    return float(np.mean(_relit_scores(Scene(given, truth, point, clusters=1), views)))
+    truth = SVBRDFMaps.load(truth_maps)
+    views = _novel_views(_relit_scene(load_mesh(truth_mesh), truth), lights, scale, seed)
+    return float(np.mean(_relit_scores(_relit_scene(given, truth), views)))
 
 
 def relit_budget(
@@ -363,15 +365,13 @@ def relit_budget(
     result's. ``{"relit_ssim": as is, "ceiling": every map the truth's (the result's resolution's
     own limit), "materials": [{"material": name, group: gain, ...}, ..., {"material": "all", ...}]}``.
     Gains of one material's groups need not add up: SSIM is not additive."""
-    point = shipped_device(NOVEL_LIGHT_DEVICE)
     labels, table = load_labels(truth_maps)
     truth = SVBRDFMaps.load(truth_maps)
-    true_scene = Scene(load_mesh(truth_mesh), truth, point, clusters=1)
-    views = _novel_views(true_scene, lights, scale, seed)
+    views = _novel_views(_relit_scene(load_mesh(truth_mesh), truth), lights, scale, seed)
     rec = SVBRDFMaps.load(result)
     shape = rec.shape
     true, label = truth_at_texels(truth, labels, texel_uv(shape).reshape(-1, 2))
-    scene = Scene(load_mesh(result / "mesh.obj"), rec, point, clusters=1)
+    scene = _relit_scene(load_mesh(result / "mesh.obj"), rec)
 
     def ssim_with_truth(where: np.ndarray, names: tuple[str, ...]) -> float:
         maps = {k: getattr(rec, k).reshape(-1, getattr(rec, k).shape[-1]).copy() for k in MAP_FILES}
