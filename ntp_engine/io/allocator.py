@@ -1,14 +1,14 @@
 """The process's memory allocator (glibc's malloc, which numpy and torch use on Linux): within
 ``freed_memory_kept``, large blocks come from its heap and freed memory stays there for the next.
 
-Why: the refinement allocates per batch of 512 texels arrays of 20-80 MB (each entry's directions to
-every emitter sample) and frees them a moment later. glibc serves a block that large with its own
-``mmap`` and unmaps it on free, so every batch faults in fresh pages the kernel must zero — ~40% of
-the compiled directions loop's time (docs/performance.md, "Freed memory kept"). With mapping off
-(``M_MMAP_MAX`` 0) and a 1 GB trim threshold, freed blocks stay mapped and the next batch reuses
-them. Only around the refinement: kept for the whole run, the traces and fit stages' own memory grew
-12-33% for no time. Memory mapped files are not malloc's and are unaffected. Elsewhere than glibc
-(musl, macOS, Windows) it does nothing.
+Why: the refinement allocates per batch of texels (``TUNING.inputs.refine_batch``) arrays of 40-160
+MB (each entry's directions to every emitter sample) and frees them a moment later. glibc serves a
+block that large with its own ``mmap`` and unmaps it on free, so every batch faults in fresh pages
+the kernel must zero — ~40% of the compiled directions loop's time (docs/performance.md, "Freed
+memory kept"). With mapping off (``M_MMAP_MAX`` 0) and a 1 GB trim threshold, freed blocks stay
+mapped and the next batch reuses them. Only around the refinement: kept for the whole run, the
+traces and fit stages' own memory grew 12-33% for no time. Memory mapped files are not malloc's and
+are unaffected. Elsewhere than glibc (musl, macOS, Windows) it does nothing.
 """
 
 from __future__ import annotations
