@@ -211,3 +211,25 @@ def test_members_own_tangents_do_not_make_a_sharp_isotropic_lobe_anisotropic():
         dev, traces, start, np.arange(n), np.zeros(n, np.int64), _material((0.028, 0.006)), RefineSettings(), None, None
     )
     np.testing.assert_allclose(got.alpha, [truth], rtol=0.15)
+
+
+def test_the_answers_do_not_depend_on_the_batch(monkeypatch):
+    """Every texel is solved on its own: the whole refinement (first pass, basis materials, the
+    texels that take a material's lobe) in batches of 48 texels gives what one batch gives. Fails
+    if a batch's texels shared anything (a cost, a damping, a selection) across rows."""
+    import dataclasses
+
+    from ntp_engine.refine import material_pass, passes
+    from ntp_engine.refine.settings import TUNING, RefineSettings
+
+    dev, traces, start = _lobe_traces(192, 4, (0.5, 0.5), 0.05, 9.0, 7)
+    answers = []
+    for batch in (1024, 48):
+        tuned = dataclasses.replace(TUNING, inputs=dataclasses.replace(TUNING.inputs, refine_batch=batch))
+        monkeypatch.setattr(passes, "TUNING", tuned)
+        monkeypatch.setattr(material_pass, "TUNING", tuned)
+        answers.append(passes.refine_fit(dev, traces, start, RefineSettings()))
+    whole, batched = answers
+    assert (batched.material == whole.material).all() and (batched.flags == whole.flags).all()
+    for name in ("n_loc", "t_loc", "alpha", "rho_d", "rho_s"):
+        np.testing.assert_allclose(getattr(batched, name), getattr(whole, name), rtol=1e-4, atol=1e-5, err_msg=name)
