@@ -286,6 +286,9 @@ def assemble(
     n_entries = int(offsets[-1])
     # photo order on disk: each view's entries are one contiguous, sequential write
     table = {k: _column(None if folder is None else folder / f".photo-order-{k}.npy", k, n_entries) for k in _COLUMNS}
+    # and the table by texel that it is regrouped into, reserved now too: the disk holds both at
+    # once, and one too small for that fails here, before any photo is read, not minutes later
+    by_texel = {} if folder is None else {k: _column(folder / f"{k}.npy", k, n_entries) for k in _COLUMNS}
     entries, in_range, shadow = table["entries"], table["in_range"], table["shadow"]
     cursor = offsets[:-1].copy()  # in memory: each texel's next free row
     view_start = np.zeros(len(seen), np.int64)  # on disk: where each view's entries begin
@@ -335,8 +338,8 @@ def assemble(
     if folder is None:
         return RaggedTraces(*(torch.from_numpy(a) for a in (entries, offsets, in_range, shadow))), stats
     del entries, in_range, shadow
-    _by_texel(folder, seen, view_start, table, offsets, progress)
-    del table
+    _by_texel(folder, seen, view_start, table, by_texel, offsets, progress)
+    del table, by_texel
     for name in _COLUMNS:
         (folder / f".photo-order-{name}.npy").unlink()
     return load_table(folder), stats
@@ -375,15 +378,16 @@ def _by_texel(
     seen: list[np.ndarray | None],
     view_start: np.ndarray,
     spill: dict[str, np.ndarray],
+    out: dict[str, np.ndarray],
     offsets: np.ndarray,
     progress: Progress,
 ) -> None:
-    """The photo-ordered columns ``spill`` (``_COLUMNS``) regrouped by texel into ``folder``'s
-    ``TABLE_FILES``, one block of texels (<= ``TUNING.traces.table_block_entries`` entries, at least one texel)
-    at a time: each view's entries of a block are one contiguous run (its texel indices ascend)."""
-    n_tex, n_entries = len(offsets) - 1, int(offsets[-1])
+    """The photo-ordered columns ``spill`` (``_COLUMNS``) regrouped by texel into ``out``, the
+    memory-mapped columns of ``folder``'s ``TABLE_FILES``, one block of texels (<=
+    ``TUNING.traces.table_block_entries`` entries, at least one texel) at a time: each view's entries
+    of a block are one contiguous run (its texel indices ascend)."""
+    n_tex = len(offsets) - 1
     np.save(folder / "offsets.npy", offsets)
-    out = {k: _column(folder / f"{k}.npy", k, n_entries) for k in _COLUMNS}
     bar = progress.counter("trace table", n_tex, "texel")
     for a, b in spans(offsets, TUNING.traces.table_block_entries):
         base = int(offsets[a])

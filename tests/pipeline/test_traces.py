@@ -364,3 +364,38 @@ def test_entries_at_the_card_s_edge_read_only_the_pixels_that_see_their_own_surf
         f" (read plainly {np.median(blended):.3f} / {blended.max():.3f})"
     )
     assert np.median(got) < 0.01 and got.max() < 0.05 and np.median(blended) > 0.03 and blended.max() > 0.2
+
+
+def test_a_disk_too_small_for_the_table_twice_fails_before_any_photo_is_read(tmp_path, monkeypatch):
+    """On disk the table is written in photo order and then regrouped by texel: the disk holds both
+    at once (1,000 photos x 1024^2: ~2 x 26 GB). Both are reserved before the first photo is read,
+    so a disk with room for only the first fails at once — an OSError naming the table by texel —
+    not after every photo was read (~10 minutes at that size)."""
+    import errno
+
+    from ntp_engine.pipeline import traces as tr
+    from ntp_engine.sim.virtual_scan import ScanConfig, trajectory
+
+    mesh, _, _, _ = load_asset(None, None, None)
+    dev = load_scanner()
+    cam = resampled(dev, 0.02)
+    tx = rasterize(mesh, (8, 8))
+    poses = trajectory(np.array([0.0, 0.0, 0.03]), dev, ScanConfig(views=12), np.random.default_rng(0))
+    read = []
+
+    def photos():
+        for k in range(len(poses)):
+            read.append(k)
+            yield np.zeros((cam.height, cam.width, 3), np.uint8)
+
+    reserve = tr.reserve_disk
+
+    def full_after_the_spill(path):
+        if not path.name.startswith(".photo-order-"):
+            raise OSError(errno.ENOSPC, "No space left on device", str(path))
+        reserve(path)
+
+    monkeypatch.setattr(tr, "reserve_disk", full_after_the_spill)
+    with pytest.raises(OSError, match="No space left on device") as err:
+        assemble(tx, photos(), poses, cam, RayCaster([mesh.triangles]), folder=tmp_path)
+    assert err.value.filename == str(tmp_path / "entries.npy") and read == []
