@@ -217,15 +217,14 @@ def test_the_answers_do_not_depend_on_the_batch(monkeypatch):
     """Every texel is solved on its own: the whole refinement (first pass, basis materials, the
     texels that take a material's lobe) in batches of 48 texels gives what one batch gives. Fails
     if a batch's texels shared anything (a cost, a damping, a selection) across rows."""
-    import dataclasses
-
+    from ntp_engine.io.tuned import retuned
     from ntp_engine.refine import material_pass, passes
     from ntp_engine.refine.settings import TUNING, RefineSettings
 
     dev, traces, start = _lobe_traces(192, 4, (0.5, 0.5), 0.05, 9.0, 7)
     answers = []
     for batch in (1024, 48):
-        tuned = dataclasses.replace(TUNING, inputs=dataclasses.replace(TUNING.inputs, refine_batch=batch))
+        tuned = retuned(TUNING, "inputs", refine_batch=batch)
         monkeypatch.setattr(passes, "TUNING", tuned)
         monkeypatch.setattr(material_pass, "TUNING", tuned)
         answers.append(passes.refine_fit(dev, traces, start, RefineSettings()))
