@@ -370,7 +370,7 @@ def test_a_disk_too_small_for_the_table_twice_fails_before_any_photo_is_read(tmp
     """On disk the table is written in photo order and then regrouped by texel: the disk holds both
     at once (1,000 photos x 1024^2: ~2 x 26 GB). Both are reserved before the first photo is read,
     so a disk with room for only the first fails at once — an OSError naming the table by texel —
-    not after every photo was read (~10 minutes at that size)."""
+    not after every photo was read (~8 minutes at that size, measured)."""
     import errno
 
     from ntp_engine.pipeline import traces as tr
