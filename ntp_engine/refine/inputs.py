@@ -17,6 +17,7 @@ import torch
 
 from ..fit.flags import TexelFlag
 from ..fit.texel_fit import TexelFit
+from ..io.progress import QUIET, Progress
 from ..io.texels import Texels
 from ..learn.ragged import RaggedTraces, spans, spread_rows
 from ..physics.emitter_blocks import shadow_groups
@@ -107,7 +108,7 @@ def _chosen_rows(scanner: Scanner, traces: RaggedTraces, idx: torch.Tensor) -> t
     return rows, mask, few & read_marginal
 
 
-def read_traces(scanner: Scanner, traces: RaggedTraces) -> RaggedTraces:
+def read_traces(scanner: Scanner, traces: RaggedTraces, progress: Progress = QUIET) -> RaggedTraces:
     """The entries the refinement reads of every trace (``refine_inputs``' choice: at most
     ``TUNING.inputs.refine_views``, spread evenly, clear ones first) as a table of their own, every
     column carried; ``refine_inputs`` on it reads the same entries. Chosen once, in blocks of
@@ -120,14 +121,18 @@ def read_traces(scanner: Scanner, traces: RaggedTraces) -> RaggedTraces:
     seen = (traces.lengths > 0).nonzero().squeeze(1)
     counted = np.zeros(len(seen) + 1, np.int64)
     counted[1:] = np.cumsum(traces.lengths[seen].numpy())
-    for start, stop in spans(counted, TUNING.inputs.blend_entries):
-        rows, mask, _ = _chosen_rows(scanner, traces, seen[start:stop])
-        parts.append(rows[mask])  # trace by trace, in trace order
-        lengths[seen[start:stop]] = mask.sum(1)
+    with progress.counter("entries read", len(seen), "texel") as bar:
+        for start, stop in spans(counted, TUNING.inputs.blend_entries):
+            rows, mask, _ = _chosen_rows(scanner, traces, seen[start:stop])
+            parts.append(rows[mask])  # trace by trace, in trace order
+            lengths[seen[start:stop]] = mask.sum(1)
+            bar.update(stop - start)
     return traces.taking(torch.cat(parts) if parts else torch.zeros(0, dtype=torch.int64), lengths)
 
 
-def with_albedo_blend(scanner: Scanner, traces: RaggedTraces, rho_d: np.ndarray, texels: Texels) -> RaggedTraces:
+def with_albedo_blend(
+    scanner: Scanner, traces: RaggedTraces, rho_d: np.ndarray, texels: Texels, progress: Progress = QUIET
+) -> RaggedTraces:
     """``traces`` (trace i = texel i of ``texels``, which need ``uv_per_metre``) with each entry's
     ``albedo_blend``: how much of its neighbours' albedo its pixel sample may blend in
     (``refine.footprint.albedo_blend``), read from the map of ``rho_d (N, 3)``; texels no trace reached
@@ -136,14 +141,16 @@ def with_albedo_blend(scanner: Scanner, traces: RaggedTraces, rho_d: np.ndarray,
     albedo = texels.image(rho_d, known=(traces.lengths > 0).numpy())
     uv = texels.uv
     out = torch.zeros(len(traces.entries), 3, dtype=torch.float32)
-    for start, stop in spans(traces.offsets.numpy(), TUNING.inputs.blend_entries):
-        b = traces.block(start, stop)
-        texel = torch.repeat_interleave(torch.arange(start, stop), b.lengths).numpy()
-        entries = b.entries[:, None, :]
-        delta, weight = sample_points(scanner, entries, torch.ones(len(entries), 1, dtype=torch.bool))
-        blend = albedo_blend(delta, weight, uv[texel], texels.uv_per_metre[texel], albedo)
-        a = int(traces.offsets[start])
-        out[a : a + len(entries)] = blend[:, 0].to(torch.float32)
+    with progress.counter("albedo blend", traces.num_traces, "texel") as bar:
+        for start, stop in spans(traces.offsets.numpy(), TUNING.inputs.blend_entries):
+            b = traces.block(start, stop)
+            texel = torch.repeat_interleave(torch.arange(start, stop), b.lengths).numpy()
+            entries = b.entries[:, None, :]
+            delta, weight = sample_points(scanner, entries, torch.ones(len(entries), 1, dtype=torch.bool))
+            blend = albedo_blend(delta, weight, uv[texel], texels.uv_per_metre[texel], albedo)
+            a = int(traces.offsets[start])
+            out[a : a + len(entries)] = blend[:, 0].to(torch.float32)
+            bar.update(stop - start)
     return dataclasses.replace(traces, albedo_blend=out)
 
 

@@ -17,7 +17,7 @@ import torch
 
 from ..fit.flags import TexelFlag
 from ..fit.texel_fit import TexelFit
-from ..io.progress import Progress
+from ..io.progress import QUIET, Progress
 from ..io.texels import Texels
 from ..learn.ragged import RaggedTraces
 from ..physics.brdf import ALPHA_MAX, ALPHA_MIN
@@ -174,6 +174,7 @@ def _widths_from_materials(
     texels: Texels | None,
     support: SupportScene | None,
     turn: np.ndarray | None = None,
+    progress: Progress = QUIET,
 ) -> None:
     """Texels ``idx`` with a lobe of their own in a lobe material (``fit.material``) take its
     width where their trace explains it within ``TUNING.materials.width_params`` of their own (both with the
@@ -184,7 +185,8 @@ def _widths_from_materials(
     ``neighbour_turn_costs``); the better of the two is kept, and its tangent with it. Updates ``fit``
     in place."""
     turn = np.full(len(idx), np.nan) if turn is None else turn
-    for rows in np.array_split(np.arange(len(idx)), -(-len(idx) // TUNING.inputs.refine_batch)) if len(idx) else []:
+    bar = progress.counter("material widths", len(idx), "texel")
+    for rows in _batches(np.arange(len(idx))):
         k = idx[rows]
         inp = refine_inputs(scanner, traces, torch.as_tensor(k), fit, support, texels)
         position = None if texels is None else texels.position[k]
@@ -209,6 +211,8 @@ def _widths_from_materials(
         fit.rho_d[t], fit.rho_s[t] = rd[take, 1].numpy(), rs[take, 1].numpy()
         fit.flags[t] |= TexelFlag.WIDTH_FROM_MATERIAL
         fit.t_loc[t] = turned_tangents(fit.t_loc[t], fit.n_loc[t], angle[take])
+        bar.update(len(rows))
+    bar.close()
 
 
 def material_pass(
@@ -259,7 +263,7 @@ def material_pass(
     spacing = 0.0 if texels is None else texel_spacing(texels.position)  # once for the pass
     field = neighbour_turn_costs(texels, fit, i_obs, label, own[i_obs], rest, len(basis), spacing)
     bar = progress.counter("materials", len(rest), "texel")
-    for k in np.array_split(np.arange(len(rest)), -(-len(rest) // TUNING.inputs.refine_batch)) if len(rest) else []:
+    for k in _batches(np.arange(len(rest))):
         inp = refine_inputs(scanner, traces, torch.as_tensor(i_obs[rest[k]]), fit, support, texels)
         maybe = torch.as_tensor(candidates(prior[rest[k]], basis))
         near = None if field is None else (torch.as_tensor(field[0][k]), torch.as_tensor(field[1][k]))
@@ -298,7 +302,7 @@ def material_pass(
     if around is not None:
         pick = np.arange(ask.sum()), label[with_own[ask]]
         turn[ask] = np.where(around[1][pick] > 0, around[0][pick], np.nan)  # agree 0: no neighbours
-    _widths_from_materials(scanner, traces, fit, i_obs[with_own], basis, settings, texels, support, turn)
+    _widths_from_materials(scanner, traces, fit, i_obs[with_own], basis, settings, texels, support, turn, progress)
     # texels without a lobe of their own in a lobe material: toward its lobe
     takes = np.zeros(N, bool)
     takes[i_obs] = (label >= 0) & ~own[i_obs]
@@ -306,7 +310,7 @@ def material_pass(
         _take_material_lobes(
             scanner, traces, fit, takes, turns, i_obs, label, basis, settings, progress, texels, support
         )
-    _fuse_tangents(scanner, traces, fit, i_obs, label, settings, spacing, texels, support)
+    _fuse_tangents(scanner, traces, fit, i_obs, label, settings, spacing, texels, support, progress)
 
 
 def _take_material_lobes(
@@ -360,6 +364,7 @@ def _fuse_tangents(
     spacing: float,
     texels: Texels | None = None,
     support: SupportScene | None = None,
+    progress: Progress = QUIET,
 ) -> None:
     """Every anisotropic lobe's tangent fused with its neighbours' of the same material that fixed
     theirs (``refine.tangent_field.fused_turns`` over the material's ``field_variation``) — a tangent
@@ -397,12 +402,20 @@ def _fuse_tangents(
             turn[t_taken], fused[t_taken] = 0.0, std[t_taken]
     # a taken lobe turns only where its photos do not object
     ask = np.nonzero(taken & anisotropic & (np.abs(turn) > TUNING.materials.min_turn))[0]
-    for k in np.array_split(ask, -(-len(ask) // TUNING.inputs.refine_batch)) if len(ask) else []:
+    bar = progress.counter("tangent turns", len(ask), "texel")
+    for k in _batches(ask):
         inp = refine_inputs(scanner, traces, torch.as_tensor(i_obs[k]), fit, support, texels)
         turns = torch.stack([torch.zeros(len(k), dtype=torch.float64), torch.as_tensor(turn[k])], 1)
         c = turn_costs(inp.obs, inp.start, turns, settings).numpy()
         objects = c[:, 1] - c[:, 0] >= TUNING.materials.turn_objection
         turn[k[objects]], fused[k[objects]] = 0.0, std[k[objects]]
+        bar.update(len(k))
+    bar.close()
     fit.t_loc[i_obs] = turned_tangents(fit.t_loc[i_obs], fit.n_loc[i_obs], turn)
     changed = anisotropic & np.isfinite(fused)
     fit.std[i_obs[changed], 1] = np.degrees(fused[changed])
+
+
+def _batches(rows: np.ndarray) -> list[np.ndarray]:
+    """``rows`` in equal batches of at most ``TUNING.inputs.refine_batch``, in order."""
+    return np.array_split(rows, -(-len(rows) // TUNING.inputs.refine_batch)) if len(rows) else []

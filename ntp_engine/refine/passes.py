@@ -77,7 +77,7 @@ def _refine_fit(
     support: SupportScene | None,
 ) -> TexelFit:
     fit = fit.copy()
-    traces = read_traces(scanner, traces)  # every pass reads these entries alone, not whole traces
+    traces = read_traces(scanner, traces, progress)  # every pass reads these entries alone, not whole traces
     todo = (traces.lengths > 0).nonzero().squeeze(1)
     settings = settings or RefineSettings()
     support = _lit_by_itself(support, texels, fit, todo)  # from the network's albedos
@@ -97,7 +97,7 @@ def _refine_fit(
     if settings.albedo_blend and texels is not None and texels.uv_per_metre is not None:
         # the albedos just refined say where the edges are; the texels whose pixels may blend a
         # neighbour's are refined again with that blend as noise
-        traces = with_albedo_blend(scanner, traces, fit.rho_d, texels)
+        traces = with_albedo_blend(scanner, traces, fit.rho_d, texels, progress)
         assert traces.albedo_blend is not None
         per_trace = np.zeros(traces.num_traces, np.float32)  # each trace's largest blend
         texel = np.repeat(np.arange(traces.num_traces), traces.lengths.numpy())

@@ -48,6 +48,35 @@ def test_the_edge_pass_starts_from_the_first_pass_and_seeks_a_lobe_only_where_it
     assert (out.rho_s[edges[lobeless]] == 0).all()
 
 
+def test_every_pass_of_the_refinement_counts_its_texels_to_the_end(tmp_path):
+    """``refine_fit`` reports each pass, the entries it reads and the albedo blend among them, as a
+    progress stage that ends with every texel counted: a run of minutes shows where it is."""
+    import json
+
+    from ntp_engine.io.progress import Progress
+    from ntp_engine.refine.settings import RefineSettings
+
+    tx, traces = _square_in_two_views(0.8, (0.02, 0.05))
+    N = len(tx)
+    start = {"n_loc": np.tile([0.0, 0, 1], (N, 1)), "t_loc": np.tile([1.0, 0, 0], (N, 1))}
+    start |= {"alpha": np.full((N, 2), 0.2), "rho_d": np.full((N, 3), 0.5), "rho_s": np.full((N, 3), 1.0)}
+    start["flags"] = np.zeros(N, np.int64)
+    log = tmp_path / "progress.jsonl"
+    passes_module.refine_fit(
+        load_scanner(), traces, TexelFit.from_arrays(start), RefineSettings(), Progress(json_path=log), texels=tx
+    )
+    last: dict[str, dict] = {}
+    for line in log.read_text().splitlines():
+        row = json.loads(line)
+        last[row["stage"]] = row
+    for stage in ("entries read", "refine", "albedo blend", "albedo edges"):
+        assert stage in last, stage
+    for row in last.values():
+        assert row["done"] == row["total"], row
+    assert last["entries read"]["total"] == last["refine"]["total"] == N
+    assert last["albedo blend"]["total"] == N
+
+
 def test_normals_are_fused_within_each_material_with_tangents_kept_orthogonal():
     from ntp_engine.io.texels import Texels
     from ntp_engine.refine.passes import fuse_normals
