@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import os
 
+import numba
 import torch
 
 from .errors import NtpInputError
@@ -23,6 +24,10 @@ def set_threads(n: int) -> None:
     if not 0 <= n <= MAX_THREADS:
         raise NtpInputError(None, f"--threads {n}: need 0 (every core) to {MAX_THREADS}")
     _threads = n
+    # numba's OpenMP threading layer, started by its first parallel loop, sets the starting thread's
+    # OpenMP count to numba's pool size — torch's count too (one libgomp in the process): started
+    # after this, it undid ``--threads 1`` (two such runs side by side took 3x as long as one each)
+    numba.get_num_threads()  # starts the layer now, before torch's count is set
     torch.set_num_threads(n or _TORCH_DEFAULT)
 
 
