@@ -399,3 +399,27 @@ def test_a_disk_too_small_for_the_table_twice_fails_before_any_photo_is_read(tmp
     with pytest.raises(OSError, match="No space left on device") as err:
         assemble(tx, photos(), poses, cam, RayCaster([mesh.triangles]), folder=tmp_path)
     assert err.value.filename == str(tmp_path / "entries.npy") and read == []
+
+
+def test_a_table_larger_than_the_machines_memory_loads(tmp_path):
+    """A trace table larger than memory (sparse files: nothing on disk) is memory-mapped and read
+    where a stage reads it. Copy-on-write maps failed "Cannot allocate memory" on Linux (a
+    private writable map counts against memory as a whole: the 1,000-photo 1024² table, 26 GB on a
+    23 GB machine, stopped the run after its ~10 min traces stage)."""
+    from ntp_engine.pipeline.traces import TABLE_FILES, load_table
+
+    with open("/proc/meminfo") as f:
+        memory = int(f.readline().split()[1]) * 1024  # MemTotal, bytes
+    E = 2 * memory // (12 * 4) + 1  # the entries alone twice the machine's memory
+    columns = {"entries": (np.float32, (E, 12)), "offsets": (np.int64, (2,))}
+    columns |= {"in_range": (np.bool_, (E,)), "shadow": (np.int64, (E,))}
+    assert set(columns) == set(TABLE_FILES)
+    for name, (dtype, shape) in columns.items():
+        column = np.lib.format.open_memmap(tmp_path / f"{name}.npy", "w+", dtype, shape)
+        if name == "offsets":
+            column[:] = (0, E)
+        column.flush()
+        del column
+    table = load_table(tmp_path)
+    assert table.num_traces == 1 and len(table.entries) == E
+    assert float(table.entries[E - 1, 0]) == 0.0 and not bool(table.in_range[E // 2])
