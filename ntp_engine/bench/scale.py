@@ -26,6 +26,7 @@ from ..io.errors import NtpInputError
 from ..io.output_folder import claim
 from ..pipeline.report import Report
 from ..pipeline.settings import PATHS
+from ..refine.passes import PROGRESS_STAGES
 from ..sim.evaluate import map_errors, relit_ssim
 from ..sim.virtual_scan import ScanConfig, true_mesh_path, virtual_scan
 from . import dump_json, number, print_table
@@ -40,8 +41,8 @@ SAMPLE_S = 0.1
 # fine-tuning and polish; the refinement)
 STAGES = ("select", "atlas", "traces", "fit", "refine", "maps")
 _REFINE_STAGES = ("teacher", "distil", "polish", "refine")
-# the refinement's counters (refine.passes, refine.material_pass) and the fine-tuning's (pipeline.distil)
-_REFINING = ("refine", "albedo edges", "materials", "material lobes", "albedo map", "distil")
+# the refinement's progress stages and the fine-tuning's (pipeline.distil)
+_REFINING = (*PROGRESS_STAGES, "distil")
 # progress counter -> the stage it runs in, and the stage that follows it when it closes
 _RUNNING = {
     "blur check": "select",

@@ -31,6 +31,20 @@ from .policy import calibrated, refine
 from .settings import TUNING, RefineSettings
 from .support_light import SupportScene, face_albedo
 
+# the progress stages (``io.progress``) a refinement reports, in their order: ``bench.scale`` tells
+# the refine stage's memory from the other stages' by them
+PROGRESS_STAGES = (
+    "entries read",
+    "refine",
+    "albedo blend",
+    "albedo edges",
+    "materials",
+    "material widths",
+    "material lobes",
+    "tangent turns",
+    "albedo map",
+)
+
 
 def refine_fit(
     scanner: Scanner,

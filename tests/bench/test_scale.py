@@ -53,6 +53,8 @@ def test_the_running_stage_is_read_from_the_progress_lines(tmp_path):
         (("refine", 10, 90), "refine"),
         (("refine", 90, 90), "refine"),
         (("materials", 3, 9), "refine"),
+        (("material widths", 2, 9), "refine"),
+        (("tangent turns", 9, 9), "refine"),
         (("distil", 800, 800), "refine"),
     ]:
         line(*args)

@@ -76,6 +76,25 @@ def test_a_materials_width_comes_from_its_members_traces_together():
     assert abs(np.median(out.rho_d[took]) - 0.05) < 0.01
 
 
+def test_the_refinement_reports_only_the_progress_stages_it_declares(tmp_path):
+    """Every pass of a refinement with basis materials reports under a name of
+    ``passes.PROGRESS_STAGES`` (``bench.scale`` attributes the refine stage's memory by them: an
+    undeclared one counted as photo selection), the material pass's included, each to its end."""
+    import json
+
+    from ntp_engine.io.progress import Progress
+    from ntp_engine.refine.passes import PROGRESS_STAGES, refine_fit
+    from ntp_engine.refine.settings import RefineSettings
+
+    dev, traces, start = _lobe_traces(96, 8, (0.3, 0.3), 0.05, 6.0, 5)
+    log = tmp_path / "progress.jsonl"
+    refine_fit(dev, traces, start, RefineSettings(), Progress(json_path=log))
+    last = {row["stage"]: row for row in map(json.loads, log.read_text().splitlines())}
+    assert set(last) <= set(PROGRESS_STAGES), set(last) - set(PROGRESS_STAGES)
+    assert {"refine", "materials", "material widths"} <= set(last), set(last)
+    assert all(row["done"] == row["total"] for row in last.values()), last
+
+
 def test_a_broad_lobes_texels_without_one_of_their_own_join_its_material():
     """A rough metal (alpha 0.5, rho_s 9, rho_d 0.05) seen in 4 entries per texel: a broad lobe's
     light looks diffuse, so many texels keep no lobe of their own and, judged without one, look 3x
