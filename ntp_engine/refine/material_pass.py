@@ -22,7 +22,7 @@ from ..io.texels import Texels
 from ..learn.ragged import RaggedTraces
 from ..physics.brdf import ALPHA_MAX, ALPHA_MIN
 from ..scanner.scanner import Scanner
-from .inputs import RefineInputs, refine_inputs, store_refined, turned_tangents
+from .inputs import refine_inputs, store_refined, turned_tangents
 from .materials import (
     BasisMaterials,
     WidthField,
@@ -39,6 +39,7 @@ from .materials import (
     second_wins,
     width_field,
 )
+from .model import Start, Trace
 from .policy import lobe_costs, material_costs, refine_toward, turn_costs
 from .priors import LobePrior
 from .settings import ANISOTROPY_PARAMS, TUNING, RefineSettings
@@ -111,28 +112,29 @@ def pooled_widths(
         ids = clear[members == k]
         ids = np.sort(np.random.default_rng(k).choice(ids, min(TUNING.materials.pool_texels, len(ids)), replace=False))
         inp = refine_inputs(scanner, traces, torch.as_tensor(ids), fit, support, texels)
+        tr = inp.obs.trace(settings.noise)  # once for every candidate set below
         a = alpha[k]
         mean = np.sqrt(a[0] * a[1]) * np.ones(2)  # the isotropic lobe of the members' mean width
         iso = mean * TUNING.materials.pool_scales[:, None]
         if a[0] < TUNING.policy.isotropic_ratio * a[1]:
-            c, _, _ = member_lobe_costs(scanner, inp, iso, settings)
+            c, _, _ = member_lobe_costs(tr, inp.start, iso, settings)
             profile = c.numpy()  # the isotropic lobe's
             widths = [mean * pooled_scale(profile, TUNING.materials.pool_scales)]
         else:
             # the isotropic profile and the smaller alpha's in one call, then the larger alpha's
             minor = a * np.stack([np.ones(S), TUNING.materials.pool_scales], 1)
-            c, _, _ = member_lobe_costs(scanner, inp, np.concatenate([iso, minor]), settings)
+            c, _, _ = member_lobe_costs(tr, inp.start, np.concatenate([iso, minor]), settings)
             aniso = np.clip(
                 a * np.array([1.0, pooled_scale(c[:, S:].numpy(), TUNING.materials.pool_scales)]), ALPHA_MIN, ALPHA_MAX
             )
             profile = c[:, :S].numpy()
             widths = [mean * pooled_scale(profile, TUNING.materials.pool_scales)]
             c, _, _ = member_lobe_costs(
-                scanner, inp, aniso * np.stack([TUNING.materials.pool_scales, np.ones(S)], 1), settings
+                tr, inp.start, aniso * np.stack([TUNING.materials.pool_scales, np.ones(S)], 1), settings
             )
             widths.append(aniso * np.array([pooled_scale(c.numpy(), TUNING.materials.pool_scales), 1.0]))
         cand = -np.sort(-np.clip(widths, ALPHA_MIN, ALPHA_MAX), 1)  # alpha_x >= alpha_y
-        c, rd, rs = member_lobe_costs(scanner, inp, cand, settings)
+        c, rd, rs = member_lobe_costs(tr, inp.start, cand, settings)
         j = 0  # the isotropic lobe, unless the anisotropic one wins the vote
         if len(cand) == 2:
             # it pays only where it is anisotropic (its larger alpha may have pooled to the range's
@@ -155,13 +157,13 @@ def pooled_widths(
 
 
 def member_lobe_costs(
-    scanner: Scanner, inp: RefineInputs, widths: np.ndarray, settings: RefineSettings
+    tr: Trace, start: Start, widths: np.ndarray, settings: RefineSettings
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """``refine.lobe_costs`` of ``inp``'s texels under ``widths``: ``(W, 2)`` for all of them or
-    ``(N, W, 2)`` each its own."""
+    """``refine.lobe_costs`` of the texels of ``tr`` (built under ``settings.noise``) from ``start``
+    under ``widths``: ``(W, 2)`` for all of them or ``(N, W, 2)`` each its own."""
     w = torch.as_tensor(widths)
-    w = w.expand(len(inp.obs.mask), -1, -1) if w.dim() == 2 else w
-    return lobe_costs(inp.obs, inp.start, w, settings)
+    w = w.expand(tr.N, -1, -1) if w.dim() == 2 else w
+    return lobe_costs(tr, start, w, settings)
 
 
 def _widths_from_materials(
@@ -189,18 +191,20 @@ def _widths_from_materials(
     for rows in _batches(np.arange(len(idx))):
         k = idx[rows]
         inp = refine_inputs(scanner, traces, torch.as_tensor(k), fit, support, texels)
+        tr = inp.obs.trace(settings.noise)  # once: the turned subset reads its rows
         position = None if texels is None else texels.position[k]
         assert fit.material is not None  # material_pass labels every texel first
         alphas = np.stack([fit.alpha[k], basis.alpha_at(fit.material[k], position)], 1)  # (n, 2 candidates, 2)
-        c, rd, rs = member_lobe_costs(scanner, inp, alphas, settings)
+        c, rd, rs = member_lobe_costs(tr, inp.start, alphas, settings)
         turned = np.nonzero(np.isfinite(turn[rows]))[0]
         angle = np.zeros(len(k))
         if len(turned):  # the material's lobe at the turned tangents
-            sub = inp.rows(torch.as_tensor(turned))
-            a = torch.as_tensor(turn[rows][turned], dtype=sub.start.tangent.dtype)[:, None]
-            t, n = sub.start.tangent, sub.start.normal
-            sub = sub._replace(start=sub.start._replace(tangent=a.cos() * t + a.sin() * torch.cross(n, t, dim=1)))
-            c_t, rd_t, rs_t = member_lobe_costs(scanner, sub, alphas[turned, 1:], settings)
+            sub = torch.as_tensor(turned)
+            start = Start(*(v[sub] for v in inp.start))
+            a = torch.as_tensor(turn[rows][turned], dtype=start.tangent.dtype)[:, None]
+            t, n = start.tangent, start.normal
+            start = start._replace(tangent=a.cos() * t + a.sin() * torch.cross(n, t, dim=1))
+            c_t, rd_t, rs_t = member_lobe_costs(tr.rows(sub), start, alphas[turned, 1:], settings)
             better = (c_t[:, 0] < c[turned, 1]).numpy()
             j = turned[better]
             c[j, 1], rd[j, 1], rs[j, 1] = c_t[better, 0], rd_t[better, 0], rs_t[better, 0]

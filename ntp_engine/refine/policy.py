@@ -266,16 +266,17 @@ def turn_costs(obs: Observations, start: Start, turns: Tensor, settings: RefineS
 
 
 def lobe_costs(
-    obs: Observations, start: Start, alphas: Tensor, settings: RefineSettings | None = None
+    obs: Observations | Trace, start: Start, alphas: Tensor, settings: RefineSettings | None = None
 ) -> tuple[Tensor, Tensor, Tensor]:
     """How well S candidate lobe widths explain N traces: the robust data cost ``(N, S)`` of each
     texel's trace under ``alphas (N, S, 2)`` (alpha_x along ``start``'s tangent; clamped to the
     range) with the texel's own frame and its rho_d and rho_s re-solved under that cost
     (``robust_albedos``), and those ``rho_d, rho_s (N, S, 3)``. Summed over a material's texels
     it is the profile of their cost over the material's lobe width, which one trace alone may not
-    tell from a broader diffuse (``refine.materials.pooled_scale``)."""
+    tell from a broader diffuse (``refine.materials.pooled_scale``). ``obs`` may be their ``Trace``
+    already built under ``settings.noise`` (or its ``rows``), for callers that ask it several times."""
     settings = settings or RefineSettings()
-    tr = obs.trace(settings.noise)
+    tr = obs if isinstance(obs, Trace) else obs.trace(settings.noise)
     dtype = tr.y.dtype
     frame = frame_from_normal_tangent(start.normal.to(dtype), start.tangent.to(dtype))
     N, S = alphas.shape[:2]
