@@ -418,7 +418,7 @@ def load_table(folder: Path) -> RaggedTraces:
     a stage reads the blocks it works on from disk, never the whole table into memory, and never
     writes it (a write would fault). Not copy-on-write: a private writable mapping is counted
     against memory as a whole, and Linux refuses one larger than the machine's memory — the
-    1,000-photo 1024² table (26 GB) on 23 GB failed "Cannot allocate memory"."""
+    1,000-photo 1024² table (29 GB of entries) on 23 GB failed "Cannot allocate memory"."""
     with warnings.catch_warnings():  # torch warns that it cannot make a tensor read-only
         warnings.filterwarnings("ignore", "The given NumPy array is not writable", UserWarning)
         arrays = [torch.from_numpy(np.load(folder / f"{name}.npy", mmap_mode="r")) for name in TABLE_FILES]

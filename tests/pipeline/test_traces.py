@@ -404,8 +404,8 @@ def test_a_disk_too_small_for_the_table_twice_fails_before_any_photo_is_read(tmp
 def test_a_table_larger_than_the_machines_memory_loads(tmp_path):
     """A trace table larger than memory (sparse files: nothing on disk) is memory-mapped and read
     where a stage reads it. Copy-on-write maps failed "Cannot allocate memory" on Linux (a
-    private writable map counts against memory as a whole: the 1,000-photo 1024² table, 26 GB on a
-    23 GB machine, stopped the run after its ~10 min traces stage)."""
+    private writable map counts against memory as a whole: the 1,000-photo 1024² table, 29 GB of
+    entries on a 23 GB machine, stopped the run after its 17 min traces stage)."""
     from ntp_engine.pipeline.traces import TABLE_FILES, load_table
 
     with open("/proc/meminfo") as f:
