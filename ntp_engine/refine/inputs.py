@@ -51,9 +51,7 @@ class RefineInputs(NamedTuple):
 
     def rows(self, idx: torch.Tensor) -> RefineInputs:
         """The same for the texels ``idx`` (rows) only."""
-        return RefineInputs(
-            self.obs.rows(idx), Start(*(v[idx] for v in self.start)), self.specular[idx], self.marginal[idx]
-        )
+        return RefineInputs(self.obs.rows(idx), self.start.rows(idx), self.specular[idx], self.marginal[idx])
 
 
 def refine_inputs(

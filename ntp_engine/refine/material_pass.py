@@ -200,7 +200,7 @@ def _widths_from_materials(
         angle = np.zeros(len(k))
         if len(turned):  # the material's lobe at the turned tangents
             sub = torch.as_tensor(turned)
-            start = Start(*(v[sub] for v in inp.start))
+            start = inp.start.rows(sub)
             a = torch.as_tensor(turn[rows][turned], dtype=start.tangent.dtype)[:, None]
             t, n = start.tangent, start.normal
             start = start._replace(tangent=a.cos() * t + a.sin() * torch.cross(n, t, dim=1))

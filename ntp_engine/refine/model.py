@@ -76,6 +76,10 @@ class Start(NamedTuple):
 
         return cls(col(fit.n_loc), col(fit.t_loc), col(fit.alpha), col(fit.rho_d), col(fit.rho_s))
 
+    def rows(self, idx: Tensor) -> Start:
+        """The same for the texels ``idx`` only."""
+        return Start(*(v[idx] for v in self))
+
 
 # the trace's per-sample arrays: shared between a chunk and its subsets (``Trace.rows``)
 SAMPLE_ARRAYS = ("wo", "wi", "falloff", "wi_c", "falloff_c")

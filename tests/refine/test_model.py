@@ -61,3 +61,10 @@ def test_a_clipped_channel_is_a_lower_bound_alone():
     tr = Trace(DEV, entries, mask, SensorNoise(), None)
     np.testing.assert_array_equal(tr.censored[..., 0].numpy(), (red & mask).numpy())
     assert not tr.censored[..., 1:].any()
+
+
+def test_a_starts_rows_are_every_field_of_those_texels():
+    fields = [torch.arange(4 * w, dtype=torch.float32).reshape(4, w) for w in (3, 3, 2, 3, 3)]
+    sub = Start(*fields).rows(torch.tensor([2, 0]))
+    for got, whole in zip(sub, fields, strict=True):
+        torch.testing.assert_close(got, whole[[2, 0]])
