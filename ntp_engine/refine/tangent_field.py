@@ -18,11 +18,16 @@ right-handed (``physics.frame.turned_about_normal``); axial (mod pi): a lobe's a
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from scipy.spatial import cKDTree
 
 from .settings import TUNING
 from .surface_fields import field_pairs, fused_with_neighbours, semivariogram, texel_spacing
+
+# the distance, in sigmas, where a Gaussian weight falls below float64's epsilon
+_NEGLIGIBLE_SIGMAS = math.sqrt(-2.0 * math.log(np.finfo(np.float64).eps))
 
 
 def _object_axes(t_loc: np.ndarray, normal: np.ndarray, tangent: np.ndarray) -> np.ndarray:
@@ -39,14 +44,23 @@ def _neighbour_axes(
     source: np.ndarray,
     target: np.ndarray,
     k: int,
+    reach: float = np.inf,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """The ``k`` nearest ``source`` texels of each ``target``: their axes' turns from the target's
-    own ``t_loc`` in its tangent plane ``(M, k)`` (radians), the squared length of their projections
-    there, their distances (m) and their rows of ``source`` ``(M, k)`` each."""
-    M = len(target)
+    """The ``k`` nearest ``source`` texels of each ``target`` that has one within ``reach`` (m): their
+    axes' turns from the target's own ``t_loc`` in its tangent plane ``(M, k)`` (radians), the
+    squared length of their projections there, their distances (m) and their rows of ``source``
+    ``(M, k)`` each. A target with none within reach has none: distances inf, rows ``len(source)``,
+    projections 0."""
+    M, k = len(target), min(k, len(source))
     axes = _object_axes(t_loc[source], normal[source], tangent[source])
-    dist, near = cKDTree(position[source]).query(position[target], k=min(k, len(source)))
-    dist, near = dist.reshape(M, -1), near.reshape(M, -1)  # no distance bound: all finite
+    axes = np.concatenate([axes, np.zeros((1, 3))])  # row len(source): no source
+    tree = cKDTree(position[source])
+    dist, near = tree.query(position[target], k=k, distance_upper_bound=reach)
+    dist, near = dist.reshape(M, -1), near.reshape(M, -1)
+    some = np.isinf(dist).any(1) & np.isfinite(dist[:, 0])  # some within reach: all k wherever they lie
+    if some.any():
+        d, n = tree.query(position[target[some]], k=k)
+        dist[some], near[some] = d.reshape(-1, k), n.reshape(-1, k)
     a = axes[near]  # (M, k, 3)
     n_t, t_t = normal[target][:, None], tangent[target][:, None]
     b_t = np.cross(n_t, t_t)
@@ -70,17 +84,22 @@ def neighbour_turns(
     target's tangent plane and weighed by that projection's squared length and a Gaussian of its
     distance, sigma ``TUNING.fields.tangent_reach`` texel spacings; axial mean), and how much to trust it ``(M,)``: the
     resultant of the doubled angles, weighed so, over the projections' weights plus ``TUNING.fields.tangent_doubt`` — 1
-    for near sources along one axis, toward 0 for far or disagreeing ones (0 and turn 0: none).
+    for near sources along one axis, toward 0 for far or disagreeing ones (0 and turn 0: none, or
+    none within the distance where the Gaussian falls below float64's epsilon).
     ``spacing``: ``texel_spacing(position)``, computed here unless given."""
     M = len(target)
     turn, agree = np.zeros(M), np.zeros(M)
     if M == 0 or len(source) == 0:
         return turn, agree
     spacing = texel_spacing(position) if spacing is None else spacing
+    sigma = TUNING.fields.tangent_reach * max(spacing, 1e-9)
+    # a target whose nearest source lies where the Gaussian has fallen below float64's epsilon has
+    # no neighbours (its trust would be below it); the bounded search skips the far side of the
+    # object — a k-d tree's slow case, and most targets of a material lie far from its sources
     psi, size, dist, _ = _neighbour_axes(
-        position, normal, tangent, t_loc, source, target, TUNING.fields.tangent_neighbours
+        position, normal, tangent, t_loc, source, target, TUNING.fields.tangent_neighbours, sigma * _NEGLIGIBLE_SIGMAS
     )
-    fall = np.exp(-0.5 * (dist / (TUNING.fields.tangent_reach * max(spacing, 1e-9))) ** 2)
+    fall = np.exp(-0.5 * (dist / sigma) ** 2)
     w = size * fall  # an axis nearly along the target's normal says little
     c, s = (w * np.cos(2 * psi)).sum(1), (w * np.sin(2 * psi)).sum(1)
     count = size.sum(1)

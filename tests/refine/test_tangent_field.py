@@ -66,6 +66,35 @@ def test_no_far_or_disagreeing_neighbours_give_no_confidence():
     assert agree[d > 0.04].max() < 0.2  # 2 sigma (tangent_reach 10 x 2 mm) away
 
 
+def test_a_target_with_no_source_where_the_weight_is_above_double_precision_has_none():
+    # a strip 200 spacings long, sources at one end (the reach is 10 spacings): targets within ~85
+    # spacings have neighbours, and their turn and trust are those of the k nearest wherever they
+    # lie (as an unbounded search gives them); beyond, turn 0 and trust 0 exactly
+    spacing = 0.001
+    x = np.arange(200) * spacing
+    position = np.stack([x, np.zeros(200), np.zeros(200)], 1)
+    normal, tangent = np.tile([0.0, 0.0, 1.0], (200, 1)), np.tile([1.0, 0.0, 0.0], (200, 1))
+    t_loc = np.tile(_axis(0.0), (200, 1))
+    source = np.arange(10)
+    t_loc[source] = _axis(40.0)
+    t_loc[source[::3]] = _axis(44.0)
+    target = np.arange(10, 200)
+    turn, agree = neighbour_turns(position, normal, tangent, t_loc, source, target, spacing)
+    gap = (target - 9) * spacing / (TUNING.fields.tangent_reach * spacing)  # to the nearest source, in sigmas
+    has = np.exp(-0.5 * gap**2) >= np.finfo(np.float64).eps
+    assert has.sum() > 50 and (~has).sum() > 50
+    assert (turn[~has] == 0).all() and (agree[~has] == 0).all()
+    # the same sums over the k nearest, by brute force
+    d = np.abs(x[target][:, None] - x[source][None])
+    k = min(TUNING.fields.tangent_neighbours, len(source))
+    near = np.argsort(d, 1, kind="stable")[:, :k]
+    psi = np.radians(np.where(source[near] % 3 == 0, 44.0, 40.0))
+    w = np.exp(-0.5 * (np.take_along_axis(d, near, 1) / (TUNING.fields.tangent_reach * spacing)) ** 2)
+    c, s = (w * np.cos(2 * psi)).sum(1), (w * np.sin(2 * psi)).sum(1)
+    np.testing.assert_allclose(turn[has], 0.5 * np.arctan2(s, c)[has], rtol=1e-9)
+    np.testing.assert_allclose(agree[has], (np.hypot(c, s) / (k + TUNING.fields.tangent_doubt))[has], rtol=1e-9)
+
+
 def _turned(t_loc: np.ndarray, turn: np.ndarray) -> np.ndarray:
     """Axis angles (deg) of ``t_loc`` turned by ``turn`` (rad) in the plane's frame."""
     return np.degrees(np.arctan2(t_loc[:, 1], t_loc[:, 0]) + turn)
