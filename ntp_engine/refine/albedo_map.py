@@ -27,6 +27,7 @@ from scipy.sparse import csr_matrix, diags
 from scipy.sparse.linalg import cg
 
 from ..io.maps import uv_to_pixel
+from ..io.progress import QUIET, Progress
 from ..physics.brdf import RHO_D_MAX
 from .footprint import tap_uv
 from .settings import TUNING
@@ -67,13 +68,15 @@ def sharpened_albedos(
     tap_weight: np.ndarray,
     albedo: np.ndarray,
     solved: np.ndarray,
+    progress: Progress = QUIET,
 ) -> np.ndarray:
     """``albedo (T, 3)`` with the texels ``solved (U,)`` solved jointly from M entries (module
     docstring): ``diffuse (M, 3)`` each entry's unit-albedo diffuse light, ``target (M, 3)`` its
     pixel less its lobe's light (linear), ``inv_sigma (M, 3)`` its sensor 1/sigma (0: not used —
     masked or clipped), ``taps (M, 4)`` the texels its taps land in and ``tap_weight (M, 4)``
     their weights (``tap_texels``). Entries that reach no solved texel are left out. In [0,
-    RHO_D_MAX]; float64."""
+    RHO_D_MAX]; float64. Reports each channel's solves (``TUNING.albedo_map.rounds`` each) as the
+    progress stage "albedo solve"."""
     out = albedo.astype(np.float64).copy()
     T, U = len(albedo), len(solved)
     if U == 0:
@@ -82,6 +85,7 @@ def sharpened_albedos(
     column[solved] = np.arange(U)
     col = column[taps]  # (M, 4): -1 for a held texel
     reaches = ((col >= 0) & (tap_weight > 0)).any(1)
+    bar = progress.counter("albedo solve", albedo.shape[1] * TUNING.albedo_map.rounds, "solve")
     for ch in range(albedo.shape[1]):
         use = reaches & (inv_sigma[:, ch] > 0)
         d, w, c = diffuse[use, ch], tap_weight[use], col[use]
@@ -109,5 +113,7 @@ def sharpened_albedos(
                 rtol=TUNING.albedo_map.cg_tolerance,
                 maxiter=500,
             )
+            bar.update()
         out[solved, ch] = np.clip(x, 0.0, RHO_D_MAX)
+    bar.close()
     return out

@@ -43,6 +43,7 @@ PROGRESS_STAGES = (
     "material lobes",
     "tangent turns",
     "albedo map",
+    "albedo solve",
 )
 
 
@@ -186,7 +187,7 @@ def sharpen_albedos(
     bar.close()
     if parts:
         d, y, s, t, w = (np.concatenate(col) for col in zip(*parts, strict=True))
-        fit.rho_d = sharpened_albedos(d, y, s, t, w, fit.rho_d, idx.numpy()).astype(fit.rho_d.dtype)
+        fit.rho_d = sharpened_albedos(d, y, s, t, w, fit.rho_d, idx.numpy(), progress).astype(fit.rho_d.dtype)
 
 
 def fuse_normals(fit: TexelFit, texels: Texels, i_obs: np.ndarray) -> None:

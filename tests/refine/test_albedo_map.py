@@ -103,3 +103,21 @@ def test_a_solved_texel_no_entry_reaches_keeps_its_value():
     out = sharpened_albedos(d, y, s, taps, w, start, np.array([5]))
     np.testing.assert_allclose(out[5], start[5])
     np.testing.assert_array_equal(sharpened_albedos(d, y, s, taps, w, start, np.array([], np.int64)), start)
+
+
+def test_the_joint_solve_reports_each_of_its_solves(tmp_path):
+    """Its progress stage "albedo solve" (one of ``passes.PROGRESS_STAGES``) counts every channel's
+    rounds to its end: at 1024² the solve runs ~a minute after the albedo map's batches."""
+    import json
+
+    from ntp_engine.io.progress import Progress
+    from ntp_engine.refine.passes import PROGRESS_STAGES
+    from ntp_engine.refine.settings import TUNING
+
+    truth = np.where(np.arange(20) < 10, 0.2, 0.8)[:, None] * np.ones(3)
+    d, y, s, taps, w, texel = _blended_entries(truth, 24, 3)
+    log = tmp_path / "progress.jsonl"
+    sharpened_albedos(d, y, s, taps, w, _own_answers(d, y, texel, 20), np.arange(20), Progress(json_path=log))
+    rows = [json.loads(line) for line in log.read_text().splitlines()]
+    assert {row["stage"] for row in rows} == {"albedo solve"} and "albedo solve" in PROGRESS_STAGES
+    assert rows[-1]["done"] == rows[-1]["total"] == 3 * TUNING.albedo_map.rounds
